@@ -1,0 +1,35 @@
+# The README's two commands: `make demo` and `make test`. Each creates .venv when it is missing and
+# installs the pinned dependencies from requirements.txt; a second run installs nothing again.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.dyn_node-installed
+PIP    := $(PY) -m pip --disable-pip-version-check -q
+# Tests bring up their own ROS 2 processes; keep them on this machine and off other domains.
+export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
+PYTEST_ARGS ?=
+
+.PHONY: demo test bench soak lock clean
+
+$(STAMP): requirements.txt setup.py package.xml
+	@test -x $(PY) || { echo "creating $(VENV)"; $(PYTHON) -m venv $(VENV); }
+	@echo "installing pinned dependencies into $(VENV) (first run only)"
+	$(PIP) install -r requirements.txt
+	$(PIP) install --no-deps --no-build-isolation -e .
+	@touch $@
+
+demo: $(STAMP)
+	$(PY) -m dyn_node.demo
+
+test: $(STAMP)
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	$(PY) -m dyn_node.bench
+
+lock: $(STAMP)
+	@echo "review, then paste below the closure marker in requirements.txt:"
+	@$(PY) -m pip freeze --exclude-editable
+
+clean:
+	rm -rf $(VENV) build *.egg-info

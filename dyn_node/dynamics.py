@@ -1,0 +1,133 @@
+"""Rigid-body dynamics on a :class:`~dyn_node.model.RobotModel`, single-state and batched.
+
+Units are SI and arrays are in model joint order: q (rad|m), v (rad/s|m/s), a (rad/s²|m/s²),
+torques in N·m (N for prismatic joints). Batched functions take and return N×nv arrays, one row
+per state.
+
+Friction is the URDF's ``<dynamics>``: viscous ``damping·v`` plus Coulomb ``friction·sign(v)``.
+Armature (rotor inertia reflected to the joint) adds ``armature·a``. With both enabled,
+``rnea(q, v, a) = M(q)·a + bias(q, v)`` holds exactly, with friction inside ``bias``.
+
+A :class:`Dynamics` owns Pinocchio work buffers and is not thread-safe: give each thread its own.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from .model import RobotModel
+
+
+@dataclass(frozen=True)
+class DynamicsOptions:
+    include_friction: bool = True
+    include_armature: bool = True
+
+
+@dataclass(frozen=True)
+class TorqueTerms:
+    """Torques split by how they scale when a trajectory is stretched in time by k (N×nv, N·m).
+
+    ``static``: gravity + Coulomb friction (unchanged by k); ``viscous``: damping·v (÷k);
+    ``inertial``: M(q)a + C(q, v)v + armature·a (÷k²). Their sum is the full RNEA torque.
+    """
+
+    static: np.ndarray
+    viscous: np.ndarray
+    inertial: np.ndarray
+
+    def total(self, k: float = 1.0) -> np.ndarray:
+        return self.static + self.viscous / k + self.inertial / (k * k)
+
+
+class Dynamics:
+    """Gravity, inverse dynamics, mass matrix and bias for one model and one set of options."""
+
+    def __init__(self, model: RobotModel, options: DynamicsOptions = DynamicsOptions(),
+                 threads: int | None = None):
+        self.model = model
+        self.options = options
+        pm = model.pin_model.copy()
+        if not options.include_armature:
+            pm.armature = np.zeros(pm.nv)
+        self._pm = pm
+        self._data = pm.createData()
+        self._damping = np.array(pm.damping) if options.include_friction else np.zeros(pm.nv)
+        self._coulomb = np.array(pm.friction) if options.include_friction else np.zeros(pm.nv)
+        self._has_friction = bool(np.any(self._damping) or np.any(self._coulomb))
+        self._zero = np.zeros(pm.nv)
+        self._threads = max(1, min(threads or (os.cpu_count() or 1), 8))
+        self._pool: pin.ModelPool | None = None
+
+    @property
+    def nv(self) -> int:
+        return self._pm.nv
+
+    # --- single state ------------------------------------------------------------------------
+    def gravity(self, q: np.ndarray) -> np.ndarray:
+        """Generalized gravity g(q) (N·m): the torque that holds the robot still at q."""
+        return pin.computeGeneralizedGravity(self._pm, self._data, q).copy()
+
+    def friction(self, v: np.ndarray) -> np.ndarray:
+        """Viscous plus Coulomb friction torque at velocity v (N·m); zero when disabled."""
+        return self._damping * v + self._coulomb * np.sign(v)
+
+    def rnea(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """Inverse dynamics τ = M(q)a + C(q, v)v + g(q) + friction(v) (N·m)."""
+        tau = pin.rnea(self._pm, self._data, q, v, a).copy()
+        if self._has_friction:
+            tau += self.friction(v)
+        return tau
+
+    def gravity_and_rnea(self, q: np.ndarray, v: np.ndarray,
+                         a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(g(q), rnea(q, v, a)) for the live path: two Pinocchio calls, no Python in between."""
+        return self.gravity(q), self.rnea(q, v, a)
+
+    def mass_matrix(self, q: np.ndarray) -> np.ndarray:
+        """Joint-space inertia M(q) (kg·m²), armature on the diagonal when enabled; symmetric."""
+        M = pin.crba(self._pm, self._data, q)
+        return np.triu(M) + np.triu(M, 1).T
+
+    def bias(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """h(q, v) = C(q, v)v + g(q) + friction(v) (N·m), so that rnea = M·a + h."""
+        h = pin.nonLinearEffects(self._pm, self._data, q, v).copy()
+        if self._has_friction:
+            h += self.friction(v)
+        return h
+
+    # --- batched -----------------------------------------------------------------------------
+    def _rnea_rigid_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> np.ndarray:
+        Q, V, A = (np.ascontiguousarray(x, dtype=float) for x in (Q, V, A))
+        n = len(Q)
+        if n == 0:
+            return np.zeros((0, self.nv))
+        if self._pool is None:
+            self._pool = pin.ModelPool(self._pm, self._threads)
+        out = np.empty((self.nv, n), order="F")
+        # Pinocchio's batch wants one state per column; the row-major N×nv arrays transposed are
+        # exactly that memory, so no copy is made on the way in or out.
+        pin.rneaInParallel(self._threads, self._pool, Q.T, V.T, A.T, out)
+        return out.T
+
+    def rnea_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> np.ndarray:
+        """rnea over N states: Q, V, A are N×nv; returns N×nv (N·m)."""
+        tau = self._rnea_rigid_batch(Q, V, A)
+        if self._has_friction:
+            tau = tau + self._damping * V + self._coulomb * np.sign(V)
+        return tau
+
+    def gravity_batch(self, Q: np.ndarray) -> np.ndarray:
+        """g(q) over N states (N×nv, N·m)."""
+        Z = np.zeros_like(Q, dtype=float)
+        return self._rnea_rigid_batch(Q, Z, Z)
+
+    def terms_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> TorqueTerms:
+        """RNEA split into static, viscous and inertial parts (see :class:`TorqueTerms`)."""
+        g = self.gravity_batch(Q)
+        inertial = self._rnea_rigid_batch(Q, V, A) - g
+        return TorqueTerms(static=g + self._coulomb * np.sign(V), viscous=self._damping * V,
+                           inertial=inertial)

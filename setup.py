@@ -1,0 +1,30 @@
+"""ament_python package definition; ``colcon build`` and ``pip install`` both use it."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "dyn_node"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    package_data={PACKAGE: ["urdf/*.urdf", "schemas/*.json", "config/*.yaml"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="dyn_node developers",
+    maintainer_email="dev@dyn-node.invalid",
+    description="Dynamic-feasibility monitor for ROS 2: RNEA torques, limit checks, MCAP audit.",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "dyn_node_demo = dyn_node.demo:main",
+        ],
+    },
+)
