@@ -25,7 +25,7 @@ test: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 bench: $(STAMP)
-	$(PY) -m dyn_node.bench
+	$(PY) -m benchmarks.run $(BENCH_ARGS)
 
 lock: $(STAMP)
 	@echo "review, then paste below the closure marker in requirements.txt:"

@@ -24,6 +24,10 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
+            "dyn_node = dyn_node.node:main",
+            "dyn_sim = dyn_node.sim_node:main",
+            "dyn-audit = dyn_node.audit:main",
+            "dyn-bag-recover = dyn_node.bag_recover:main",
             "dyn_node_demo = dyn_node.demo:main",
         ],
     },

@@ -119,7 +119,9 @@ def _float_attr(elem: ET.Element | None, name: str, where: str) -> float | None:
 
 def limits_from_urdf(root: ET.Element, joint_names: Sequence[str]) -> JointLimits:
     """Read position, velocity and effort limits, soft limits and continuity from URDF joints."""
-    by_name = {j.get("name"): j for j in root.iter("joint")}
+    # Only <robot>'s direct <joint> children: <transmission> elements also contain <joint name=…>
+    # tags (UR5's do), and iterating the whole tree would let those shadow the real joints.
+    by_name = {j.get("name"): j for j in root.findall("joint")}
     n = len(joint_names)
     lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
     slo, shi = np.full(n, -np.inf), np.full(n, np.inf)
@@ -177,10 +179,16 @@ def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[s
             data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
             raise ModelError(f"{where}: not valid YAML: {exc}", code="limits_bad_yaml") from exc
-    if isinstance(data, Mapping) and "joint_limits" not in data and len(data) == 1:
-        inner = next(iter(data.values()))
-        if isinstance(inner, Mapping) and "ros__parameters" in inner:
-            data = inner["ros__parameters"]
+    if isinstance(data, Mapping) and "joint_limits" not in data:
+        # A ROS parameters file: <node name or /**>: ros__parameters: joint_limits: …
+        nested = [v["ros__parameters"] for v in data.values()
+                  if isinstance(v, Mapping) and isinstance(v.get("ros__parameters"), Mapping)
+                  and "joint_limits" in v["ros__parameters"]]
+        if len(nested) > 1:
+            raise ModelError(f"{where}: several nodes' ros__parameters carry joint_limits; "
+                             "give a file with one", code="limits_no_joint_limits")
+        if nested:
+            data = nested[0]
     if not isinstance(data, Mapping) or not isinstance(data.get("joint_limits"), Mapping):
         raise ModelError(f"{where}: expected a top-level 'joint_limits:' mapping of joint names",
                          code="limits_no_joint_limits")
@@ -217,7 +225,7 @@ def _coerce(where: str, joint: str, key: str, value: Any) -> Any:
     try:
         curve = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
-        raise bad from None
+        curve = np.empty((0, 0))  # reported as a bad curve below, with the expected shape
     if (curve.ndim != 2 or curve.shape[1] != 2 or len(curve) < 1 or not np.all(np.isfinite(curve))
             or np.any(curve < 0) or np.any(np.diff(curve[:, 0]) <= 0)):
         raise ModelError(f"{where}: joint_limits.{joint}.effort_speed_curve must be a list of "

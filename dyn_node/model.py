@@ -85,6 +85,27 @@ def urdf_hash(urdf: str) -> str:
     return hashlib.sha256(urdf.encode("utf-8")).hexdigest()
 
 
+def _check_numbers(elem: ET.Element | None, attrs: Sequence[str], where: str,
+                   vector: bool = False) -> None:
+    """Reject non-numeric attributes here, with the URDF location, before Pinocchio sees them."""
+    if elem is None:
+        return
+    for a in attrs:
+        text = elem.get(a)
+        if text is None:
+            continue
+        parts = text.split()
+        try:
+            values = [float(x) for x in parts]
+        except ValueError:
+            values = []
+        if not values or (vector and len(values) != 3) or (not vector and len(values) != 1) \
+                or any(math.isnan(x) for x in values):
+            raise ModelError(f"URDF {where}: attribute {a}={text!r} is not "
+                             f"{'3 numbers' if vector else 'a number'}",
+                             code="urdf_bad_number")
+
+
 def _parse_urdf(urdf: str) -> ET.Element:
     try:
         root = ET.fromstring(urdf)
@@ -97,6 +118,12 @@ def _parse_urdf(urdf: str) -> ET.Element:
     if not joints:
         raise ModelError("robot description has no <joint>", code="urdf_no_joints")
     links = {link.get("name") for link in root.findall("link")}
+    for link in root.findall("link"):
+        _check_numbers(link.find("inertial/mass"), ("value",), f"link '{link.get('name')}' <mass>")
+        _check_numbers(link.find("inertial/inertia"), ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"),
+                       f"link '{link.get('name')}' <inertia>")
+        _check_numbers(link.find("inertial/origin"), ("xyz", "rpy"),
+                       f"link '{link.get('name')}' <inertial><origin>", vector=True)
     for j in joints:
         name, jtype = j.get("name"), j.get("type")
         if jtype not in _SUPPORTED_JOINT_TYPES:
@@ -105,8 +132,17 @@ def _parse_urdf(urdf: str) -> ET.Element:
         for tag in ("parent", "child"):
             el = j.find(tag)
             if el is None or el.get("link") not in links:
-                raise ModelError(f"URDF joint '{name}': <{tag}> names a link that does not exist",
+                raise ModelError(f"URDF joint '{name}': <{tag}> names a link that does not exist"
+                                 f" ({el.get('link') if el is not None else 'missing'!r})",
                                  code="urdf_bad_link")
+        where = f"joint '{name}'"
+        _check_numbers(j.find("limit"), ("lower", "upper", "effort", "velocity"), f"{where} <limit>")
+        _check_numbers(j.find("dynamics"), ("damping", "friction"), f"{where} <dynamics>")
+        _check_numbers(j.find("safety_controller"), ("soft_lower_limit", "soft_upper_limit",
+                                                     "k_position", "k_velocity"),
+                       f"{where} <safety_controller>")
+        _check_numbers(j.find("origin"), ("xyz", "rpy"), f"{where} <origin>", vector=True)
+        _check_numbers(j.find("axis"), ("xyz",), f"{where} <axis>", vector=True)
     return root
 
 
@@ -118,7 +154,7 @@ def _as_revolute(root: ET.Element) -> str:
     limits are read from the original text, so the placeholder bounds written here are never used.
     """
     root = ET.fromstring(ET.tostring(root))
-    for j in root.iter("joint"):
+    for j in root.findall("joint"):
         if j.get("type") == "continuous":
             j.set("type", "revolute")
             lim = j.find("limit")
@@ -129,7 +165,9 @@ def _as_revolute(root: ET.Element) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
-@dataclass(frozen=True)
+# eq=False: fields hold NumPy arrays and Pinocchio models, so the generated __eq__/__hash__ would
+# raise; identity semantics let a model be a dict key or an lru_cache argument.
+@dataclass(frozen=True, eq=False)
 class RobotModel:
     """A loaded robot: Pinocchio model (payload, gravity and armature applied) plus bookkeeping.
 
@@ -171,12 +209,13 @@ class RobotModel:
 
     @property
     def last_link(self) -> str:
-        """The child link of the last actuated joint: the default payload frame."""
-        root = ET.fromstring(self.urdf)
-        for j in root.iter("joint"):
-            if j.get("name") == self.joint_names[-1]:
-                return j.find("child").get("link")
-        raise ModelError("model has no actuated joint", code="no_joints")  # pragma: no cover
+        """The default payload frame: the flange at the end of the chain.
+
+        Start at the child link of the last actuated joint and follow fixed joints while the
+        chain does not branch and the next link is massless (a pure frame), e.g. Panda's
+        ``panda_link7`` → ``panda_link8`` (the flange; ``panda_hand`` has mass, so it stops there).
+        """
+        return _flange_link(self.urdf, self.joint_names[-1], tuple(self.locked_joints))
 
     def with_payload(self, payload: Payload) -> "RobotModel":
         """Same robot carrying ``payload`` instead of the current one; the URDF is not reparsed."""
@@ -264,10 +303,36 @@ def _mapping(model_names: tuple[str, ...], locked: tuple[str, ...],
     return idx, len(names) - len(model_names)
 
 
+@lru_cache(maxsize=32)
+def _flange_link(urdf: str, last_joint: str, locked: tuple[str, ...]) -> str:
+    root = ET.fromstring(urdf)
+    joints = root.findall("joint")
+    link = next((j.find("child").get("link") for j in joints if j.get("name") == last_joint), None)
+    if link is None:  # pragma: no cover - joint names come from this URDF
+        raise ModelError(f"joint '{last_joint}' not in the URDF", code="no_joints")
+    masses = {}
+    for el in root.findall("link"):
+        m = el.find("inertial/mass")
+        masses[el.get("name")] = float(m.get("value", "0")) if m is not None else 0.0
+    for _ in range(len(joints)):
+        children = [j for j in joints if j.find("parent").get("link") == link]
+        if len(children) != 1:
+            break
+        j = children[0]
+        nxt = j.find("child").get("link")
+        if (j.get("type") != "fixed" and j.get("name") not in locked) or masses.get(nxt, 0.0) > 0:
+            break
+        link = nxt
+    return link
+
+
 def _gravity_vector(gravity: Sequence[float]) -> np.ndarray:
-    g = np.asarray(gravity, dtype=float)
+    try:
+        g = np.array(gravity, dtype=float)
+    except (TypeError, ValueError):
+        g = np.full(1, np.nan)
     if g.shape != (3,) or not np.all(np.isfinite(g)):
-        raise ModelError(f"gravity must be 3 finite numbers (m/s²), got {list(np.ravel(g))}",
+        raise ModelError(f"gravity must be 3 finite numbers (m/s²), got {gravity!r}",
                          code="bad_gravity")
     g.setflags(write=False)
     return g
@@ -308,6 +373,8 @@ def _gravity_load(model: pin.Model, limits: JointLimits, samples: int = 32) -> n
     rng = np.random.default_rng(0)
     lo = np.where(np.isfinite(limits.position_lower), limits.position_lower, -np.pi)
     hi = np.where(np.isfinite(limits.position_upper), limits.position_upper, np.pi)
+    # Inverted limits are reported by check_limits; sampling must still work to get there.
+    lo, hi = np.minimum(lo, hi), np.maximum(lo, hi)
     data = model.createData()
     worst = np.zeros(model.nv)
     for _ in range(samples):

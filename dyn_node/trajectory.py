@@ -155,7 +155,7 @@ def _quintic(p0, v0, a0, p1, v1, a1, T):
     T = T[:, None]
     c3 = (20 * (p1 - p0) - (8 * v1 + 12 * v0) * T - (3 * a0 - a1) * T**2) / (2 * T**3)
     c4 = (30 * (p0 - p1) + (14 * v1 + 16 * v0) * T + (3 * a0 - 2 * a1) * T**2) / (2 * T**4)
-    c5 = (12 * (p1 - p0) - 6 * (v1 + v0) * T - (a1 - a0) * T**2) / (2 * T**5)
+    c5 = (12 * (p1 - p0) - 6 * (v1 + v0) * T + (a1 - a0) * T**2) / (2 * T**5)
     return np.stack([p0, v0, a0 / 2, c3, c4, c5], axis=1)
 
 
@@ -226,8 +226,19 @@ def interpolate(traj: Trajectory, mode: Interpolation | None = None) -> Piecewis
 
 
 def sample_times(times: np.ndarray, period: float) -> np.ndarray:
-    """A dense time grid over [times[0], times[-1]] at ``period`` s that includes every waypoint."""
+    """A dense time grid over [times[0], times[-1]] at ``period`` s that includes every waypoint.
+
+    Grid points closer than 1e-6·period to a waypoint are dropped, so float round-off in the
+    grid (0.1·3 = 0.30000000000000004) never puts two samples a few 1e-17 s apart, which would
+    turn rounding noise into huge finite-difference rates.
+    """
     if period <= 0 or not np.isfinite(period):
         raise ValueError("sample period must be a positive number of seconds")
-    grid = np.arange(times[0], times[-1], period)
+    times = np.asarray(times, dtype=float)
+    n = int(np.floor((times[-1] - times[0]) / period)) + 1
+    grid = times[0] + period * np.arange(n)  # multiplication, not accumulation: no drift
+    idx = np.clip(np.searchsorted(times, grid), 1, len(times) - 1) if len(times) > 1 else None
+    if idx is not None:
+        near = np.minimum(np.abs(grid - times[idx - 1]), np.abs(grid - times[idx]))
+        grid = grid[near > 1e-6 * period]
     return np.union1d(grid, times)

@@ -1,0 +1,168 @@
+"""Joint limits: URDF parsing, the ros2_control-style YAML with dyn_node's keys, and warnings."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from dyn_node.errors import ModelError
+from dyn_node.limits import LIMIT_KINDS, LIMITS_YAML_KEYS, load_limits_yaml
+from dyn_node.model import load_model
+
+FULL = """
+joint_limits:
+  joint1:
+    has_position_limits: true
+    min_position: -2.0
+    max_position: 2.5
+    has_velocity_limits: true
+    max_velocity: 1.5
+    has_acceleration_limits: true
+    max_acceleration: 10.0
+    has_jerk_limits: true
+    max_jerk: 200.0
+    has_effort_limits: true
+    max_effort: 35.0
+    max_effort_rate: 500.0
+    max_rms_effort: 20.0
+    rms_window: 2.5
+    max_power: 80.0
+    effort_speed_curve: [[0.0, 35.0], [1.0, 30.0], [3.0, 10.0]]
+    armature: 0.01
+  joint2:
+    has_velocity_limits: false
+    has_position_limits: false
+    max_acceleration: 12.0
+"""
+
+
+@pytest.fixture(scope="module")
+def two_link():
+    return load_model(builtin="planar_2link")
+
+
+def test_urdf_limits(two_link):
+    lim = two_link.limits
+    assert lim.names == ("joint1", "joint2")
+    np.testing.assert_array_equal(lim.position_lower, [-3.0, -2.6])
+    np.testing.assert_array_equal(lim.position_upper, [3.0, 2.6])
+    np.testing.assert_array_equal(lim.soft_lower, [-2.9, -2.5])
+    np.testing.assert_array_equal(lim.soft_upper, [2.9, 2.5])
+    np.testing.assert_array_equal(lim.effort, [40.0, 15.0])
+    np.testing.assert_array_equal(lim.velocity, [3.0, 4.0])
+    # Missing limits are unlimited, never zero.
+    for kind in ("acceleration", "jerk", "effort_rate", "rms_effort", "power"):
+        assert np.all(getattr(lim, kind) == np.inf), kind
+    np.testing.assert_array_equal(lim.armature, [0.0, 0.0])
+    assert lim.effort_speed_curve == (None, None)
+    np.testing.assert_array_equal(lim.effort_envelope(np.array([[1.0, 2.0]])), [[np.inf, np.inf]])
+    assert "effort_speed" in LIMIT_KINDS
+
+
+def test_full_yaml_overrides(two_link, tmp_path):
+    m = two_link.with_limits(FULL)
+    lim = m.limits
+    assert lim.position_lower.tolist() == [-2.0, -np.inf]
+    assert lim.position_upper.tolist() == [2.5, np.inf]
+    assert lim.velocity.tolist() == [1.5, np.inf]  # has_velocity_limits: false removes the URDF's 4.0
+    assert lim.acceleration.tolist() == [10.0, 12.0]  # max_* without has_* applies
+    assert lim.jerk.tolist() == [200.0, np.inf]
+    assert lim.effort.tolist() == [35.0, 15.0]  # joint2 keeps its URDF effort
+    assert lim.effort_rate.tolist() == [500.0, np.inf]
+    assert lim.rms_effort.tolist() == [20.0, np.inf]
+    assert lim.rms_window.tolist() == [2.5, 1.0]
+    assert lim.power.tolist() == [80.0, np.inf]
+    assert lim.armature.tolist() == [0.01, 0.0]
+    np.testing.assert_array_equal(m.pin_model.armature, [0.01, 0.0])
+    env = lim.effort_envelope(np.array([[0.5, 1.0], [-2.0, 0.0], [9.0, 1.0]]))
+    np.testing.assert_allclose(env, [[32.5, np.inf], [20.0, np.inf], [10.0, np.inf]])
+    d = lim.to_dict()
+    assert d["velocity"] == [1.5, None] and d["effort_speed_curve"][1] is None
+    # Same from a file, and nested under <node>: ros__parameters:.
+    f = tmp_path / "limits.yaml"
+    f.write_text(FULL)
+    assert m.with_limits(f).limits.to_dict() == d
+    assert m.with_limits(str(f)).limits.to_dict() == d
+    nested = tmp_path / "params.yaml"
+    nested.write_text(yaml.safe_dump({"dyn_node": {"ros__parameters": yaml.safe_load(FULL)}}))
+    assert m.with_limits(nested).limits.to_dict() == d
+    assert m.with_limits(yaml.safe_load(FULL)).limits.to_dict() == d
+    several = {"controller_manager": {"ros__parameters": {"update_rate": 100}},
+               "/**": {"ros__parameters": yaml.safe_load(FULL)}}
+    assert m.with_limits(several).limits.to_dict() == d
+    several["other"] = {"ros__parameters": yaml.safe_load(FULL)}
+    bad(several, "limits_no_joint_limits", "several")
+    # None goes back to URDF limits only.
+    assert m.with_limits(None).limits.to_dict() == two_link.limits.to_dict()
+    lm = load_model(builtin="planar_2link", limits_yaml=f)
+    assert lm.limits.to_dict() == d
+
+
+def bad(text_or_map, code, *fragments):
+    with pytest.raises(ModelError) as e:
+        load_model(builtin="planar_2link", limits_yaml=text_or_map)
+    assert e.value.code == code, str(e.value)
+    for f in fragments:
+        assert f in str(e.value), str(e.value)
+
+
+def test_yaml_errors(tmp_path):
+    bad("joint_limits:\n  joint1:\n    max_velocty: 2.0\n", "limits_unknown_key",
+        "joint1", "max_velocty", "did you mean 'max_velocity'")
+    bad("joint_limits:\n  joint1:\n    has_effort_limit: true\n", "limits_unknown_key",
+        "has_effort_limits")
+    bad("joint_limits:\n  joint1:\n    max_velocity: fast\n", "limits_wrong_type",
+        "joint1.max_velocity", "float")
+    bad("joint_limits:\n  joint1:\n    has_velocity_limits: 1\n", "limits_wrong_type", "bool")
+    bad("joint_limits:\n  joint1:\n    max_effort: true\n", "limits_wrong_type")
+    bad("joint_limits:\n  joint1:\n    max_effort: .nan\n", "limits_wrong_type")
+    bad("joint_limits:\n  elbow:\n    max_effort: 3.0\n", "limits_unknown_joint", "elbow", "joint1")
+    bad("joint_limits:\n  joint1: 3\n", "limits_bad_entry", "joint1")
+    bad("limits:\n  joint1: {}\n", "limits_no_joint_limits")
+    bad("joint_limits: [1, 2\n", "limits_bad_yaml")
+    bad(str(tmp_path / "missing.yaml"), "limits_file_missing", "missing.yaml")
+    for curve in ("[[1.0, 5.0], [0.5, 4.0]]", "[[0.0, -1.0]]", "[[0.0, 1.0, 2.0]]", "[]",
+                  "[[0.0, .inf]]", "[[a, b]]", "7"):
+        bad(f"joint_limits:\n  joint1:\n    effort_speed_curve: {curve}\n", "limits_bad_curve",
+            "effort_speed_curve")
+    f = tmp_path / "typo.yaml"
+    f.write_text("joint_limits:\n  joint2:\n    max_jrek: 1.0\n")
+    bad(f, "limits_unknown_key", str(f), "joint2", "max_jerk")
+
+
+def test_every_documented_key_is_accepted():
+    for key, kind in LIMITS_YAML_KEYS.items():
+        value = {bool: True, float: 1.0, list: [[0.0, 1.0]]}[kind]
+        out = load_limits_yaml({"joint_limits": {"j": {key: value}}})
+        assert key in out["j"]
+
+
+def test_suspicious_limits_warn(two_link):
+    m = two_link.with_limits(
+        "joint_limits:\n"
+        "  joint1: {min_position: 1.0, max_position: -1.0, max_velocity: 0.0, max_effort: 100000.0}\n"
+        "  joint2: {max_acceleration: -5.0, soft_lower_limit: 1.0, soft_upper_limit: 0.5,"
+        " armature: -0.1, rms_window: 0.0}\n")
+    w = "\n".join(m.warnings)
+    assert "joint1: lower position limit 1 > upper -1" in w
+    assert "joint1: velocity limit 0 is not positive" in w
+    assert "joint1: effort limit 100000" in w and "gravity load" in w
+    assert "joint2: acceleration limit -5 is not positive" in w
+    assert "joint2: soft lower limit 1 > soft upper 0.5" in w
+    assert "joint2: armature -0.1" in w
+    assert "joint2: rms_window limit 0 is not positive" in w
+    assert len(m.warnings) == 7
+    assert two_link.warnings == ()
+    # A realistic limit (40 N·m vs a ≈ 10 N·m gravity load) is not flagged.
+    assert not any("gravity load" in x for x in two_link.with_limits(
+        "joint_limits:\n  joint1: {max_effort: 40.0}\n").warnings)
+
+
+def test_urdf_zero_effort_and_velocity_mean_unlimited():
+    urdf = """<robot name="z"><link name="b"/><link name="l"><inertial><mass value="1"/>
+      <origin xyz="0.2 0 0"/><inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/>
+      </inertial></link><joint name="j" type="revolute"><parent link="b"/><child link="l"/>
+      <axis xyz="0 1 0"/><limit lower="0" upper="0" effort="0" velocity="0"/></joint></robot>"""
+    lim = load_model(urdf=urdf).limits
+    assert lim.effort[0] == np.inf and lim.velocity[0] == np.inf
+    assert lim.position_lower[0] == -np.inf and lim.position_upper[0] == np.inf

@@ -1,0 +1,210 @@
+"""Trajectory validation and interpolation, checked against independent constructions."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dyn_node.errors import PLANNING_ERROR, TrajectoryError
+from dyn_node.trajectory import (Trajectory, clamped_spline_velocities, interpolate, sample_times,
+                                 validate_trajectory)
+
+J = ("a", "b", "c")
+
+
+def expect(code, *fragments, **kw):
+    args = dict(model_joints=J, names=J, times=[0.0, 1.0], positions=[[0, 0, 0], [1, 1, 1]])
+    args.update(kw)
+    with pytest.raises(TrajectoryError) as e:
+        validate_trajectory(**args)
+    assert e.value.code == code, str(e.value)
+    assert e.value.failure_label == PLANNING_ERROR
+    for f in fragments:
+        assert f in str(e.value), str(e.value)
+
+
+def test_validation_errors():
+    expect("empty_names", names=[])
+    expect("duplicate_names", "b", names=["a", "b", "b"])
+    expect("unknown_joints", "z", names=["a", "b", "c", "z"], positions=[[0] * 4, [1] * 4])
+    expect("missing_joints", "c", names=["a", "b"], positions=[[0, 0], [1, 1]])
+    expect("empty_points", times=[], positions=[])
+    expect("too_few_points", times=[0.5], positions=[[0, 0, 0]])
+    expect("length_mismatch", times=[0.0, 1.0, 2.0])
+    expect("length_mismatch", "point 1", positions=[[0, 0, 0], [1, 1]])
+    expect("length_mismatch", "velocities", velocities=[[0, 0, 0], [1]])
+    expect("length_mismatch", accelerations=[[0, 0, 0], [0, 0, 0]])
+    expect("non_finite", "b", positions=[[0, 0, 0], [1, np.nan, 1]])
+    expect("non_finite", velocities=[[0, 0, 0], [1, np.inf, 1]])
+    expect("non_finite", times=[0.0, np.inf])
+    expect("bad_times", "negative", times=[-0.1, 1.0])
+    expect("bad_times", "point 2", times=[0.0, 1.0, 1.0], positions=[[0] * 3] * 3)
+    expect("bad_times", times=[0.0, 2.0, 1.0], positions=[[0] * 3] * 3)
+
+
+def test_validation_reorders_and_detects_mode():
+    names = ["c", "a", "b"]
+    t = validate_trajectory(J, names, [0.0, 1.0], [[3, 1, 2], [6, 4, 5]],
+                            velocities=[[0.3, 0.1, 0.2], [0, 0, 0]])
+    np.testing.assert_array_equal(t.positions, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(t.velocities[0], [0.1, 0.2, 0.3])
+    assert t.accelerations is None and t.natural_interpolation == "cubic"
+    assert t.n_points == 2 and t.duration == 1.0
+    t2 = validate_trajectory(J, J, [0.0, 1.0], [[0] * 3] * 2, velocities=[[], []],
+                             accelerations=[[], []])
+    assert t2.velocities is None and t2.natural_interpolation == "spline"
+    t3 = validate_trajectory(J, J, [0.0, 1.0], [[0] * 3] * 2, [[0] * 3] * 2, [[0] * 3] * 2)
+    assert t3.natural_interpolation == "quintic"
+    assert validate_trajectory(J, J, [0.2], [[0, 0, 0]], min_points=1).n_points == 1
+
+
+def random_traj(n=6, nj=3, seed=0, vel=True, acc=True):
+    rng = np.random.default_rng(seed)
+    times = np.concatenate([[0.0], np.cumsum(rng.uniform(0.2, 1.5, n - 1))])
+    return Trajectory(times=times, positions=rng.uniform(-2, 2, (n, nj)),
+                      velocities=rng.uniform(-1, 1, (n, nj)) if vel else None,
+                      accelerations=rng.uniform(-3, 3, (n, nj)) if acc else None)
+
+
+def one_sided(pp, t, h=1e-7):
+    """Values just left and right of t (for continuity checks)."""
+    return pp.evaluate(np.array([t - h])), pp.evaluate(np.array([t + h]))
+
+
+@pytest.mark.parametrize("mode,order", [("quintic", 2), ("cubic", 1), ("spline", 2), ("linear", 0)])
+def test_interpolation_hits_waypoints_and_is_continuous(mode, order):
+    traj = random_traj(seed=3)
+    pp = interpolate(traj, mode)
+    q, qd, qdd, _ = pp.evaluate(traj.times)
+    np.testing.assert_allclose(q, traj.positions, rtol=0, atol=1e-12)
+    if mode in ("quintic", "cubic"):
+        np.testing.assert_allclose(qd, traj.velocities, rtol=0, atol=1e-11)
+    if mode == "quintic":
+        np.testing.assert_allclose(qdd, traj.accelerations, rtol=0, atol=1e-10)
+    if mode == "spline":
+        np.testing.assert_allclose(qd[[0, -1]], 0.0, rtol=0, atol=1e-12)
+    for t in traj.times[1:-1]:
+        left, right = one_sided(pp, t)
+        for d in range(order + 1):
+            np.testing.assert_allclose(left[d], right[d], rtol=0, atol=1e-5 * 10**d)
+    # Derivatives are consistent with each other (finite differences on one segment).
+    t = np.linspace(traj.times[1], traj.times[2], 2001)[1:-1]  # strictly inside one segment
+    q, qd, qdd, qddd = pp.evaluate(t)
+    np.testing.assert_allclose(np.gradient(q, t, axis=0)[1:-1], qd[1:-1], atol=1e-5)
+    if mode != "linear":
+        np.testing.assert_allclose(np.gradient(qd, t, axis=0)[1:-1], qdd[1:-1], atol=1e-4)
+        np.testing.assert_allclose(np.gradient(qdd, t, axis=0)[1:-1], qddd[1:-1], atol=1e-3)
+
+
+def test_cubic_acceleration_jumps_so_continuity_check_can_fail():
+    traj = random_traj(seed=4)
+    pp = interpolate(traj, "cubic")
+    left, right = one_sided(pp, traj.times[2])
+    assert np.abs(left[2] - right[2]).max() > 1e-3
+
+
+def test_linear_mode():
+    traj = random_traj(seed=5, vel=False, acc=False)
+    pp = interpolate(traj, "linear")
+    t = 0.3 * traj.times[1] + 0.7 * traj.times[2]
+    q, qd, qdd, _ = pp.evaluate(t)
+    slope = (traj.positions[2] - traj.positions[1]) / (traj.times[2] - traj.times[1])
+    np.testing.assert_allclose(q[0], traj.positions[1] + slope * (t - traj.times[1]), atol=1e-12)
+    np.testing.assert_allclose(qd[0], slope, atol=1e-12)
+    np.testing.assert_array_equal(qdd, 0.0)
+
+
+def test_hold_outside_range():
+    traj = random_traj(seed=6)
+    traj = Trajectory(times=traj.times + 0.5, positions=traj.positions,
+                      velocities=traj.velocities, accelerations=traj.accelerations)
+    pp = interpolate(traj)
+    q, qd, qdd, qddd = pp.evaluate(np.array([0.0, 0.4, traj.times[-1] + 0.1, traj.times[-1] + 10]))
+    np.testing.assert_allclose(q[:2], traj.positions[[0, 0]], atol=1e-12)
+    np.testing.assert_allclose(q[2:], traj.positions[[-1, -1]], atol=1e-12)
+    for d in (qd, qdd, qddd):
+        np.testing.assert_array_equal(d, 0.0)
+    single = Trajectory(times=np.array([0.3]), positions=np.array([[1.0, 2.0]]))
+    q, qd, _, _ = interpolate(single).evaluate(np.array([0.0, 0.3, 5.0]))
+    np.testing.assert_array_equal(q, [[1.0, 2.0]] * 3)
+    np.testing.assert_array_equal(qd, 0.0)
+
+
+def dense_clamped_spline(t, p):
+    """Independent solution: unknown cubic coefficients per segment from a dense linear system.
+
+    Conditions: each segment interpolates both ends; q̇ and q̈ continuous at interior knots;
+    q̇ = 0 at both ends. Returns knot velocities."""
+    n = len(t)
+    s = n - 1
+    A = np.zeros((4 * s, 4 * s))
+    b = np.zeros(4 * s)
+    row = 0
+    for i in range(s):
+        h = t[i + 1] - t[i]
+        A[row, 4 * i:4 * i + 4] = [1, 0, 0, 0]
+        b[row] = p[i]
+        row += 1
+        A[row, 4 * i:4 * i + 4] = [1, h, h**2, h**3]
+        b[row] = p[i + 1]
+        row += 1
+        if i < s - 1:
+            A[row, 4 * i:4 * i + 4] = [0, 1, 2 * h, 3 * h**2]
+            A[row, 4 * i + 5] = -1
+            row += 1
+            A[row, 4 * i:4 * i + 4] = [0, 0, 2, 6 * h]
+            A[row, 4 * i + 6] = -2
+            row += 1
+    A[row, 1] = 1
+    row += 1
+    h = t[-1] - t[-2]
+    A[row, 4 * (s - 1):] = [0, 1, 2 * h, 3 * h**2]
+    c = np.linalg.solve(A, b).reshape(s, 4)
+    return np.append(c[:, 1], 0.0)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 9, 40])
+def test_clamped_spline_against_dense_solve(n):
+    rng = np.random.default_rng(n)
+    t = np.concatenate([[0.0], np.cumsum(rng.uniform(0.05, 2.0, n - 1))])
+    p = rng.uniform(-3, 3, (n, 2))
+    v = clamped_spline_velocities(t, p)
+    for j in range(2):
+        np.testing.assert_allclose(v[:, j], dense_clamped_spline(t, p[:, j]), rtol=0, atol=1e-9)
+    # C² at every interior knot: each segment's polynomial evaluated at its own end (s = T)
+    # against the next segment's start, plus a one-sided numerical check.
+    traj = Trajectory(times=t, positions=p)
+    pp = interpolate(traj, "spline")
+    c, T = pp.coeffs, np.diff(t)[:, None]
+    for d, end in ((0, c[:, 0] + c[:, 1] * T + c[:, 2] * T**2 + c[:, 3] * T**3),
+                   (1, c[:, 1] + 2 * c[:, 2] * T + 3 * c[:, 3] * T**2),
+                   (2, 2 * c[:, 2] + 6 * c[:, 3] * T)):
+        start = c[1:, 0] if d == 0 else (c[1:, 1] if d == 1 else 2 * c[1:, 2])
+        np.testing.assert_allclose(end[:-1], start, rtol=1e-10, atol=1e-9)
+    for tk in t[1:-1]:
+        left, right = one_sided(pp, tk, 1e-9)
+        np.testing.assert_allclose(left[2], right[2], rtol=0, atol=1e-4)
+
+
+def test_sample_times():
+    times = np.array([0.0, 0.3, 0.35, 1.0])
+    s = sample_times(times, 0.1)
+    assert set(times) <= set(s)
+    assert np.all(np.diff(s) > 0.01)  # no round-off near-duplicates (0.1·3 vs 0.3)
+    np.testing.assert_allclose(s, [0, 0.1, 0.2, 0.3, 0.35, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0])
+    assert s[0] == 0.0 and s[-1] == 1.0
+    s2 = sample_times(np.array([0.5, 2.5]), 0.001)
+    assert len(s2) == 2001 and np.all(np.diff(s2) > 0.999e-3)
+    for bad in (0.0, -1.0, np.nan):
+        with pytest.raises(ValueError):
+            sample_times(times, bad)
+
+
+def test_interpolation_mode_needs_its_data():
+    traj = random_traj(seed=7, vel=False, acc=False)
+    with pytest.raises(TrajectoryError) as e:
+        interpolate(traj, "cubic")
+    assert e.value.code == "length_mismatch"
+    with pytest.raises(TrajectoryError):
+        interpolate(random_traj(seed=7, acc=False), "quintic")
+    with pytest.raises(ValueError):
+        interpolate(traj, "bezier")  # type: ignore[arg-type]
