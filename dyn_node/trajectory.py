@@ -53,11 +53,13 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
                         times: Sequence[float], positions: Sequence[Sequence[float]],
                         velocities: Sequence[Sequence[float]] | None = None,
                         accelerations: Sequence[Sequence[float]] | None = None,
-                        min_points: int = 2) -> Trajectory:
+                        min_points: int = 2, ignored_joints: Sequence[str] = ()) -> Trajectory:
     """Check a trajectory as joint_trajectory_controller does, plus dyn_node's own rules.
 
     ``velocities``/``accelerations`` are per-point sequences, each empty or one value per name,
-    consistently across points. Raises :class:`TrajectoryError` naming the first problem found.
+    consistently across points. Names in ``ignored_joints`` (the model's locked joints) may appear
+    and their values are dropped, as for joint_states. Raises :class:`TrajectoryError` naming the
+    first problem found.
     """
     names = list(names)
     if not names:
@@ -65,7 +67,7 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
     if len(set(names)) != len(names):
         dups = sorted({n for n in names if names.count(n) > 1})
         raise TrajectoryError(f"duplicate joint names: {', '.join(dups)}", code="duplicate_names")
-    unknown = [n for n in names if n not in model_joints]
+    unknown = [n for n in names if n not in model_joints and n not in ignored_joints]
     if unknown:
         raise TrajectoryError(f"joints not in the model: {', '.join(unknown)}", code="unknown_joints")
     missing = [n for n in model_joints if n not in names]

@@ -6,7 +6,7 @@ concurrent test runs on one machine never hear each other. Set DYN_TEST_DOMAIN t
 from __future__ import annotations
 
 import os
-import signal
+import signal as _signal
 import subprocess
 import sys
 from pathlib import Path
@@ -65,20 +65,20 @@ class ChildProcess:
         self.proc = subprocess.Popen(args, start_new_session=True, stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True, **popen)  # type: ignore[call-overload]
 
-    def send(self, sig: int) -> None:
+    def signal(self, sig: int) -> None:
         try:
             os.killpg(self.proc.pid, sig)
         except ProcessLookupError:
             pass
 
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> tuple[int, str, str]:
+    def stop(self, sig: int = _signal.SIGINT, timeout: float = 10.0) -> tuple[int, str, str]:
         """Signal, wait, and return (returncode, stdout, stderr); SIGKILL if it will not exit."""
         if self.proc.poll() is None:
-            self.send(sig)
+            self.signal(sig)
         try:
             out, err = self.proc.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
-            self.send(signal.SIGKILL)
+            self.signal(_signal.SIGKILL)
             out, err = self.proc.communicate()
         return self.proc.returncode, out, err
 

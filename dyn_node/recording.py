@@ -1,0 +1,887 @@
+"""Record raw CDR messages into a rosbag2-layout MCAP bag, off the caller's thread.
+
+Pure module (no rclpy): the ROS adapter (:mod:`dyn_node.ros_recording`) hands it the serialized
+bytes it received; nothing is deserialized or re-serialized. A bag is a directory::
+
+    <directory>/<prefix>_<YYYYmmdd_HHMMSS>[_<k>]/
+        metadata.yaml                      rosbag2 (Jazzy, version 9) bag information
+        <dirname>_0.mcap, <dirname>_1.mcap  MCAP, profile ros2, schemas ros2msg, messages cdr
+
+Guarantees
+- :meth:`Recorder.write` never blocks on disk and never raises: messages go through a bounded
+  queue to one writer thread; when the queue is full, the message is counted as dropped.
+- Per topic, ``received == written + dropped`` once the recorder is closed. A message counts as
+  written only once the chunk holding it has reached the OS (flushed); messages of a chunk that
+  failed to write are counted as dropped.
+- Chunks are closed, flushed and fsynced every ``flush_period_s`` (default 0.5 s), so after
+  SIGKILL at most the last flush period (plus queue latency) is missing; ``dyn-bag-recover``
+  rewrites the truncated file into an indexed one.
+- A write error (ENOSPC, EIO, ...) puts the recorder in the ``error`` state; later messages are
+  dropped (counted) and everything flushed before remains readable.
+- Every file begins with the robot description on ``/robot_description`` and an MCAP metadata
+  record ``dyn_node`` (keys ``robot_description``, ``parameters`` (YAML), ``version``), so each
+  split file is self-contained. The injected description copies are counted as
+  ``description_copies``, not as received messages.
+"""
+from __future__ import annotations
+
+import atexit
+import errno
+import functools
+import json
+import os
+import struct
+import sys
+import threading
+import time
+import weakref
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO, Callable, Mapping, Sequence
+
+import yaml
+from mcap.writer import CompressionType, Writer
+
+from . import __version__
+
+ROSBAG2_VERSION = 9
+ROS_DISTRO = "jazzy"
+METADATA_RECORD = "dyn_node"
+PROFILE = "ros2"
+SCHEMA_ENCODING = "ros2msg"
+MESSAGE_ENCODING = "cdr"
+DESCRIPTION_TYPE = "std_msgs/msg/String"
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+                "none": CompressionType.NONE}
+STATES = ("idle", "recording", "error", "closed")
+_SEPARATOR = "=" * 80
+_PRIMITIVES = frozenset(
+    "bool byte char float32 float64 int8 uint8 int16 uint16 int32 uint32 int64 uint64 "
+    "string wstring".split())
+# rmw's "infinite" duration as rosbag2 Jazzy writes it.
+_INFINITE = {"sec": 9223372036, "nsec": 854775807}
+
+
+class RecordingError(ValueError):
+    """Bad recorder configuration (raised at construction, never from write())."""
+
+
+# --------------------------------------------------------------------------- message definitions
+
+def _share_dirs() -> list[Path]:
+    prefixes = [sys.prefix, *os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)]
+    seen: list[Path] = []
+    for p in prefixes:
+        if p and (Path(p) / "share").is_dir() and Path(p) / "share" not in seen:
+            seen.append(Path(p) / "share")
+    return seen
+
+
+def _split_type(type_name: str) -> tuple[str, str]:
+    """'sensor_msgs/msg/JointState' or 'sensor_msgs/JointState' -> ('sensor_msgs', 'JointState')."""
+    parts = type_name.strip().split("/")
+    if len(parts) == 3 and parts[1] == "msg":
+        return parts[0], parts[2]
+    if len(parts) == 2:
+        return parts[0], parts[1]
+    raise RecordingError(f"not a ROS message type name: {type_name!r}")
+
+
+def _find_interface_file(pkg: str, name: str, suffix: str) -> Path | None:
+    for share in _share_dirs():
+        f = share / pkg / "msg" / f"{name}{suffix}"
+        if f.is_file():
+            return f
+    return None
+
+
+def _field_dependencies(pkg: str, text: str) -> list[tuple[str, str]]:
+    """Complex field types of a .msg text, in order of first appearance."""
+    deps: list[tuple[str, str]] = []
+    for line in text.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        tokens = line.split()
+        if len(tokens) < 2 or "=" in tokens[1]:
+            continue  # a constant ("int8 FOO=1") or a malformed line
+        base = tokens[0].split("[", 1)[0].split("<=", 1)[0]
+        if base in _PRIMITIVES:
+            continue
+        if "/" in base:
+            dep = _split_type(base)
+        elif base == "Header":
+            dep = ("std_msgs", "Header")
+        else:
+            dep = (pkg, base)
+        if dep not in deps:
+            deps.append(dep)
+    return deps
+
+
+@functools.lru_cache(maxsize=None)
+def message_definition(type_name: str) -> str:
+    """The full ``ros2msg`` definition of a message type, dependencies included, built from the
+    installed ``share/<pkg>/msg/*.msg`` files in the concatenated format rosbag2 writes
+    (main definition, then ``====...==\\nMSG: pkg/Type\\n<text>`` per dependency, depth first).
+
+    Returns "" when the .msg file is not installed (the bag is still written; readers that need
+    the schema then need the type from elsewhere)."""
+    pkg, name = _split_type(type_name)
+    main = _find_interface_file(pkg, name, ".msg")
+    if main is None:
+        return ""
+    text = main.read_text()
+    parts = [text.rstrip("\n")]
+    done: set[tuple[str, str]] = {(pkg, name)}
+    stack = list(reversed(_field_dependencies(pkg, text)))
+    while stack:
+        dep = stack.pop()
+        if dep in done:
+            continue
+        done.add(dep)
+        f = _find_interface_file(dep[0], dep[1], ".msg")
+        if f is None:
+            return ""  # incomplete definitions mislead decoders more than none
+        dep_text = f.read_text()
+        parts.append(f"{_SEPARATOR}\nMSG: {dep[0]}/{dep[1]}\n{dep_text.rstrip(chr(10))}")
+        stack.extend(reversed(_field_dependencies(dep[0], dep_text)))
+    return "\n".join(parts) + "\n"
+
+
+@functools.lru_cache(maxsize=None)
+def type_description_hash(type_name: str) -> str:
+    """RIHS01 type hash from the installed ``<Type>.json`` (rosidl), or "" if unavailable."""
+    try:
+        pkg, name = _split_type(type_name)
+        f = _find_interface_file(pkg, name, ".json")
+        if f is None:
+            return ""
+        full = f"{pkg}/msg/{name}"
+        for h in json.loads(f.read_text()).get("type_hashes", []):
+            if h.get("type_name") == full:
+                return str(h.get("hash_string", ""))
+    except (OSError, ValueError, RecordingError):
+        pass
+    return ""
+
+
+@functools.lru_cache(maxsize=None)
+def has_header_first(type_name: str) -> bool:
+    """True when the first field of the message is a std_msgs/Header (so the CDR payload starts
+    with the stamp right after the 4-byte encapsulation header)."""
+    try:
+        pkg, name = _split_type(type_name)
+    except RecordingError:
+        return False
+    f = _find_interface_file(pkg, name, ".msg")
+    if f is None:
+        return False
+    for line in f.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            return line.split()[0] in ("std_msgs/Header", "std_msgs/msg/Header", "Header")
+    return False
+
+
+def header_stamp_ns(data: bytes | memoryview) -> int | None:
+    """Stamp (ns) of a CDR message whose first field is std_msgs/Header: 4-byte encapsulation
+    header (byte 1 odd = little endian), then int32 sec, uint32 nanosec. None if unusable."""
+    if len(data) < 12:
+        return None
+    fmt = "<iI" if data[1] & 1 else ">iI"
+    sec, nsec = struct.unpack_from(fmt, data, 4)
+    if sec < 0 or nsec >= 1_000_000_000:
+        return None
+    return sec * 1_000_000_000 + nsec
+
+
+def cdr_string(text: str) -> bytes:
+    """CDR (little endian) of a message with one string field, e.g. std_msgs/String."""
+    b = text.encode()
+    return b"\x00\x01\x00\x00" + struct.pack("<I", len(b) + 1) + b + b"\x00"
+
+
+def cdr_string_value(data: bytes | memoryview) -> str | None:
+    """Inverse of :func:`cdr_string` (either endianness); None when malformed."""
+    if len(data) < 8:
+        return None
+    (n,) = struct.unpack_from("<I" if data[1] & 1 else ">I", data, 4)
+    if n < 1 or 8 + n > len(data):
+        return None
+    return bytes(data[8:8 + n - 1]).decode("utf-8", errors="replace")
+
+
+# --------------------------------------------------------------------------- QoS and metadata.yaml
+
+def qos_profile_dict(reliability: str = "reliable", durability: str = "volatile",
+                     history: str = "keep_last", depth: int = 10,
+                     liveliness: str = "automatic") -> dict[str, Any]:
+    """One offered QoS profile in rosbag2 v9 form (enum names in lower case)."""
+    return {"history": history, "depth": int(depth), "reliability": reliability,
+            "durability": durability, "deadline": dict(_INFINITE), "lifespan": dict(_INFINITE),
+            "liveliness": liveliness, "liveliness_lease_duration": dict(_INFINITE),
+            "avoid_ros_namespace_conventions": False}
+
+
+def qos_yaml(profiles: Sequence[Mapping[str, Any]]) -> str:
+    """The QoS list as the YAML string rosbag2 puts in MCAP channel metadata."""
+    if not profiles:
+        return ""
+    return yaml.safe_dump([dict(p) for p in profiles], sort_keys=False,
+                          default_flow_style=False).strip()
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """A recorded topic: resolved name, ROS type ('pkg/msg/Type') and publishers' offered QoS."""
+
+    name: str
+    type: str
+    offered_qos_profiles: tuple[Mapping[str, Any], ...] = ()
+
+
+@dataclass(frozen=True)
+class FileInfo:
+    """One split file as metadata.yaml lists it; times in ns since the epoch (log time)."""
+
+    path: str
+    start_ns: int
+    end_ns: int
+    message_count: int
+    topic_counts: Mapping[str, int] = field(default_factory=dict)
+
+
+def bag_metadata(topics: Sequence[TopicInfo], files: Sequence[FileInfo],
+                 extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The metadata.yaml document (rosbag2 Jazzy, version 9) for these files.
+
+    ``extra`` goes under a top-level ``dyn_node`` key, beside ``rosbag2_bagfile_information``,
+    which rosbag2 and rosbags ignore."""
+    counts: dict[str, int] = {}
+    for f in files:
+        for t, n in f.topic_counts.items():
+            counts[t] = counts.get(t, 0) + n
+    nonempty = [f for f in files if f.message_count]
+    start = min((f.start_ns for f in nonempty), default=0)
+    end = max((f.end_ns for f in nonempty), default=start)
+    info: dict[str, Any] = {
+        "version": ROSBAG2_VERSION,
+        "storage_identifier": "mcap",
+        "duration": {"nanoseconds": max(0, end - start)},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": sum(f.message_count for f in files),
+        "topics_with_message_count": [
+            {"topic_metadata": {"name": t.name, "type": t.type, "serialization_format": "cdr",
+                                "offered_qos_profiles": [dict(p) for p in t.offered_qos_profiles],
+                                "type_description_hash": type_description_hash(t.type)},
+             "message_count": counts.get(t.name, 0)}
+            for t in topics],
+        "compression_format": "",
+        "compression_mode": "",
+        "relative_file_paths": [Path(f.path).name for f in files],
+        "files": [{"path": Path(f.path).name,
+                   "starting_time": {"nanoseconds_since_epoch":
+                                     f.start_ns if f.message_count else 0},
+                   "duration": {"nanoseconds": max(0, f.end_ns - f.start_ns)},
+                   "message_count": f.message_count} for f in files],
+        "custom_data": None,
+        "ros_distro": ROS_DISTRO,
+    }
+    doc: dict[str, Any] = {"rosbag2_bagfile_information": info}
+    if extra:
+        doc[METADATA_RECORD] = dict(extra)
+    return doc
+
+
+def write_metadata_yaml(bag_dir: str | os.PathLike[str], doc: Mapping[str, Any]) -> None:
+    """Write metadata.yaml atomically (temp file + rename), so a reader never sees half of it."""
+    path = Path(bag_dir) / "metadata.yaml"
+    tmp = path.with_name("metadata.yaml.tmp")
+    tmp.write_text(yaml.safe_dump(dict(doc), sort_keys=False, default_flow_style=False))
+    os.replace(tmp, path)
+
+
+def new_bag_directory(parent: str | os.PathLike[str], prefix: str = "dyn_node",
+                      now: float | None = None) -> Path:
+    """Create ``parent/<prefix>_<YYYYmmdd_HHMMSS>`` (UTC), suffixed ``_1``, ``_2`` ... when it
+    exists; ``mkdir`` is exclusive, so two recorders never share (or overwrite) a directory."""
+    base = Path(parent)
+    base.mkdir(parents=True, exist_ok=True)
+    stamp = time.strftime("%Y%m%d_%H%M%S", time.gmtime(time.time() if now is None else now))
+    for k in range(10_000):
+        d = base / (f"{prefix}_{stamp}" if k == 0 else f"{prefix}_{stamp}_{k}")
+        try:
+            d.mkdir()
+            return d
+        except FileExistsError:
+            continue
+    raise RecordingError(f"cannot create a new bag directory in {base}")
+
+
+# --------------------------------------------------------------------------- the recorder
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """Recorder settings. Sizes in MB (10^6 bytes), durations in seconds; 0 disables a split."""
+
+    directory: str = "bags"
+    compression: str = "zstd"
+    max_bag_size_mb: float = 0.0
+    max_bag_duration_s: float = 0.0
+    prefix: str = "dyn_node"
+    queue_size: int = 20_000
+    queue_bytes: int = 256 * 1024 * 1024
+    flush_period_s: float = 0.5
+    chunk_size: int = 1024 * 1024
+    fsync: bool = True
+    description_topic: str = "/robot_description"
+
+    def validate(self) -> None:
+        if self.compression not in COMPRESSIONS:
+            raise RecordingError(f"record.compression must be one of {sorted(COMPRESSIONS)}, "
+                                 f"got {self.compression!r}")
+        for key in ("max_bag_size_mb", "max_bag_duration_s"):
+            v = getattr(self, key)
+            if not (v >= 0 and v < float("inf")):
+                raise RecordingError(f"record.{key} must be finite and >= 0 (0 = off), got {v!r}")
+        if not (0 < self.flush_period_s <= 1.0):
+            raise RecordingError("flush_period_s must be in (0, 1] s: at most 1 s may be lost")
+        if self.queue_size < 1 or self.queue_bytes < 1 or self.chunk_size < 1:
+            raise RecordingError("queue_size, queue_bytes and chunk_size must be positive")
+
+
+@dataclass(frozen=True)
+class TopicCounts:
+    received: int = 0
+    written: int = 0
+    dropped: int = 0
+
+
+@dataclass(frozen=True)
+class RecorderStats:
+    """Snapshot of the recorder: state in STATES, error text ("" if none), bag directory,
+    files so far, per-topic counts, messages waiting in the queue, injected description copies."""
+
+    state: str
+    error: str
+    path: str
+    files: tuple[str, ...]
+    topics: Mapping[str, TopicCounts]
+    queued: int
+    description_copies: int
+
+    @property
+    def dropped(self) -> int:
+        return sum(c.dropped for c in self.topics.values())
+
+
+class _CountingFile:
+    """Wrap the binary file so the MCAP writer's ``tell()`` works on any file-like and we know
+    the size without a stat call."""
+
+    def __init__(self, raw: BinaryIO):
+        self.raw = raw
+        self.pos = 0
+        self.first_write_done: bool | None = None
+
+    def mark(self) -> None:
+        """Start watching whether the next (non-empty) write, the chunk record, completes."""
+        self.first_write_done = None
+
+    def write(self, data: bytes) -> int:
+        if not data:
+            return 0
+        first = self.first_write_done is None
+        if first:
+            self.first_write_done = False
+        view = memoryview(data)
+        while view:
+            n = self.raw.write(view)
+            n = len(view) if n is None else n
+            if n <= 0:
+                raise OSError(errno.EIO, "write made no progress")
+            self.pos += n
+            view = view[n:]
+        if first:
+            self.first_write_done = True
+        return len(data)
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        self.raw.flush()
+
+    def fsync(self) -> None:
+        fileno = getattr(self.raw, "fileno", None)
+        if fileno is not None:
+            try:
+                fd = fileno()
+            except (OSError, ValueError):
+                return
+            os.fsync(fd)
+
+    def close(self) -> None:
+        self.raw.close()
+
+
+# Item kinds in the queue.
+_MSG, _TOPIC, _DESC, _META, _STOP = range(5)
+
+_LIVE: "weakref.WeakSet[Recorder]" = weakref.WeakSet()
+
+
+@atexit.register
+def _close_live_recorders() -> None:
+    # Interpreter exit (e.g. an unhandled KeyboardInterrupt) still writes summaries.
+    for rec in list(_LIVE):
+        rec.close(timeout=5.0)
+
+
+class Recorder:
+    """One recording: a bag directory written by a background thread.
+
+    ``opener(path) -> binary file`` is injectable (tests simulate ENOSPC with it);
+    ``on_state(stats)`` is called from the writer thread when the state changes."""
+
+    def __init__(self, config: RecorderConfig = RecorderConfig(), *,
+                 robot_description: str = "", parameters_yaml: str = "",
+                 opener: Callable[[str], BinaryIO] | None = None,
+                 on_state: Callable[[RecorderStats], None] | None = None,
+                 clock_ns: Callable[[], int] = time.time_ns):
+        config.validate()
+        self.config = config
+        # Unbuffered: the MCAP writer already writes whole records, and a full disk then surfaces
+        # at the write that failed rather than at some later buffer flush.
+        self._opener = opener or (lambda p: open(p, "xb", buffering=0))
+        self._on_state = on_state
+        self._clock_ns = clock_ns
+        self.path = new_bag_directory(config.directory, config.prefix)
+        # Re-entrant: the on_state observer runs under the lock and may call stats().
+        self._lock = threading.RLock()
+        self._wake = threading.Condition(self._lock)
+        self._queue: deque[tuple] = deque()
+        self._queued_bytes = 0
+        self._counts: dict[str, list[int]] = {}  # topic -> [received, written, dropped]
+        self._declared: set[str] = set()
+        self._state = "recording"
+        self._error = ""
+        self._closing = False
+        self._topics: dict[str, TopicInfo] = {}
+        self._description = robot_description
+        self._description_raw: bytes | None = None
+        self._parameters_yaml = parameters_yaml
+        self._description_copies = 0
+        self._files: list[FileInfo] = []
+        # Writer-thread state.
+        self._writer: Writer | None = None
+        self._stream: _CountingFile | None = None
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._file_index = -1
+        self._file_start = 0
+        self._file_end = 0
+        self._file_counts: dict[str, int] = {}
+        self._pending: dict[str, list[int]] = {}  # topic -> [received msgs, description copies]
+        self._pending_lo: int | None = None  # log-time range of the open chunk
+        self._pending_hi = 0
+        self._pending_bytes = 0
+        self._file_first_ns: int | None = None
+        self._current: str | None = None
+        self._meta_desc: str | None = None
+        self._chunk_limit = config.chunk_size
+        self._file_has_data = False
+        self._file_written_desc = ""
+        self._thread = threading.Thread(target=self._run, name="dyn_node recorder", daemon=True)
+        self._closed = threading.Event()
+        _LIVE.add(self)
+        self._thread.start()
+
+    # ---------------------------------------------------------------- caller side (any thread)
+    def add_topic(self, topic: TopicInfo) -> None:
+        """Declare a topic before its first message (the channel carries its QoS)."""
+        with self._lock:
+            self._counts.setdefault(topic.name, [0, 0, 0])
+            self._declared.add(topic.name)
+            if self._state != "recording" or self._closing:
+                return
+            self._queue.append((_TOPIC, topic))
+            self._wake.notify()
+
+    def write(self, topic: str, data: bytes, log_time_ns: int,
+              publish_time_ns: int | None = None) -> bool:
+        """Queue one serialized message; True if queued, False if dropped (counted). Never raises
+        for I/O, never blocks on disk. Unknown topics must be added first with add_topic()."""
+        n = len(data)
+        with self._lock:
+            c = self._counts.get(topic)
+            if c is None:
+                c = self._counts[topic] = [0, 0, 0]
+            c[0] += 1
+            if (self._state != "recording" or self._closing or topic not in self._declared
+                    or len(self._queue) >= self.config.queue_size
+                    or self._queued_bytes + n > self.config.queue_bytes):
+                c[2] += 1
+                return False
+            self._queue.append((_MSG, topic, data, log_time_ns,
+                                log_time_ns if publish_time_ns is None else publish_time_ns))
+            self._queued_bytes += n
+            if len(self._queue) == 1:
+                self._wake.notify()
+        return True
+
+    def set_robot_description(self, urdf: str) -> None:
+        """The description to repeat at the start of every file and in the metadata record."""
+        with self._lock:
+            if urdf == self._description or self._state != "recording" or self._closing:
+                self._description = urdf
+                return
+            self._description = urdf
+            self._queue.append((_DESC, urdf))
+            self._wake.notify()
+
+    def set_parameters_yaml(self, text: str) -> None:
+        """New parameter snapshot: a new ``dyn_node`` metadata record is written if it changed."""
+        with self._lock:
+            if text == self._parameters_yaml:
+                return
+            self._parameters_yaml = text
+            if self._state == "recording" and not self._closing:
+                self._queue.append((_META,))
+                self._wake.notify()
+
+    def stats(self) -> RecorderStats:
+        with self._lock:
+            return self._stats_locked()
+
+    def _stats_locked(self) -> RecorderStats:
+        return RecorderStats(
+            state=self._state, error=self._error, path=str(self.path),
+            files=tuple(f.path for f in self._files) + (
+                (str(self._file_path(self._file_index)),) if self._writer is not None else ()),
+            topics={t: TopicCounts(*c) for t, c in self._counts.items()},
+            queued=len(self._queue), description_copies=self._description_copies)
+
+    def close(self, timeout: float = 10.0) -> RecorderStats:
+        """Drain the queue, write summaries and metadata.yaml; idempotent. Messages still queued
+        when ``timeout`` expires are counted as dropped."""
+        with self._lock:
+            if not self._closing:
+                self._closing = True
+                self._queue.append((_STOP,))
+                self._wake.notify()
+        self._closed.wait(timeout)
+        with self._lock:
+            if not self._closed.is_set():
+                # The writer is stuck (e.g. a hung disk): account for what it will never write.
+                for item in self._queue:
+                    if item[0] == _MSG:
+                        self._counts[item[1]][2] += 1
+                self._queue.clear()
+                self._set_state_locked("error", self._error or "writer did not finish in time")
+            return self._stats_locked()
+
+    # ---------------------------------------------------------------- writer thread
+    def _file_path(self, index: int) -> Path:
+        return self.path / f"{self.path.name}_{index}.mcap"
+
+    def _set_state_locked(self, state: str, error: str = "") -> None:
+        changed = state != self._state
+        self._state = state
+        if error:
+            self._error = error
+        if changed and self._on_state is not None:
+            stats = self._stats_locked()
+            try:
+                self._on_state(stats)
+            except Exception:  # a faulty observer must not kill the writer
+                pass
+
+    def _run(self) -> None:
+        next_flush = time.monotonic() + self.config.flush_period_s
+        try:
+            self._open_file()
+            self._write_metadata_yaml()
+        except Exception as exc:  # noqa: BLE001 - any I/O failure becomes the error state
+            self._fail(exc)
+        stop = False
+        while not stop:
+            with self._lock:
+                if not self._queue:
+                    self._wake.wait(max(0.0, next_flush - time.monotonic()))
+                batch = list(self._queue)
+                self._queue.clear()
+                self._queued_bytes = 0
+            for item in batch:
+                if item[0] == _STOP:
+                    stop = True
+                    continue
+                if self._state != "recording":
+                    if item[0] == _MSG:
+                        with self._lock:
+                            self._counts[item[1]][2] += 1
+                    continue
+                try:
+                    self._handle(item)
+                except Exception as exc:  # noqa: BLE001
+                    self._fail(exc)
+            if self._state == "recording" and (stop or time.monotonic() >= next_flush):
+                try:
+                    self._flush()
+                except Exception as exc:  # noqa: BLE001
+                    self._fail(exc)
+                next_flush = time.monotonic() + self.config.flush_period_s
+        self._finish()
+
+    def _handle(self, item: tuple) -> None:
+        kind = item[0]
+        if kind == _MSG:
+            _, topic, data, log_ns, pub_ns = item
+            self._current = topic  # not yet in a chunk: _fail must count it if we fail now
+            self._maybe_split(log_ns, len(data))
+            if topic == self.config.description_topic:
+                text = cdr_string_value(data)
+                if text is not None:
+                    self._description_raw = bytes(data)
+                    with self._lock:
+                        self._description = text
+                    self._file_written_desc = text
+            self._add(topic, data, log_ns, pub_ns, copy=False)
+            if topic == self.config.description_topic and self._meta_desc != self._description:
+                self._write_metadata_record()  # the record follows the description in use
+        elif kind == _TOPIC:
+            topic: TopicInfo = item[1]
+            # The first registration of a name wins for the whole recording: a channel cannot
+            # change once written, and metadata.yaml must describe the channels in the files
+            # (readers such as rosbags match them by QoS too). The injected description copy
+            # registers /robot_description as reliable + transient local.
+            if topic.name not in self._topics:
+                self._topics[topic.name] = topic
+                if self._writer is not None:
+                    self._channel(topic)
+        elif kind == _DESC:
+            if item[1] != self._file_written_desc:
+                self._description_raw = None
+                self._write_description(self._clock_ns())
+                self._write_metadata_record()
+        elif kind == _META:
+            self._write_metadata_record()
+
+    def _add(self, topic: str, data: bytes, log_ns: int, pub_ns: int, copy: bool) -> None:
+        assert self._writer is not None
+        channel = self._channel(self._topics[topic])
+        self._writer.add_message(channel, log_time=log_ns, data=data, publish_time=pub_ns)
+        p = self._pending.setdefault(topic, [0, 0])
+        p[1 if copy else 0] += 1
+        if not copy:
+            self._current = None
+        if self._pending_lo is None or log_ns < self._pending_lo:
+            self._pending_lo = log_ns
+        if log_ns > self._pending_hi:
+            self._pending_hi = log_ns
+        self._pending_bytes += len(data)
+        if self._pending_bytes >= self._chunk_limit:
+            self._flush_chunk()
+        if not copy:
+            self._file_has_data = True
+            if self._file_first_ns is None:
+                self._file_first_ns = log_ns
+
+    def _channel(self, info: TopicInfo) -> int:
+        assert self._writer is not None
+        cid = self._channels.get(info.name)
+        if cid is not None:
+            return cid
+        sid = self._schemas.get(info.type)
+        if sid is None:
+            definition = message_definition(info.type)
+            sid = self._writer.register_schema(info.type, SCHEMA_ENCODING, definition.encode())
+            self._schemas[info.type] = sid
+        meta = {"offered_qos_profiles": qos_yaml(info.offered_qos_profiles)}
+        h = type_description_hash(info.type)
+        if h:
+            meta["topic_type_hash"] = h
+        cid = self._writer.register_channel(info.name, MESSAGE_ENCODING, sid, meta)
+        self._channels[info.name] = cid
+        return cid
+
+    def _open_file(self, log_ns: int | None = None) -> None:
+        self._file_index += 1
+        path = self._file_path(self._file_index)
+        self._stream = _CountingFile(self._opener(str(path)))
+        chunk = self.config.chunk_size
+        if self.config.max_bag_size_mb > 0:
+            chunk = max(4096, min(chunk, int(self.config.max_bag_size_mb * 1e6 / 4)))
+        # Chunks are closed by _flush_chunk (not by the writer), so we know exactly which
+        # messages reached the file.
+        self._chunk_limit = chunk
+        self._writer = Writer(self._stream, chunk_size=1 << 62,
+                              compression=COMPRESSIONS[self.config.compression],
+                              enable_crcs=True, enable_data_crcs=True)
+        self._writer.start(profile=PROFILE, library=f"dyn_node/{__version__}")
+        self._channels, self._schemas = {}, {}
+        self._file_counts = {}
+        self._file_start = self._file_end = 0
+        self._file_first_ns = None
+        self._file_has_data = False
+        for info in list(self._topics.values()):
+            self._channel(info)
+        # The copy of a split file takes the log time of the message that caused the split, so
+        # it lies inside the file's time range.
+        self._write_description(self._clock_ns() if log_ns is None else log_ns)
+        self._write_metadata_record()
+        self._flush()
+
+    def _write_description(self, log_ns: int) -> None:
+        with self._lock:
+            text = self._description
+        if not text and self._description_raw is None:
+            return
+        raw = self._description_raw if self._description_raw is not None else cdr_string(text)
+        topic = self.config.description_topic
+        if topic not in self._topics:
+            self._topics[topic] = TopicInfo(topic, DESCRIPTION_TYPE, (qos_profile_dict(
+                durability="transient_local", depth=1),))
+        self._add(topic, raw, log_ns, log_ns, copy=True)
+        self._file_written_desc = text
+
+    def _write_metadata_record(self) -> None:
+        assert self._writer is not None
+        with self._lock:
+            desc, params = self._description, self._parameters_yaml
+        self._meta_desc = desc
+        self._writer.add_metadata(METADATA_RECORD, {
+            "robot_description": desc, "parameters": params, "version": __version__})
+
+    def _maybe_split(self, log_ns: int, size: int) -> None:
+        # Only split a file that holds a recorded message: a file with just the description
+        # copy cannot get smaller, and splitting it again would loop.
+        cfg = self.config
+        if not self._file_has_data or self._stream is None:
+            return
+        first = self._file_first_ns if self._file_first_ns is not None else log_ns
+        too_long = cfg.max_bag_duration_s > 0 and log_ns - first >= cfg.max_bag_duration_s * 1e9
+        # Compressed size is known only for closed chunks; the open chunk counts uncompressed.
+        too_big = cfg.max_bag_size_mb > 0 and \
+            self._stream.tell() + self._pending_bytes + size >= cfg.max_bag_size_mb * 1e6
+        if too_long or too_big:
+            self._close_file()
+            self._open_file(log_ns)
+            self._write_metadata_yaml()
+
+    def _flush_chunk(self, final: bool = False) -> None:
+        """Close the open chunk and hand it to the OS; its messages then count as written.
+        If the write fails after the chunk record itself was written in full (e.g. while writing
+        its message index), the messages are in the file, so they still count as written."""
+        assert self._writer is not None and self._stream is not None
+        self._stream.mark()
+        try:
+            if final:
+                self._writer.finish()
+            else:
+                self._writer.flush()
+        except BaseException:
+            if self._stream.first_write_done and self._pending_bytes:
+                self._commit()
+            raise
+        self._commit()
+
+    def _flush(self) -> None:
+        """Close the open chunk, flush it to the OS and fsync (the periodic durability point)."""
+        if self._writer is None or self._stream is None:
+            return
+        self._flush_chunk()
+        if self.config.fsync:
+            self._stream.fsync()
+
+    def _commit(self) -> None:
+        if not self._pending:
+            return
+        with self._lock:
+            for topic, (n, copies) in self._pending.items():
+                self._counts.setdefault(topic, [0, 0, 0])[1] += n
+                self._description_copies += copies
+                self._file_counts[topic] = self._file_counts.get(topic, 0) + n + copies
+        if self._pending_lo is not None:
+            lo, hi = self._pending_lo, self._pending_hi
+            self._file_start = lo if self._file_start == 0 else min(lo, self._file_start)
+            self._file_end = max(hi, self._file_end)
+        self._pending.clear()
+        self._pending_lo, self._pending_hi = None, 0
+        self._pending_bytes = 0
+
+    def _close_file(self) -> None:
+        assert self._writer is not None and self._stream is not None
+        self._flush_chunk(final=True)
+        self._stream.flush()
+        if self.config.fsync:
+            self._stream.fsync()
+        self._stream.close()
+        self._files.append(FileInfo(str(self._file_path(self._file_index)), self._file_start,
+                                    self._file_end, sum(self._file_counts.values()),
+                                    dict(self._file_counts)))
+        self._writer, self._stream = None, None
+
+    def _fail(self, exc: BaseException) -> None:
+        name = errno.errorcode.get(getattr(exc, "errno", None) or -1, type(exc).__name__)
+        with self._lock:
+            # Messages in the chunk that did not reach the disk are lost: count them.
+            for topic, (n, _copies) in self._pending.items():
+                self._counts.setdefault(topic, [0, 0, 0])[2] += n
+            self._pending.clear()
+            self._pending_lo, self._pending_hi = None, 0
+            self._pending_bytes = 0
+            if self._current is not None:
+                self._counts[self._current][2] += 1
+                self._current = None
+            for item in self._queue:
+                if item[0] == _MSG:
+                    self._counts[item[1]][2] += 1
+            self._queue.clear()
+            self._queued_bytes = 0
+            self._set_state_locked("error", f"write failed ({name}): {exc}")
+        # What was flushed stays on disk; keep the partial file for dyn-bag-recover.
+        if self._writer is not None and self._stream is not None:
+            with self._lock:
+                self._files.append(FileInfo(str(self._file_path(self._file_index)),
+                                            self._file_start, self._file_end,
+                                            sum(self._file_counts.values()),
+                                            dict(self._file_counts)))
+            try:
+                self._stream.close()
+            except Exception:  # noqa: BLE001 - the file is already broken
+                pass
+        self._writer, self._stream = None, None
+
+    def _write_metadata_yaml(self) -> None:
+        with self._lock:
+            files = list(self._files)
+            counts = {t: {"received": c[0], "written": c[1], "dropped": c[2]}
+                      for t, c in self._counts.items()}
+            extra = {"version": __version__, "state": self._state, "error": self._error,
+                     "description_copies": self._description_copies, "topics": counts}
+        if self._writer is not None:
+            files.append(FileInfo(str(self._file_path(self._file_index)), self._file_start,
+                                  self._file_end, sum(self._file_counts.values()),
+                                  dict(self._file_counts)))
+        topics = [t for t in self._topics.values()]
+        write_metadata_yaml(self.path, bag_metadata(topics, files, extra))
+
+    def _finish(self) -> None:
+        if self._state == "recording" and self._writer is not None:
+            try:
+                self._close_file()
+            except Exception as exc:  # noqa: BLE001
+                self._fail(exc)
+        with self._lock:
+            if self._state == "recording":
+                self._set_state_locked("closed")
+        try:
+            self._write_metadata_yaml()
+        except Exception as exc:  # noqa: BLE001 - e.g. the disk is still full
+            with self._lock:
+                self._error = self._error or f"metadata.yaml not written: {exc}"
+        _LIVE.discard(self)
+        self._closed.set()

@@ -1,0 +1,339 @@
+"""ROS side of recording: parameters, raw subscriptions, start/stop services, recorder status.
+
+``RecordingBridge(node)`` is constructed once by the node. It declares the ``record.*``
+parameters, offers ``~/start_recording`` and ``~/stop_recording`` (std_srvs/Trigger; the response
+message is the bag path), subscribes with ``raw=True`` to every configured topic once the graph
+tells its type (re-checked every ``discovery_period_s``), and hands the serialized bytes to a
+:class:`dyn_node.recording.Recorder`. The callback does no disk I/O: it stamps the receipt
+time, reads the header stamp straight from the CDR bytes, and queues.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import yaml
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
+                       ReliabilityPolicy)
+from std_srvs.srv import Trigger
+
+from .errors import EVALUATION_ERROR
+from .recording import (COMPRESSIONS, Recorder, RecorderConfig, RecorderStats, RecordingError,
+                        TopicInfo, has_header_first, header_stamp_ns, qos_profile_dict)
+from .status import ERROR, NAME_PREFIX, OK, WARN, Status
+
+STATUS_NAME = NAME_PREFIX + "recorder"
+DEFAULT_TOPICS = ["joint_states", "joint_trajectory", "robot_description", "/diagnostics",
+                  "~/gravity_torque", "~/inverse_dynamics", "~/trajectory_effort",
+                  "~/feasibility", "~/controller_status"]
+# Subscriber history: deep enough that a busy executor does not lose 1 kHz messages in DDS.
+SUBSCRIBER_DEPTH = 1000
+
+_RELIABILITY = {ReliabilityPolicy.RELIABLE: "reliable",
+                ReliabilityPolicy.BEST_EFFORT: "best_effort"}
+_DURABILITY = {DurabilityPolicy.TRANSIENT_LOCAL: "transient_local",
+               DurabilityPolicy.VOLATILE: "volatile"}
+_HISTORY = {HistoryPolicy.KEEP_LAST: "keep_last", HistoryPolicy.KEEP_ALL: "keep_all"}
+_LIVELINESS = {LivelinessPolicy.AUTOMATIC: "automatic",
+               LivelinessPolicy.MANUAL_BY_TOPIC: "manual_by_topic"}
+
+
+def _descriptor(description: str, ptype: int, **kw: Any) -> ParameterDescriptor:
+    return ParameterDescriptor(description=description, type=ptype, **kw)
+
+
+class RecordingBridge:
+    """Owns the recorder of a node. ``robot_description`` is a callable returning the URDF in
+    use (or ""); without one, the node's ``robot_description`` parameter is used if declared."""
+
+    def __init__(self, node: Node, robot_description: Callable[[], str] | None = None, *,
+                 discovery_period_s: float = 1.0, flush_period_s: float = 0.5,
+                 opener: Callable[[str], Any] | None = None):
+        self.node = node
+        self._clock = node.get_clock()
+        self._description_fn = robot_description
+        self._flush_period_s = flush_period_s
+        self._opener = opener  # tests inject a failing file here
+        self._recorder: Recorder | None = None
+        self._last_stats: RecorderStats | None = None
+        self._subs: dict[str, Any] = {}
+        self._topics: list[str] = []
+        self._description = ""
+        self._unknown: set[str] = set()
+        self._outgoing: dict[str, TopicInfo] = {}  # this node's publishers, recorded directly
+        self._direct: set[str] = set()
+        node.declare_parameter("record.enabled", False, _descriptor(
+            "Start recording at startup (services ~/start_recording, ~/stop_recording toggle it).",
+            ParameterType.PARAMETER_BOOL))
+        node.declare_parameter("record.directory", "bags", _descriptor(
+            "Parent directory; each recording gets a new timestamped sub-directory.",
+            ParameterType.PARAMETER_STRING))
+        node.declare_parameter("record.topics", DEFAULT_TOPICS, _descriptor(
+            "Topics to record; relative and ~/ names resolve against this node.",
+            ParameterType.PARAMETER_STRING_ARRAY))
+        node.declare_parameter("record.compression", "zstd", _descriptor(
+            "MCAP chunk compression: zstd | lz4 | none.", ParameterType.PARAMETER_STRING,
+            additional_constraints="one of: zstd, lz4, none"))
+        node.declare_parameter("record.max_bag_size_mb", 0.0, _descriptor(
+            "Split into a new file beyond this size in MB (10^6 bytes); 0 = off.",
+            ParameterType.PARAMETER_DOUBLE, floating_point_range=[
+                _range(0.0, 1e9)]))
+        node.declare_parameter("record.max_bag_duration_s", 0.0, _descriptor(
+            "Split into a new file after this many seconds of log time; 0 = off.",
+            ParameterType.PARAMETER_DOUBLE, floating_point_range=[_range(0.0, 1e9)]))
+        self._start_srv = node.create_service(Trigger, "~/start_recording", self._on_start)
+        self._stop_srv = node.create_service(Trigger, "~/stop_recording", self._on_stop)
+        self._timer = node.create_timer(discovery_period_s, self._discover)
+        if node.get_parameter("record.enabled").value:
+            ok, msg = self.start()
+            if not ok:
+                node.get_logger().error(f"recording not started: {msg}")
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def recording(self) -> bool:
+        return self._recorder is not None
+
+    @property
+    def recorder(self) -> Recorder | None:
+        return self._recorder
+
+    def add_publisher(self, publisher: Any) -> None:
+        """Record this node's own publisher directly instead of subscribing to it: the node then
+        publishes serialized bytes and hands the same bytes to :meth:`record`. Saves one
+        subscription callback per message (the dominant recording cost in rclpy)."""
+        cls = publisher.msg_type
+        type_name = f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}"
+        q = publisher.qos_profile
+        self._outgoing[publisher.topic_name] = TopicInfo(publisher.topic_name, type_name, (
+            qos_profile_dict(reliability=_RELIABILITY.get(q.reliability, "unknown"),
+                             durability=_DURABILITY.get(q.durability, "unknown"),
+                             history=_HISTORY.get(q.history, "unknown"), depth=q.depth,
+                             liveliness=_LIVELINESS.get(q.liveliness, "unknown")),))
+        if self._recorder is not None and publisher.topic_name in self._topics:
+            self._recorder.add_topic(self._outgoing[publisher.topic_name])
+            self._direct.add(publisher.topic_name)
+
+    def record(self, publisher: Any, data: bytes) -> None:
+        """Record serialized bytes this node just published on ``publisher`` (see
+        :meth:`add_publisher`); a no-op when not recording or the topic is not recorded."""
+        rec = self._recorder
+        topic = publisher.topic_name
+        if rec is None or topic not in self._direct:
+            return
+        now = self._clock.now().nanoseconds
+        stamp = header_stamp_ns(data) if has_header_first(self._outgoing[topic].type) else None
+        rec.write(topic, data, now, stamp if stamp else now)
+
+    def set_robot_description(self, urdf: str) -> None:
+        """Description to embed in every file (repeated on /robot_description + metadata)."""
+        self._description = urdf
+        if self._recorder is not None:
+            self._recorder.set_robot_description(urdf)
+
+    def start(self) -> tuple[bool, str]:
+        """Start a new recording; returns (success, bag path or error text)."""
+        if self._recorder is not None:
+            return True, str(self._recorder.path)
+        p = self.node.get_parameter
+        try:
+            config = RecorderConfig(
+                directory=str(p("record.directory").value),
+                compression=str(p("record.compression").value),
+                max_bag_size_mb=float(p("record.max_bag_size_mb").value),
+                max_bag_duration_s=float(p("record.max_bag_duration_s").value),
+                flush_period_s=self._flush_period_s,
+                description_topic=self.node.resolve_topic_name("robot_description"))
+            self._recorder = Recorder(config, robot_description=self._current_description(),
+                                      parameters_yaml=self.parameters_yaml(),
+                                      opener=self._opener, on_state=self._on_state)
+        except (RecordingError, OSError) as exc:
+            return False, str(exc)
+        self._topics = self._resolved_topics()
+        self._direct = {t for t in self._topics if t in self._outgoing}
+        for t in self._direct:
+            self._recorder.add_topic(self._outgoing[t])
+        self._discover()
+        self.node.get_logger().info(f"recording to {self._recorder.path}")
+        return True, str(self._recorder.path)
+
+    def stop(self) -> tuple[bool, str]:
+        """Stop and close the current recording; returns (success, bag path or reason)."""
+        rec = self._recorder
+        if rec is None:
+            return False, "not recording"
+        for sub in self._subs.values():
+            self.node.destroy_subscription(sub)
+        self._subs.clear()
+        self._direct = set()
+        self._recorder = None
+        self._last_stats = rec.close()
+        return self._last_stats.state != "error", str(rec.path)
+
+    def close(self) -> None:
+        """Clean close (node shutdown, SIGINT/SIGTERM): summaries and metadata.yaml written."""
+        if self._recorder is not None:
+            self.stop()
+
+    def status(self) -> Status:
+        """``dyn_node: recorder``: OK, WARN on any drop, ERROR when writing failed."""
+        rec = self._recorder
+        stats = rec.stats() if rec is not None else self._last_stats
+        if stats is None:
+            return Status(STATUS_NAME, OK, "not recording", values={"recording": False})
+        values: dict[str, Any] = {"recording": rec is not None, "bag": stats.path,
+                                  "state": stats.state, "files": len(stats.files),
+                                  "queued": stats.queued}
+        for topic, c in sorted(stats.topics.items()):
+            values[f"{topic} received"] = c.received
+            values[f"{topic} written"] = c.written
+            values[f"{topic} dropped"] = c.dropped
+        values["dropped_messages"] = stats.dropped
+        if stats.state == "error":
+            values["failure_label"] = EVALUATION_ERROR
+            return Status(STATUS_NAME, ERROR, f"recording failed: {stats.error}; "
+                          f"{stats.dropped} messages dropped", values=values)
+        if stats.dropped:
+            values["failure_label"] = EVALUATION_ERROR
+            return Status(STATUS_NAME, WARN, f"{stats.dropped} messages dropped (writer queue "
+                          "full)", values=values)
+        return Status(STATUS_NAME, OK, "recording" if rec is not None else "stopped",
+                      values=values)
+
+    def parameters_yaml(self) -> str:
+        """All declared parameters of the node, as a --params-file YAML document."""
+        params = self.node.get_parameters_by_prefix("")
+        tree: dict[str, Any] = {}
+        for name in sorted(params):
+            value = params[name].value
+            if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
+                value = list(value.tolist() if hasattr(value, "tolist") else value)
+            node = tree
+            parts = name.split(".")
+            for part in parts[:-1]:
+                nxt = node.setdefault(part, {})
+                if not isinstance(nxt, dict):  # "a" and "a.b" both set: keep the dotted name
+                    node = None
+                    break
+                node = nxt
+            if node is None:
+                tree[name] = value
+            else:
+                node[parts[-1]] = value
+        return yaml.safe_dump({self.node.get_fully_qualified_name(): {"ros__parameters": tree}},
+                              sort_keys=False)
+
+    # ------------------------------------------------------------------ internals
+    def _current_description(self) -> str:
+        if self._description_fn is not None:
+            try:
+                text = self._description_fn() or ""
+            except Exception:  # noqa: BLE001 - a failing getter must not stop recording
+                text = ""
+            if text:
+                return text
+        if self._description:
+            return self._description
+        if self.node.has_parameter("robot_description"):
+            v = self.node.get_parameter("robot_description").value
+            if isinstance(v, str):
+                return v
+        return ""
+
+    def _resolved_topics(self) -> list[str]:
+        out = []
+        for t in self.node.get_parameter("record.topics").value or []:
+            try:
+                name = self.node.resolve_topic_name(str(t))
+            except Exception:  # noqa: BLE001 - invalid names are logged and skipped
+                self.node.get_logger().warning(f"record.topics: invalid topic name {t!r}")
+                continue
+            if name not in out:
+                out.append(name)
+        return out
+
+    def _discover(self) -> None:
+        rec = self._recorder
+        if rec is None:
+            return
+        desc = self._current_description()
+        if desc:
+            rec.set_robot_description(desc)
+        rec.set_parameters_yaml(self.parameters_yaml())  # recorded again only when changed
+        missing = [t for t in self._topics if t not in self._subs and t not in self._direct]
+        if not missing:
+            return
+        types = dict(self.node.get_topic_names_and_types())
+        for topic in missing:
+            if not types.get(topic):
+                continue
+            msg_type = types[topic][0]
+            pubs = self.node.get_publishers_info_by_topic(topic)
+            if not pubs:
+                continue
+            try:
+                cls = _import_type(msg_type)
+            except (ImportError, AttributeError, ValueError):
+                if topic not in self._unknown:
+                    self._unknown.add(topic)
+                    self.node.get_logger().warning(
+                        f"cannot record {topic}: message type {msg_type} is not installed")
+                continue
+            reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in pubs)
+            latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                          for p in pubs)
+            qos = QoSProfile(
+                depth=SUBSCRIBER_DEPTH, history=HistoryPolicy.KEEP_LAST,
+                reliability=(ReliabilityPolicy.RELIABLE if reliable
+                             else ReliabilityPolicy.BEST_EFFORT),
+                durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                            else DurabilityPolicy.VOLATILE))
+            offered = tuple(qos_profile_dict(
+                reliability=_RELIABILITY.get(p.qos_profile.reliability, "unknown"),
+                durability=_DURABILITY.get(p.qos_profile.durability, "unknown"),
+                history=_HISTORY.get(p.qos_profile.history, "unknown"),
+                depth=p.qos_profile.depth,
+                liveliness=_LIVELINESS.get(p.qos_profile.liveliness, "unknown")) for p in pubs)
+            rec.add_topic(TopicInfo(topic, msg_type, offered))
+            self._subs[topic] = self.node.create_subscription(
+                cls, topic, self._callback(rec, topic, has_header_first(msg_type)), qos, raw=True)
+
+    def _callback(self, rec: Recorder, topic: str, stamped: bool) -> Callable[[bytes], None]:
+        clock = self.node.get_clock()
+
+        def on_message(data: bytes) -> None:
+            now = clock.now().nanoseconds
+            stamp = header_stamp_ns(data) if stamped else None
+            rec.write(topic, data, now, stamp if stamp else now)
+        return on_message
+
+    def _on_state(self, stats: RecorderStats) -> None:
+        # Runs on the writer thread the moment writing fails (the logger is thread-safe), so
+        # the failure is visible before the next /diagnostics period.
+        if stats.state == "error":
+            self.node.get_logger().error(f"recording to {stats.path} failed: {stats.error}; "
+                                         "further messages are dropped (counted)")
+
+    def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = self.start()
+        return response
+
+    def _on_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = self.stop()
+        return response
+
+
+def _range(lo: float, hi: float):
+    from rcl_interfaces.msg import FloatingPointRange
+    return FloatingPointRange(from_value=lo, to_value=hi, step=0.0)
+
+
+def _import_type(type_name: str):
+    """'pkg/msg/Type' -> the generated Python class."""
+    import importlib
+    pkg, kind, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+
+
+__all__ = ["RecordingBridge", "DEFAULT_TOPICS", "STATUS_NAME", "COMPRESSIONS"]

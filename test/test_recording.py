@@ -1,0 +1,287 @@
+"""The pure bag writer, read back by independent readers (rosbags, mcap) with exact counts."""
+from __future__ import annotations
+
+import errno
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from mcap.reader import make_reader
+from rclpy.serialization import serialize_message
+from rosbags.rosbag2 import Reader as Rosbag2Reader
+from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+
+from dyn_node import __version__
+from dyn_node.bag_recover import recover_file
+from dyn_node.recording import (Recorder, RecorderConfig, RecorderStats, RecordingError,
+                                TopicInfo, cdr_string, header_stamp_ns, message_definition,
+                                qos_profile_dict)
+
+URDF = "<robot name='r'><link name='base'/></robot>"
+JS = "/joint_states"
+DESC = "/robot_description"
+
+
+def joint_state(seq: int) -> bytes:
+    """Serialized JointState carrying ``seq``. rclpy leaves CDR padding bytes uninitialised, so
+    two serializations of one message may differ: compare against the bytes actually sent."""
+    m = JointState()
+    m.header.stamp.sec, m.header.stamp.nanosec = 1000 + seq // 1000, (seq % 1000) * 1_000_000
+    m.header.frame_id = str(seq)
+    m.name = ["j1", "j2", "j3", "j4", "j5", "j6", "j7"]
+    m.position = [seq * 1e-3 + k for k in range(7)]
+    m.velocity = [0.1 * k for k in range(7)]
+    m.effort = [float(seq % 7)] * 7
+    return serialize_message(m)
+
+
+def make_recorder(tmp_path: Path, **kw) -> Recorder:
+    opts = {k: kw.pop(k) for k in list(kw) if k in RecorderConfig.__dataclass_fields__}
+    rec = Recorder(RecorderConfig(directory=str(tmp_path), **opts), robot_description=URDF,
+                   parameters_yaml="/dyn_node:\n  ros__parameters:\n    a: 1\n", **kw)
+    rec.add_topic(TopicInfo(JS, "sensor_msgs/msg/JointState", (qos_profile_dict(depth=100),)))
+    rec.add_topic(TopicInfo("/chatter", "std_msgs/msg/String", (qos_profile_dict(),)))
+    return rec
+
+
+def read_mcap(path: str | Path) -> tuple[list, list]:
+    """(messages as (topic, log, publish, data), metadata records) via mcap's reader, CRCs on."""
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        msgs = [(ch.topic, m.log_time, m.publish_time, m.data)
+                for _s, ch, m in reader.iter_messages(log_time_order=False)]
+        meta = [(r.name, dict(r.metadata)) for r in reader.iter_metadata()]
+    return msgs, meta
+
+
+def test_message_definition_is_complete_and_parseable():
+    text = message_definition("trajectory_msgs/msg/JointTrajectory")
+    for dep in ("std_msgs/Header", "builtin_interfaces/Time",
+                "trajectory_msgs/JointTrajectoryPoint", "builtin_interfaces/Duration"):
+        assert f"MSG: {dep}\n" in text
+    # rosbags parses the concatenated definition independently.
+    types = get_types_from_msg(text, "trajectory_msgs/msg/JointTrajectory")
+    assert "trajectory_msgs/msg/JointTrajectory" in types
+    assert message_definition("no_such_pkg/msg/Nothing") == ""
+
+
+def test_header_stamp_from_raw_cdr():
+    data = joint_state(1234)
+    assert header_stamp_ns(data) == 1001 * 10**9 + 234 * 10**6
+    assert header_stamp_ns(b"\x00\x01") is None
+
+
+def test_bag_read_back_by_independent_readers(tmp_path):
+    rec = make_recorder(tmp_path, chunk_size=4096)
+    sent, sent_js = [], []
+    for seq in range(3000):
+        data = joint_state(seq)
+        sent_js.append(data)
+        log = 1_700_000_000 * 10**9 + seq * 1_000_000
+        assert rec.write(JS, data, log, header_stamp_ns(data))
+        sent.append((JS, log, header_stamp_ns(data), data))
+        if seq % 100 == 0:
+            s = serialize_message(String(data=f"hello {seq}"))
+            rec.write("/chatter", s, log, None)
+            sent.append(("/chatter", log, log, s))
+    stats = rec.close()
+    assert stats.state == "closed" and stats.error == ""
+    assert stats.topics[JS].received == stats.topics[JS].written == 3000
+    assert stats.topics["/chatter"].written == 30 and stats.dropped == 0
+    bag = Path(stats.path)
+    assert [p.name for p in sorted(bag.iterdir())] == [f"{bag.name}_0.mcap", "metadata.yaml"]
+
+    # mcap's own reader: payloads byte-equal, times as given, description first, metadata record.
+    msgs, meta = read_mcap(bag / f"{bag.name}_0.mcap")
+    assert msgs[0][0] == DESC and msgs[0][3] == cdr_string(URDF)
+    assert sorted(msgs[1:]) == sorted(sent)
+    assert meta == [("dyn_node", {"robot_description": URDF, "parameters":
+                                  "/dyn_node:\n  ros__parameters:\n    a: 1\n",
+                                  "version": __version__})]
+
+    # rosbags' rosbag2 reader on the directory, and its typestore decoding our schema text.
+    with Rosbag2Reader(bag) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        assert counts == {DESC: 1, JS: 3000, "/chatter": 30}
+        store = get_typestore(Stores.EMPTY)
+        js_conn = next(c for c in reader.connections if c.topic == JS)
+        store.register(get_types_from_msg(js_conn.msgdef.data, js_conn.msgtype))
+        seen = 0
+        for conn, ts, raw in reader.messages():
+            if conn.topic != JS:
+                continue
+            m = store.deserialize_cdr(raw, conn.msgtype)
+            seq = int(m.header.frame_id)
+            assert raw == sent_js[seq] and ts == 1_700_000_000 * 10**9 + seq * 1_000_000
+            seen += 1
+        assert seen == 3000
+    meta_yaml = yaml.safe_load((bag / "metadata.yaml").read_text())
+    info = meta_yaml["rosbag2_bagfile_information"]
+    assert info["version"] == 9 and info["storage_identifier"] == "mcap"
+    assert info["message_count"] == 3031 and info["files"][0]["message_count"] == 3031
+    assert meta_yaml["dyn_node"]["topics"][JS] == {"received": 3000, "written": 3000, "dropped": 0}
+
+
+@pytest.mark.parametrize("split", ["size", "duration"])
+def test_split_files_each_valid_and_union_exact(tmp_path, split):
+    kw = {"max_bag_size_mb": 0.05} if split == "size" else {"max_bag_duration_s": 0.5}
+    rec = make_recorder(tmp_path, compression="lz4" if split == "size" else "none", **kw)
+    n = 2500
+    for seq in range(n):  # 2.5 s of log time at 1 kHz
+        rec.write(JS, joint_state(seq), 10**18 + seq * 1_000_000)
+    stats = rec.close()
+    assert stats.state == "closed" and stats.topics[JS].written == n
+    bag = Path(stats.path)
+    files = sorted(bag.glob("*.mcap"), key=lambda p: int(p.stem.rsplit("_", 1)[1]))
+    assert len(files) >= 3 and len(files) == len(stats.files)
+    union = []
+    for f in files:
+        msgs, meta = read_mcap(f)  # each file alone, with its summary and CRCs
+        assert msgs[0][0] == DESC and msgs[0][3] == cdr_string(URDF)
+        assert [m for m in msgs if m[0] == DESC] == [msgs[0]]
+        assert meta and meta[0][1]["robot_description"] == URDF
+        union += [m[1] for m in msgs if m[0] == JS]
+        if split == "duration":
+            times = [m[1] for m in msgs if m[0] == JS]
+            assert max(times) - min(times) < 0.5e9
+        else:
+            assert f.stat().st_size < 0.05e6 * 1.3  # open chunk counted uncompressed: bounded
+    assert union == [10**18 + s * 1_000_000 for s in range(n)]  # every message exactly once
+    with Rosbag2Reader(bag) as reader:
+        assert {c.topic: c.msgcount for c in reader.connections}[JS] == n
+        assert sum(1 for c, _, _ in reader.messages() if c.topic == JS) == n
+
+
+class FullDisk:
+    """A file that accepts ``budget`` bytes, then raises ENOSPC like a full file system."""
+
+    def __init__(self, path: str, budget: int):
+        self.f = open(path, "xb")
+        self.budget = budget
+        self.full_at: float | None = None
+
+    def write(self, data: bytes) -> int:
+        if len(data) > self.budget:
+            self.full_at = self.full_at or time.monotonic()
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.budget -= len(data)
+        return self.f.write(data)
+
+    def flush(self) -> None:
+        self.f.flush()
+
+    def fileno(self) -> int:
+        return self.f.fileno()
+
+    def close(self) -> None:
+        self.f.close()
+
+
+def test_disk_full_reports_error_and_counts_exactly(tmp_path):
+    failed = threading.Event()
+    disks: list[FullDisk] = []
+    error_at: list[float] = []
+
+    def on_state(stats: RecorderStats) -> None:
+        if stats.state == "error":
+            error_at.append(time.monotonic())
+            failed.set()
+
+    def opener(path: str) -> FullDisk:
+        disks.append(FullDisk(path, 60_000))
+        return disks[-1]
+
+    rec = make_recorder(tmp_path, chunk_size=2048, opener=opener, on_state=on_state)
+    n, t_fail, worst_call = 0, None, 0.0
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        t0 = time.perf_counter()
+        rec.write(JS, joint_state(n), 10**18 + n * 1_000_000)  # never raises
+        worst_call = max(worst_call, time.perf_counter() - t0)
+        n += 1
+        if failed.is_set():
+            t_fail = t_fail or time.monotonic()
+            if n % 500 == 0:
+                break
+    assert failed.is_set(), "ENOSPC not detected"
+    assert error_at[0] - disks[0].full_at <= 1.0  # reported within a second of the disk filling
+    stats = rec.close()
+    assert stats.state == "error" and "ENOSPC" in stats.error
+    c = stats.topics[JS]
+    assert c.received == n and c.written + c.dropped == n and c.dropped > 0
+    # "written" means on disk: the partial file, recovered, holds exactly that many messages.
+    bag = Path(stats.path)
+    r = recover_file(bag / f"{bag.name}_0.mcap", tmp_path / "out.mcap")
+    assert r.kept.get(JS, 0) == c.written and r.lost
+    assert worst_call < 0.5  # the caller never waits on the disk
+
+
+def test_queue_full_drops_are_counted(tmp_path):
+    release = threading.Event()
+
+    class SlowDisk(FullDisk):
+        def write(self, data: bytes) -> int:
+            release.wait(10.0)  # the disk hangs until released
+            return super().write(data)
+
+    rec = make_recorder(tmp_path, queue_size=100, opener=lambda p: SlowDisk(p, 10**9))
+    results = [rec.write(JS, joint_state(i), 10**18 + i) for i in range(300)]
+    release.set()
+    stats = rec.close()
+    c = stats.topics[JS]
+    assert c.received == 300 and c.dropped == results.count(False) >= 200
+    assert c.written == results.count(True) and stats.state == "closed"
+
+
+def test_never_overwrites_and_rejects_bad_config(tmp_path):
+    a, b = make_recorder(tmp_path), make_recorder(tmp_path)
+    assert a.path != b.path and a.path.parent == b.path.parent == tmp_path
+    a.close(), b.close()
+    assert a.close().state == "closed"  # idempotent
+    with pytest.raises(RecordingError, match="compression"):
+        Recorder(RecorderConfig(directory=str(tmp_path), compression="gzip"))
+    with pytest.raises(RecordingError, match="max_bag_size_mb"):
+        Recorder(RecorderConfig(directory=str(tmp_path), max_bag_size_mb=-1))
+
+
+def test_real_full_tmpfs(tmp_path):
+    """A real 128 kB tmpfs (needs root to mount): ENOSPC from the kernel, not from a fake."""
+    import os
+    import subprocess
+
+    mnt = tmp_path / "tiny"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=128k", "tmpfs", str(mnt)],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (not root?): {r.stderr.strip()}")
+    try:
+        failed = threading.Event()
+        rec = Recorder(RecorderConfig(directory=str(mnt), chunk_size=8192),
+                       robot_description=URDF,
+                       on_state=lambda s: failed.set() if s.state == "error" else None)
+        rec.add_topic(TopicInfo("/noise", "std_msgs/msg/String"))
+        sent = []
+        deadline = time.monotonic() + 20.0
+        while not failed.is_set() and time.monotonic() < deadline:
+            payload = len(sent).to_bytes(4, "little") + os.urandom(1000)  # incompressible
+            rec.write("/noise", payload, 10**18 + len(sent) * 1000)
+            sent.append(payload)
+        assert failed.is_set(), "the tmpfs never filled"
+        for k in range(100):  # after the error: counted as dropped, never raised
+            assert rec.write("/noise", b"late", 2 * 10**18 + k) is False
+        stats = rec.close()
+        c = stats.topics["/noise"]
+        assert stats.state == "error" and "ENOSPC" in stats.error
+        assert c.received == len(sent) + 100 and c.written + c.dropped == c.received
+        bag = Path(stats.path)
+        recovered = recover_file(bag / f"{bag.name}_0.mcap", tmp_path / "out.mcap")
+        assert recovered.kept.get("/noise", 0) == c.written > 0
+        msgs, _ = read_mcap(tmp_path / "out.mcap")
+        assert [m[3] for m in msgs if m[0] == "/noise"] == sent[:c.written]
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
