@@ -47,7 +47,7 @@ class Dynamics:
     """Gravity, inverse dynamics, mass matrix and bias for one model and one set of options."""
 
     def __init__(self, model: RobotModel, options: DynamicsOptions = DynamicsOptions(),
-                 threads: int | None = None):
+                 threads: int = 1):
         self.model = model
         self.options = options
         pm = model.pin_model.copy()
@@ -59,7 +59,9 @@ class Dynamics:
         self._coulomb = np.array(pm.friction) if options.include_friction else np.zeros(pm.nv)
         self._has_friction = bool(np.any(self._damping) or np.any(self._coulomb))
         self._zero = np.zeros(pm.nv)
-        self._threads = max(1, min(threads or (os.cpu_count() or 1), 8))
+        # One thread by default: Pinocchio's C++ batch is already ~2x the Python loop on one core,
+        # and a second OpenMP thread is erratic when the other core is busy (seen in make bench).
+        self._threads = max(1, min(int(threads), os.cpu_count() or 1))
         self._pool: pin.ModelPool | None = None
 
     @property

@@ -1,0 +1,199 @@
+"""Section "live": stamp-to-output latency, loss, CPU share and memory of ROS subjects.
+
+Each subject runs as its own process (own session, so it can be signalled as a group) on an own
+ROS_DOMAIN_ID with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST; benchmarks.ros_probe drives the
+joint_states publisher and measures. Subjects run one after another on the same machine in the
+same run, so their ratios are comparable. The venv's Python re-executes itself once at start
+(the ROS wheels' .pth sets LD_LIBRARY_PATH) with execve, which keeps the PID; the PID measured is
+checked against /proc/<pid>/cmdline.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from .common import REPO, NotAvailable, progress, read_vm
+
+
+def bench_domain() -> int:
+    return int(os.environ.get("DYN_BENCH_DOMAIN") or os.environ.get("DYN_TEST_DOMAIN") or 63)
+
+
+def ros_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    env.update(ROS_DOMAIN_ID=str(bench_domain()), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    # The repo root on the path so `-m benchmarks...` and `-m dyn_node...` work from anywhere.
+    env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
+
+
+def _dyn_node_reason() -> str | None:
+    if not (REPO / "dyn_node" / "node.py").exists():
+        return "dyn_node/node.py does not exist yet"
+    return None
+
+
+def _recording_reason() -> str | None:
+    why = _dyn_node_reason()
+    if why:
+        return why
+    for mod in ("recording.py", "ros_recording.py"):
+        if not (REPO / "dyn_node" / mod).exists():
+            return f"dyn_node/{mod} does not exist yet"
+    return None
+
+
+def subjects(record_dir: str) -> list[dict]:
+    py = sys.executable
+    return [
+        dict(key="bare", name="(a) bare rclpy republisher",
+             what="subscribe joint_states, publish the same message on ~/out",
+             cmd=[py, "-m", "benchmarks.subjects.bare_republisher"],
+             output="/bare_republisher/out", module="benchmarks.subjects.bare_republisher",
+             reason=None),
+        dict(key="minimal", name="(b) minimal hand-written node",
+             what="subscribe, pinocchio rnea + gravity, publish two JointStates",
+             cmd=[py, "-m", "benchmarks.subjects.minimal_node", "panda"],
+             output="/minimal_node/inverse_dynamics", module="benchmarks.subjects.minimal_node",
+             reason=None),
+        dict(key="dyn_node", name="(c) dyn_node",
+             what="python -m dyn_node.node -p robot_model:=panda (all checks, diagnostics)",
+             cmd=[py, "-m", "dyn_node.node", "--ros-args", "-p", "robot_model:=panda"],
+             output="/dyn_node/inverse_dynamics", module="dyn_node.node", reason=_dyn_node_reason()),
+        dict(key="dyn_node_record", name="(d) dyn_node, recording on",
+             what="as (c) with record.enabled:=true (MCAP, zstd) into a temporary directory",
+             cmd=[py, "-m", "dyn_node.node", "--ros-args", "-p", "robot_model:=panda",
+                  "-p", "record.enabled:=true", "-p", f"record.directory:={record_dir}"],
+             output="/dyn_node/inverse_dynamics", module="dyn_node.node",
+             reason=_recording_reason()),
+    ]
+
+
+def _stop(proc: subprocess.Popen) -> tuple[int | None, str]:
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
+    try:
+        _, err = proc.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        _, err = proc.communicate()
+    return proc.returncode, err or ""
+
+
+def _wait_cmdline(pid: int, module: str, timeout: float = 10.0) -> None:
+    """Confirm the PID runs the subject (after the bootstrapper's execve) before measuring it."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            raise NotAvailable("subject exited at start")
+        if module.encode() in cmd:
+            return
+        time.sleep(0.02)
+    raise NotAvailable(f"PID {pid} does not run {module}")
+
+
+def _median(xs: list[float]) -> float:
+    xs = sorted(xs)
+    n = len(xs)
+    return xs[n // 2] if n % 2 else (xs[n // 2 - 1] + xs[n // 2]) / 2
+
+
+def run_subject(s: dict, rates: str, window: float, ready_timeout: float, repeat_first: int) -> dict:
+    row = dict(key=s["key"], subject=s["name"], what=s["what"], output_topic=s["output"])
+    if s["reason"]:
+        row["status"] = f"not available: {s['reason']}"
+        return row
+    env = ros_env()
+    proc = subprocess.Popen(s["cmd"], cwd=REPO, env=env, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    with tempfile.NamedTemporaryFile(suffix=".json") as out:
+        try:
+            _wait_cmdline(proc.pid, s["module"])
+            probe = subprocess.run([sys.executable, "-m", "benchmarks.ros_probe", "--output", s["output"],
+                                    "--subject-pid", str(proc.pid), "--rates", rates,
+                                    "--window", str(window), "--ready-timeout", str(ready_timeout),
+                                    "--repeat-first", str(repeat_first),
+                                    "--out", out.name],
+                                   cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                   text=True, timeout=ready_timeout + 60 + 10 * window * (len(rates.split(",")) + repeat_first))
+            result = json.loads(Path(out.name).read_text() or "{}")
+            if proc.poll() is None:
+                row["vm_hwm_mib"] = read_vm(proc.pid, "VmHWM")
+                row["vm_rss_mib"] = read_vm(proc.pid, "VmRSS")
+        except NotAvailable as exc:
+            result = {"error": str(exc)}
+        except subprocess.TimeoutExpired:
+            result = {"error": "probe timed out"}
+        finally:
+            rc, err = _stop(proc)
+    if result.get("error"):
+        tail = " | ".join(err.strip().splitlines()[-3:])
+        row["status"] = f"not available: {result['error']}" + (f" (subject stderr: {tail})" if tail else "")
+        row["windows"] = result.get("windows", [])
+        return row
+    if not result.get("windows"):
+        row["status"] = f"not available: probe produced no result ({probe.stderr.strip()[-300:]})"
+        return row
+    row["status"] = "ok"
+    row["windows"] = result["windows"]
+    row["output_reliability"] = result.get("output_reliability")
+    rate0 = result["windows"][0]["target_hz"]
+    first = [w for w in result["windows"] if w["target_hz"] == rate0]
+    sent, got = sum(w["sent"] for w in first), sum(w["received"] for w in first)
+    row.update(p50_us_1k=_median([w["p50_us"] for w in first]),
+               p99_us_1k=_median([w["p99_us"] for w in first]),
+               cpu_share_1k=_median([w["cpu_share"] for w in first]),
+               cpu_us_per_output_1k=_median([w["cpu_us_per_output"] for w in first]),
+               loss_1k=1.0 - got / sent if sent else float("nan"),
+               achieved_hz_1k=_median([w["achieved_hz"] for w in first]), windows_1k=len(first))
+    held = [w["achieved_hz"] for w in result["windows"] if w["loss"] == 0.0]
+    row["max_rate_no_loss_hz"] = max(held) if held else 0.0
+    row["exit_code"] = rc
+    return row
+
+
+def run(quick: bool = False, smoke: bool = False) -> dict:
+    """``quick``: 1 and 4 kHz, 1.5 s windows; ``smoke``: the bare republisher only, one 0.5 s
+    window at 500 Hz (tests only, figures meaningless)."""
+    rates = "500" if smoke else "1000,4000" if quick else "1000,2000,4000,8000"
+    window = 0.5 if smoke else 1.5 if quick else 3.0
+    repeat_first = 1 if quick or smoke else 3
+    out: dict = dict(rates=rates, window_s=window, repeats_1k=repeat_first, domain=bench_domain(),
+                     rows=[])
+    with tempfile.TemporaryDirectory(prefix="dyn_bench_rec_") as rec:
+        for s in subjects(rec)[:1 if smoke else None]:
+            progress("live", f"{s['name']} (rates {rates} Hz, {window} s each)")
+            row = run_subject(s, rates, window, ready_timeout=30.0, repeat_first=repeat_first)
+            progress("live", f"{s['name']}: {row['status']}")
+            out["rows"].append(row)
+    by = {r["key"]: r for r in out["rows"] if r.get("status") == "ok"}
+    cmp: dict = {}
+    if "dyn_node" in by and "minimal" in by:
+        cmp["p99_dyn_node_over_minimal_1k"] = by["dyn_node"]["p99_us_1k"] / by["minimal"]["p99_us_1k"]
+        cmp["p50_dyn_node_over_minimal_1k"] = by["dyn_node"]["p50_us_1k"] / by["minimal"]["p50_us_1k"]
+        cmp["max_rate_dyn_node_over_minimal"] = (
+            by["dyn_node"]["max_rate_no_loss_hz"] / by["minimal"]["max_rate_no_loss_hz"]
+            if by["minimal"]["max_rate_no_loss_hz"] else float("nan"))
+    if "minimal" in by and "bare" in by:
+        cmp["p99_minimal_over_bare_1k"] = by["minimal"]["p99_us_1k"] / by["bare"]["p99_us_1k"]
+    if "dyn_node" in by and "dyn_node_record" in by and by["dyn_node"]["cpu_share_1k"] > 0:
+        cmp["recording_cpu_overhead_1k"] = (by["dyn_node_record"]["cpu_share_1k"]
+                                            / by["dyn_node"]["cpu_share_1k"] - 1.0)
+        # Per message answered: not flattered when the recording node answers fewer messages.
+        cmp["recording_cpu_per_output_overhead_1k"] = (
+            by["dyn_node_record"]["cpu_us_per_output_1k"] / by["dyn_node"]["cpu_us_per_output_1k"] - 1.0)
+    out["comparisons"] = cmp
+    return out

@@ -1,0 +1,271 @@
+"""Markdown from bench.json: docs/BENCHMARKS.md, the README section and the terminal tables."""
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+BEGIN, END = "<!-- BENCH:BEGIN -->", "<!-- BENCH:END -->"
+
+
+def _f(x, digits: int = 3, unit: str = "") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "—"
+    if isinstance(x, (int, float)):
+        ax = abs(x)
+        s = (f"{x:.{digits}g}" if ax < 10 ** digits else f"{x:,.0f}")
+        return s + unit
+    return str(x)
+
+
+def _ratio(x, bold: bool = False) -> str:
+    if x is None or not math.isfinite(x):
+        return "—"
+    return f"**{x:.2f}**" if bold else f"{x:.2f}"
+
+
+def _pct(x) -> str:
+    return "—" if x is None or not math.isfinite(x) else f"{100 * x:.2f}%"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(c.replace("|", "\\|") for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _status(sec: dict) -> str | None:
+    st = sec.get("status")
+    return None if st in (None, "ok") else st
+
+
+def machine_md(doc: dict) -> str:
+    m = doc["machine"]
+    v = ", ".join(f"{k} {val}" for k, val in m["versions"].items())
+    return (f"Machine: {m['cpu_model']}, {m['cpu_count']} cores ({m['cpus_usable']} usable), "
+            f"{m['memory_gib']} GiB RAM, Linux {m['kernel']}.  \nVersions: {v}.")
+
+
+def dynamics_md(sec: dict) -> str:
+    if _status(sec):
+        return f"Dynamics: {_status(sec)}"
+    d = sec["result"]
+    out = [f"Inverse dynamics τ = RNEA(q, q̇, q̈) on {d['n_batch']:,} seeded states per robot "
+           f"(single-call timings over up to the first {d['n_call']:,}, fewer for calls slower than "
+           f"0.1 ms); median of {d['repeats']} repeats, interleaved across implementations "
+           "(PyKDL's in its own process). "
+           f"{d['note']}. Every implementation was checked against dyn_node's batched result "
+           f"before timing (tolerance {d['tolerance_Nm']:g} N·m); the last column is the largest "
+           "difference found. ×loop: batch time ÷ the plain Python pinocchio.rnea loop's, "
+           "same run (below 1 = faster)."]
+    for robot in dict.fromkeys(r["robot"] for r in d["rows"]):
+        rows = []
+        for r in (r for r in d["rows"] if r["robot"] == robot):
+            if r.get("status") != "ok":
+                rows.append([r["impl"], r.get("what", ""), r["status"], "—", "—", "—", "—",
+                             _f(r.get("max_abs_diff_Nm"), 2)])
+                continue
+            rows.append([r["impl"], r["what"], _f(r.get("per_call_us")),
+                         _f(r.get("per_call_vs_pin_call"), 2), _f(r.get("batch_s", float("nan")) * 1e3),
+                         _f(r.get("batch_per_state_us")), _f(r.get("batch_vs_pin_loop"), 2),
+                         _f(r.get("max_abs_diff_Nm"), 2)])
+        nv = next(r.get("nv") for r in d["rows"] if r["robot"] == robot)
+        out.append(f"**{robot}** ({nv} DoF)\n\n" + _table(
+            ["implementation", "what it measures", "per call (µs)", "×pin call",
+             f"batch of {d['n_batch']:,} (ms)", "µs/state", "×loop", "max abs Δτ vs dyn_node (N·m)"], rows))
+    return "\n\n".join(out)
+
+
+def live_md(sec: dict) -> str:
+    if _status(sec):
+        return f"Live path: {_status(sec)}"
+    d = sec["result"]
+    rows = []
+    for r in d["rows"]:
+        if r.get("status") != "ok":
+            rows.append([r["subject"], r["what"], r["status"]] + ["—"] * 7)
+            continue
+        steps = ", ".join(f"{w['achieved_hz']:.0f} Hz: {_pct(w['loss'])}" for w in r["windows"]
+                          if w.get("step", True))
+        rows.append([r["subject"], r["what"], _f(r["p50_us_1k"]), _f(r["p99_us_1k"]),
+                     _f(r["cpu_share_1k"], 2), _f(r.get("cpu_us_per_output_1k")), _pct(r["loss_1k"]),
+                     _f(r["max_rate_no_loss_hz"], 4) if r["max_rate_no_loss_hz"] else "none (loss at every rate tried)",
+                     steps, _f(r.get("vm_hwm_mib"))])
+    text = [f"7-DoF JointState from a separate publisher process, reliable QoS depth 10, over DDS on "
+            f"localhost (ROS_DOMAIN_ID {d['domain']}). Latency: receipt of the subject's output "
+            f"minus the input's header stamp (= its publish time), p50/p99 over all messages of "
+            f"the 1 kHz windows ({d.get('repeats_1k', 1)} × {d['window_s']:g} s, median across "
+            f"windows). CPU: the subject's utime+stime over the window ÷ wall time (1 = one core), and "
+            f"÷ outputs received. Loss counts messages lost anywhere on publisher → subject → "
+            f"probe (every hop is a reliable, depth-10 queue in the subjects). "
+            f"Rates stepped {d['rates']} Hz ({d['window_s']:g} s each) until more than 1% was lost; "
+            "the publisher's achieved rate is shown. Peak RSS: VmHWM at the end of the run.",
+            _table(["subject", "what it is", "p50 @1 kHz (µs)", "p99 @1 kHz (µs)",
+                    "CPU @1 kHz (cores)", "CPU per output (µs)", "loss @1 kHz", "highest rate, no loss (Hz)",
+                    "steps (rate: loss)", "peak RSS (MiB)"], rows)]
+    c = d.get("comparisons", {})
+    lines = []
+    if "p99_dyn_node_over_minimal_1k" in c:
+        lines.append(f"- dyn_node p99 ÷ minimal node p99 at 1 kHz: **{c['p99_dyn_node_over_minimal_1k']:.2f}** "
+                     "(target ≤ 1.0)")
+        lines.append(f"- dyn_node p50 ÷ minimal node p50 at 1 kHz: {c['p50_dyn_node_over_minimal_1k']:.2f}")
+        lines.append(f"- dyn_node highest no-loss rate ÷ minimal node's: "
+                     f"{_ratio(c['max_rate_dyn_node_over_minimal'], True)} (target ≥ 1.0; — when "
+                     "the minimal node lost messages at every rate tried)")
+    else:
+        lines.append("- dyn_node ÷ minimal node: not measured (dyn_node row not available)")
+    if "p99_minimal_over_bare_1k" in c:
+        lines.append(f"- minimal node p99 ÷ bare republisher p99 at 1 kHz: {c['p99_minimal_over_bare_1k']:.2f}")
+    if "recording_cpu_overhead_1k" in c:
+        lines.append(f"- CPU added by recording at 1 kHz ((d) ÷ (c) − 1): "
+                     f"**{_pct(c['recording_cpu_overhead_1k'])}** of process CPU, "
+                     f"{_pct(c.get('recording_cpu_per_output_overhead_1k'))} per output answered "
+                     "(target ≤ 10%)")
+    else:
+        lines.append("- recording CPU overhead: not measured (row (c) or (d) not available)")
+    text.append("\n".join(lines))
+    return "\n\n".join(text)
+
+
+def feasibility_md(sec: dict) -> str:
+    if _status(sec):
+        return f"Feasibility: {_status(sec)}"
+    d = sec["result"]
+    return (f"A 10 s 7-DoF Panda trajectory ({d['n_points']} waypoints, {d['interpolation']}) "
+            f"sampled at 1 ms ({d['n_samples']:,} samples), every limit kind set; median of "
+            f"{d['repeats']} repeats.\n\n" + _table(
+                ["what", "check_trajectory (ms)", "pinocchio.rnea loop, same samples (ms)",
+                 "ratio", "target"],
+                [[d["what"], _f(d["check_s"] * 1e3), _f(d["rnea_loop_s"] * 1e3),
+                  f"**{d['ratio']:.2f}×**", "≤ 1.0× (issue 8), ≤ 1.5× (issue 4)"]]))
+
+
+def recording_md(sec: dict) -> str:
+    if _status(sec):
+        return f"Recording and audit: {_status(sec)}"
+    d = sec["result"]
+    w = d["writer"]
+    out = [f"Writer ceiling: {w['n_messages']:,} serialized 7-DoF JointStates, median of "
+           f"{w['repeats']} interleaved repeats.\n\n" + _table(
+               ["what", "dyn_node Recorder (msgs/s)", "raw mcap Writer (msgs/s)", "ratio"],
+               [[w["what"], _f(w["recorder_msgs_per_s"], 4), _f(w["raw_mcap_msgs_per_s"], 4),
+                 f"{w['ratio']:.2f}"]])]
+    a = d.get("audit", {})
+    if a:
+        head = (f"Audit: a {a['bag_seconds']:g} s 1 kHz 7-DoF bag ({a['bag_messages']:,} messages, "
+                f"{a['bag_mib']:.1f} MiB, written with dyn_node's Recorder). Raw read = mcap's reader "
+                "iterating every message (decompressed, not decoded).")
+        if a.get("status") != "ok":
+            out.append(head + f"\n\nRaw read: {_f(a['raw_read_msgs_per_s'], 4)} msgs/s. dyn-audit: {a['status']}")
+        else:
+            rss = ", ".join(f"{k} bag: {_f(v)} MiB" for k, v in a["peak_rss_mib"].items())
+            out.append(head + "\n\n" + _table(
+                ["what", "msgs/s", "÷ raw read", "target"],
+                [["mcap reader alone", _f(a["raw_read_msgs_per_s"], 4), "1", ""],
+                 [f"dyn-audit end to end (process start to exit, {_f(a['audit_wall_s'])} s, "
+                  f"median of {a.get('audit_repeats', 1)})",
+                  _f(a["audit_msgs_per_s_end_to_end"], 4), _ratio(a["ratio_end_to_end"], True), "≥ 0.30"],
+                 [f"dyn-audit marginal (Δmessages ÷ Δtime vs a {a.get('small_bag_seconds', 1):g} s bag)",
+                  _f(a["audit_msgs_per_s_marginal"], 4), _ratio(a["ratio_marginal"]), "≥ 0.30"]])
+                + f"\n\nPeak RSS of dyn-audit (VmHWM/ru_maxrss): {rss}; the {a['huge_bag_seconds']:g} s "
+                  f"bag is {a['huge_bag_mib']:.0f} MiB and "
+                  + (f"took {_f(a['huge_bag_wall_s'])} s." if a.get("huge_bag_finished", True)
+                     else f"its audit was stopped after {_f(a['huge_bag_wall_s'])} s (did not finish)."))
+    return "\n\n".join(out)
+
+
+def memory_md(doc: dict) -> str:
+    rows = []
+    live = doc["sections"].get("live", {})
+    for r in live.get("result", {}).get("rows", []):
+        rows.append([f"{r['subject']} at steady state (VmHWM after the live run)",
+                     _f(r.get("vm_hwm_mib")) if r.get("status") == "ok" else r.get("status", "—")])
+    rec = doc["sections"].get("recording", {}).get("result", {}).get("audit", {})
+    for k, v in rec.get("peak_rss_mib", {}).items():
+        rows.append([f"dyn-audit on the {k} bag", _f(v)])
+    if not rows:
+        return "Memory: not measured (live and recording sections not run)"
+    return _table(["process", "peak RSS (MiB)"], rows)
+
+
+SECTIONS = [("dynamics", "Dynamics", dynamics_md), ("live", "Live path", live_md),
+            ("feasibility", "Feasibility check", feasibility_md),
+            ("recording", "Recording and audit", recording_md)]
+
+
+def render(doc: dict) -> str:
+    parts = ["# Benchmarks", "",
+             "Generated by `make bench` (`python -m benchmarks.run`) from `bench_out/bench.json`; "
+             "do not edit by hand. Every figure is a median over repeats and every ratio is taken "
+             "between figures measured in the same run of that section.", "",
+             machine_md(doc)]
+    for key, title, fn in SECTIONS:
+        sec = doc["sections"].get(key)
+        parts += ["", f"## {title}", ""]
+        if sec is None:
+            parts.append("Not run yet.")
+            continue
+        parts.append(f"_Measured {sec['measured_at']} ({'SMOKE (sizes too small to mean anything)' if sec.get('smoke') else 'quick' if sec.get('quick') else 'full'} run, "
+                     f"{sec['wall_s']:.0f} s; 1-min load average {sec.get('loadavg_start', float('nan')):.1f} "
+                     f"at start, {sec.get('loadavg_end', float('nan')):.1f} at end: other processes "
+                     "on the machine share its cores)._")
+        parts += ["", fn(sec)]
+    parts += ["", "## Memory", "", memory_md(doc), ""]
+    return "\n".join(parts)
+
+
+def summary_md(doc: dict) -> str:
+    """The short version for the README, between the BENCH markers."""
+    lines = [machine_md(doc), ""]
+    rows = []
+    dyn = doc["sections"].get("dynamics", {}).get("result")
+    if dyn:
+        for r in dyn["rows"]:
+            if r["robot"] == "panda" and r.get("status") == "ok" and "batch_s" in r:
+                rows.append([f"Panda, {dyn['n_batch']:,} states: {r['impl']}",
+                             f"{_f(r['batch_s'] * 1e3)} ms ({_f(r['batch_vs_pin_loop'], 2)}× the Python pinocchio loop)"])
+    live = doc["sections"].get("live", {}).get("result")
+    if live:
+        for r in live["rows"]:
+            rows.append([f"live @1 kHz: {r['subject']}",
+                         f"p50 {_f(r['p50_us_1k'])} µs, p99 {_f(r['p99_us_1k'])} µs, CPU "
+                         f"{_f(r['cpu_share_1k'], 2)} cores, no loss up to {_f(r['max_rate_no_loss_hz'], 4)} Hz"
+                         if r.get("status") == "ok" else r["status"]])
+        for k, v in live.get("comparisons", {}).items():
+            rows.append([k, _ratio(v)])
+    feas = doc["sections"].get("feasibility", {})
+    if feas.get("result"):
+        f = feas["result"]
+        rows.append(["feasibility, 10,000 samples", f"{_f(f['check_s'] * 1e3)} ms = {f['ratio']:.2f}× a pinocchio.rnea loop"])
+    elif feas:
+        rows.append(["feasibility", feas.get("status", "")])
+    rec = doc["sections"].get("recording", {})
+    if rec.get("result"):
+        w = rec["result"]["writer"]
+        rows.append(["recorder ceiling", f"{_f(w['recorder_msgs_per_s'], 4)} msgs/s ({w['ratio']:.2f}× raw mcap)"])
+        a = rec["result"].get("audit", {})
+        if a.get("status") == "ok":
+            rows.append(["dyn-audit throughput", f"{_f(a['audit_msgs_per_s_end_to_end'], 4)} msgs/s "
+                         f"({a['ratio_end_to_end']:.2f}× raw mcap read)"])
+        elif a:
+            rows.append(["dyn-audit", a.get("status", "")])
+    elif rec:
+        rows.append(["recording", rec.get("status", "")])
+    lines.append(_table(["measured", "result"], rows))
+    lines += ["", "Full tables, what each row measures, and the raw figures: "
+              "[docs/BENCHMARKS.md](docs/BENCHMARKS.md), `bench_out/bench.json`."]
+    return "\n".join(lines)
+
+
+def replace_between_markers(path: Path, body: str) -> bool:
+    """Replace the text between the BENCH markers in ``path``; False if the file or markers are absent."""
+    if not path.exists():
+        return False
+    text = path.read_text()
+    pattern = re.compile(re.escape(BEGIN) + r".*?" + re.escape(END), re.S)
+    if not pattern.search(text):
+        return False
+    new = pattern.sub(lambda _m: f"{BEGIN}\n{body}\n{END}", text, count=1)
+    if new != text:
+        path.write_text(new)
+    return True

@@ -1,0 +1,165 @@
+"""The live benchmark's measuring end: drives the publisher, receives a subject's output.
+
+Run as ``python -m benchmarks.ros_probe --output TOPIC --subject-pid PID --rates 1000,2000
+--window 3 --out result.json``. It starts benchmarks.ros_publisher as a child, waits until the
+subject is matched on both sides, warms up, then for each rate publishes for ``window`` seconds
+and measures, from what arrives on TOPIC:
+  - latency: receipt wall time minus the message's header stamp (the publisher's publish time),
+    p50 and p99 over the window (µs);
+  - loss: messages sent in the window whose stamp never came back (fraction);
+  - CPU share of the subject: Δ(utime + stime) of /proc/<pid>/stat over the window ÷ wall time
+    (1.0 = one core busy).
+Stepping stops after the first rate that loses more than 1%. Output topics are subscribed raw
+(serialized) and only the stamp is read from the CDR bytes, so the probe keeps up at high rates.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from .common import read_proc_cpu
+
+
+class Receiver(Node):
+    def __init__(self, topic: str, reliability: ReliabilityPolicy) -> None:
+        super().__init__("bench_probe")
+        self.stamps: list[int] = []
+        self.receipts: list[int] = []
+        self.create_subscription(JointState, topic, self.on_message,
+                                 QoSProfile(depth=1000, reliability=reliability), raw=True)
+
+    def on_message(self, data: bytes) -> None:
+        now = time.time_ns()
+        # CDR: 4-byte encapsulation header, then header.stamp as int32 sec, uint32 nanosec.
+        sec, nsec = struct.unpack_from("<iI", data, 4)
+        self.stamps.append(sec * 1_000_000_000 + nsec)
+        self.receipts.append(now)
+
+
+def _percentile(xs: list[float], p: float) -> float:
+    xs = sorted(xs)
+    if not xs:
+        return float("nan")
+    k = min(len(xs) - 1, max(0, int(round(p / 100 * (len(xs) - 1)))))
+    return xs[k]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--output", required=True)
+    ap.add_argument("--subject-pid", type=int, required=True)
+    ap.add_argument("--rates", default="1000,2000,4000,8000")
+    ap.add_argument("--window", type=float, default=3.0)
+    ap.add_argument("--repeat-first", type=int, default=1,
+                    help="windows at the first rate (the figures at that rate are medians)")
+    ap.add_argument("--ready-timeout", type=float, default=30.0)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    result: dict = {"output_topic": args.output, "windows": []}
+
+    pub = subprocess.Popen([sys.executable, "-m", "benchmarks.ros_publisher"], stdin=subprocess.PIPE,
+                           stdout=subprocess.PIPE, text=True, bufsize=1)
+
+    def command(line: str) -> str:
+        assert pub.stdin and pub.stdout
+        pub.stdin.write(line + "\n")
+        pub.stdin.flush()
+        return pub.stdout.readline().strip()
+
+    rclpy.init()
+    discover = Node("bench_probe_discovery")
+    try:
+        deadline = time.monotonic() + args.ready_timeout
+        infos = []
+        while time.monotonic() < deadline and not infos:
+            infos = discover.get_publishers_info_by_topic(args.output)
+            if not infos:
+                time.sleep(0.05)
+        if not infos:
+            raise RuntimeError(f"no publisher on {args.output} within {args.ready_timeout:.0f} s")
+        reliability = infos[0].qos_profile.reliability
+        result["output_reliability"] = reliability.name
+        receiver = Receiver(args.output, reliability)
+        executor = SingleThreadedExecutor()
+        executor.add_node(receiver)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+        if command("match 1") != "matched":
+            raise RuntimeError("the subject never subscribed to /joint_states")
+        # Warm up until outputs come back (the subject may still be loading its model).
+        while True:
+            command("run 200 0.5")
+            if len(receiver.stamps) >= 50:
+                break
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no output on {args.output} within {args.ready_timeout:.0f} s "
+                                   f"({len(receiver.stamps)} received during warm-up)")
+        plan = []
+        for i, rate in enumerate(float(r) for r in args.rates.split(",")):
+            plan += [(rate, k == 0, k == (args.repeat_first if i == 0 else 1) - 1)
+                     for k in range(args.repeat_first if i == 0 else 1)]
+        for rate, step, last_of_rate in plan:
+            n0 = len(receiver.stamps)
+            c0, w0 = read_proc_cpu(args.subject_pid), time.monotonic()
+            reply = command(f"run {rate} {args.window}").split()
+            c1, w1 = read_proc_cpu(args.subject_pid), time.monotonic()
+            sent, first, last, elapsed = int(reply[1]), int(reply[2]), int(reply[3]), float(reply[4])
+            # Drain: wait until nothing new arrives for 0.3 s (at most 3 s).
+            end = time.monotonic() + 3.0
+            count = len(receiver.stamps)
+            quiet_since = time.monotonic()
+            while time.monotonic() < end and time.monotonic() - quiet_since < 0.3:
+                time.sleep(0.05)
+                if len(receiver.stamps) != count:
+                    count, quiet_since = len(receiver.stamps), time.monotonic()
+            stamps, receipts = receiver.stamps[n0:], receiver.receipts[n0:]
+            lat = {}
+            for s, r in zip(stamps, receipts):
+                if first <= s <= last and s not in lat:
+                    lat[s] = (r - s) / 1e3
+            got = len(lat)
+            lats = list(lat.values())
+            window = dict(target_hz=rate, sent=sent, received=got, achieved_hz=sent / elapsed,
+                          loss=max(0.0, 1.0 - got / sent) if sent else float("nan"),
+                          p50_us=_percentile(lats, 50), p99_us=_percentile(lats, 99),
+                          mean_us=statistics.fmean(lats) if lats else float("nan"),
+                          cpu_share=(c1 - c0) / (w1 - w0),
+                          cpu_us_per_output=(c1 - c0) / got * 1e6 if got else float("nan"),
+                          step=step)
+            result["windows"].append(window)
+            print(json.dumps(window), file=sys.stderr, flush=True)
+            if last_of_rate and any(w["loss"] > 0.01 for w in result["windows"]
+                                    if w["target_hz"] == rate):
+                break
+        executor.shutdown(timeout_sec=1.0)
+    except Exception as exc:
+        result["error"] = f"{type(exc).__name__}: {exc}"
+    finally:
+        try:
+            command("quit")
+        except (BrokenPipeError, OSError, AssertionError):
+            pass
+        try:
+            pub.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            pub.kill()
+        rclpy.try_shutdown()
+        with open(args.out, "w") as f:
+            json.dump(result, f)
+
+
+if __name__ == "__main__":
+    main()

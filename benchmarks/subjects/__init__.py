@@ -1,0 +1,1 @@
+"""ROS processes measured by the live benchmark (each runnable with ``python -m``)."""

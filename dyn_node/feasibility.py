@@ -1,0 +1,953 @@
+"""Dynamic feasibility of a joint trajectory: every limit kind, the exact time scale, payload margin.
+
+The trajectory is interpolated as ros2_control's joint_trajectory_controller executes it (quintic
+with positions, velocities and accelerations; cubic with positions and velocities; for positions
+only a C² cubic spline with zero end velocities, announced in a warning) and sampled densely:
+every segment is split uniformly into steps no longer than ``sample_period``, and both ends of
+every segment are samples (an interior waypoint appears twice, once as the end of the segment
+before it and once as the start of the one after it, so one-sided limits of discontinuous
+derivatives are checked exactly).
+
+Time scaling. Stretching the trajectory's duration by k (x = 1/k) gives q̇ ÷ k, q̈ ÷ k², q⃛ ÷ k³,
+and torque τ(x) = s + w·x + i·x² with s = gravity + Coulomb friction, w = viscous friction,
+i = inertial + Coriolis + armature (:class:`~dyn_node.dynamics.TorqueTerms`). Each constraint at
+each sample is a polynomial of degree ≤ 3 in x (the torque-speed envelope piecewise so), so its
+first exit from the allowed band is found in closed form, vectorised over samples; the RMS
+(thermal) constraint, whose window covers a k-dependent stretch of samples, is found by bisection
+on k for that constraint alone. ``time_scale`` is the largest of these per-sample factors: the
+smallest k such that every k' ≥ k is feasible.
+
+Effort rate is dτ/dt, by finite differences inside each segment (where the interpolated motion is
+a polynomial and τ is smooth). Where a waypoint joins segments whose accelerations differ (cubic
+interpolation is only C¹), the commanded torque steps; a step is an unbounded rate at any k, so
+it is not folded into the rate check but reported explicitly (per-joint ``effort_step`` and a
+warning). Coulomb friction's step at a velocity reversal is likewise excluded from the rate.
+
+RMS effort is over a sliding window of ``rms_window`` s ending at each sample; before the
+trajectory starts the robot is assumed to hold the first pose (torque g(q0)).
+
+Payload margin: τ is affine in an extra point mass m at the payload point, τ = τ0 + m·τ1 (τ1
+from a second batched RNEA with 1 kg more), so effort, envelope, power and effort-rate limits
+each give an interval of m per sample, and the RMS limit a quadratic in m per window; the margin
+is the largest m in the intersection (−inf when it is empty, +inf when no effort-type limit
+exists). Position, velocity, acceleration and jerk do not depend on payload.
+
+Units: SI (rad, rad/s, rad/s², rad/s³, N·m, N·m/s, W, kg, s; m and N for prismatic joints).
+Arrays are in model joint order.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from .dynamics import Dynamics
+from .errors import PLANNING_ERROR, TrajectoryError
+from .limits import LIMIT_KINDS, JointLimits
+from .model import Payload
+from .status import ERROR, NAME_PREFIX, OK, WARN, Status
+from .trajectory import Trajectory, interpolate
+
+STATUS_NAME = NAME_PREFIX + "trajectory feasibility"
+#: Kinds whose value is a torque (or derived from one): these depend on payload and use
+#: ``effort_warn_ratio``.
+EFFORT_KINDS = ("effort", "effort_rate", "rms_effort", "power", "effort_speed")
+_KIND_LABEL = {"effort_speed": "torque-speed envelope", "rms_effort": "RMS effort",
+               "effort_rate": "effort rate"}
+
+
+@dataclass(frozen=True)
+class FeasibilityOptions:
+    """``sample_period`` (s): longest step between samples; ``effort_warn_ratio``: a feasible
+    trajectory whose peak ratio to any non-position limit exceeds this is WARN;
+    ``max_samples``: the sample period is raised (with a warning) so that at most about this many
+    samples are used, bounding memory for very long trajectories."""
+
+    sample_period: float = 0.001
+    effort_warn_ratio: float = 0.9
+    compute_payload_margin: bool = True
+    max_samples: int = 250_000
+
+
+@dataclass(frozen=True)
+class Violation:
+    """One limit exceeded by one joint: times in s from the trajectory start, value and limit in
+    the kind's unit (for the envelope, the limit at the peak sample's speed)."""
+
+    joint: str
+    kind: str
+    first_time_s: float
+    peak_time_s: float
+    peak_value: float
+    limit: float
+    duration_s: float
+    unit: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: _json(getattr(self, k)) for k in (
+            "joint", "kind", "first_time_s", "peak_time_s", "peak_value", "limit", "duration_s",
+            "unit")}
+
+
+@dataclass(frozen=True)
+class FeasibilityResult:
+    """The verdict on one trajectory. ``per_joint[joint][kind]`` = {ratio, time_s, value, limit}
+    (ratio None: no limit of that kind); ``time_scale_by_kind[kind]`` is the per-kind factor."""
+
+    feasible: bool
+    level: int
+    message: str
+    failure_label: str
+    worst_joint: str
+    worst_constraint: str
+    worst_ratio: float
+    first_violation_time_s: float
+    time_scale: float
+    time_scale_joint: str
+    time_scale_constraint: str
+    time_scale_by_kind: Mapping[str, float]
+    payload_margin_kg: float
+    n_points: int
+    n_samples: int
+    duration_s: float
+    interpolation: str
+    violations: tuple[Violation, ...]
+    per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]]
+    effort_step: Mapping[str, float]
+    waypoint_effort: np.ndarray = field(repr=False)
+    compute_time_s: float = 0.0
+    warnings: tuple[str, ...] = ()
+    effort_warn_ratio: float = 0.9
+
+    def summary_values(self) -> dict[str, Any]:
+        return {
+            "feasible": self.feasible, "worst_joint": self.worst_joint,
+            "worst_constraint": self.worst_constraint, "worst_ratio": self.worst_ratio,
+            "first_violation_time_s": self.first_violation_time_s, "time_scale": self.time_scale,
+            "payload_margin_kg": self.payload_margin_kg, "n_points": self.n_points,
+            "duration_s": self.duration_s, "failure_label": self.failure_label,
+            "interpolation": self.interpolation, "n_samples": self.n_samples,
+            "time_scale_joint": self.time_scale_joint,
+            "time_scale_constraint": self.time_scale_constraint,
+            "violations": len(self.violations), "compute_time_s": self.compute_time_s,
+            "warnings": "; ".join(self.warnings),
+        }
+
+    def statuses(self, hardware_id: str = "") -> list[Status]:
+        """The summary status, then one per joint with its peak ratio per limit kind."""
+        out = [Status(STATUS_NAME, self.level, self.message, hardware_id, self.summary_values())]
+        for joint, kinds in self.per_joint.items():
+            values: dict[str, Any] = {}
+            level, worst_kind, worst = OK, "", -1.0
+            for kind in LIMIT_KINDS:
+                entry = kinds[kind]
+                r = entry["ratio"]
+                values[f"{kind}_ratio"] = "unlimited" if r is None else r
+                values[f"{kind}_time_s"] = "" if entry["time_s"] is None else entry["time_s"]
+                if r is not None and kind != "position" and r > worst:
+                    worst, worst_kind = r, kind
+            values["effort_step"] = self.effort_step.get(joint, 0.0)
+            bad = [v for v in self.violations if v.joint == joint]
+            if bad:
+                level = ERROR
+                msg = "; ".join(f"{v.kind} {_describe_violation(v)}" for v in bad)
+            else:
+                if worst > self.effort_warn_ratio:
+                    level = WARN
+                msg = (f"worst {_kind_text(worst_kind)} {worst * 100:.0f}% of limit "
+                       f"at t = {kinds[worst_kind]['time_s']:.2f} s" if worst_kind else "no limits")
+            values["failure_label"] = PLANNING_ERROR if level != OK else ""
+            out.append(Status(f"{STATUS_NAME}/{joint}", level, msg, hardware_id, values))
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: NaN (undefined) → null, ±inf → "inf"/"-inf"."""
+        return {
+            **{k: _json(v) for k, v in self.summary_values().items() if k != "warnings"},
+            "level": {OK: "OK", WARN: "WARN", ERROR: "ERROR"}[self.level],
+            "message": self.message,
+            "time_scale_by_kind": {k: _json(v) for k, v in self.time_scale_by_kind.items()},
+            "violations": [v.to_dict() for v in self.violations],
+            "per_joint": {j: {k: {kk: _json(vv) for kk, vv in e.items()} for k, e in kinds.items()}
+                          for j, kinds in self.per_joint.items()},
+            "effort_step": {j: _json(v) for j, v in self.effort_step.items()},
+            "waypoint_effort": [[_json(float(x)) for x in row] for row in self.waypoint_effort],
+            "warnings": list(self.warnings),
+        }
+
+
+def rejected_statuses(error: TrajectoryError, hardware_id: str = "", n_points: int = 0,
+                      duration_s: float = math.nan) -> list[Status]:
+    """ERROR status for a trajectory that could not be checked, with the same keys as a verdict."""
+    values = {
+        "feasible": False, "worst_joint": "", "worst_constraint": "", "worst_ratio": math.nan,
+        "first_violation_time_s": math.nan, "time_scale": math.nan,
+        "payload_margin_kg": math.nan, "n_points": int(n_points), "duration_s": float(duration_s),
+        "failure_label": error.failure_label, "reason": getattr(error, "code", "error"),
+    }
+    return [Status(STATUS_NAME, ERROR, f"rejected: {error}", hardware_id, values)]
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+
+def _json(v: Any) -> Any:
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
+        if math.isnan(v):
+            return None
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return v
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+def _kind_text(kind: str) -> str:
+    return _KIND_LABEL.get(kind, kind)
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def _describe_violation(v: Violation) -> str:
+    if v.kind == "position":
+        return (f"{_fmt(v.peak_value)} {v.unit} beyond limit {_fmt(v.limit)} {v.unit} "
+                f"at t = {v.peak_time_s:.2f} s")
+    return (f"{abs(v.peak_value) / v.limit * 100 if v.limit > 0 else math.inf:.0f}% of "
+            f"{_fmt(v.limit)} {v.unit} at t = {v.peak_time_s:.2f} s")
+
+
+def _units(dynamics: Dynamics) -> dict[str, list[str]]:
+    pm = dynamics.model.pin_model
+    prismatic = [pm.joints[i].shortname().startswith("JointModelP") for i in range(1, pm.njoints)]
+    lin = {"position": "m", "velocity": "m/s", "acceleration": "m/s²", "jerk": "m/s³",
+           "effort": "N", "effort_rate": "N/s", "rms_effort": "N", "power": "W",
+           "effort_speed": "N"}
+    rot = {"position": "rad", "velocity": "rad/s", "acceleration": "rad/s²", "jerk": "rad/s³",
+           "effort": "N·m", "effort_rate": "N·m/s", "rms_effort": "N·m", "power": "W",
+           "effort_speed": "N·m"}
+    return {k: [(lin if p else rot)[k] for p in prismatic] for k in LIMIT_KINDS}
+
+
+def _quadratic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Real roots of a·x² + b·x + c (NaN where none), stable formula; a = 0 gives the linear root."""
+    with np.errstate(all="ignore"):
+        disc = b * b - 4 * a * c
+        sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
+        q = -0.5 * (b + np.where(b >= 0, sq, -sq))
+        r1 = np.where(a != 0, q / a, np.nan)
+        r2 = np.where(q != 0, c / q, np.where((a == 0) & (b != 0), -c / b, np.nan))
+    return r1, r2
+
+
+def _cubic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
+    """Real roots of a·x³ + b·x² + c·x + d (d ≠ 0), NaN where none; degree drops where a = 0.
+
+    The largest-magnitude real root comes from Cardano / the trigonometric form; it is deflated
+    out and the remaining quadratic solved stably; every root is then polished by Newton steps.
+    """
+    with np.errstate(all="ignore"):
+        cub = a != 0
+        aa = np.where(cub, a, 1.0)
+        B, C, D = b / aa, c / aa, d / aa
+        p = C - B * B / 3
+        q = 2 * B ** 3 / 27 - B * C / 3 + D
+        disc = (q / 2) ** 2 + (p / 3) ** 3
+        # one real root: avoid cancellation by adding magnitudes
+        w = -q / 2 - np.where(q >= 0, 1.0, -1.0) * np.sqrt(np.maximum(disc, 0))
+        t = np.cbrt(w)
+        y1 = np.where(t != 0, t - p / (3 * np.where(t != 0, t, 1.0)), 0.0)
+        # three real roots
+        r = 2 * np.sqrt(np.maximum(-p / 3, 0))
+        arg = np.clip(np.where(p < 0, 3 * q / (p * np.where(r != 0, r, 1.0)), 0.0), -1, 1)
+        phi = np.arccos(arg) / 3
+        ys = [r * np.cos(phi - 2 * np.pi * k / 3) for k in range(3)]
+        xs3 = [y - B / 3 for y in ys]
+        big3 = np.select([np.abs(xs3[0]) >= np.maximum(np.abs(xs3[1]), np.abs(xs3[2])),
+                          np.abs(xs3[1]) >= np.abs(xs3[2])], [xs3[0], xs3[1]], xs3[2])
+        big = np.where(disc > 0, y1 - B / 3, big3)
+        # backward deflation by the large root
+        safe = np.where(big != 0, big, np.nan)
+        qc = -d / safe
+        qb = (qc - c) / safe
+        qa = (qb - b) / safe
+        r2, r3 = _quadratic_roots(qa, qb, qc)
+        roots = [np.where(cub, big, np.nan), np.where(cub, r2, np.nan), np.where(cub, r3, np.nan)]
+        l2, l3 = _quadratic_roots(b, c, d)
+        roots[1] = np.where(cub, roots[1], l2)
+        roots[2] = np.where(cub, roots[2], l3)
+        for i in range(3):
+            x = roots[i]
+            for _ in range(2):
+                f = ((a * x + b) * x + c) * x + d
+                fp = (3 * a * x + 2 * b) * x + c
+                step = np.where(fp != 0, f / np.where(fp != 0, fp, 1.0), 0.0)
+                x = np.where(np.isfinite(step), x - step, x)
+            roots[i] = x
+    return roots
+
+
+def _first_exit(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, c3: np.ndarray,
+                limit: np.ndarray) -> np.ndarray:
+    """Smallest x > 0 where |c0 + c1·x + c2·x² + c3·x³| reaches ``limit``; inf if none."""
+    best = np.full(np.broadcast(c0, c1, c2, c3, limit).shape, np.inf)
+    for sign in (1.0, -1.0):
+        for x in _cubic_roots(sign * c3, sign * c2, sign * c1, sign * c0 - limit):
+            with np.errstate(invalid="ignore"):
+                ok = (x > 0) & np.isfinite(x)
+            best = np.where(ok & (x < best), x, best)
+    return best
+
+
+def _odd_exit(c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """First exit x of |c1·x + c2·x² + c3·x³| ≤ L per sample (M×m), exact where it can decide
+    the maximum of k = 1/x.
+
+    |c1|x + |c2|x² + |c3|x³ bounds the value from above; in k its crossing is the one positive
+    root of L·k³ − |c1|k² − |c2|k − |c3|, reached by Newton steps from above (the cubic is convex
+    and increasing there), so every iterate bounds each sample's k from above. Exact roots are
+    solved only where that bound exceeds the best exact k found at the bound's maximum.
+    """
+    A, B, C = np.abs(c1), np.abs(c2), np.abs(c3)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        k = np.maximum(np.maximum(3 * A / L, np.sqrt(3 * B / L)), np.cbrt(3 * C / L))
+        for _ in range(4):
+            f = ((L * k - A) * k - B) * k - C
+            fp = (3 * L * k - 2 * A) * k - B
+            step = f / fp
+            k = np.where((fp > 0) & (step > 0), k - step, k)
+        k *= 1 + 1e-9
+        x = np.divide(1.0, k)
+    rows = np.argmax(k, axis=0)
+    c = np.arange(k.shape[1])
+    best = _first_exit(np.zeros(len(c)), c1[rows, c], c2[rows, c], c3[rows, c], L)
+    with np.errstate(divide="ignore"):
+        k_best = np.where(best > 0, 1.0 / best, np.inf)
+    cand = k > k_best
+    if np.any(cand):
+        n, j = np.nonzero(cand)
+        x[n, j] = _first_exit(np.zeros(len(n)), c1[n, j], c2[n, j], c3[n, j], L[j])
+    return x
+
+
+def _first_exit_quadratic(c0, c1, c2, limit) -> np.ndarray:
+    """Smallest x > 0 where |c0 + c1·x + c2·x²| reaches ``limit``; inf if none."""
+    best = np.full(np.broadcast(c0, c1, c2, limit).shape, np.inf)
+    for sign in (1.0, -1.0):
+        for x in _quadratic_roots(sign * c2, sign * c1, sign * c0 - limit):
+            with np.errstate(invalid="ignore"):
+                ok = (x > 0) & np.isfinite(x)
+            best = np.where(ok & (x < best), x, best)
+    return best
+
+
+def _effort_exit(s: np.ndarray, w: np.ndarray, i: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """First exit x of |s + w·x + i·x²| ≤ L per sample, exact where it can decide the maximum.
+
+    |s| + |w|x + |i|x² bounds the torque from above, so its root x_lo ≤ x* cheaply bounds each
+    sample's factor k = 1/x* from above; exact roots are only needed where that bound exceeds the
+    largest exact factor found so far (elsewhere x_lo stands in: it cannot be the maximum).
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        room = L - np.abs(s)
+        aw = np.abs(w)
+        k_ub = np.abs(i)
+        k_ub *= 4 * room
+        k_ub += aw * aw
+        np.sqrt(k_ub, out=k_ub)
+        k_ub += aw
+        del aw
+        k_ub /= 2 * room
+        k_ub[room <= 0] = np.inf
+        del room
+        x = np.divide(1.0, k_ub)
+    rows = np.argmax(k_ub, axis=0)
+    c = np.arange(s.shape[1])
+    best = _first_exit_quadratic(s[rows, c], w[rows, c], i[rows, c], L)
+    with np.errstate(divide="ignore"):
+        k_best = np.where(best > 0, 1.0 / best, np.inf)
+    cand = k_ub > k_best
+    if np.any(cand):
+        n, j = np.nonzero(cand)
+        x[n, j] = _first_exit_quadratic(s[n, j], w[n, j], i[n, j], L[j])
+    x[np.abs(s) > L] = 0.0   # outside the band already at k = ∞
+    return x
+
+
+def _envelope_exit(s, w, i, speed, curve: np.ndarray) -> np.ndarray:
+    """First x where |s + w·x + i·x²| reaches the envelope E(|speed|·x) (piecewise linear, held
+    constant outside its points): one quadratic per curve piece."""
+    sp, ef = curve[:, 0], curve[:, 1]
+    v = np.abs(speed)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bounds = np.where(v[:, None] > 0, sp[None, :] / v[:, None], np.where(sp[None, :] > 0, np.inf, 0.0))
+    best = np.full(s.shape, np.inf)
+    # piece before the first point and after the last: constant envelope
+    pieces = [(np.zeros_like(s), bounds[:, 0], ef[0], 0.0, 0.0)]
+    for m in range(len(sp) - 1):
+        slope = (ef[m + 1] - ef[m]) / (sp[m + 1] - sp[m])
+        pieces.append((bounds[:, m], bounds[:, m + 1], ef[m], slope, sp[m]))
+    pieces.append((bounds[:, -1], np.full_like(s, np.inf), ef[-1], 0.0, 0.0))
+    for lo, hi, e0, slope, s0 in pieces:
+        # ±(s + w x + i x²) − (e0 + slope·(v·x − s0)) = 0
+        for sign in (1.0, -1.0):
+            for x in _quadratic_roots(sign * i, sign * w - slope * v, sign * s - e0 + slope * s0):
+                with np.errstate(invalid="ignore"):
+                    ok = (x >= lo) & (x <= hi) & (x > 0) & np.isfinite(x)
+                best = np.where(ok & (x < best), x, best)
+    return best
+
+
+def _segment_derivative(F: np.ndarray, first: np.ndarray, last: np.ndarray,
+                        h: np.ndarray) -> np.ndarray:
+    """d/dt of samples F (M×c) inside each segment: central differences in the interior,
+    second-order one-sided at segment ends (first order for one-step segments)."""
+    D = np.empty_like(F)
+    hh = h[:, None]
+    D[1:-1] = (F[2:] - F[:-2]) / (2 * hh[1:-1])
+    long = last - first >= 2
+    f, l_ = first[long], last[long]
+    hf = h[f][:, None]
+    D[f] = (-3 * F[f] + 4 * F[f + 1] - F[f + 2]) / (2 * hf)
+    D[l_] = (3 * F[l_] - 4 * F[l_ - 1] + F[l_ - 2]) / (2 * hf)
+    f, l_ = first[~long], last[~long]
+    d1 = (F[l_] - F[f]) / h[f][:, None]
+    D[f] = d1
+    D[l_] = d1
+    return D
+
+
+@dataclass
+class _Samples:
+    t: np.ndarray        # M sample times (s)
+    seg: np.ndarray      # M segment index
+    first: np.ndarray    # index of each segment's first sample
+    last: np.ndarray     # index of each segment's last sample
+    h: np.ndarray        # M step of the sample's segment (s)
+    weight: np.ndarray   # M time each sample stands for (s), summing to the duration
+    period: float
+
+
+def _sample(times: np.ndarray, period: float, max_samples: int) -> _Samples:
+    T = np.diff(times)
+    n = np.maximum(1, np.ceil(T / period - 1e-9)).astype(np.int64)
+    if n.sum() + len(T) > max_samples and len(T) < max_samples:
+        period = float(times[-1] - times[0]) / max(1, max_samples - 2 * len(T))
+        n = np.maximum(1, np.ceil(T / period - 1e-9)).astype(np.int64)
+    counts = n + 1
+    first = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    last = first + n
+    seg = np.repeat(np.arange(len(T)), counts)
+    j = np.arange(counts.sum()) - first[seg]
+    hseg = T / n
+    h = hseg[seg]
+    s = j * h
+    s[last] = T
+    t = times[:-1][seg] + s
+    weight = h.copy()
+    weight[first] *= 0.5
+    weight[last] *= 0.5
+    return _Samples(t=t, seg=seg, first=first, last=last, h=h, weight=weight, period=period)
+
+
+def _evaluate(coeffs: np.ndarray, breaks: np.ndarray, smp: _Samples,
+              n_derivatives: int = 4) -> list[np.ndarray]:
+    """q, q̇, q̈, q⃛ (M×nv; the first ``n_derivatives`` of them) of the piecewise polynomial at
+    the samples, each on its own segment."""
+    s = (smp.t - breaks[smp.seg])[:, None]
+    s[smp.last, 0] = (breaks[1:] - breaks[:-1])
+    out = []
+    c = coeffs
+    for _ in range(n_derivatives):
+        if c.shape[1] == 0:
+            out.append(np.zeros((len(smp.t), coeffs.shape[2])))
+            continue
+        # Horner on this derivative's coefficients, gathered per sample from the segment table
+        acc = np.take(c[:, -1, :], smp.seg, axis=0)
+        for k in range(c.shape[1] - 2, -1, -1):
+            acc *= s
+            acc += np.take(c[:, k, :], smp.seg, axis=0)
+        out.append(acc)
+        c = c[:, 1:, :] * np.arange(1, c.shape[1], dtype=float)[None, :, None]
+    return out
+
+
+def _rms_value(tt: np.ndarray, tau2_cum: np.ndarray, hold2: float, window: float) -> np.ndarray:
+    """Windowed RMS ending at each sample, with the window reaching back before the start filled
+    by the hold torque² ``hold2``. ``tau2_cum`` is the cumulative trapezoid integral of τ²."""
+    start = tt - window
+    inside = np.interp(start, tt, tau2_cum)
+    before = np.minimum(start - tt[0], 0.0) * hold2
+    return np.sqrt(np.maximum(tau2_cum - inside - before, 0.0) / window)
+
+
+def _cumtrapz(tt: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Cumulative trapezoid integral of f (M or M×m) over times tt, starting at 0."""
+    out = np.zeros_like(f)
+    dt = np.diff(tt) if f.ndim == 1 else np.diff(tt)[:, None]
+    np.cumsum(0.5 * (f[1:] + f[:-1]) * dt, axis=0, out=out[1:])
+    return out
+
+
+_PAYLOAD_CACHE: "weakref.WeakKeyDictionary[Dynamics, tuple[Any, Dynamics]]" = weakref.WeakKeyDictionary()
+_CACHE_LOCK = threading.Lock()
+
+
+def _unit_payload_dynamics(dynamics: Dynamics) -> Dynamics:
+    """Dynamics of the same robot carrying 1 kg more at the payload point (cached per instance)."""
+    model = dynamics.model
+    with _CACHE_LOCK:
+        hit = _PAYLOAD_CACHE.get(dynamics)
+        if hit is not None and hit[0] is model:
+            return hit[1]
+    p = model.payload
+    heavier = model.with_payload(Payload(mass=p.mass + 1.0, com=p.com, frame=p.frame))
+    dyn = Dynamics(heavier, dynamics.options, threads=getattr(dynamics, "_threads", None))
+    with _CACHE_LOCK:
+        _PAYLOAD_CACHE[dynamics] = (model, dyn)
+    return dyn
+
+
+# ----------------------------------------------------------------------------------------------
+
+def check_trajectory(dynamics: Dynamics, traj: Trajectory,
+                     options: FeasibilityOptions = FeasibilityOptions()) -> FeasibilityResult:
+    """Check ``traj`` (model order) against every limit of ``dynamics.model``; see module doc."""
+    t_start = time.perf_counter()
+    if traj.n_points < 2:
+        raise TrajectoryError(f"trajectory has {traj.n_points} point(s); at least 2 are needed "
+                              "to check motion", code="too_few_points")
+    if not (options.sample_period > 0 and math.isfinite(options.sample_period)):
+        raise ValueError("sample_period must be a positive number of seconds")
+    model = dynamics.model
+    lim: JointLimits = model.limits
+    names = list(model.joint_names)
+    nv = model.nv
+    warnings: list[str] = []
+    mode = traj.natural_interpolation
+    if mode == "spline":
+        warnings.append("positions only: assumed a C² cubic spline through the waypoints with zero "
+                        "velocity at both ends (the controller would interpolate linearly, which "
+                        "needs unbounded acceleration at every waypoint)")
+    pp = interpolate(traj, mode)
+    smp = _sample(traj.times, options.sample_period, options.max_samples)
+    if smp.period > options.sample_period * (1 + 1e-9):
+        warnings.append(f"sample period raised from {options.sample_period * 1e3:.3g} ms to "
+                        f"{smp.period * 1e3:.3g} ms to bound memory")
+    tt = smp.t
+    jerk_limited = bool(np.any(np.isfinite(lim.jerk)))
+    Q, V, A, *rest = _evaluate(pp.coeffs, pp.breaks, smp, 4 if jerk_limited else 3)
+    J = rest[0] if jerk_limited else np.zeros((0, nv))
+    terms = dynamics.terms_batch(Q, V, A)
+    S, W, I = terms.static, terms.viscous, terms.inertial
+    tau = S + W + I
+    if not (np.all(np.isfinite(tau)) and np.all(np.isfinite(J))):
+        raise TrajectoryError("the interpolated motion or its torque is not finite (values too "
+                              "large for the time steps)", code="non_finite")
+    coulomb = np.asarray(model.pin_model.friction, dtype=float) if dynamics.options.include_friction \
+        else np.zeros(nv)
+    G = S - coulomb * np.sign(V) if np.any(coulomb) else S
+    units = _units(dynamics)
+
+    # waypoint torque: each waypoint as the start of its segment (the last as the end of the last)
+    wp_idx = np.concatenate((smp.first, smp.last[-1:]))
+    waypoint_effort = tau[wp_idx].copy()
+
+    # --- values at k = 1, limits, and first-exit x = 1/k per kind -----------------------------
+    values: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # kind -> (cols, value, limit)
+    xstar: dict[str, np.ndarray] = {}   # kind -> per limited column, smallest first-exit x
+    infinite_reason: list[tuple[str, str, int, float, float]] = []
+
+    def limited(arr: np.ndarray) -> np.ndarray:
+        return np.flatnonzero(np.isfinite(arr))
+
+    def record_exit(kind: str, cols: np.ndarray, x: np.ndarray) -> None:
+        idx = np.argmin(x, axis=0)
+        xstar[kind] = x[idx, np.arange(len(cols))]
+
+    for kind, arr, power, lim_arr in (("velocity", V, 1, lim.velocity),
+                                      ("acceleration", A, 2, lim.acceleration),
+                                      ("jerk", J, 3, lim.jerk)):
+        cols = limited(lim_arr)
+        if len(cols):
+            val = np.abs(arr[:, cols])
+            L = lim_arr[cols]
+            values[kind] = (cols, val, np.broadcast_to(L, val.shape))
+            with np.errstate(divide="ignore"):
+                record_exit(kind, cols, (L / val) ** (1.0 / power))
+    del J  # the largest temporaries go as soon as they are used: long trajectories are big
+
+    cols = limited(lim.effort)
+    if len(cols):
+        L = lim.effort[cols]
+        values["effort"] = (cols, np.abs(tau[:, cols]), np.broadcast_to(L, (len(tt), len(cols))))
+        s, w, i = S[:, cols], W[:, cols], I[:, cols]
+        record_exit("effort", cols, _effort_exit(s, w, i, L))
+        over = np.abs(s) / L
+        if np.any(over > 1):
+            n, c = np.unravel_index(int(np.argmax(over)), over.shape)   # the worst pose
+            infinite_reason.append(("effort", names[cols[c]], int(n), float(abs(s[n, c])), float(L[c])))
+
+    ecols = np.array([j for j in range(nv) if lim.effort_speed_curve[j] is not None], dtype=int)
+    if len(ecols):
+        env = lim.effort_envelope(V)[:, ecols]
+        values["effort_speed"] = (ecols, np.abs(tau[:, ecols]), env)
+        # |τ| ≤ min(envelope) is sufficient, so its exit bounds k from above; exact envelope
+        # exits are needed only where that bound exceeds the best exact k (cf. _effort_exit)
+        e_min = np.array([lim.effort_speed_curve[j][:, 1].min() for j in ecols])
+        xs = _effort_exit(S[:, ecols], W[:, ecols], I[:, ecols], np.maximum(e_min, 1e-300))
+        for c, j in enumerate(ecols):
+            curve = lim.effort_speed_curve[j]
+            n0 = int(np.argmin(xs[:, c]))
+            exact0 = _envelope_exit(S[n0:n0 + 1, j], W[n0:n0 + 1, j], I[n0:n0 + 1, j],
+                                    V[n0:n0 + 1, j], curve)[0]
+            cand = np.flatnonzero(xs[:, c] < exact0)
+            xs[n0, c] = exact0
+            if len(cand):
+                xs[cand, c] = _envelope_exit(S[cand, j], W[cand, j], I[cand, j], V[cand, j], curve)
+            e0 = float(np.interp(0.0, curve[:, 0], curve[:, 1]))
+            if np.any(np.abs(S[:, j]) > e0):
+                n = int(np.argmax(np.abs(S[:, j])))   # the worst pose
+                infinite_reason.append(("effort_speed", names[j], n, float(abs(S[n, j])), e0))
+        record_exit("effort_speed", ecols, xs)
+
+    cols = limited(lim.power)
+    if len(cols):
+        L = lim.power[cols]
+        v = V[:, cols]
+        values["power"] = (cols, np.abs(tau[:, cols] * v), np.broadcast_to(L, v.shape))
+        record_exit("power", cols, _odd_exit(S[:, cols] * v, W[:, cols] * v, I[:, cols] * v, L))
+
+    rate_cols = limited(lim.effort_rate)
+    need_step = mode == "cubic"
+    if len(rate_cols):
+        L = lim.effort_rate[rate_cols]
+        dG = _segment_derivative(G[:, rate_cols], smp.first, smp.last, smp.h)
+        dW = _segment_derivative(W[:, rate_cols], smp.first, smp.last, smp.h)
+        dI = _segment_derivative(I[:, rate_cols], smp.first, smp.last, smp.h)
+        rate = dG + dW + dI
+        values["effort_rate"] = (rate_cols, np.abs(rate), np.broadcast_to(L, rate.shape))
+        record_exit("effort_rate", rate_cols, _odd_exit(dG, dW, dI, L))
+    effort_step = {}
+    if len(traj.times) > 2:
+        steps = np.abs(tau[smp.first[1:]] - tau[smp.last[:-1]])  # (N-2)×nv
+        peak = steps.max(axis=0)
+        for j in range(nv):
+            effort_step[names[j]] = float(peak[j])
+        scale = np.maximum(np.abs(tau).max(axis=0), 1e-9)
+        if need_step and np.any(peak > 1e-6 * scale):
+            j = int(np.argmax(peak / scale))
+            w_ = int(np.argmax(steps[:, j])) + 1
+            warnings.append(f"cubic interpolation: acceleration jumps at waypoints make the torque "
+                            f"step by up to {_fmt(peak[j])} {units['effort'][j]} ({names[j]} at "
+                            f"t = {traj.times[w_]:.2f} s); effort rate is checked within segments")
+    if np.any(coulomb) and np.any(np.diff(np.sign(V), axis=0) != 0) and len(rate_cols):
+        warnings.append("Coulomb friction steps at velocity reversals are not counted as effort rate")
+
+    rms_cols = limited(lim.rms_effort)
+    hold = dynamics.gravity(Q[0])
+    if len(rms_cols):
+        R = lim.rms_effort[rms_cols]
+        Wn = lim.rms_window[rms_cols]
+        h2 = hold[rms_cols] ** 2
+        vals = np.empty((len(tt), len(rms_cols)))
+        cum = _cumtrapz(tt, tau[:, rms_cols] ** 2)
+        for c in range(len(rms_cols)):
+            vals[:, c] = _rms_value(tt, cum[:, c], float(h2[c]), float(Wn[c]))
+        s_max = np.maximum(np.abs(S[:, rms_cols]).max(axis=0), np.abs(hold[rms_cols]))
+        static_bad = s_max > R
+        for c in np.flatnonzero(static_bad):
+            j = rms_cols[c]
+            n = int(np.argmax(np.abs(S[:, j])))
+            infinite_reason.append(("rms_effort", names[j], n, float(s_max[c]), float(R[c])))
+        kr = np.full(len(rms_cols), np.inf)
+        good = ~static_bad
+        if np.any(good):
+            gc = rms_cols[good]
+            # RMS ≤ peak |τ|, so the effort-type exit at the RMS limit bounds k from above
+            x_up = _effort_exit(S[:, gc], W[:, gc], I[:, gc], R[good]).min(axis=0)
+            with np.errstate(divide="ignore"):
+                k_up = np.where(np.isinf(x_up), 0.0, 1.0 / x_up)
+            kr[good] = _rms_time_scale(tt, S[:, gc], W[:, gc], I[:, gc], h2[good], Wn[good],
+                                       R[good], k_up)
+        values["rms_effort"] = (rms_cols, vals, np.broadcast_to(R, vals.shape))
+        xstar["rms_effort"] = np.where(kr > 0, 1.0 / np.where(kr > 0, kr, 1.0), np.inf)
+
+    # position: hard limits (violations, independent of k), soft limits (warnings)
+    pos_cols = np.flatnonzero(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper))
+    pos_viol = []
+    for j in pos_cols:
+        lo_, hi_ = lim.position_lower[j], lim.position_upper[j]
+        q = Q[:, j]
+        over = np.maximum(q - hi_, lo_ - q)
+        for bound, side in ((lim.soft_lower[j], -1), (lim.soft_upper[j], 1)):
+            if math.isfinite(bound) and np.any(side * (q - bound) > 0):
+                n = int(np.argmax(side * (q - bound)))
+                warnings.append(f"{names[j]} enters its soft-limit zone: q = {_fmt(q[n])} "
+                                f"{units['position'][j]} beyond {_fmt(bound)} at t = {tt[n]:.2f} s")
+        bad = over > 0
+        if np.any(bad):
+            n = int(np.argmax(over))
+            pos_viol.append(Violation(
+                names[j], "position", float(tt[np.argmax(bad)]), float(tt[n]), float(q[n]),
+                float(hi_ if q[n] > hi_ else lo_), float(smp.weight[bad].sum()),
+                units["position"][j]))
+
+    # --- per-joint peaks and violations at k = 1 -----------------------------------------------
+    per_joint: dict[str, dict[str, dict[str, Any]]] = {
+        n: {k: {"ratio": None, "time_s": None, "value": None, "limit": None} for k in LIMIT_KINDS}
+        for n in names}
+    for j in pos_cols:
+        lo_, hi_ = lim.position_lower[j], lim.position_upper[j]
+        q = Q[:, j]
+        if math.isfinite(lo_) and math.isfinite(hi_) and hi_ > lo_:
+            mid, half = 0.5 * (lo_ + hi_), 0.5 * (hi_ - lo_)
+            r = np.abs(q - mid) / half
+            n = int(np.argmax(r))
+            per_joint[names[j]]["position"] = {"ratio": float(r[n]), "time_s": float(tt[n]),
+                                               "value": float(q[n]),
+                                               "limit": float(hi_ if q[n] >= mid else lo_)}
+    violations: list[Violation] = list(pos_viol)
+    for kind in LIMIT_KINDS:
+        if kind not in values:
+            continue
+        cols, val, L = values[kind]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(L > 0, val / L, np.where(val > 0, np.inf, 0.0))
+        peak = np.argmax(ratio, axis=0)
+        over = val > L
+        anyo = over.any(axis=0)
+        firsts = np.argmax(over, axis=0)
+        dur = smp.weight @ over
+        for c, j in enumerate(cols):
+            n = int(peak[c])
+            per_joint[names[j]][kind] = {"ratio": float(ratio[n, c]), "time_s": float(tt[n]),
+                                         "value": float(val[n, c]), "limit": float(L[n, c])}
+            if anyo[c]:
+                violations.append(Violation(names[j], kind, float(tt[firsts[c]]), float(tt[n]),
+                                            float(val[n, c]), float(L[n, c]), float(dur[c]),
+                                            units[kind][j]))
+    feasible = not violations
+
+    # --- time scale ----------------------------------------------------------------------------
+    by_kind: dict[str, float] = {}
+    ts_joint, ts_kind, k = "", "", 0.0
+    for kind, xs in xstar.items():
+        cols = values[kind][0]
+        with np.errstate(divide="ignore"):
+            kk = np.where(xs > 0, 1.0 / xs, np.inf)
+        kk = np.where(np.isinf(xs), 0.0, kk)
+        c = int(np.argmax(kk))
+        by_kind[kind] = float(kk[c])
+        if kk[c] > k:
+            k, ts_joint, ts_kind = float(kk[c]), names[cols[c]], kind
+    static_msg = ""
+    if pos_viol:
+        v0 = max(pos_viol, key=lambda v: abs(v.peak_value - v.limit))
+        k, ts_joint, ts_kind = math.inf, v0.joint, "position"
+        by_kind["position"] = math.inf
+    elif infinite_reason:
+        kind, jn, n, need, L = infinite_reason[0]
+        k, ts_joint, ts_kind = math.inf, jn, kind
+        by_kind[kind] = math.inf
+        qtxt = "[" + ", ".join(f"{x:.3g}" for x in Q[n]) + "]"
+        static_msg = (f"gravity and friction alone need {_fmt(need)} {units['effort'][names.index(jn)]}"
+                      f" of {_fmt(L)} at q = {qtxt} (t = {tt[n]:.2f} s); no slowdown helps")
+    # The per-constraint roots and the direct check agree up to rounding; make the contract exact.
+    if feasible and 1.0 < k < 1.0 + 1e-6:
+        k = 1.0
+    elif not feasible and math.isfinite(k) and k <= 1.0:
+        if k > 1.0 - 1e-6:
+            k = float(np.nextafter(1.0, 2.0))
+        else:
+            warnings.append(f"time scale {k:.6g} disagrees with the direct check (rounding)")
+
+    # --- payload margin -------------------------------------------------------------------------
+    margin = math.inf
+    effort_limited = any(kind in values for kind in EFFORT_KINDS)
+    if options.compute_payload_margin and effort_limited:
+        margin = _payload_margin(dynamics, Q, V, A, tau, values, smp, lim, hold)
+
+    # --- verdict ---------------------------------------------------------------------------------
+    worst_joint, worst_kind, worst_ratio = "", "", 0.0
+    for jn, kinds in per_joint.items():
+        for kind, e in kinds.items():
+            if kind != "position" and e["ratio"] is not None and e["ratio"] > worst_ratio:
+                worst_joint, worst_kind, worst_ratio = jn, kind, e["ratio"]
+    first_violation = min((v.first_time_s for v in violations), default=math.nan)
+    if feasible:
+        warn = worst_ratio > options.effort_warn_ratio or bool(warnings)
+        level = WARN if warn else OK
+        if worst_kind:
+            e = per_joint[worst_joint][worst_kind]
+            u = units[worst_kind][names.index(worst_joint)]
+            head = (f"feasible: worst {worst_joint} {_kind_text(worst_kind)} {worst_ratio * 100:.0f}% "
+                    f"of {_fmt(e['limit'])} {u} at t = {e['time_s']:.2f} s")
+        else:
+            head = "feasible: no limits apply"
+        if k > 0 and k < 1:
+            tail = f"; could run {_fmt_factor(1 / k)}× faster"
+        elif k == 0:
+            tail = "; no speed-dependent limit binds"
+        else:
+            tail = "; no margin left"
+        message = head + tail
+        if level == WARN and warnings and worst_ratio <= options.effort_warn_ratio:
+            message += f" ({warnings[0].split(':')[0]})"
+        label = PLANNING_ERROR if level != OK else ""
+    else:
+        level, label = ERROR, PLANNING_ERROR
+        pos = [v for v in violations if v.kind == "position"]
+        v0 = pos[0] if pos else max(violations, key=lambda v: abs(v.peak_value) / v.limit
+                                     if v.limit > 0 else math.inf)
+        head = f"infeasible: {v0.joint} {_kind_text(v0.kind)} {_describe_violation(v0)}"
+        if pos:
+            tail = "; position limits do not depend on timing, no slowdown helps"
+        elif static_msg:
+            tail = "; " + static_msg
+        else:
+            tail = f"; run {_fmt_factor(k)}× slower"
+        message = head + tail
+        if len(violations) > 1:
+            message += f" ({len(violations)} violations)"
+    result = FeasibilityResult(
+        feasible=feasible, level=level, message=message, failure_label=label,
+        worst_joint=worst_joint, worst_constraint=worst_kind, worst_ratio=float(worst_ratio),
+        first_violation_time_s=float(first_violation), time_scale=float(k),
+        time_scale_joint=ts_joint, time_scale_constraint=ts_kind, time_scale_by_kind=by_kind,
+        payload_margin_kg=float(margin), n_points=traj.n_points, n_samples=len(tt),
+        duration_s=traj.duration, interpolation=mode, violations=tuple(violations),
+        per_joint=per_joint, effort_step=effort_step, waypoint_effort=waypoint_effort,
+        compute_time_s=time.perf_counter() - t_start, warnings=tuple(warnings),
+        effort_warn_ratio=options.effort_warn_ratio)
+    return result
+
+
+def _fmt_factor(f: float) -> str:
+    if not math.isfinite(f):
+        return "∞"
+    return f"{f:.4f}" if abs(f - 1) < 0.01 else f"{f:.3g}" if f >= 100 else f"{f:.2f}"
+
+
+def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
+                    hold2: np.ndarray, window: np.ndarray, R: np.ndarray, k_up: np.ndarray,
+                    iters: int = 14) -> np.ndarray:
+    """Smallest k per column with windowed RMS ≤ R, by bisection on log k (vectorised over
+    columns), bracketed by k = 1 (so the answer agrees with the direct check) and ``k_up``."""
+    dt = np.diff(tt)[:, None]
+
+    def ok(k: np.ndarray) -> np.ndarray:
+        tk = s + w / k + i / (k * k)
+        tk *= tk
+        cum = np.zeros_like(tk)
+        np.cumsum(0.5 * (tk[1:] + tk[:-1]) * dt, axis=0, out=cum[1:])
+        # a window of ``window`` s of stretched time covers window/k s of the original samples,
+        # over which the stretched integral is k × the original-time integral; before the start
+        # the robot holds q0
+        out = np.empty(len(k), dtype=bool)
+        for c in range(len(k)):
+            start = tt - window[c] / k[c]
+            held = np.maximum(tt[0] - start, 0.0) * hold2[c]
+            ms = k[c] * (cum[:, c] - np.interp(start, tt, cum[:, c]) + held) / window[c]
+            out[c] = bool(np.all(ms <= R[c] * R[c]))
+        return out
+
+    m = len(R)
+    one = np.ones(m)
+    ok1 = ok(one)
+    hi = np.where(ok1, np.minimum(1.0, np.maximum(k_up, 1e-12)), np.maximum(k_up, 1.0))
+    lo = np.where(ok1, hi / 16, 1.0)
+    for _ in range(4):   # widen downwards while the lower end is still feasible
+        low_ok = ok1 & ok(lo)
+        if not np.any(low_ok):
+            break
+        hi = np.where(low_ok, lo, hi)
+        lo = np.where(low_ok, lo / 16, lo)
+    for _ in range(iters):
+        mid = np.sqrt(lo * hi)
+        good = ok(mid)
+        hi = np.where(good, mid, hi)
+        lo = np.where(good, lo, mid)
+    return np.where(k_up > 0, hi, 0.0)
+
+
+def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold) -> float:
+    """Largest extra mass m (kg) at the payload point keeping every effort-type limit at the
+    trajectory's own timing: τ = τ0 + m·τ1 is affine in m, so each sample gives an interval."""
+    heavy = _unit_payload_dynamics(dynamics)
+    tau1 = heavy.rnea_batch(Q, V, A) - tau0
+    lo, hi = -math.inf, math.inf
+
+    def linear(a: np.ndarray, b: np.ndarray, L: np.ndarray) -> None:
+        # |a + m·b| ≤ L  →  m ∈ [(−L − a·sgn b)/|b|, (L − a·sgn b)/|b|]; b = 0 gives ±inf
+        nonlocal lo, hi
+        if not a.size:
+            return
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ab = np.abs(b)
+            a_s = a * np.sign(b)
+            up = (L - a_s) / ab
+            dn = (-L - a_s) / ab
+        if np.any((ab == 0) & (np.abs(a) > L)):
+            lo, hi = math.inf, -math.inf
+        hi = min(hi, float(np.nanmin(up)))
+        lo = max(lo, float(np.nanmax(dn)))
+
+    if "effort" in values:
+        cols, _, L = values["effort"]
+        linear(tau0[:, cols], tau1[:, cols], L)
+    if "effort_speed" in values:
+        cols, _, L = values["effort_speed"]
+        linear(tau0[:, cols], tau1[:, cols], L)
+    if "power" in values:
+        cols, _, L = values["power"]
+        v = V[:, cols]
+        linear(tau0[:, cols] * v, tau1[:, cols] * v, L)
+    if "effort_rate" in values:
+        cols, _, L = values["effort_rate"]
+        coul = np.asarray(dynamics.model.pin_model.friction, dtype=float)[cols] \
+            if dynamics.options.include_friction else 0.0
+        smooth0 = tau0[:, cols] - coul * np.sign(V[:, cols])
+        d0 = _segment_derivative(smooth0, smp.first, smp.last, smp.h)
+        d1 = _segment_derivative(tau1[:, cols], smp.first, smp.last, smp.h)
+        linear(d0, d1, L)
+    if "rms_effort" in values:
+        cols = values["rms_effort"][0]
+        heavy_hold = heavy.gravity(Q[0]) - hold
+        tt = smp.t
+        for j in cols:
+            Wn, R = float(lim.rms_window[j]), float(lim.rms_effort[j])
+            a0, a1 = tau0[:, j], tau1[:, j]
+            start = tt - Wn
+            pre = np.maximum(tt[0] - start, 0.0)
+
+            def window(f: np.ndarray, h: float) -> np.ndarray:
+                cum = _cumtrapz(tt, f)
+                return cum - np.interp(start, tt, cum) + pre * h
+
+            C = window(a0 * a0, hold[j] ** 2)
+            B = window(a0 * a1, hold[j] * heavy_hold[j])
+            Aq = window(a1 * a1, heavy_hold[j] ** 2)
+            # A m² + 2B m + C ≤ R² W
+            c = C - R * R * Wn
+            r1, r2 = _quadratic_roots(Aq, 2 * B, c)
+            with np.errstate(invalid="ignore"):
+                up = np.where(Aq > 0, np.fmax(r1, r2), np.inf)
+                dn = np.where(Aq > 0, np.fmin(r1, r2), -np.inf)
+            if np.any(np.isnan(r1) & (c > 0)):
+                return -math.inf
+            hi = min(hi, float(np.nanmin(up)))
+            lo = max(lo, float(np.nanmax(dn)))
+    if lo > hi:
+        return -math.inf
+    return hi

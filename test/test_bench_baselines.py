@@ -1,0 +1,200 @@
+"""The benchmark baselines compute the right thing, and the bench harness runs end to end.
+
+Speed is never asserted here: the benchmarks measure it. What is asserted is that each peer the
+benchmarks time computes the same torque as Pinocchio (an implementation we did not write) and
+the closed-form 2-link arm, so a timing row can never compare against a wrong answer.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from benchmarks import report
+from benchmarks.common import SYSTEM_PYTHON, read_proc_cpu, read_vm, system_pykdl
+from benchmarks.dynamics_bench import random_states
+from benchmarks.mujoco_ref import MujocoInverse
+from benchmarks.numpy_rnea import NumpyRNEA
+from dyn_node.model import load_model
+
+REPO = Path(__file__).resolve().parents[1]
+ROBOTS = ("panda", "ur5", "planar_2link")
+
+# A branched tree exercising every joint kind the NumPy RNEA handles: prismatic, revolute about a
+# non-principal axis, rotated joint origins, inertial frames rotated and offset from the link.
+BRANCHED_URDF = """<robot name="branched">
+  <link name="base"/>
+  <link name="a"><inertial><origin xyz="0.1 0.02 -0.03" rpy="0.3 -0.2 0.5"/><mass value="2.0"/>
+    <inertia ixx="0.05" iyy="0.04" izz="0.03" ixy="0.002" ixz="-0.001" iyz="0.003"/></inertial></link>
+  <link name="b"><inertial><origin xyz="0.0 0.2 0.1" rpy="0 0.4 0"/><mass value="1.2"/>
+    <inertia ixx="0.02" iyy="0.03" izz="0.01" ixy="0" ixz="0.001" iyz="0"/></inertial></link>
+  <link name="c"><inertial><origin xyz="0.05 0 0.02"/><mass value="0.7"/>
+    <inertia ixx="0.004" iyy="0.005" izz="0.006" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="d"><inertial><origin xyz="0 0 0.1"/><mass value="0.4"/>
+    <inertia ixx="0.001" iyy="0.001" izz="0.002" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="a"/>
+    <origin xyz="0 0 0.3" rpy="0.1 0.2 0.3"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="100" velocity="3"/></joint>
+  <joint name="j2" type="prismatic"><parent link="a"/><child link="b"/>
+    <origin xyz="0.2 0 0" rpy="0 0.5 0"/><axis xyz="0.6 0 0.8"/><limit lower="-0.5" upper="0.5" effort="100" velocity="1"/></joint>
+  <joint name="j3" type="revolute"><parent link="b"/><child link="c"/>
+    <origin xyz="0 0.3 0" rpy="-0.4 0 0.2"/><axis xyz="0.267261 0.534522 0.801784"/><limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
+  <joint name="j4" type="revolute"><parent link="a"/><child link="d"/>
+    <origin xyz="0 -0.2 0.1"/><axis xyz="1 0 0"/><limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
+</robot>"""
+
+
+def _pin_loop(pm, Q, V, A) -> np.ndarray:
+    data = pm.createData()
+    return np.array([pin.rnea(pm, data, Q[i], V[i], A[i]) for i in range(len(Q))])
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_numpy_rnea_matches_pinocchio(robot: str) -> None:
+    model = load_model(builtin=robot)
+    Q, V, A = random_states(model, 300, seed=11)
+    ref = _pin_loop(model.pin_model, Q, V, A)
+    r = NumpyRNEA(model.pin_model)
+    np.testing.assert_allclose(r.rnea_batch(Q, V, A), ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r.rnea(Q[7], V[7], A[7]), ref[7], rtol=0, atol=1e-9)
+    assert np.max(np.abs(ref)) > 1.0  # the states exercise real torques, not near-zero ones
+
+
+def test_numpy_rnea_branched_tree_prismatic_unaligned_armature() -> None:
+    pm = pin.buildModelFromXML(BRANCHED_URDF)
+    kinds = {pm.joints[i].shortname() for i in range(1, pm.njoints)}
+    assert {"JointModelPrismaticUnaligned", "JointModelRevoluteUnaligned"} <= kinds
+    pm.armature = np.array([0.1, 0.2, 0.05, 0.3])
+    pm.gravity.linear = np.array([1.0, -2.0, -9.0])
+    rng = np.random.default_rng(3)
+    Q, V, A = (rng.uniform(-1, 1, (200, pm.nv)) for _ in range(3))
+    np.testing.assert_allclose(NumpyRNEA(pm).rnea_batch(Q, V, A), _pin_loop(pm, Q, V, A),
+                               rtol=0, atol=1e-9)
+
+
+def test_numpy_rnea_two_link_closed_form() -> None:
+    """The textbook manipulator equation of the 2-link arm (issue 2), independent of Pinocchio."""
+    m1, m2, l1, l2, g = 1.5, 1.0, 0.5, 0.4, 9.81
+    model = load_model(builtin="planar_2link")
+    Q, V, A = random_states(model, 100, seed=5)
+    tau = NumpyRNEA(model.pin_model).rnea_batch(Q, V, A)
+    for (q1, q2), (v1, v2), acc, t in zip(Q, V, A, tau):
+        c1, c2, c12, s2 = np.cos(q1), np.cos(q2), np.cos(q1 + q2), np.sin(q2)
+        M = np.array([[m1 * l1**2 + m2 * (l1**2 + l2**2 + 2 * l1 * l2 * c2), m2 * (l2**2 + l1 * l2 * c2)],
+                      [m2 * (l2**2 + l1 * l2 * c2), m2 * l2**2]])
+        h = -m2 * l1 * l2 * s2
+        C = np.array([[h * v2, h * (v1 + v2)], [-h * v1, 0.0]])
+        grav = np.array([(m1 + m2) * g * l1 * c1 + m2 * g * l2 * c12, m2 * g * l2 * c12])
+        np.testing.assert_allclose(t, M @ acc + C @ np.array([v1, v2]) + grav, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_mujoco_reference_matches_pinocchio(robot: str) -> None:
+    model = load_model(builtin=robot)
+    Q, V, A = random_states(model, 100, seed=2)
+    mj = MujocoInverse(model)
+    out = np.array([mj.rnea(Q[i], V[i], A[i]) for i in range(len(Q))])
+    np.testing.assert_allclose(out, _pin_loop(model.pin_model, Q, V, A), rtol=0, atol=1e-9)
+
+
+def test_mujoco_fallback_loader_matches_pinocchio(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The URDF loader used when dyn_node.mujoco_model is absent agrees too (incl. point masses)."""
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_mujoco_model(name, globals=None, locals=None, fromlist=(), level=0):
+        if fromlist and "mujoco_model" in fromlist and name == "dyn_node":
+            raise ImportError("hidden for this test")
+        return real_import(name, globals, locals, fromlist, level)
+
+    monkeypatch.setattr(builtins, "__import__", no_mujoco_model)
+    for robot in ("panda", "planar_2link"):
+        model = load_model(builtin=robot)
+        mj = MujocoInverse(model)
+        assert mj.source.startswith("benchmarks/mujoco_ref.py")
+        Q, V, A = random_states(model, 50, seed=8)
+        out = np.array([mj.rnea(Q[i], V[i], A[i]) for i in range(len(Q))])
+        np.testing.assert_allclose(out, _pin_loop(model.pin_model, Q, V, A), rtol=0, atol=1e-9)
+
+
+@pytest.mark.timeout(60)
+def test_kdl_worker_matches_pinocchio_or_reports_why() -> None:
+    ok, why = system_pykdl()
+    if not ok:
+        # The bench row then says so; check the reason is the one shown, not a crash.
+        assert "not installed" in why
+        return
+    for robot in ("panda", "ur5"):
+        model = load_model(builtin=robot)
+        Q, V, A = random_states(model, 40, seed=9)
+        job = dict(urdf=model.urdf, joint_names=list(model.joint_names),
+                   locked=dict(model.locked_joints),
+                   gravity=[float(g) for g in model.pin_model.gravity.linear],
+                   Q=Q.tolist(), V=V.tolist(), A=A.tolist(), repeats=1)
+        p = subprocess.run([SYSTEM_PYTHON, str(REPO / "benchmarks" / "kdl_worker.py")],
+                           input=json.dumps(job), capture_output=True, text=True,
+                           env={"PATH": "/usr/bin:/bin"}, timeout=60)
+        assert p.returncode == 0, p.stderr
+        tau = np.array(json.loads(p.stdout)["tau"])
+        np.testing.assert_allclose(tau, _pin_loop(model.pin_model, Q, V, A), rtol=0, atol=1e-9)
+
+
+def test_proc_readers_see_this_process() -> None:
+    t0 = read_proc_cpu(os.getpid())
+    x = 0.0
+    for i in range(300_000):  # burn a little CPU so utime must move
+        x += i * 0.5
+    assert read_proc_cpu(os.getpid()) > t0
+    assert read_vm(os.getpid(), "VmHWM") >= read_vm(os.getpid(), "VmRSS") > 1.0
+
+
+def test_readme_markers_replaced_only_between_them(tmp_path) -> None:
+    readme = tmp_path / "README.md"
+    assert not report.replace_between_markers(readme, "x")
+    readme.write_text("intro\n")
+    assert not report.replace_between_markers(readme, "x")
+    assert readme.read_text() == "intro\n"
+    readme.write_text(f"intro\n{report.BEGIN}\nold\n{report.END}\noutro\n")
+    assert report.replace_between_markers(readme, "new table")
+    assert readme.read_text() == f"intro\n{report.BEGIN}\nnew table\n{report.END}\noutro\n"
+
+
+@pytest.mark.timeout(120)
+def test_bench_harness_smoke(tmp_path, ros_domain: int) -> None:
+    """`python -m benchmarks.run --smoke` over dynamics and live (bare republisher only) writes
+    bench.json, the docs page and the README section; every dynamics peer agreed with dyn_node."""
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# x\n{report.BEGIN}\n{report.END}\n")
+    env = dict(os.environ, DYN_BENCH_DOMAIN=str(ros_domain))
+    p = subprocess.run([sys.executable, "-m", "benchmarks.run", "--smoke", "--only", "dynamics,live",
+                        "--out", str(tmp_path / "out"), "--docs", str(tmp_path / "BENCH.md"),
+                        "--readme", str(readme)], cwd=REPO, env=env, capture_output=True, text=True,
+                       timeout=110)
+    assert p.returncode == 0, p.stderr[-2000:]
+    doc = json.loads((tmp_path / "out" / "bench.json").read_text())
+    assert set(doc["machine"]["versions"]) >= {"python", "pinocchio", "numpy", "mujoco", "rclpy"}
+    dyn = doc["sections"]["dynamics"]
+    assert dyn["status"] == "ok", dyn
+    rows = dyn["result"]["rows"]
+    assert {r["robot"] for r in rows} == set(ROBOTS)
+    for r in rows:
+        if r["status"] == "ok":
+            assert r["max_abs_diff_Nm"] <= 1e-9 and r["batch_s"] > 0
+        else:  # only an optional peer may be missing, and it must say why
+            assert r["impl"] == "PyKDL ChainIdSolver_RNE" and "not installed" in r["status"], r
+    live = doc["sections"]["live"]
+    assert live["status"] == "ok", live
+    bare = live["result"]["rows"][0]
+    assert bare["status"] == "ok", bare
+    w = bare["windows"][0]
+    assert w["sent"] > 0 and 0 <= w["received"] <= w["sent"] and w["p50_us"] > 0
+    text = (tmp_path / "BENCH.md").read_text()
+    assert "## Dynamics" in text and "pinocchio.rnea Python loop" in text and "SMOKE" in text
+    readme_text = readme.read_text()
+    assert readme_text.startswith("# x\n" + report.BEGIN) and "docs/BENCHMARKS.md" in readme_text

@@ -1,0 +1,435 @@
+"""Trajectory feasibility core: every limit kind, the time-scale contract, payload margin.
+
+Oracles are independent of dyn_node.feasibility: a dense per-sample loop over ``pinocchio.rnea``
+on the interpolated states (plus friction), finite differences for the effort rate, a direct
+windowed integral for RMS. The time scale and payload margin are checked by their definition:
+re-checking the stretched (or heavier) trajectory.
+"""
+from __future__ import annotations
+
+import json
+import math
+from functools import lru_cache
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from dyn_node.dynamics import Dynamics
+from dyn_node.errors import PLANNING_ERROR, TrajectoryError
+from dyn_node.feasibility import (FeasibilityOptions, check_trajectory, rejected_statuses,
+                                  STATUS_NAME)
+from dyn_node.limits import LIMIT_KINDS
+from dyn_node.model import Payload, load_model
+from dyn_node.status import ERROR, OK, WARN
+from dyn_node.trajectory import Trajectory, interpolate, validate_trajectory
+
+SUMMARY_KEYS = ("feasible", "worst_joint", "worst_constraint", "worst_ratio",
+                "first_violation_time_s", "time_scale", "payload_margin_kg", "n_points",
+                "duration_s", "failure_label")
+RMS_WINDOW = 0.5
+
+
+@lru_cache(maxsize=None)
+def base_model(name: str):
+    return load_model(builtin=name)
+
+
+def _motion(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Home pose and per-joint amplitude (rad) of a smooth test motion, and its duration."""
+    if name == "panda":
+        home = np.array([0.0, -0.3, 0.0, -2.0, 0.0, 1.6, 0.8])
+        amp = np.array([0.8, 0.5, 0.6, 0.5, 0.9, 0.6, 1.0])
+    elif name == "ur5":
+        home = np.array([0.0, -1.2, 1.0, -1.4, -1.5, 0.0])
+        amp = np.array([0.9, 0.6, 0.7, 0.8, 0.9, 1.0])
+    else:
+        home = np.array([0.3, 0.5])
+        amp = np.array([0.9, 1.1])
+    return home, amp, 2.0
+
+
+def make_traj(name: str, mode: str, n_pts: int = 7) -> Trajectory:
+    """q(t) = home + amp·sin(πt/T)·(1 − cos(2πt/T))/2 sampled at n_pts waypoints; velocities and
+    accelerations from its derivatives when the mode needs them."""
+    home, amp, T = _motion(name)
+    t = np.linspace(0.0, T, n_pts)
+    w1, w2 = np.pi / T, 2 * np.pi / T
+    f = np.sin(w1 * t) * (1 - np.cos(w2 * t)) / 2
+    fd = (w1 * np.cos(w1 * t) * (1 - np.cos(w2 * t)) + np.sin(w1 * t) * w2 * np.sin(w2 * t)) / 2
+    fdd = (-w1 ** 2 * np.sin(w1 * t) * (1 - np.cos(w2 * t))
+           + 2 * w1 * w2 * np.cos(w1 * t) * np.sin(w2 * t)
+           + np.sin(w1 * t) * w2 ** 2 * np.cos(w2 * t)) / 2
+    P = home + np.outer(f, amp)
+    names = base_model(name).joint_names
+    vel = acc = None
+    if mode in ("cubic", "quintic"):
+        vel = np.outer(fd, amp)
+    if mode == "quintic":
+        acc = np.outer(fdd, amp)
+    return validate_trajectory(names, names, t, P, vel, acc)
+
+
+def stretch(traj: Trajectory, k: float) -> Trajectory:
+    return Trajectory(times=traj.times * k, positions=traj.positions,
+                      velocities=None if traj.velocities is None else traj.velocities / k,
+                      accelerations=None if traj.accelerations is None else traj.accelerations / k ** 2)
+
+
+def oracle(model, traj: Trajectory, step: float = 5e-4) -> dict[str, np.ndarray]:
+    """Dense brute-force samples: each segment on its own uniform grid (ends just inside it),
+    torques by pinocchio.rnea per sample plus friction, rate by np.gradient within a segment."""
+    pp = interpolate(traj)
+    pm = model.pin_model
+    data = pm.createData()
+    damping, coulomb = np.array(pm.damping), np.array(pm.friction)
+    out = {k: [] for k in ("t", "q", "v", "a", "j", "tau", "g", "rate")}
+    for i in range(traj.n_points - 1):
+        t0, t1 = traj.times[i], traj.times[i + 1]
+        n = max(3, int(math.ceil((t1 - t0) / step)) + 1)
+        ts = np.linspace(t0, t1 - 1e-10 * (t1 - t0), n)
+        q, v, a, j = pp.evaluate(ts)
+        tau = np.array([pin.rnea(pm, data, q[m], v[m], a[m]) + damping * v[m] + coulomb * np.sign(v[m])
+                        for m in range(n)])
+        g = np.array([pin.computeGeneralizedGravity(pm, data, q[m]) for m in range(n)])
+        for key, val in zip(("t", "q", "v", "a", "j", "tau", "g"), (ts, q, v, a, j, tau, g)):
+            out[key].append(val)
+        out["rate"].append(np.gradient(tau, ts, axis=0, edge_order=2))
+    res = {k: np.concatenate(v) for k, v in out.items()}
+    res["g0"] = pin.computeGeneralizedGravity(pm, data, traj.positions[0])
+    return res
+
+
+def oracle_rms(o: dict[str, np.ndarray], window: float) -> np.ndarray:
+    """Peak windowed RMS per joint: windows ending at every sample, holding g(q0) before t0."""
+    t, tau2 = o["t"], o["tau"] ** 2
+    cum = np.vstack([np.zeros(tau2.shape[1]),
+                     np.cumsum(0.5 * (tau2[1:] + tau2[:-1]) * np.diff(t)[:, None], axis=0)])
+    peak = np.zeros(tau2.shape[1])
+    for j in range(tau2.shape[1]):
+        start = t - window
+        integral = cum[:, j] - np.interp(start, t, cum[:, j]) + np.maximum(t[0] - start, 0) * o["g0"][j] ** 2
+        peak[j] = np.sqrt(integral.max() / window)
+    return peak
+
+
+def oracle_peaks(o, curves=None) -> dict[str, np.ndarray]:
+    peaks = {"velocity": np.abs(o["v"]).max(0), "acceleration": np.abs(o["a"]).max(0),
+             "jerk": np.abs(o["j"]).max(0), "effort": np.abs(o["tau"]).max(0),
+             "effort_rate": np.abs(o["rate"]).max(0), "power": np.abs(o["tau"] * o["v"]).max(0),
+             "rms_effort": oracle_rms(o, RMS_WINDOW), "gravity": np.abs(o["g"]).max(0)}
+    if curves is not None:
+        env = np.column_stack([np.interp(np.abs(o["v"][:, j]), c[:, 0], c[:, 1])
+                               for j, c in enumerate(curves)])
+        peaks["effort_speed"] = (np.abs(o["tau"]) / env).max(0)
+    return peaks
+
+
+def limits_for(model, kind: str, peaks: dict[str, np.ndarray], frac: float):
+    """A limits dict where only ``kind`` (plus position) limits the motion, at frac × its peak."""
+    entries = {}
+    curves = []
+    for j, n in enumerate(model.joint_names):
+        e = {"has_velocity_limits": kind == "velocity", "has_effort_limits": kind == "effort"}
+        gmax = peaks["gravity"][j]
+        if kind == "velocity":
+            e["max_velocity"] = float(frac * peaks["velocity"][j])
+        elif kind == "acceleration":
+            e["max_acceleration"] = float(frac * peaks["acceleration"][j])
+        elif kind == "jerk":
+            e["max_jerk"] = float(frac * peaks["jerk"][j])
+        elif kind == "effort":
+            e["max_effort"] = float(max(frac * peaks["effort"][j], 1.2 * gmax + 1e-3))
+        elif kind == "effort_rate":
+            e["max_effort_rate"] = float(frac * peaks["effort_rate"][j])
+        elif kind == "power":
+            e["max_power"] = float(frac * peaks["power"][j])
+        elif kind == "rms_effort":
+            e["max_rms_effort"] = float(max(frac * peaks["rms_effort"][j], 1.2 * gmax + 1e-3))
+            e["rms_window"] = RMS_WINDOW
+        elif kind == "effort_speed":
+            vmax = max(peaks["velocity"][j], 1e-3)
+            top = max(frac * peaks["effort"][j], 1.3 * gmax + 1e-3)
+            c = [[0.0, top], [0.5 * vmax, top], [1.5 * vmax, 0.4 * top]]
+            e["effort_speed_curve"] = c
+            curves.append(np.array(c))
+        entries[n] = e
+    return {"joint_limits": entries}
+
+
+ROBOT_MODES = {"panda": "quintic", "ur5": "cubic", "planar_2link": "spline"}
+CASES = [(robot, kind) for robot in ROBOT_MODES for kind in LIMIT_KINDS if kind != "position"]
+
+
+@lru_cache(maxsize=None)
+def base_case(robot: str):
+    model = base_model(robot)
+    traj = make_traj(robot, ROBOT_MODES[robot])
+    return model, traj, oracle(model, traj)
+
+
+@pytest.mark.parametrize("robot,kind", CASES)
+def test_time_scale_contract_each_kind_binding(robot, kind):
+    model, traj, o = base_case(robot)
+    peaks = oracle_peaks(o)
+    frac = 0.8 if (LIMIT_KINDS.index(kind) + list(ROBOT_MODES).index(robot)) % 2 else 1.25
+    lim = limits_for(model, kind, peaks, frac)
+    m = model.with_limits(lim)
+    dyn = Dynamics(m)
+    r = check_trajectory(dyn, traj)
+    k = r.time_scale
+    assert math.isfinite(k) and k > 0, r.message
+    assert r.time_scale_constraint == kind
+    assert r.feasible == (k <= 1.0)
+    assert r.level == (ERROR if not r.feasible else r.level)
+    assert check_trajectory(dyn, stretch(traj, 1.001 * k)).feasible, (kind, k)
+    for f in (0.99, 0.97):
+        slow = check_trajectory(dyn, stretch(traj, f * k))
+        assert not slow.feasible, (kind, k, f)
+        assert any(v.kind == kind for v in slow.violations)
+
+    # peak ratios agree with the brute-force dense check
+    curves = [np.array(lim["joint_limits"][n]["effort_speed_curve"]) for n in m.joint_names] \
+        if kind == "effort_speed" else None
+    ref = oracle_peaks(o, curves)
+    limit_arr = {"velocity": m.limits.velocity, "acceleration": m.limits.acceleration,
+                 "jerk": m.limits.jerk, "effort": m.limits.effort,
+                 "effort_rate": m.limits.effort_rate, "power": m.limits.power,
+                 "rms_effort": m.limits.rms_effort}
+    got = np.array([r.per_joint[n][kind]["ratio"] for n in m.joint_names])
+    want = ref[kind] if kind == "effort_speed" else ref[kind] / limit_arr[kind]
+    rtol = 5e-3 if kind in ("effort_rate", "rms_effort") else 1e-3
+    np.testing.assert_allclose(got, want, rtol=rtol, atol=1e-9)
+    assert r.worst_constraint == kind
+    assert r.worst_ratio == pytest.approx(got.max())
+
+
+PAYLOAD_KINDS = ("effort", "effort_rate", "power", "rms_effort", "effort_speed")
+
+
+@pytest.mark.parametrize("kind", PAYLOAD_KINDS)
+@pytest.mark.parametrize("frac", (0.9, 1.3))
+def test_payload_margin_by_recheck(kind, frac):
+    model = base_model("planar_2link").with_payload(Payload(mass=2.0, com=(0.05, 0.0, 0.0)))
+    traj = make_traj("planar_2link", "quintic")
+    peaks = oracle_peaks(oracle(model, traj))
+    lim = limits_for(model, kind, peaks, frac)
+    m = model.with_limits(lim)
+    r = check_trajectory(Dynamics(m), traj)
+    margin = r.payload_margin_kg
+    assert math.isfinite(margin)
+    assert (margin >= 0) == r.feasible
+    eps = 2e-3 * max(1.0, abs(margin))
+    heavier = m.with_payload(Payload(mass=2.0 + margin + eps, com=(0.05, 0.0, 0.0)))
+    assert not check_trajectory(Dynamics(heavier), traj).feasible
+    if 2.0 + margin - eps >= 0:
+        lighter = m.with_payload(Payload(mass=2.0 + margin - eps, com=(0.05, 0.0, 0.0)))
+        assert check_trajectory(Dynamics(lighter), traj).feasible
+
+
+def test_payload_margin_infinite_without_effort_limits():
+    model = base_model("planar_2link").with_limits(
+        {"joint_limits": {n: {"has_effort_limits": False} for n in ("joint1", "joint2")}})
+    r = check_trajectory(Dynamics(model), make_traj("planar_2link", "spline"))
+    assert r.payload_margin_kg == math.inf
+    assert r.to_dict()["payload_margin_kg"] == "inf"
+
+
+def test_violation_between_waypoints_is_caught():
+    """Rest-to-rest quintic: both waypoints have zero velocity, the middle peaks at 1.875·Δq/T."""
+    model = base_model("planar_2link")
+    names = model.joint_names
+    traj = validate_trajectory(names, names, [0.0, 1.0], [[0.0, 0.0], [2.0, 0.5]],
+                               [[0, 0], [0, 0]], [[0, 0], [0, 0]])
+    r = check_trajectory(Dynamics(model), traj)   # joint1 velocity limit 3 rad/s, peak 3.75 rad/s
+    assert np.all(np.abs(traj.velocities) <= model.limits.velocity)
+    assert not r.feasible and r.level == ERROR and r.failure_label == PLANNING_ERROR
+    v = next(v for v in r.violations if v.joint == "joint1" and v.kind == "velocity")
+    assert v.peak_value == pytest.approx(3.75, rel=1e-9)
+    assert v.peak_time_s == pytest.approx(0.5, abs=1e-3)
+    assert v.limit == 3.0
+    # |v(t)| > 3 on an interval symmetric about 0.5 s: solve 30 s²(1−s)²·2 = 3 → duration
+    s = np.linspace(0, 1, 200001)
+    vel = 2.0 * 30 * s ** 2 * (1 - s) ** 2
+    assert v.duration_s == pytest.approx((vel > 3.0).mean(), abs=2e-3)
+    assert v.first_time_s == pytest.approx(s[np.argmax(vel > 3.0)], abs=1.1e-3)
+    assert r.first_violation_time_s == pytest.approx(v.first_time_s)
+    assert r.time_scale == pytest.approx(1.25, rel=1e-9)
+    assert "run 1.25× slower" in r.message and r.message.startswith("infeasible: joint1 velocity 125%")
+
+
+def _static_case(kind: str):
+    model = base_model("planar_2link")
+    # joint1 at q = 0 (horizontal) holds (1.5·0.5 + 1.0·0.9)·9.81 = 16.19 N·m of gravity
+    g1 = (1.5 * 0.5 + 1.0 * 0.9) * 9.81
+    e = {"joint1": {}, "joint2": {}}
+    if kind == "effort":
+        e["joint1"]["max_effort"] = g1 - 1.0
+    elif kind == "rms_effort":
+        e["joint1"]["max_rms_effort"] = g1 - 1.0
+    else:
+        e["joint1"]["effort_speed_curve"] = [[0.0, g1 - 1.0], [5.0, g1 - 1.0]]
+    names = model.joint_names
+    traj = validate_trajectory(names, names, [0.0, 1.0, 2.0], [[0.5, 0.0], [0.0, 0.0], [0.5, 0.0]])
+    return model.with_limits({"joint_limits": e}), traj, g1
+
+
+@pytest.mark.parametrize("kind", ("effort", "rms_effort", "effort_speed"))
+def test_gravity_alone_exceeding_a_limit_gives_infinite_time_scale(kind):
+    model, traj, g1 = _static_case(kind)
+    r = check_trajectory(Dynamics(model), traj)
+    assert not r.feasible and r.time_scale == math.inf
+    assert r.failure_label == PLANNING_ERROR and r.level == ERROR
+    assert r.time_scale_joint == "joint1" and r.time_scale_constraint == kind
+    assert "joint1" in r.message and "q = [0, 0]" in r.message and "no slowdown helps" in r.message
+    assert f"need {g1:.3g} N·m" in r.message   # the worst pose: horizontal, closed-form gravity
+    assert not check_trajectory(Dynamics(model), stretch(traj, 50.0)).feasible
+    assert r.to_dict()["time_scale"] == "inf"
+
+
+def test_position_violation_is_infinite_and_soft_limit_warns():
+    model = base_model("planar_2link")
+    names = model.joint_names
+    # spline through 0 → 2.95 → 0: inside the hard limit 3.0 but past the soft limit 2.9
+    traj = validate_trajectory(names, names, [0.0, 2.0, 4.0], [[0.0, 0.0], [2.95, 0.0], [0.0, 0.0]])
+    r = check_trajectory(Dynamics(model), traj)
+    assert r.feasible and r.level == WARN
+    assert any("soft-limit" in w for w in r.warnings)
+    far = validate_trajectory(names, names, [0.0, 2.0, 4.0], [[0.0, 0.0], [3.05, 0.0], [0.0, 0.0]])
+    r = check_trajectory(Dynamics(model), far)
+    assert not r.feasible and r.time_scale == math.inf and r.time_scale_constraint == "position"
+    v = r.violations[0]
+    assert (v.joint, v.kind, v.limit) == ("joint1", "position", 3.0)
+    assert v.peak_value == pytest.approx(3.05)
+    assert "no slowdown helps" in r.message
+
+
+def test_limit_exactly_reached_is_feasible():
+    """Inclusive bounds, as ros2_control: a peak equal to the limit is OK, a hair above is not."""
+    model = base_model("planar_2link")
+    names = model.joint_names
+    traj = validate_trajectory(names, names, [0.0, 1.0], [[0.0, 0.0], [1.6, 0.4]],
+                               [[0, 0], [0, 0]], [[0, 0], [0, 0]])
+    peak = 1.875 * 1.6   # quintic rest-to-rest peak velocity, exactly 3.0 rad/s = the limit
+    r = check_trajectory(Dynamics(model), traj)
+    assert r.per_joint["joint1"]["velocity"]["value"] == pytest.approx(peak, rel=1e-12)
+    assert r.feasible == (r.per_joint["joint1"]["velocity"]["value"] <= 3.0)
+    tight = model.with_limits({"joint_limits": {"joint1": {
+        "max_velocity": r.per_joint["joint1"]["velocity"]["value"]}}})
+    assert check_trajectory(Dynamics(tight), traj).feasible
+    tighter = model.with_limits({"joint_limits": {"joint1": {
+        "max_velocity": float(np.nextafter(r.per_joint["joint1"]["velocity"]["value"], 0))}}})
+    assert not check_trajectory(Dynamics(tighter), traj).feasible
+
+
+def test_waypoint_effort_is_rnea_at_waypoints_and_statuses():
+    model = base_model("panda")
+    dyn = Dynamics(model)
+    traj = make_traj("panda", "quintic")
+    r = check_trajectory(dyn, traj)
+    q, v, a, _ = interpolate(traj).evaluate(traj.times)
+    want = np.array([dyn.rnea(q[i], v[i], a[i]) for i in range(traj.n_points)])
+    np.testing.assert_allclose(r.waypoint_effort, want, rtol=0, atol=1e-9)
+    assert r.interpolation == "quintic"
+    sts = r.statuses("panda")
+    assert sts[0].name == STATUS_NAME and sts[0].hardware_id == "panda"
+    for key in SUMMARY_KEYS:
+        assert key in sts[0].values
+    assert [s.name for s in sts[1:]] == [f"{STATUS_NAME}/{n}" for n in model.joint_names]
+    for s in sts[1:]:
+        for kind in LIMIT_KINDS:
+            assert f"{kind}_ratio" in s.values
+    assert sts[1].values["effort_ratio"] == r.per_joint["panda_joint1"]["effort"]["ratio"]
+    assert sts[1].values["acceleration_ratio"] == "unlimited"
+    d = r.to_dict()
+    json.dumps(d, allow_nan=False)
+    assert d["first_violation_time_s"] is None
+    assert len(d["waypoint_effort"]) == traj.n_points
+
+
+def test_feasible_message_and_levels():
+    model = base_model("panda")
+    traj = stretch(make_traj("panda", "quintic"), 3.0)
+    r = check_trajectory(Dynamics(model), traj)
+    assert r.feasible and r.time_scale < 1
+    assert r.message.startswith(f"feasible: worst {r.worst_joint} ")
+    assert f"could run {1 / r.time_scale:.2f}× faster" in r.message
+    assert r.level == (WARN if r.worst_ratio > 0.9 else OK)
+    assert r.failure_label == ("" if r.level == OK else PLANNING_ERROR)
+    strict = check_trajectory(Dynamics(model), traj, FeasibilityOptions(effort_warn_ratio=0.01))
+    assert strict.level == WARN and strict.feasible
+
+
+def test_cubic_acceleration_jump_is_reported_as_effort_step():
+    model = base_model("ur5").with_limits({"joint_limits": {"elbow_joint": {"max_effort_rate": 1e6}}})
+    r = check_trajectory(Dynamics(model), make_traj("ur5", "cubic"))
+    assert r.interpolation == "cubic"
+    assert max(r.effort_step.values()) > 1e-3
+    assert any("torque step" in w for w in r.warnings)
+    rq = check_trajectory(Dynamics(model), make_traj("ur5", "quintic"))
+    assert max(rq.effort_step.values()) < 1e-6 * max(np.abs(rq.waypoint_effort).max(), 1)
+
+
+def test_spline_assumption_warns():
+    r = check_trajectory(Dynamics(base_model("planar_2link")), make_traj("planar_2link", "spline"))
+    assert r.interpolation == "spline" and r.level in (WARN, ERROR)
+    assert any("C² cubic spline" in w for w in r.warnings)
+
+
+@pytest.mark.parametrize("kwargs,code", [
+    (dict(times=[], positions=[]), "empty_points"),
+    (dict(times=[0.0], positions=[[0.0, 0.0]]), "too_few_points"),
+    (dict(times=[0.0, 1.0, 1.0], positions=[[0, 0]] * 3), "bad_times"),
+    (dict(times=[0.0, 1.0, 0.5], positions=[[0, 0]] * 3), "bad_times"),
+    (dict(times=[0.0, 1.0], positions=[[0, 0]]), "length_mismatch"),
+    (dict(times=[0.0, 1.0], positions=[[0, 0], [0]]), "length_mismatch"),
+    (dict(times=[0.0, 1.0], positions=[[0, 0], [0, float("nan")]]), "non_finite"),
+    (dict(names=["joint1", "elbow"], times=[0.0, 1.0], positions=[[0, 0]] * 2), "unknown_joints"),
+    (dict(names=["joint1"], times=[0.0, 1.0], positions=[[0]] * 2), "missing_joints"),
+    (dict(names=[], times=[0.0, 1.0], positions=[[]] * 2), "empty_names"),
+])
+def test_bad_input_rejected_with_code_and_label(kwargs, code):
+    model = base_model("planar_2link")
+    names = kwargs.pop("names", list(model.joint_names))
+    with pytest.raises(TrajectoryError) as info:
+        validate_trajectory(model.joint_names, names, **kwargs)
+    assert info.value.code == code
+    sts = rejected_statuses(info.value, "hw", n_points=len(kwargs["times"]), duration_s=1.0)
+    assert len(sts) == 1 and sts[0].level == ERROR and sts[0].name == STATUS_NAME
+    for key in SUMMARY_KEYS:
+        assert key in sts[0].values
+    assert sts[0].values["failure_label"] == PLANNING_ERROR
+    assert sts[0].values["feasible"] is False
+    assert str(info.value) in sts[0].message
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the interpolation itself overflows
+def test_overflowing_motion_raises_instead_of_passing():
+    model = base_model("planar_2link")
+    names = model.joint_names
+    traj = validate_trajectory(names, names, [0.0, 1e-300], [[0.0, 0.0], [1e300, 0.0]])
+    with pytest.raises(TrajectoryError) as info:
+        check_trajectory(Dynamics(model), traj)
+    assert info.value.code == "non_finite"
+
+
+def test_single_point_trajectory_raises_in_core():
+    t = Trajectory(times=np.array([0.0]), positions=np.zeros((1, 2)))
+    with pytest.raises(TrajectoryError) as info:
+        check_trajectory(Dynamics(base_model("planar_2link")), t)
+    assert info.value.code == "too_few_points"
+
+
+@pytest.mark.timeout(60)
+def test_hundred_thousand_points_finish():
+    model = base_model("panda")
+    n = 100_000
+    t = np.linspace(0.0, 100.0, n)
+    home, amp, _ = _motion("panda")
+    P = home + np.outer(0.3 * (1 - np.cos(2 * np.pi * t / 20.0)), amp)  # at rest at both ends
+    traj = validate_trajectory(model.joint_names, model.joint_names, t, P)
+    r = check_trajectory(Dynamics(model), traj)
+    assert r.n_points == n and r.n_samples >= 2 * (n - 1)
+    assert r.compute_time_s > 0 and math.isfinite(r.time_scale)
+    assert r.waypoint_effort.shape == (n, 7)
+    assert r.feasible
