@@ -49,7 +49,7 @@ class RecordingBridge:
 
     def __init__(self, node: Node, robot_description: Callable[[], str] | None = None, *,
                  discovery_period_s: float = 1.0, flush_period_s: float = 0.5,
-                 opener: Callable[[str], Any] | None = None):
+                 opener: Callable[[str], Any] | None = None, autostart: bool = True):
         self.node = node
         self._clock = node.get_clock()
         self._description_fn = robot_description
@@ -85,10 +85,16 @@ class RecordingBridge:
         self._start_srv = node.create_service(Trigger, "~/start_recording", self._on_start)
         self._stop_srv = node.create_service(Trigger, "~/stop_recording", self._on_stop)
         self._timer = node.create_timer(discovery_period_s, self._discover)
-        if node.get_parameter("record.enabled").value:
+        if autostart:
+            self.start_if_enabled()
+
+    def start_if_enabled(self) -> None:
+        """Start recording when ``record.enabled`` is set (an owner that registers its own
+        endpoints with :meth:`add_publisher` first passes ``autostart=False`` and calls this)."""
+        if self.node.get_parameter("record.enabled").value:
             ok, msg = self.start()
             if not ok:
-                node.get_logger().error(f"recording not started: {msg}")
+                self.node.get_logger().error(f"recording not started: {msg}")
 
     # ------------------------------------------------------------------ public API
     @property
@@ -100,9 +106,10 @@ class RecordingBridge:
         return self._recorder
 
     def add_publisher(self, publisher: Any) -> None:
-        """Record this node's own publisher directly instead of subscribing to it: the node then
-        publishes serialized bytes and hands the same bytes to :meth:`record`. Saves one
-        subscription callback per message (the dominant recording cost in rclpy)."""
+        """Record this node's own publisher (or subscription) directly instead of subscribing to
+        it: the node hands the serialized bytes it publishes or takes to :meth:`record`. Saves one
+        subscription callback per message (the dominant recording cost in rclpy) and records
+        exactly what the node saw and said."""
         cls = publisher.msg_type
         type_name = f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}"
         q = publisher.qos_profile
@@ -114,6 +121,10 @@ class RecordingBridge:
         if self._recorder is not None and publisher.topic_name in self._topics:
             self._recorder.add_topic(self._outgoing[publisher.topic_name])
             self._direct.add(publisher.topic_name)
+
+    def records(self, publisher: Any) -> bool:
+        """Whether bytes published on ``publisher`` are being recorded right now."""
+        return self._recorder is not None and publisher.topic_name in self._direct
 
     def record(self, publisher: Any, data: bytes) -> None:
         """Record serialized bytes this node just published on ``publisher`` (see

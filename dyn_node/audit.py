@@ -1,0 +1,1100 @@
+"""dyn-audit: replay a bag through the node's own core and write an EvidenceRecord and a report.
+
+``dyn-audit BAG [--robot-description FILE | --robot-model NAME] [--limits FILE] [--out DIR]
+[--topics T ...]``. The bag is streamed (constant memory): joint_states go through the same
+:class:`~dyn_node.monitor.Monitor` and :class:`~dyn_node.monitor.ControllerTracker` the node runs,
+in the order the node received them (file order = log-time order), with the recorded header
+stamps and log (receipt) times as time; each joint_trajectory goes through
+:func:`~dyn_node.feasibility.check_trajectory`. When the bag holds the node's own outputs
+(``*/gravity_torque``, ``*/inverse_dynamics``, ``*/feasibility``) they are recomputed and the
+largest difference per topic reported (0.0: bit-identical).
+
+Exit codes: 0 everything feasible, 1 violations found, 2 unusable input (one-line error).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import yaml
+
+from . import __version__
+from .bag_reader import BagError, BagMessage, BagReader, MessageDecoder, decode_joint_state
+from .errors import (CONTROL_ERROR, EVALUATION_ERROR, PLANNING_ERROR, STATE_ERROR, DynNodeError,
+                     TrajectoryError)
+from .evidence import EvidenceRecord, utc_now
+
+EXIT_OK, EXIT_VIOLATIONS, EXIT_UNUSABLE = 0, 1, 2
+MAX_BINS = 1024          # time bins kept for plots (adaptive width: memory flat in bag length)
+MAX_EPISODES = 1000      # violation episodes listed (the rest are counted)
+MAX_EXAMPLES = 50        # invalid / out-of-order examples and gaps listed
+MAX_TRAJECTORIES = 1000  # per-trajectory verdicts listed (the rest are counted)
+MAX_PENDING = 20_000     # recomputed outputs waiting for their recorded counterpart (20 s at 1 kHz)
+RECHECK_EXCLUDED_KEYS = ("compute_time",)  # wall-clock figures cannot be reproduced
+
+ROLE_JOINT_STATES, ROLE_TRAJECTORY = "joint_states", "joint_trajectory"
+ROLE_GRAVITY, ROLE_ID, ROLE_FEAS = "gravity_torque", "inverse_dynamics", "feasibility"
+ROLE_TRAJ_EFFORT, ROLE_CTRL, ROLE_DESC = "trajectory_effort", "controller_status", "robot_description"
+
+
+class AuditError(DynNodeError):
+    """The audit cannot run: unusable bag or no model."""
+
+    failure_label = STATE_ERROR
+
+
+@dataclass(frozen=True)
+class AuditOptions:
+    bag: str
+    robot_description: str = ""     # URDF file path (overrides the bag)
+    robot_model: str = ""           # built-in model name (overrides the bag)
+    limits: str = ""                # limits YAML (overrides the bag's limits_file)
+    out: str = "audit"
+    topics: tuple[str, ...] = ()
+    gap_threshold_s: float = 0.05
+    progress: bool | None = None    # None: only when stderr is a terminal
+    report: bool = True
+
+
+@dataclass
+class AuditResult:
+    record: dict
+    exit_code: int
+    out_dir: Path
+    files: list[Path] = field(default_factory=list)
+    messages: int = 0
+    wall_s: float = 0.0
+
+
+# --- configuration from the bag ------------------------------------------------------------
+def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            key = f"{prefix}.{k}" if prefix else str(k)
+            if isinstance(v, dict):
+                out.update(_flatten(v, key))
+            else:
+                out[key] = v
+    return out
+
+
+def parameters_from_yaml(text: str) -> dict[str, Any]:
+    """Node parameters from a --params-file YAML (``{node: {ros__parameters: {...}}}``) or a flat
+    mapping; nested keys are joined with '.'."""
+    doc = yaml.safe_load(text) if text else None
+    if not isinstance(doc, dict):
+        return {}
+    for v in doc.values():
+        if isinstance(v, dict) and "ros__parameters" in v:
+            return _flatten(v["ros__parameters"])
+    if "ros__parameters" in doc:
+        return _flatten(doc["ros__parameters"])
+    return _flatten(doc)
+
+
+def _role(topic: str, schema: str) -> str | None:
+    last = topic.rstrip("/").rsplit("/", 1)[-1]
+    if schema == "sensor_msgs/msg/JointState":
+        if last == ROLE_GRAVITY:
+            return ROLE_GRAVITY
+        if last == ROLE_ID:
+            return ROLE_ID
+        return ROLE_JOINT_STATES if last == ROLE_JOINT_STATES else None
+    if schema == "trajectory_msgs/msg/JointTrajectory":
+        if last == ROLE_TRAJ_EFFORT:
+            return ROLE_TRAJ_EFFORT
+        return ROLE_TRAJECTORY if last == ROLE_TRAJECTORY else None
+    if schema == "diagnostic_msgs/msg/DiagnosticArray" and last == ROLE_FEAS:
+        return ROLE_FEAS
+    if schema == "diagnostic_msgs/msg/DiagnosticStatus" and last == ROLE_CTRL:
+        return ROLE_CTRL
+    if schema == "std_msgs/msg/String" and last == ROLE_DESC:
+        return ROLE_DESC
+    return None
+
+
+# --- streaming aggregates (memory independent of bag length) -------------------------------
+class SeriesBins:
+    """Per-joint min/max torque, max utilisation and min limit in time bins over log time.
+
+    The bin width doubles (pairs merge) whenever the bag outgrows :data:`MAX_BINS` bins."""
+
+    def __init__(self, nv: int, t0_ns: int, width_ns: int = 10_000_000):
+        self.t0, self.width, self.nv = t0_ns, width_ns, nv
+        self.n = 0
+        self.tau_min = np.full((MAX_BINS, nv), np.inf)
+        self.tau_max = np.full((MAX_BINS, nv), -np.inf)
+        self.util = np.zeros((MAX_BINS, nv))
+        self.limit = np.full((MAX_BINS, nv), np.inf)
+        self.measured = np.full((MAX_BINS, nv), np.nan)  # max |measured effort| (NaN: none)
+        self.count = np.zeros(MAX_BINS, dtype=np.int64)
+
+    def _merge(self) -> None:
+        half = MAX_BINS // 2
+        for arr, red in ((self.tau_min, np.minimum), (self.tau_max, np.maximum),
+                         (self.util, np.maximum), (self.limit, np.minimum)):
+            arr[:half] = red(arr[0::2], arr[1::2])
+            arr[half:] = np.inf if red is np.minimum else (-np.inf if arr is self.tau_max else 0.0)
+        self.measured[:half] = np.fmax(self.measured[0::2], self.measured[1::2])
+        self.measured[half:] = np.nan
+        self.count[:half] = self.count[0::2] + self.count[1::2]
+        self.count[half:] = 0
+        self.width *= 2
+        self.n = (self.n + 1) // 2
+
+    def add(self, t_ns: int, tau: np.ndarray, util: np.ndarray, limit: np.ndarray,
+            measured: np.ndarray | None = None) -> None:
+        i = max((t_ns - self.t0) // self.width, 0)
+        while i >= MAX_BINS:
+            self._merge()
+            i = max((t_ns - self.t0) // self.width, 0)
+        np.minimum(self.tau_min[i], tau, out=self.tau_min[i])
+        np.maximum(self.tau_max[i], tau, out=self.tau_max[i])
+        np.fmax(self.util[i], util, out=self.util[i])
+        np.minimum(self.limit[i], limit, out=self.limit[i])
+        if measured is not None:
+            np.fmax(self.measured[i], np.abs(measured), out=self.measured[i])
+        self.count[i] += 1
+        if i >= self.n:
+            self.n = i + 1
+
+
+    def add_batch(self, t_ns: np.ndarray, tau: np.ndarray, util: np.ndarray, limit: np.ndarray,
+                  measured: np.ndarray) -> None:
+        """Rows of :meth:`add` at once (same result; ``measured`` NaN where not measured)."""
+        idx = np.maximum((t_ns - self.t0) // self.width, 0)
+        while idx.max() >= MAX_BINS:
+            self._merge()
+            idx = np.maximum((t_ns - self.t0) // self.width, 0)
+        if np.all(idx[1:] >= idx[:-1]):
+            starts = np.flatnonzero(np.r_[True, idx[1:] != idx[:-1]])
+            b = idx[starts]
+            self.tau_min[b] = np.minimum(self.tau_min[b], np.minimum.reduceat(tau, starts))
+            self.tau_max[b] = np.maximum(self.tau_max[b], np.maximum.reduceat(tau, starts))
+            self.util[b] = np.fmax(self.util[b], np.fmax.reduceat(util, starts))
+            self.limit[b] = np.minimum(self.limit[b], np.minimum.reduceat(limit, starts))
+            self.measured[b] = np.fmax(self.measured[b], np.fmax.reduceat(np.abs(measured), starts))
+            self.count[b] += np.diff(np.r_[starts, len(idx)])
+        else:  # log time went backwards inside the batch: slower unbuffered path
+            np.minimum.at(self.tau_min, idx, tau)
+            np.maximum.at(self.tau_max, idx, tau)
+            np.fmax.at(self.util, idx, util)
+            np.minimum.at(self.limit, idx, limit)
+            np.fmax.at(self.measured, idx, np.abs(measured))
+            np.add.at(self.count, idx, 1)
+        self.n = max(self.n, int(idx.max()) + 1)
+
+
+class LiveStats:
+    """Time bins, per-joint peaks and violation episodes of the accepted joint states.
+
+    Rows are buffered and processed in vectorised batches (the per-message cost of the audit
+    beyond the Monitor is a few row copies); results equal a message-by-message update."""
+
+    BATCH = 1024
+
+    def __init__(self, nv: int, lo: np.ndarray, hi: np.ndarray, vel: np.ndarray):
+        self.nv, self.lo, self.hi, self.vel = nv, lo, hi, vel
+        self.series: SeriesBins | None = None
+        self.episodes = Episodes()
+        self.peak_util = np.full(nv, -np.inf)
+        self.peak_t = np.zeros(nv, dtype=np.int64)
+        self.peak_tau = np.zeros(nv)
+        self.peak_limit = np.full(nv, np.inf)
+        B = self.BATCH
+        self.T = np.zeros(B, dtype=np.int64)
+        self.TAU, self.UTIL, self.LIM = np.zeros((B, nv)), np.zeros((B, nv)), np.zeros((B, nv))
+        self.Q, self.V, self.MEAS = np.zeros((B, nv)), np.zeros((B, nv)), np.zeros((B, nv))
+        self.k = 0
+
+    def add(self, t_ns: int, tau, util, limit, q, v, measured) -> None:
+        k = self.k
+        self.T[k] = t_ns
+        self.TAU[k] = tau
+        self.UTIL[k] = util
+        self.LIM[k] = limit
+        self.Q[k] = q
+        self.V[k] = v
+        self.MEAS[k] = np.nan if measured is None else measured
+        self.k = k + 1
+        if self.k == self.BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        n = self.k
+        if not n:
+            return
+        self.k = 0
+        T, TAU, UTIL, LIM, Q, V = (self.T[:n], self.TAU[:n], self.UTIL[:n], self.LIM[:n],
+                                   self.Q[:n], self.V[:n])
+        if self.series is None:
+            self.series = SeriesBins(self.nv, int(T[0]))
+        self.series.add_batch(T, TAU, UTIL, LIM, self.MEAS[:n])
+        k = np.argmax(UTIL, axis=0)  # first occurrence of each joint's batch maximum
+        cols = np.arange(self.nv)
+        best = UTIL[k, cols]
+        better = best > self.peak_util
+        if better.any():
+            self.peak_util[better] = best[better]
+            self.peak_t[better] = T[k[better]]
+            self.peak_tau[better] = TAU[k[better], cols[better]]
+            self.peak_limit[better] = LIM[k[better], cols[better]]
+        over_e = UTIL > 1.0
+        over_p = (Q < self.lo) | (Q > self.hi)
+        AV = np.abs(V)
+        over_v = AV > self.vel
+        any_over = (over_e | over_p | over_v).any(axis=1)
+        # Episodes change only on rows that are over a limit and on the row right after one.
+        need = any_over.copy()
+        need[1:] |= any_over[:-1]
+        if self.episodes.open:
+            need[0] = True
+        ep, lo, hi, vel = self.episodes, self.lo, self.hi, self.vel
+        for r in np.flatnonzero(need):
+            t = int(T[r])
+            for j in range(self.nv):
+                u, lim, qj = float(UTIL[r, j]), float(LIM[r, j]), float(Q[r, j])
+                ep.update(j, "effort", bool(over_e[r, j]), t, u * lim, lim, u)
+                below = qj < lo[j]
+                ep.update(j, "position", bool(over_p[r, j]), t, qj, float(lo[j] if below else hi[j]),
+                          float(lo[j] - qj if below else qj - hi[j]))
+                ep.update(j, "velocity", bool(over_v[r, j]), t, float(AV[r, j]), float(vel[j]),
+                          float(AV[r, j] / vel[j]))
+
+    def finish(self) -> None:
+        self.flush()
+        self.episodes.finish()
+
+
+class Histogram:
+    """Fixed log-spaced histogram for latency quantiles (1 µs … 100 s, 200 bins per decade)."""
+
+    LO, DECADES, PER = 1e-6, 8, 200
+
+    def __init__(self) -> None:
+        self.bins = np.zeros(self.DECADES * self.PER + 2, dtype=np.int64)
+        self.n, self.sum, self.min, self.max = 0, 0.0, math.inf, -math.inf
+
+    def add(self, x: float) -> None:
+        self.n += 1
+        self.sum += x
+        self.min = min(self.min, x)
+        self.max = max(self.max, x)
+        if x <= self.LO:
+            self.bins[0] += 1
+        else:
+            k = int(math.log10(x / self.LO) * self.PER) + 1
+            self.bins[min(k, len(self.bins) - 1)] += 1
+
+    def quantile(self, q: float) -> float | None:
+        if not self.n:
+            return None
+        k = int(np.searchsorted(np.cumsum(self.bins), q * self.n, side="left"))
+        if k == 0:
+            return max(self.min, 0.0) if self.min < self.LO else self.LO
+        mid = self.LO * 10 ** ((k - 0.5) / self.PER)
+        return float(min(max(mid, self.min), self.max))
+
+    def to_dict(self) -> dict:
+        if not self.n:
+            return {"count": 0}
+        return {"count": self.n, "min": self.min, "max": self.max, "mean": self.sum / self.n,
+                "p50": self.quantile(0.5), "p95": self.quantile(0.95), "p99": self.quantile(0.99)}
+
+
+class Episodes:
+    """Consecutive-message violation episodes per (joint, kind)."""
+
+    def __init__(self) -> None:
+        self.open: dict[tuple[int, str], dict] = {}
+        self.closed: list[dict] = []
+        self.total = 0
+
+    def update(self, j: int, kind: str, over: bool, t_ns: int, value: float, limit: float,
+               severity: float = 0.0) -> None:
+        """``severity`` orders samples within an episode (ratio or excess beyond the limit)."""
+        key = (j, kind)
+        ep = self.open.get(key)
+        if over:
+            if ep is None:
+                self.open[key] = {"j": j, "kind": kind, "start": t_ns, "end": t_ns, "peak_t": t_ns,
+                                  "peak": value, "limit": limit, "n": 1, "sev": severity}
+            else:
+                ep["end"] = t_ns
+                ep["n"] += 1
+                if severity > ep["sev"]:
+                    ep["peak"], ep["peak_t"], ep["limit"], ep["sev"] = value, t_ns, limit, severity
+        elif ep is not None:
+            self._close(key)
+
+    def _close(self, key: tuple[int, str]) -> None:
+        ep = self.open.pop(key)
+        self.total += 1
+        if len(self.closed) < MAX_EPISODES:
+            self.closed.append(ep)
+
+    def finish(self) -> None:
+        for key in list(self.open):
+            self._close(key)
+
+
+class _Pending:
+    """Recomputed outputs keyed by header stamp, waiting for the recorded one (bounded FIFO)."""
+
+    def __init__(self) -> None:
+        self.d: OrderedDict[int, list] = OrderedDict()
+        self.evicted = 0
+
+    def put(self, key: int, value: Any) -> None:
+        self.d.setdefault(key, []).append(value)
+        if len(self.d) > MAX_PENDING:
+            self.d.popitem(last=False)
+            self.evicted += 1
+
+    def take(self, key: int) -> Any:
+        lst = self.d.get(key)
+        if not lst:
+            return None
+        v = lst.pop(0)
+        if not lst:
+            del self.d[key]
+        return v
+
+
+class Recheck:
+    def __init__(self) -> None:
+        self.matched = 0
+        self.unmatched = 0
+        self.max_diff = 0.0
+        self.mismatched_values = 0
+        self.worst: dict | None = None
+
+    def diff(self, d: float, where: dict) -> None:
+        self.matched += 1
+        if not d <= self.max_diff:  # also catches NaN
+            self.max_diff = d if not math.isnan(d) else math.inf
+            self.worst = where
+
+    def to_dict(self, pending: int = 0) -> dict:
+        out = {"matched": self.matched, "unmatched": self.unmatched + pending,
+               "max_abs_difference": self.max_diff if self.matched else None,
+               "identical": bool(self.matched and self.max_diff == 0.0 and not self.mismatched_values)}
+        if self.mismatched_values:
+            out["mismatched_non_numeric_values"] = self.mismatched_values
+        if self.worst:
+            out["worst"] = self.worst
+        return out
+
+
+# --- the audit ----------------------------------------------------------------------------
+class Audit:
+    """One pass over a bag; :meth:`run` returns the EvidenceRecord dict and the plot series."""
+
+    def __init__(self, opts: AuditOptions):
+        self.opts = opts
+        self.findings: list[str] = []
+        self.decoder = MessageDecoder()
+
+    # configuration -------------------------------------------------------------------------
+    def _configure(self, reader: BagReader) -> None:
+        from .monitor import build_model
+        from .settings import SPECS, Settings, SettingsError, settings_from_mapping
+
+        meta = reader.peek_metadata("dyn_node") or {}
+        self.bag_metadata_version = meta.get("version")
+        params = parameters_from_yaml(meta.get("parameters", ""))
+        known = {k: v for k, v in params.items() if k in SPECS}
+        try:
+            settings = settings_from_mapping(known)
+        except SettingsError as exc:
+            self.findings.append(f"bag parameters rejected ({exc}); defaults used")
+            settings = Settings()
+        overrides: dict[str, Any] = {}
+        desc_in_bag = meta.get("robot_description", "")
+        topic_desc = ""
+        if not desc_in_bag:
+            m = self._peek_description(reader)
+            if m is not None:
+                try:
+                    topic_desc = self.decoder.decode(m.channel, m.data).data
+                except Exception:  # noqa: BLE001 - an undecodable description is simply absent
+                    topic_desc = ""
+        from dataclasses import replace
+
+        if self.opts.robot_description:
+            p = Path(self.opts.robot_description)
+            if not p.is_file():
+                raise AuditError(f"robot description file {p} does not exist", code="no_model")
+            settings = replace(settings, robot_description=p.read_text(), robot_description_file="",
+                               robot_model="")
+            overrides["robot_description"] = str(p)
+        elif self.opts.robot_model:
+            settings = replace(settings, robot_description="", robot_description_file="",
+                               robot_model=self.opts.robot_model)
+            overrides["robot_model"] = self.opts.robot_model
+        elif settings.robot_model and not settings.robot_description:
+            # A built-in model ships with the package; check it is the one the bag recorded.
+            from .model import BUILTIN_MODELS, builtin_urdf, urdf_hash
+
+            name = settings.robot_model
+            desc = desc_in_bag or topic_desc
+            if name in BUILTIN_MODELS and desc and urdf_hash(builtin_urdf(name)) != urdf_hash(desc):
+                self.findings.append(f"built-in model '{name}' differs from the description in the "
+                                     "bag: the bag's description is used")
+                locks = dict(BUILTIN_MODELS[name][1])
+                locks.update(dict(settings.locked_joints))
+                settings = replace(settings, robot_description=desc, robot_model="",
+                                   locked_joints=tuple(locks.items()))
+        elif desc_in_bag or topic_desc:
+            # The URDF the node was using travels in the bag: it wins over file paths that may not
+            # exist on this machine.
+            settings = replace(settings, robot_description=desc_in_bag or topic_desc,
+                               robot_description_file="", robot_model="")
+        if self.opts.limits:
+            if not Path(self.opts.limits).is_file():
+                raise AuditError(f"limits file {self.opts.limits} does not exist", code="no_limits")
+            settings = replace(settings, limits_file=self.opts.limits)
+            overrides["limits"] = self.opts.limits
+        elif settings.limits_file and not Path(settings.limits_file).is_file():
+            self.findings.append(f"the bag's limits_file {settings.limits_file} is not on this "
+                                 "machine: URDF limits used (pass --limits)")
+            settings = replace(settings, limits_file="")
+        if not settings.has_model_source:
+            raise AuditError("no robot model: the bag has no robot description (no dyn_node "
+                             "metadata, no /robot_description); pass --robot-model or "
+                             "--robot-description", code="no_model")
+        try:
+            self.model = build_model(settings)
+        except DynNodeError as exc:
+            raise AuditError(f"robot model unusable: {exc}", code="no_model") from None
+        self.settings = settings
+        self.parameters = params
+        self.overrides = overrides
+        if "robot_description" in overrides or "robot_model" in overrides:
+            self.model_source = "override:" + ("robot_description" if "robot_description" in overrides
+                                               else "robot_model")
+        elif settings.robot_description and settings.robot_description in (desc_in_bag, topic_desc):
+            self.model_source = "bag:metadata" if settings.robot_description == desc_in_bag else "bag:topic"
+        else:
+            self.model_source = "bag:parameters"
+
+    def _peek_description(self, reader: BagReader) -> BagMessage | None:
+        for topic in ("/robot_description", "robot_description"):
+            m = reader.peek_first(topic)
+            if m is not None:
+                return m
+        return None
+
+    # main loop -----------------------------------------------------------------------------
+    def run(self) -> tuple[dict, int, "SeriesBins | None"]:
+        from .dynamics import Dynamics, DynamicsOptions
+        from .monitor import ControllerTracker, Monitor
+
+        opts = self.opts
+        started = utc_now()
+        wall0 = time.perf_counter()
+        reader = BagReader(opts.bag, topics=None)
+        bad = []
+        for f in reader.files:
+            with open(f, "rb") as fh:
+                if fh.read(8) != b"\x89MCAP0\r\n":
+                    bad.append(f.name)
+        if len(bad) == len(reader.files):
+            raise AuditError(f"bag {opts.bag} is unreadable: {', '.join(bad)} is not an MCAP file",
+                             code="bag_unreadable")
+        self._configure(reader)
+        model, settings = self.model, self.settings
+        nv = model.nv
+        self.monitor = Monitor(model, settings)
+        self.tracker = ControllerTracker(model, settings)
+        self.traj_dynamics = Dynamics(model, DynamicsOptions(include_friction=settings.include_friction))
+        lim = model.limits
+        lo, hi, vel_lim = lim.position_lower, lim.position_upper, lim.velocity
+        names = model.joint_names
+        effort_lim = np.where(lim.effort > 0, lim.effort, np.inf)
+        has_curve = any(c is not None for c in lim.effort_speed_curve)
+
+        roles: dict[str, str | None] = {}
+        wanted = set(opts.topics)
+        live = LiveStats(nv, lo, hi, vel_lim)
+        gaps: list[dict] = []
+        stale: list[dict] = []
+        n_gaps = n_stale = 0
+        invalid_examples: list[dict] = []
+        invalid_count = 0
+        invalid_by_reason: dict[str, int] = {}
+        ooo_examples: list[dict] = []
+        prev_log: int | None = None
+        pend = {ROLE_GRAVITY: _Pending(), ROLE_ID: _Pending(), ROLE_FEAS: _Pending(),
+                ROLE_TRAJ_EFFORT: _Pending()}
+        recheck = {ROLE_GRAVITY: Recheck(), ROLE_ID: Recheck(), ROLE_FEAS: Recheck(),
+                   ROLE_TRAJ_EFFORT: Recheck()}
+        recheck_topics: dict[str, str] = {}
+        lat_stamp, lat_receipt = Histogram(), Histogram()
+        input_log: OrderedDict[int, int] = OrderedDict()  # stamp → input log time (for latency)
+        trajectories: list[dict] = []
+        n_traj = n_traj_bad = 0
+        ctrl_transitions: list[dict] = []
+        ctrl_time: dict[str, float] = {}
+        ctrl_last: tuple[str, int] | None = None
+        recorded_ctrl: dict[str, int] = {}
+        traj_failure_labels: set[str] = set()
+        js_topics: set[str] = set()
+        progress = _Progress(reader, opts.progress)
+        # Recomputed outputs are kept for matching only when the bag may hold the node's outputs.
+        known = reader.known_topics()
+        want_out = {r: known is None or any(t.rstrip("/").rsplit("/", 1)[-1] == r for t in known)
+                    for r in (ROLE_GRAVITY, ROLE_ID, ROLE_FEAS, ROLE_TRAJ_EFFORT)}
+        n_msgs = 0
+
+        for m in reader.messages():
+            n_msgs += 1
+            if n_msgs & 1023 == 0:
+                progress.update(n_msgs)
+            topic = m.topic
+            role = roles.get(topic, "?")
+            if role == "?":
+                role = _role(topic, m.channel.schema_name)
+                if wanted and topic not in wanted:
+                    role = None
+                roles[topic] = role
+            if role is None:
+                continue
+            t_ns = m.log_time_ns
+            if role == ROLE_JOINT_STATES:
+                js_topics.add(topic)
+                if prev_log is not None and t_ns - prev_log > opts.gap_threshold_s * 1e9:
+                    g = {"start_ns": prev_log, "end_ns": t_ns}
+                    n_gaps += 1
+                    if len(gaps) < MAX_EXAMPLES:
+                        gaps.append(g)
+                    if t_ns - prev_log > settings.stale_timeout * 1e9:
+                        n_stale += 1
+                        if len(stale) < MAX_EXAMPLES:
+                            stale.append(g)
+                        # The node's controller-status timer sees the silence: stale just after
+                        # stale_timeout (its timer period is not replayed).
+                        stale_ns = prev_log + int(settings.stale_timeout * 1e9) + 1000
+                        if self.tracker.tick(stale_ns * 1e-9):
+                            if ctrl_last is not None:
+                                ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (
+                                    stale_ns - ctrl_last[1]) * 1e-9
+                            ctrl_last = (self.tracker.state, stale_ns)
+                            if len(ctrl_transitions) < MAX_EPISODES:
+                                ctrl_transitions.append({"t_ns": stale_ns, "state": self.tracker.state})
+                prev_log = t_ns if prev_log is None or t_ns > prev_log else prev_log
+                receipt_s = t_ns * 1e-9
+                try:
+                    js = decode_joint_state(m.data)
+                except ValueError as exc:
+                    invalid_count += 1
+                    invalid_by_reason["undecodable"] = invalid_by_reason.get("undecodable", 0) + 1
+                    if len(invalid_examples) < MAX_EXAMPLES:
+                        invalid_examples.append({"t_ns": t_ns, "reason": str(exc), "code": "undecodable",
+                                                 "topic": topic})
+                    continue
+                stamp_s = js.sec + js.nanosec * 1e-9
+                r = self.monitor.process(js.names, js.position, js.velocity, js.effort, stamp_s,
+                                         receipt_s)
+                if self.tracker.update(r, receipt_s) or ctrl_last is None:
+                    st = self.tracker.state
+                    if ctrl_last is not None:
+                        ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (t_ns - ctrl_last[1]) * 1e-9
+                    ctrl_last = (st, t_ns)
+                    if len(ctrl_transitions) < MAX_EPISODES:
+                        ctrl_transitions.append({"t_ns": t_ns, "state": st})
+                if not r.accepted:
+                    invalid_count += 1
+                    code = r.error.code
+                    invalid_by_reason[code] = invalid_by_reason.get(code, 0) + 1
+                    if len(invalid_examples) < MAX_EXAMPLES:
+                        invalid_examples.append({"t_ns": t_ns, "reason": str(r.error), "code": code,
+                                                 "topic": topic})
+                    continue
+                if r.out_of_order and len(ooo_examples) < MAX_EXAMPLES:
+                    ooo_examples.append({"t_ns": t_ns, "stamp_ns": js.stamp_ns})
+                stamp_key = js.stamp_ns
+                if want_out[ROLE_GRAVITY]:
+                    pend[ROLE_GRAVITY].put(stamp_key, r.gravity)
+                    input_log[stamp_key] = t_ns
+                    if len(input_log) > MAX_PENDING:
+                        input_log.popitem(last=False)
+                if want_out[ROLE_ID]:
+                    pend[ROLE_ID].put(stamp_key, r.tau)
+                tau = r.tau
+                live.add(t_ns, tau, r.utilisation, self._limit_at(r.v) if has_curve else effort_lim,
+                         r.q, r.v, None if r.residual is None else r.residual + tau)
+            elif role == ROLE_TRAJECTORY:
+                n_traj += 1
+                entry, ok_traj, res = self._trajectory(m, n_traj - 1)
+                if entry.get("failure_label"):
+                    traj_failure_labels.add(entry["failure_label"])
+                if not entry["feasible"]:
+                    n_traj_bad += 1
+                if len(trajectories) < MAX_TRAJECTORIES:
+                    trajectories.append(entry)
+                if ok_traj is not None:
+                    start = entry["stamp_ns"] * 1e-9 if entry["stamp_ns"] else t_ns * 1e-9
+                    self.tracker.set_trajectory(ok_traj, start)
+                if want_out[ROLE_FEAS]:
+                    pend[ROLE_FEAS].put(entry["stamp_ns"], res if res is not None else entry)
+                if res is not None and want_out[ROLE_TRAJ_EFFORT]:
+                    pend[ROLE_TRAJ_EFFORT].put(entry["stamp_ns"], res.waypoint_effort)
+            elif role == ROLE_TRAJ_EFFORT:
+                recheck_topics[role] = topic
+                self._recheck_traj_effort(m, pend[ROLE_TRAJ_EFFORT], recheck[ROLE_TRAJ_EFFORT])
+            elif role in (ROLE_GRAVITY, ROLE_ID):
+                recheck_topics[role] = topic
+                try:
+                    out = decode_joint_state(m.data)
+                except ValueError:
+                    recheck[role].unmatched += 1
+                    continue
+                want = pend[role].take(out.stamp_ns)
+                if want is None:
+                    recheck[role].unmatched += 1
+                    continue
+                got = out.effort
+                if out.names != names and set(out.names) == set(names):
+                    got = got[[out.names.index(n) for n in names]]
+                d = float(np.max(np.abs(got - want))) if got.shape == want.shape else math.inf
+                recheck[role].diff(d, {"stamp_ns": out.stamp_ns, "t_ns": t_ns})
+                if role == ROLE_GRAVITY:
+                    src = input_log.get(out.stamp_ns)
+                    lat_stamp.add((t_ns - out.stamp_ns) * 1e-9)
+                    if src is not None:
+                        lat_receipt.add((t_ns - src) * 1e-9)
+            elif role == ROLE_FEAS:
+                recheck_topics[role] = topic
+                self._recheck_feasibility(m, pend[ROLE_FEAS], recheck[ROLE_FEAS])
+            elif role == ROLE_CTRL:
+                try:
+                    st = self.decoder.decode(m.channel, m.data)
+                    state = next((kv.value for kv in st.values if kv.key == "state"), None)
+                    if state:
+                        recorded_ctrl[state] = recorded_ctrl.get(state, 0) + 1
+                except Exception:  # noqa: BLE001 - recorded status is informational only
+                    pass
+        progress.done(n_msgs)
+        live.finish()
+        series, episodes = live.series, live.episodes
+        peak_util, peak_t, peak_tau, peak_limit = live.peak_util, live.peak_t, live.peak_tau, live.peak_limit
+        if ctrl_last is not None and prev_log is not None:
+            ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (prev_log - ctrl_last[1]) * 1e-9
+
+        stats = reader.stats
+        if reader.readable_files == 0:
+            raise AuditError(f"bag {opts.bag} is unreadable: "
+                             + "; ".join(u.reason for u in reader.unreadable[:3]), code="bag_unreadable")
+        if not js_topics and n_traj == 0:
+            raise AuditError(f"bag {opts.bag} has no joint_states or joint_trajectory messages "
+                             f"(topics: {', '.join(sorted(stats.message_counts)) or 'none'})",
+                             code="no_inputs")
+        if js_topics and self.monitor.counts.accepted == 0 and n_traj == 0 and invalid_examples:
+            raise AuditError(f"none of the {invalid_count} joint_states fits the model "
+                             f"{model.name} ({', '.join(names)}): {invalid_examples[0]['reason']}",
+                             code="no_valid_inputs")
+        start_ns = stats.first_ns
+        end_ns = stats.last_ns
+        for u in reader.unreadable:
+            for t in (u.start_ns, u.end_ns):
+                if t is not None:
+                    start_ns = t if start_ns is None else min(start_ns, t)
+                    end_ns = t if end_ns is None else max(end_ns, t)
+        s0 = start_ns or 0
+
+        def rel(t: int | None) -> float | None:
+            return None if t is None else (t - s0) * 1e-9
+
+        # --- record ---------------------------------------------------------------------------
+        rec = EvidenceRecord(kind="audit", tool="dyn-audit")
+        rec.started_utc = started
+        topic_types = {c.topic: c.schema_name for c in reader.channels.values()}
+        rec.inputs = {
+            "bag": str(Path(opts.bag).resolve()), "files": [str(f) for f in reader.files],
+            "topics": [{"name": t, "type": topic_types.get(t, ""), "count": n,
+                        "role": roles.get(t) or "ignored"}
+                       for t, n in sorted(stats.message_counts.items())],
+            "message_counts": dict(sorted(stats.message_counts.items())),
+            "time_span": {"start_ns": start_ns, "end_ns": end_ns,
+                          "duration_s": ((end_ns - start_ns) * 1e-9) if start_ns is not None else 0.0},
+            "bytes_read": stats.bytes_read, "chunks": stats.chunks,
+            "rosbag2_metadata": bool(reader.info),
+        }
+        rec.configuration = {
+            "model": {"name": model.name, "source": self.model_source, "urdf_sha256": model.urdf_hash,
+                      "joint_names": list(names), "dof": nv, "total_mass_kg": model.total_mass,
+                      "payload_mass_kg": model.payload.mass, "gravity_m_s2": list(model.gravity)},
+            "limits": model.limits.to_dict(),
+            "parameters": self.parameters,
+            "settings_used": self._settings_dict(),
+            "overrides": self.overrides,
+            "bag_dyn_node_version": self.bag_metadata_version,
+            "gap_threshold_s": opts.gap_threshold_s,
+        }
+        per_joint = [{"joint": n, "peak_utilisation": float(peak_util[j]) if peak_util[j] > -np.inf else None,
+                      "peak_time_s": rel(int(peak_t[j])) if peak_util[j] > -np.inf else None,
+                      "peak_torque_nm": float(peak_tau[j]) if peak_util[j] > -np.inf else None,
+                      "effort_limit_nm": float(peak_limit[j]) if peak_util[j] > -np.inf
+                      else float(lim.effort[j])}
+                     for j, n in enumerate(names)]
+        violations = [{"joint": names[e["j"]], "kind": e["kind"], "start_s": rel(e["start"]),
+                       "end_s": rel(e["end"]), "peak_time_s": rel(e["peak_t"]),
+                       "peak_value": e["peak"], "limit": e["limit"],
+                       "peak_ratio": (abs(e["peak"]) / e["limit"] if e["kind"] != "position"
+                                      and e["limit"] not in (0.0, math.inf) else None),
+                       "duration_s": (e["end"] - e["start"]) * 1e-9, "messages": e["n"],
+                       "failure_label": CONTROL_ERROR}
+                      for e in sorted(episodes.closed, key=lambda e: (e["start"], e["j"], e["kind"]))]
+        rc = {}
+        for role, chk in recheck.items():
+            if chk.matched or chk.unmatched:
+                d = chk.to_dict(len(pend[role].d) if role != ROLE_FEAS else 0)
+                d["topic"] = recheck_topics.get(role, "")
+                if chk.worst and "t_ns" in chk.worst:
+                    d["worst"] = {"stamp_ns": chk.worst.get("stamp_ns"), "time_s": rel(chk.worst["t_ns"]),
+                                  **{k: v for k, v in chk.worst.items() if k not in ("t_ns", "stamp_ns")}}
+                rc[recheck_topics.get(role, role)] = d
+        latency = {}
+        if lat_stamp.n:
+            latency["stamp_to_output_s"] = lat_stamp.to_dict()
+        if lat_receipt.n:
+            latency["receipt_to_output_s"] = lat_receipt.to_dict()
+        for e in trajectories:
+            e["time_s"] = rel(e.pop("t_ns"))
+        rec.outputs = {
+            "trajectories": trajectories, "trajectories_total": n_traj,
+            "trajectories_infeasible_or_rejected": n_traj_bad,
+            "effort": {"per_joint": per_joint, "samples": int(self.monitor.counts.accepted)},
+            "violations": violations, "violation_episodes_total": episodes.total,
+            "controller_states": {"replayed_transitions": [{"time_s": rel(c["t_ns"]), "state": c["state"]}
+                                                           for c in ctrl_transitions],
+                                  "replayed_time_in_state_s": ctrl_time,
+                                  "states_seen": sorted(ctrl_time) or sorted({c["state"] for c in ctrl_transitions}),
+                                  "recorded_status_counts": recorded_ctrl},
+            "recheck": rc, "latency": latency,
+            "monitor_counts": {"received": self.monitor.counts.received,
+                               "accepted": self.monitor.counts.accepted,
+                               "invalid": self.monitor.counts.invalid,
+                               "out_of_order": self.monitor.counts.out_of_order,
+                               "zero_stamp": self.monitor.counts.zero_stamp,
+                               "ignored_joint_values": self.monitor.counts.ignored_joint_values},
+        }
+        unreadable = [{"start_s": rel(u.start_ns), "end_s": rel(u.end_ns), "reason": u.reason,
+                       "file": u.file} for u in reader.unreadable]
+        rec.input_quality = {
+            "gaps": [{"start_s": rel(g["start_ns"]), "end_s": rel(g["end_ns"]),
+                      "duration_s": (g["end_ns"] - g["start_ns"]) * 1e-9} for g in gaps],
+            "gaps_total": n_gaps,
+            "stale_periods": [{"start_s": rel(g["start_ns"]), "end_s": rel(g["end_ns"]),
+                               "duration_s": (g["end_ns"] - g["start_ns"]) * 1e-9} for g in stale],
+            "stale_periods_total": n_stale, "stale_timeout_s": settings.stale_timeout,
+            "invalid_messages": {"count": invalid_count, "by_reason": invalid_by_reason,
+                                 "examples": [{"time_s": rel(e["t_ns"]), "reason": e["reason"],
+                                               "code": e["code"], "topic": e["topic"]}
+                                              for e in invalid_examples]},
+            "out_of_order": {"count": self.monitor.counts.out_of_order,
+                             "examples": [{"time_s": rel(e["t_ns"]), "stamp_ns": e["stamp_ns"]}
+                                          for e in ooo_examples]},
+            "zero_stamp_messages": self.monitor.counts.zero_stamp,
+            "unreadable_ranges": unreadable,
+            "data_crc": stats.data_crc, "chunks_damaged": stats.chunks_bad,
+            "chunks_crc_checked": stats.crc_checked_chunks,
+        }
+        # --- verdict --------------------------------------------------------------------------
+        if violations or episodes.total:
+            rec.add_label(CONTROL_ERROR)
+        for lbl in sorted(traj_failure_labels):
+            if n_traj_bad:
+                rec.add_label(lbl)
+        if invalid_count or n_stale or unreadable:
+            rec.add_label(STATE_ERROR)
+        mism = [t for t, d in rc.items() if d["matched"] and not d["identical"]]
+        if mism:
+            rec.add_label(EVALUATION_ERROR)
+            self.findings.append("re-check differs from the recorded outputs on " + ", ".join(mism))
+        bad = bool(episodes.total or n_traj_bad)
+        exit_code = EXIT_VIOLATIONS if bad else EXIT_OK
+        parts = []
+        if episodes.total:
+            rated = [v for v in violations if isinstance(v["peak_ratio"], float)]
+            worst = max(rated, key=lambda v: v["peak_ratio"]) if rated else (violations or [None])[0]
+            parts.append(f"{episodes.total} live limit violation episode(s)"
+                         + (f", worst {worst['joint']} {worst['kind']} at t = {worst['peak_time_s']:.3f} s"
+                            if worst else ""))
+        if n_traj_bad:
+            parts.append(f"{n_traj_bad} of {n_traj} trajectories infeasible or rejected")
+        if not bad:
+            parts.append(f"all feasible: {self.monitor.counts.accepted} joint states, {n_traj} trajectories; "
+                         f"peak utilisation {np.max(peak_util) * 100:.0f}%" if self.monitor.counts.accepted
+                         else f"all feasible: {n_traj} trajectories")
+        if unreadable:
+            parts.append(f"PARTIAL: {len(unreadable)} unreadable range(s)")
+            self.findings.append("could not read: " + "; ".join(
+                f"{_fmt_s(u['start_s'])} – {_fmt_s(u['end_s'])} ({u['reason']})" for u in unreadable))
+        if invalid_count:
+            self.findings.append(f"{invalid_count} invalid joint_states ("
+                                 + ", ".join(f"{k}: {v}" for k, v in sorted(invalid_by_reason.items())) + ")")
+        if n_gaps:
+            self.findings.append(f"{n_gaps} gap(s) in joint_states longer than {opts.gap_threshold_s:g} s"
+                                 + (f", {n_stale} longer than stale_timeout" if n_stale else ""))
+        if self.monitor.counts.out_of_order:
+            self.findings.append(f"{self.monitor.counts.out_of_order} out-of-order joint_states stamps")
+        rec.verdict = {"result": "violations" if bad else "feasible", "exit_code": exit_code,
+                       "summary": "; ".join(parts), "partial": bool(unreadable),
+                       "findings": self.findings}
+        rec.duration_s = time.perf_counter() - wall0
+        rec.finished_utc = utc_now()
+        self.n_msgs = n_msgs
+        return rec.to_dict(), exit_code, series
+
+    def _limit_at(self, v: np.ndarray) -> np.ndarray:
+        lim = self.model.limits
+        e = np.where(lim.effort > 0, lim.effort, np.inf)
+        if any(c is not None for c in lim.effort_speed_curve):
+            e = np.minimum(e, lim.effort_envelope(v))
+        return e
+
+    def _settings_dict(self) -> dict:
+        d = self.settings.to_parameters()
+        if d.get("robot_description"):
+            d["robot_description"] = f"<URDF, {len(d['robot_description'])} chars, sha256 {self.model.urdf_hash[:16]}>"
+        return d
+
+    def _trajectory(self, m: BagMessage, index: int):
+        from .feasibility import FeasibilityOptions, check_trajectory
+        from .trajectory import validate_trajectory
+
+        entry: dict[str, Any] = {"index": index, "topic": m.topic, "time_s": 0.0, "t_ns": m.log_time_ns,
+                                 "stamp_ns": 0, "accepted": False, "feasible": False}
+        n_points = 0
+        traj = None
+        try:
+            msg = self.decoder.decode(m.channel, m.data)
+            st = msg.header.stamp
+            entry["stamp_ns"] = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+            pts = msg.points
+            n_points = len(pts)
+            # as the node does (ros_convert.trajectory_arrays, DynNode._check_trajectory): a
+            # single point is tracked but not checked
+            times = [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts]
+            args = (self.model.joint_names, list(msg.joint_names), times, [p.positions for p in pts],
+                    [p.velocities for p in pts], [p.accelerations for p in pts])
+            traj = validate_trajectory(*args, min_points=1)
+            if traj.n_points < 2:
+                validate_trajectory(*args, min_points=2)
+        except TrajectoryError as exc:
+            dur = float(times[-1]) if times and all(map(math.isfinite, times)) else 0.0
+            entry.update(level="ERROR", message=f"rejected: {exc}", error_code=exc.code,
+                         failure_label=PLANNING_ERROR, n_points=n_points, duration_s=dur)
+            return entry, traj, None
+        except Exception as exc:  # noqa: BLE001 - undecodable bytes are a finding, not a crash
+            entry.update(level="ERROR", message=f"undecodable trajectory message: {exc}",
+                         error_code="undecodable", failure_label=STATE_ERROR)
+            return entry, None, None
+        res = check_trajectory(self.traj_dynamics, traj,
+                               FeasibilityOptions(sample_period=self.settings.sample_period,
+                                                  effort_warn_ratio=self.settings.effort_warn_ratio))
+        d = res.to_dict()
+        entry.update(accepted=True, feasible=bool(res.feasible), error_code=None)
+        for k in ("level", "message", "failure_label", "time_scale", "payload_margin_kg", "worst_joint",
+                  "worst_constraint", "worst_ratio", "first_violation_time_s", "n_points", "duration_s",
+                  "interpolation"):
+            if k in d:
+                entry[k] = d[k]
+        entry["failure_label"] = entry.get("failure_label") or None  # "" (feasible) → null
+        if "violations" in d:
+            entry["violations"] = d["violations"][:50] if isinstance(d["violations"], list) else d["violations"]
+        if "per_joint" in d:
+            entry["per_joint"] = d["per_joint"]
+        if not isinstance(entry.get("level"), str):
+            from .status import LEVEL_NAMES
+            entry["level"] = LEVEL_NAMES.get(entry.get("level"), str(entry.get("level")))
+        return entry, traj, res
+
+    def _recheck_feasibility(self, m: BagMessage, pending: _Pending, chk: Recheck) -> None:
+        from .status import format_value
+
+        try:
+            arr = self.decoder.decode(m.channel, m.data)
+        except Exception:  # noqa: BLE001
+            chk.unmatched += 1
+            return
+        key = int(arr.header.stamp.sec) * 1_000_000_000 + int(arr.header.stamp.nanosec)
+        res = pending.take(key)
+        if res is None:
+            chk.unmatched += 1
+            return
+        if isinstance(res, dict):  # rejected: the node published rejected_statuses
+            from .feasibility import rejected_statuses
+
+            err = TrajectoryError(res["message"].removeprefix("rejected: "), code=res["error_code"] or "error")
+            statuses = rejected_statuses(err, self.model.name, res.get("n_points", 0),
+                                         res.get("duration_s", 0.0))
+        else:
+            statuses = res.statuses(self.model.name)
+        mine = {s.name: {k: format_value(v) for k, v in s.values.items()} for s in statuses}
+        worst = 0.0
+        where = None
+        for st in arr.status:
+            ref = mine.get(st.name)
+            if ref is None:
+                continue
+            for kv in st.values:
+                if kv.key not in ref or any(x in kv.key for x in RECHECK_EXCLUDED_KEYS):
+                    continue
+                a, b = kv.value, ref[kv.key]
+                try:
+                    fa, fb = float(a), float(b)
+                except ValueError:
+                    if a != b:
+                        chk.mismatched_values += 1
+                    continue
+                if fa == fb or (math.isnan(fa) and math.isnan(fb)):
+                    continue
+                d = abs(fa - fb) if math.isfinite(fa) and math.isfinite(fb) else math.inf
+                if d > worst:
+                    worst, where = d, {"status": st.name, "key": kv.key, "recorded": a, "recomputed": b}
+        chk.diff(worst, {"stamp_ns": key, "t_ns": m.log_time_ns, **(where or {})})
+
+
+    def _recheck_traj_effort(self, m: BagMessage, pending: _Pending, chk: Recheck) -> None:
+        try:
+            msg = self.decoder.decode(m.channel, m.data)
+        except Exception:  # noqa: BLE001
+            chk.unmatched += 1
+            return
+        key = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+        want = pending.take(key)
+        if want is None:
+            chk.unmatched += 1
+            return
+        try:
+            order = [list(msg.joint_names).index(n) for n in self.model.joint_names]
+            got = np.array([[p.effort[i] for i in order] for p in msg.points], dtype=float)
+            d = float(np.max(np.abs(got - want))) if got.shape == want.shape else math.inf
+        except (ValueError, IndexError):
+            d = math.inf
+        chk.diff(d, {"stamp_ns": key, "t_ns": m.log_time_ns})
+
+
+def _fmt_s(x: float | None) -> str:
+    return "end of recording" if x is None else f"{x:.3f} s"
+
+
+class _Progress:
+    """A one-line progress bar on stderr, only when stderr is a terminal (plain \\r updates)."""
+
+    def __init__(self, reader: BagReader, enabled: bool | None):
+        self.on = sys.stderr.isatty() if enabled is None else enabled
+        self.reader = reader
+        self.total = sum(f.stat().st_size for f in reader.files if f.exists()) or 1
+        self.last = 0.0
+        self.t0 = time.monotonic()
+
+    def update(self, n: int, final: bool = False) -> None:
+        if not self.on:
+            return
+        now = time.monotonic()
+        if now - self.last < 0.2 and not final:
+            return
+        self.last = now
+        # the summary section at the end of each file is not streamed: at the end, 100 %
+        frac = 1.0 if final else min(self.reader.stats.bytes_read / self.total, 1.0)
+        bar = "#" * int(frac * 30)
+        rate = n / max(now - self.t0, 1e-9)
+        sys.stderr.write(f"\rdyn-audit [{bar:<30}] {frac * 100:5.1f}%  {n} msgs  {rate:,.0f} msg/s")
+        sys.stderr.flush()
+
+    def done(self, n: int) -> None:
+        if self.on:
+            self.update(n, final=True)
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+def run_audit(opts: AuditOptions) -> AuditResult:
+    """Run the audit and write evidence.json (+ report.html and PNGs) into ``opts.out``.
+    Raises :class:`AuditError` / :class:`BagError` for unusable input."""
+    import json
+
+    wall0 = time.perf_counter()
+    audit = Audit(opts)
+    record, code, series = audit.run()
+    out = Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ev = out / "evidence.json"
+    tmp = ev.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(record, indent=1, ensure_ascii=False, allow_nan=False))
+    tmp.replace(ev)
+    files = [ev]
+    if opts.report:
+        from .report import write_report
+
+        files += write_report(record, series, audit.model, out)
+    return AuditResult(record, code, out, files, audit.n_msgs, time.perf_counter() - wall0)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="dyn-audit", description="Replay a bag through dyn_node's core; write evidence.json and "
+        "report.html. Exit 0: all feasible, 1: violations found, 2: unusable input.")
+    p.add_argument("bag", help="bag directory (rosbag2 layout), or a single .mcap file")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--robot-description", metavar="FILE", default="",
+                     help="URDF file (overrides the description stored in the bag)")
+    src.add_argument("--robot-model", metavar="NAME", default="",
+                     help="built-in model: panda, ur5, planar_2link (overrides the bag)")
+    p.add_argument("--limits", metavar="FILE", default="", help="joint limits YAML (overrides the bag's)")
+    p.add_argument("--out", metavar="DIR", default="audit", help="output directory (default: ./audit)")
+    p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
+                   help="only use these topics (roles by type and name: */joint_states, "
+                        "*/joint_trajectory, node outputs)")
+    p.add_argument("--gap-threshold", type=float, default=0.05, metavar="S",
+                   help="report joint_states gaps longer than this (s, default 0.05)")
+    p.add_argument("--no-report", action="store_true", help="write evidence.json only")
+    p.add_argument("--version", action="version", version=f"dyn-audit {__version__}")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    opts = AuditOptions(bag=args.bag, robot_description=args.robot_description,
+                        robot_model=args.robot_model, limits=args.limits, out=args.out,
+                        topics=tuple(args.topics), gap_threshold_s=args.gap_threshold,
+                        report=not args.no_report)
+    try:
+        res = run_audit(opts)
+    except (AuditError, BagError) as exc:
+        print(f"dyn-audit: error: {exc}", file=sys.stderr)
+        return EXIT_UNUSABLE
+    except DynNodeError as exc:
+        print(f"dyn-audit: error: {exc}", file=sys.stderr)
+        return EXIT_UNUSABLE
+    except OSError as exc:
+        print(f"dyn-audit: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "),
+              file=sys.stderr)
+        return EXIT_UNUSABLE
+    except KeyboardInterrupt:
+        print("dyn-audit: interrupted", file=sys.stderr)
+        return 130
+    v = res.record["verdict"]
+    print(f"{v['result'].upper()}: {v['summary']}")
+    for f in v.get("findings", []):
+        print(f"  - {f}")
+    print(f"evidence: {res.out_dir / 'evidence.json'}")
+    if opts.report:
+        print(f"report:   {res.out_dir / 'report.html'}")
+    return res.exit_code
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

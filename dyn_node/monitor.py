@@ -1,0 +1,587 @@
+"""The live monitor: joint states in, torques, limit checks and diagnostic statuses out.
+
+Pure and deterministic: every time is passed in (``stamp_s`` from the message header, ``receipt_s``
+and ``now_s`` from the caller's clock), so the offline audit replaying a bag through the same
+:class:`Monitor` and :class:`ControllerTracker` reproduces the live node's numbers bit for bit.
+
+Acceleration estimate (``acceleration_source = finite_difference``): with t the message's header
+stamp (the receipt time when the stamp is zero) and v the reported velocity in model order,
+
+    â_raw[k] = (v[k] − v[k−1]) / (t[k] − t[k−1])          (backward difference)
+
+between consecutive *accepted* messages. The estimate is reset to â = 0 (and the filter state
+cleared) on the first message, after a message without velocity, when the stamp goes backwards
+(out of order), and when the gap t[k] − t[k−1] exceeds ``stale_timeout``. An equal stamp
+(t[k] = t[k−1]) keeps the previous estimate. With ``acceleration_filter_hz`` f > 0 the raw estimate
+passes a first-order low-pass discretised exactly for the actual step:
+
+    α = 1 − exp(−2π f (t[k] − t[k−1])),   â[k] = â[k−1] + α (â_raw[k] − â[k−1]),
+
+started at the first raw value. ``acceleration_source = zero`` uses â = 0 (quasi-static torques).
+A message without velocities is computed with q̇ = 0.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from .dynamics import Dynamics, DynamicsOptions
+from .errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, InputError
+from .model import Payload, RobotModel, load_model
+from .settings import Settings, SettingsError
+from .status import ERROR, NAME_PREFIX, OK, STALE, WARN, Status
+from .trajectory import PiecewisePolynomial, Trajectory, interpolate
+
+MODEL = NAME_PREFIX + "model"
+JOINT_STATES = NAME_PREFIX + "joint_states"
+EFFORT = NAME_PREFIX + "effort"
+LIMITS = NAME_PREFIX + "limits"
+RESIDUAL = NAME_PREFIX + "residual"
+CONTROLLER = NAME_PREFIX + "controller"
+
+CONTROLLER_STATES = ("idle", "tracking", "deviating", "saturated", "stale", "fault")
+
+
+# --- model --------------------------------------------------------------------------------
+def build_model(settings: Settings, topic_description: str = "") -> RobotModel:
+    """The model variant the settings ask for; ``topic_description`` is the URDF received on the
+    robot_description topic, used when no model parameter is set. Raises ModelError/SettingsError."""
+    kw = dict(locked_joints=dict(settings.locked_joints), limits_yaml=settings.limits_file or None,
+              payload=Payload(settings.payload_mass, settings.payload_com, settings.payload_frame),
+              gravity=settings.gravity)
+    if settings.robot_description:
+        return load_model(urdf=settings.robot_description, source="parameter:robot_description", **kw)
+    if settings.robot_description_file:
+        return load_model(urdf_file=settings.robot_description_file, **kw)
+    if settings.robot_model:
+        return load_model(builtin=settings.robot_model, **kw)
+    if topic_description:
+        return load_model(urdf=topic_description, source="topic:robot_description", **kw)
+    raise SettingsError("no robot description: set robot_description, robot_description_file or "
+                        "robot_model, or publish the robot_description topic", code="no_source")
+
+
+def _model_values(model: RobotModel) -> dict:
+    vals = {"robot_name": model.name, "dof": model.nv, "joints": " ".join(model.joint_names),
+            "total_mass_kg": model.total_mass, "payload_mass_kg": model.payload.mass,
+            "payload_frame": model.payload_frame, "gravity_m_s2": " ".join(repr(float(g)) for g in model.gravity),
+            "source": model.source, "urdf_sha256": model.urdf_hash, "warnings": len(model.warnings)}
+    for i, w in enumerate(model.warnings, 1):
+        vals[f"warning_{i}"] = w
+    return vals
+
+
+def model_status(model: RobotModel, hardware_id: str) -> Status:
+    """OK with the model's figures, WARN when its limits look suspicious."""
+    vals = _model_values(model)
+    if model.warnings:
+        vals["failure_label"] = EVALUATION_ERROR
+        more = f" (+{len(model.warnings) - 1} more)" if len(model.warnings) > 1 else ""
+        return Status(MODEL, WARN, f"check the limits: {model.warnings[0]}{more}", hardware_id, vals)
+    return Status(MODEL, OK, f"{model.name}: {model.nv} DoF, {model.total_mass:.3f} kg", hardware_id, vals)
+
+
+def waiting_model_status(hardware_id: str) -> Status:
+    return Status(MODEL, STALE, "waiting for robot_description", hardware_id,
+                  {"source": "topic:robot_description", "failure_label": STATE_ERROR})
+
+
+def model_error_status(error: Exception, hardware_id: str, running: RobotModel | None) -> Status:
+    """ERROR: a description or model parameter was rejected; the running model (if any) stays."""
+    vals = _model_values(running) if running is not None else {}
+    vals["error"] = str(error)
+    vals["failure_label"] = EVALUATION_ERROR
+    keep = f"; still using {running.name} ({running.urdf_hash[:12]})" if running else ""
+    return Status(MODEL, ERROR, f"robot description rejected: {error}{keep}", hardware_id, vals)
+
+
+# --- per-message result -------------------------------------------------------------------
+@dataclass(frozen=True)
+class SampleResult:
+    """What one joint_states message produced. When ``accepted`` is False only ``error`` is set.
+
+    Arrays are in model order: q (rad|m), v (rad/s|m/s), a_hat (rad/s²), gravity and tau (N·m),
+    residual = measured − tau (N·m, NaN where not measured; None when no effort at all),
+    utilisation = max(|tau|, |measured|) / effort limit at the current speed.
+    ``stamp_s`` is the stamp used (receipt time for a zero stamp).
+    """
+
+    accepted: bool
+    error: InputError | None = None
+    stamp_s: float = 0.0
+    q: np.ndarray | None = None
+    v: np.ndarray | None = None
+    a_hat: np.ndarray | None = None
+    gravity: np.ndarray | None = None
+    tau: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    utilisation: np.ndarray | None = None
+    measured_ratio: float = float("nan")
+    zero_stamp: bool = False
+    out_of_order: bool = False
+
+
+@dataclass
+class Counts:
+    """Totals since the node started (they survive model and settings changes)."""
+
+    received: int = 0
+    accepted: int = 0
+    invalid: int = 0
+    invalid_by_reason: dict = field(default_factory=dict)
+    out_of_order: int = 0
+    zero_stamp: int = 0
+    dropped: int = 0
+    ignored_joint_values: int = 0
+
+
+class _Window:
+    """Worst cases since the last report (reset by :meth:`Monitor.statuses`)."""
+
+    def __init__(self, nv: int, start_s: float | None):
+        self.start_s = start_s
+        self.received = self.accepted = self.invalid = self.out_of_order = self.zero_stamp = 0
+        self.dropped = 0
+        self.util = np.zeros(nv)
+        self.util_limit = np.full(nv, np.inf)
+        self.util_measured = np.zeros(nv, dtype=bool)
+        self.pos_excess = np.full(nv, -np.inf)
+        self.pos_value = np.zeros(nv)
+        self.soft_excess = np.full(nv, -np.inf)
+        self.soft_value = np.zeros(nv)
+        self.vel_excess = np.full(nv, -np.inf)
+        self.vel_value = np.zeros(nv)
+        self.res_sq = np.zeros(nv)
+        self.res_n = np.zeros(nv, dtype=np.int64)
+
+
+class Monitor:
+    """Per-message torques and checks for one model and one :class:`Settings`.
+
+    ``process`` is the hot path; ``statuses`` builds the /diagnostics statuses (call it once per
+    diagnostics period: it reports and then resets the worst-case window).
+    """
+
+    def __init__(self, model: RobotModel, settings: Settings, counts: Counts | None = None):
+        self.model = model
+        self.settings = settings
+        self.dynamics = Dynamics(model, DynamicsOptions(include_friction=settings.include_friction))
+        lim = model.limits
+        self._names = model.joint_names
+        self._nv = model.nv
+        self._effort = np.where(lim.effort > 0, lim.effort, np.inf)
+        self._has_curve = any(c is not None for c in lim.effort_speed_curve)
+        self._lo, self._hi = lim.position_lower, lim.position_upper
+        self._slo, self._shi = lim.soft_lower, lim.soft_upper
+        self._vel = lim.velocity
+        self._soft_distinct = bool(np.any(lim.soft_lower != lim.position_lower)
+                                   or np.any(lim.soft_upper != lim.position_upper))
+        self._maps: dict[tuple[str, ...], tuple[np.ndarray, int]] = {}
+        self._zero = np.zeros(self._nv)
+        self._zero.setflags(write=False)
+        self._fd = settings.acceleration_source == "finite_difference"
+        self._fc = settings.acceleration_filter_hz
+        self.counts = counts if counts is not None else Counts()
+        self.last_receipt_s: float | None = None
+        self.last_error: InputError | None = None
+        self.last_result: SampleResult | None = None
+        self._prev_t: float | None = None
+        self._prev_v: np.ndarray | None = None
+        self._a = self._zero
+        self._filtered = False
+        self._w = _Window(self._nv, None)
+
+    # --- hot path ------------------------------------------------------------------------
+    def _accel(self, t: float, v: np.ndarray | None) -> tuple[np.ndarray, bool]:
+        prev_t, prev_v = self._prev_t, self._prev_v
+        out_of_order = prev_t is not None and t < prev_t
+        self._prev_t, self._prev_v = t, v
+        if not self._fd:
+            return self._zero, out_of_order
+        if v is None or prev_v is None or out_of_order or t - prev_t > self.settings.stale_timeout:
+            self._a = self._zero
+            self._filtered = False
+            return self._a, out_of_order
+        dt = t - prev_t
+        if dt == 0.0:
+            return self._a, False
+        raw = (v - prev_v) / dt
+        if self._fc > 0.0 and self._filtered:
+            alpha = 1.0 - math.exp(-2.0 * math.pi * self._fc * dt)
+            self._a = self._a + alpha * (raw - self._a)
+        else:
+            self._a = raw
+            self._filtered = True
+        return self._a, False
+
+    def _to_model_order(self, names: Sequence[str], position: Sequence[float],
+                        velocity: Sequence[float] | None, effort: Sequence[float] | None):
+        """Fast path of :meth:`RobotModel.to_model_order` for the common, valid message: the name
+        mapping is cached per name list and finiteness is checked with one sum per array. Anything
+        unusual is handed to the model's full check, so errors are exactly the model's."""
+        n = len(names)
+        key = names if isinstance(names, tuple) else tuple(names)
+        idx = self._maps.get(key)
+        nvel = len(velocity) if velocity is not None else 0
+        neff = len(effort) if effort is not None else 0
+        if idx is None or len(position) != n or nvel not in (0, n) or neff not in (0, n):
+            s = self.model.to_model_order(names, position, velocity, effort)
+            if len(self._maps) < 64:
+                self._maps[key] = self.model.mapping(names)
+            return s.q, s.v, s.effort, s.ignored
+        idx, ignored = idx
+        q = np.asarray(position, dtype=float)[idx]
+        v = np.asarray(velocity, dtype=float)[idx] if nvel else None
+        e = np.asarray(effort, dtype=float)[idx] if neff else None
+        if not math.isfinite(q.sum()) or (v is not None and not math.isfinite(v.sum())) or (
+                e is not None and not math.isfinite(e.sum())):
+            s = self.model.to_model_order(names, position, velocity, effort)  # raises, or NaN effort
+            return s.q, s.v, s.effort, s.ignored
+        return q, v, e, ignored
+
+    def process(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float] | None,
+                effort: Sequence[float] | None, stamp_s: float, receipt_s: float) -> SampleResult:
+        """One joint state. Never raises for bad input: a rejected message returns
+        ``accepted=False`` with the :class:`InputError` and is counted by its code."""
+        c, w = self.counts, self._w
+        c.received += 1
+        w.received += 1
+        self.last_receipt_s = receipt_s
+        if w.start_s is None:
+            w.start_s = receipt_s
+        try:
+            q, v, e, ignored = self._to_model_order(names, position, velocity, effort)
+        except InputError as exc:
+            return self._reject(exc)
+        except (TypeError, ValueError) as exc:  # arrays that are not numbers at all
+            return self._reject(InputError(f"joint state is not numeric: {exc}", code="not_numeric"))
+        zero = stamp_s == 0.0
+        t = receipt_s if zero else stamp_s
+        if not math.isfinite(t):
+            return self._reject(InputError(f"header stamp is not finite ({stamp_s})", code="bad_stamp"))
+        a, ooo = self._accel(t, v)
+        if v is None:
+            v = self._zero
+        g, tau = self.dynamics.gravity_and_rnea(q, v, a)
+        lim = self._effort
+        if self._has_curve:
+            lim = np.minimum(lim, self.model.limits.effort_envelope(v))
+        util = np.abs(tau) / lim
+        residual = None
+        measured_ratio = math.nan
+        measured = None
+        if e is not None:
+            mr = np.abs(e) / lim
+            measured = mr > util  # NaN compares False: unmeasured joints keep the model ratio
+            util = np.fmax(util, mr)
+            measured_ratio = float(np.nanmax(mr)) if not np.isnan(mr).all() else math.nan
+            residual = e - tau
+            ok = ~np.isnan(residual)
+            w.res_sq[ok] += residual[ok] ** 2
+            w.res_n += ok
+        # worst cases of the window; the comparisons are cheap, the updates rare
+        better = util > w.util
+        if better.any():
+            w.util[better] = util[better]
+            w.util_limit[better] = lim[better]
+            w.util_measured[better] = measured[better] if measured is not None else False
+        pex = np.maximum(self._lo - q, q - self._hi)
+        b = pex > w.pos_excess
+        if b.any():
+            w.pos_excess[b], w.pos_value[b] = pex[b], q[b]
+        if self._soft_distinct:
+            sex = np.maximum(self._slo - q, q - self._shi)
+            b = sex > w.soft_excess
+            if b.any():
+                w.soft_excess[b], w.soft_value[b] = sex[b], q[b]
+        vex = np.abs(v) - self._vel
+        b = vex > w.vel_excess
+        if b.any():
+            w.vel_excess[b], w.vel_value[b] = vex[b], v[b]
+        c.accepted += 1
+        w.accepted += 1
+        c.ignored_joint_values += ignored
+        if zero:
+            c.zero_stamp += 1
+            w.zero_stamp += 1
+        if ooo:
+            c.out_of_order += 1
+            w.out_of_order += 1
+        self.last_error = None
+        r = SampleResult(True, None, t, q, v, a, g, tau, residual, util, measured_ratio, zero, ooo)
+        self.last_result = r
+        return r
+
+    def _reject(self, exc: InputError) -> SampleResult:
+        c = self.counts
+        c.invalid += 1
+        c.invalid_by_reason[exc.code] = c.invalid_by_reason.get(exc.code, 0) + 1
+        self._w.invalid += 1
+        self.last_error = exc
+        return SampleResult(False, exc)
+
+    def note_dropped(self, total: int) -> None:
+        """The transport's running count of messages lost before they reached the node."""
+        if total > self.counts.dropped:
+            self._w.dropped += total - self.counts.dropped
+            self.counts.dropped = total
+
+    # --- reports -------------------------------------------------------------------------
+    def statuses(self, now_s: float, hardware_id: str) -> list[Status]:
+        """joint_states, effort, limits and residual statuses for the window ending at ``now_s``;
+        starts a new window."""
+        w = self._w
+        out = [self._joint_states_status(now_s, hardware_id)]
+        if w.accepted == 0:
+            msg = "no accepted joint_states since the last report"
+            for name in (EFFORT, LIMITS, RESIDUAL):
+                out.append(Status(name, STALE, msg, hardware_id, {"failure_label": STATE_ERROR}))
+        else:
+            out += [self._effort_status(hardware_id), self._limits_status(hardware_id),
+                    self._residual_status(hardware_id)]
+        self._w = _Window(self._nv, now_s)
+        return out
+
+    def _joint_states_status(self, now_s: float, hid: str) -> Status:
+        c, w = self.counts, self._w
+        span = now_s - w.start_s if w.start_s is not None else 0.0
+        age = now_s - self.last_receipt_s if self.last_receipt_s is not None else math.inf
+        vals = {"rate_hz": w.received / span if span > 0 else 0.0, "age_s": age,
+                "received_messages": c.received, "accepted_messages": c.accepted,
+                "invalid_messages": c.invalid, "out_of_order_messages": c.out_of_order,
+                "dropped_messages": c.dropped, "zero_stamp_messages": c.zero_stamp,
+                "ignored_joint_values": c.ignored_joint_values}
+        for code, n in sorted(c.invalid_by_reason.items()):
+            vals[f"invalid_{code}"] = n
+        stale = self.settings.stale_timeout
+        if self.last_receipt_s is None:
+            level, msg = STALE, "no joint_states received yet: is the publisher running and the topic remapped?"
+        elif age > stale:
+            level, msg = STALE, f"no joint_states for {age:.3g} s (stale_timeout {stale:g} s)"
+        elif self.last_error is not None:
+            level = ERROR
+            msg = f"last joint_states rejected ({self.last_error.code}): {self.last_error}"
+            vals["last_error"] = str(self.last_error)
+        elif w.invalid or w.out_of_order or w.zero_stamp or w.dropped:
+            level = WARN
+            parts = [f"{n} {what}" for n, what in ((w.invalid, "invalid"), (w.dropped, "dropped"),
+                                                   (w.out_of_order, "out of order"),
+                                                   (w.zero_stamp, "with zero stamp (receipt time used)"))
+                     if n]
+            msg = "joint_states in the last period: " + ", ".join(parts)
+        else:
+            level, msg = OK, f"receiving at {vals['rate_hz']:.1f} Hz"
+        if level != OK:
+            vals["failure_label"] = STATE_ERROR
+        return Status(JOINT_STATES, level, msg, hid, vals)
+
+    def _effort_status(self, hid: str) -> Status:
+        w, s = self._w, self.settings
+        vals: dict = {}
+        for i, n in enumerate(self._names):
+            vals[f"{n}_utilisation"] = float(w.util[i])
+        for i, n in enumerate(self._names):
+            vals[f"{n}_effort_limit_nm"] = float(w.util_limit[i])
+        j = int(np.argmax(w.util))
+        worst = float(w.util[j])
+        vals.update(worst_joint=self._names[j], worst_utilisation=worst,
+                    effort_warn_ratio=s.effort_warn_ratio)
+        what = "measured effort" if w.util_measured[j] else "model torque"
+        text = (f"{self._names[j]} at {worst * 100:.0f}% of its {w.util_limit[j]:.4g} N·m effort limit "
+                f"({what})")
+        if worst > 1.0:
+            vals["failure_label"] = CONTROL_ERROR
+            return Status(EFFORT, ERROR, text, hid, vals)
+        if worst > s.effort_warn_ratio:
+            vals["failure_label"] = CONTROL_ERROR
+            return Status(EFFORT, WARN, text + f"; warn above {s.effort_warn_ratio * 100:.0f}%", hid, vals)
+        return Status(EFFORT, OK, f"worst {self._names[j]} at {worst * 100:.0f}% of its effort limit",
+                      hid, vals)
+
+    def _limits_status(self, hid: str) -> Status:
+        w, lim = self._w, self.model.limits
+        pos = np.flatnonzero(w.pos_excess > 0)
+        vel = np.flatnonzero(w.vel_excess > 0)
+        soft = np.flatnonzero(w.soft_excess > 0)
+        vals: dict = {"position_violations": len(pos), "velocity_violations": len(vel),
+                      "soft_limit_violations": len(soft)}
+        lines = []
+        for i in pos:
+            n, q = self._names[i], float(w.pos_value[i])
+            vals[f"{n}_position_rad"] = q
+            if q < lim.position_lower[i]:
+                lines.append(f"{n} position {q:.4g} rad below its lower limit {lim.position_lower[i]:.4g} rad")
+            else:
+                lines.append(f"{n} position {q:.4g} rad above its upper limit {lim.position_upper[i]:.4g} rad")
+        for i in vel:
+            n, v = self._names[i], float(w.vel_value[i])
+            vals[f"{n}_velocity_rad_s"] = v
+            lines.append(f"{n} velocity {v:.4g} rad/s beyond its limit {lim.velocity[i]:.4g} rad/s")
+        soft_lines = []
+        for i in soft:
+            n, q = self._names[i], float(w.soft_value[i])
+            vals[f"{n}_soft_position_rad"] = q
+            soft_lines.append(f"{n} position {q:.4g} rad outside its soft limits "
+                              f"[{lim.soft_lower[i]:.4g}, {lim.soft_upper[i]:.4g}] rad")
+        if lines or soft_lines:
+            vals["failure_label"] = CONTROL_ERROR
+            level = ERROR if lines else WARN
+            all_lines = lines + soft_lines
+            more = f" (+{len(all_lines) - 1} more)" if len(all_lines) > 1 else ""
+            return Status(LIMITS, level, all_lines[0] + more, hid, vals)
+        return Status(LIMITS, OK, "positions and velocities within limits", hid, vals)
+
+    def _residual_status(self, hid: str) -> Status:
+        w, s = self._w, self.settings
+        have = w.res_n > 0
+        if not have.any():
+            return Status(RESIDUAL, OK, "effort not measured: no residual", hid, {"effort_measured": False})
+        rms = np.full(self._nv, np.nan)
+        rms[have] = np.sqrt(w.res_sq[have] / w.res_n[have])
+        vals: dict = {"effort_measured": True}
+        for i, n in enumerate(self._names):
+            if have[i]:
+                vals[f"{n}_residual_rms_nm"] = float(rms[i])
+        ratio = np.where(have, np.nan_to_num(rms) / self._effort, 0.0)
+        j = int(np.argmax(ratio))
+        vals.update(worst_joint=self._names[j], worst_residual_rms_nm=float(rms[j]) if have[j] else 0.0,
+                    residual_warn_ratio=s.residual_warn_ratio)
+        if ratio[j] > s.residual_warn_ratio:
+            vals["failure_label"] = CONTROL_ERROR
+            return Status(RESIDUAL, WARN,
+                          f"{self._names[j]} effort residual {rms[j]:.3g} N·m RMS ({ratio[j] * 100:.0f}% of its "
+                          f"{self._effort[j]:.4g} N·m limit): check payload, friction and the model",
+                          hid, vals)
+        return Status(RESIDUAL, OK, f"largest RMS residual {vals['worst_residual_rms_nm']:.3g} N·m "
+                      f"({self._names[j]})", hid, vals)
+
+
+# --- controller status --------------------------------------------------------------------
+class ControllerTracker:
+    """State of execution for ~/controller_status.
+
+    States, first match wins: ``fault`` (the last joint_states was rejected), ``stale`` (nothing
+    within stale_timeout), ``saturated`` (worst measured |effort| / limit ≥ 1), ``deviating``
+    (a trajectory is active and some |q − reference| > tracking_tolerance), ``tracking`` (active
+    and within tolerance), ``idle``. A trajectory is active from its start time (header stamp, or
+    receipt for a zero stamp) plus its first time_from_start until its last point; the reference is
+    interpolated as joint_trajectory_controller does (quintic with accelerations, cubic with
+    velocities, linear with positions only).
+    """
+
+    def __init__(self, model: RobotModel, settings: Settings):
+        self.model = model
+        self.settings = settings
+        self.state = "stale"
+        self.since_s: float | None = None
+        self._plan: tuple[PiecewisePolynomial | None, np.ndarray, float, float, float] | None = None
+        self._error = np.full(model.nv, np.nan)
+        self._ratio = math.nan
+        self._last_receipt: float | None = None
+        self._fault: str = ""
+        self._active = False
+
+    def set_trajectory(self, traj: Trajectory, start_s: float) -> None:
+        """Track ``traj`` (model order) starting at ``start_s`` (s). Safe to call from another
+        thread: the new plan replaces the old one in a single assignment."""
+        if traj.velocities is not None and traj.accelerations is not None:
+            mode = "quintic"
+        elif traj.velocities is not None:
+            mode = "cubic"
+        else:
+            mode = "linear"
+        poly = interpolate(traj, mode) if traj.n_points > 1 else None
+        self._plan = (poly, traj.positions[-1], start_s, start_s + float(traj.times[0]),
+                      start_s + float(traj.times[-1]))
+
+    def reference(self, t: float) -> np.ndarray | None:
+        """Reference position at time t (s), or None when no trajectory is active then."""
+        plan = self._plan
+        if plan is None:
+            return None
+        poly, hold, start, t0, t1 = plan
+        if t < t0 or t > t1:
+            return None
+        if poly is None:
+            return hold
+        tau = t - start
+        seg = min(max(int(np.searchsorted(poly.breaks, tau, side="right")) - 1, 0), len(poly.coeffs) - 1)
+        s = min(max(tau - poly.breaks[seg], 0.0), poly.breaks[seg + 1] - poly.breaks[seg])
+        c = poly.coeffs[seg]
+        acc = c[-1].copy()
+        for k in range(c.shape[0] - 2, -1, -1):
+            acc = acc * s + c[k]
+        return acc
+
+    def update(self, result: SampleResult, receipt_s: float) -> bool:
+        """Feed one monitor result; returns True when the state changed."""
+        self._last_receipt = receipt_s
+        if not result.accepted:
+            self._fault = str(result.error)
+        else:
+            self._fault = ""
+            ref = self.reference(result.stamp_s)
+            self._active = ref is not None
+            if ref is not None:
+                self._error = result.q - ref
+            else:
+                self._error = np.full(self.model.nv, np.nan)
+            self._ratio = result.measured_ratio
+        return self.tick(receipt_s)
+
+    def _evaluate(self, now_s: float) -> str:
+        if self._last_receipt is None or now_s - self._last_receipt > self.settings.stale_timeout:
+            return "stale"
+        if self._fault:
+            return "fault"
+        # A clamped actuator reports exactly its limit, so reaching it (to rounding) is saturation.
+        if self._ratio >= 1.0 - 1e-9:
+            return "saturated"
+        if self._active:
+            err = np.nanmax(np.abs(self._error)) if not np.all(np.isnan(self._error)) else 0.0
+            return "deviating" if err > self.settings.tracking_tolerance else "tracking"
+        return "idle"
+
+    def tick(self, now_s: float) -> bool:
+        """Re-evaluate at ``now_s`` (e.g. for staleness); True when the state changed."""
+        state = self._evaluate(now_s)
+        if state != self.state or self.since_s is None:
+            changed = state != self.state
+            self.state, self.since_s = state, now_s
+            return changed
+        return False
+
+    def status(self, now_s: float, hardware_id: str) -> Status:
+        vals: dict = {"state": self.state,
+                      "time_in_state_s": now_s - self.since_s if self.since_s is not None else 0.0,
+                      "worst_measured_effort_ratio": self._ratio,
+                      "trajectory_active": self._active and self.state in ("tracking", "deviating")}
+        for n, e in zip(self.model.joint_names, self._error):
+            vals[f"{n}_tracking_error_rad"] = float(e)
+        vals["tracking_tolerance_rad"] = self.settings.tracking_tolerance
+        st = self.state
+        if st == "stale":
+            level, msg, label = STALE, "no joint_states within stale_timeout", STATE_ERROR
+        elif st == "fault":
+            level, msg, label = ERROR, f"joint_states rejected: {self._fault}", STATE_ERROR
+        elif st == "saturated":
+            level, msg, label = ERROR, f"measured effort at {self._ratio * 100:.0f}% of the limit", CONTROL_ERROR
+        elif st == "deviating":
+            j = int(np.nanargmax(np.abs(self._error)))
+            level, label = WARN, CONTROL_ERROR
+            msg = (f"{self.model.joint_names[j]} is {self._error[j]:+.3g} rad off the trajectory "
+                   f"(tolerance {self.settings.tracking_tolerance:g} rad)")
+        elif st == "tracking":
+            level, msg, label = OK, "tracking the trajectory within tolerance", ""
+        else:
+            level, msg, label = OK, "no active trajectory", ""
+        if label:
+            vals["failure_label"] = label
+        return Status(CONTROLLER, level, msg, hardware_id, vals)
+
+
+__all__ = ["Monitor", "ControllerTracker", "SampleResult", "Counts", "build_model", "model_status",
+           "waiting_model_status", "model_error_status", "CONTROLLER_STATES"]

@@ -1,0 +1,550 @@
+"""The dyn_node ROS 2 node: a thin adapter around :mod:`dyn_node.monitor` and the feasibility check.
+
+Run it with ``ros2 run dyn_node dyn_node`` or ``python -m dyn_node.node``; parameters, topics and
+diagnostics are listed in the README. Everything numeric happens in the pure core; this module only
+converts messages, owns timers, publishers and parameters, and swaps immutable pieces atomically.
+
+Threads: all ROS callbacks run on one executor thread, so a callback never sees a half-applied
+model or settings (a new model is built aside and one reference, ``self._core``, is replaced).
+Trajectory feasibility runs on a worker thread with its own :class:`~dyn_node.dynamics.Dynamics`
+so joint_states keep flowing while a long trajectory is checked.
+"""
+from __future__ import annotations
+
+import math
+import queue
+import signal
+import struct
+import sys
+import threading
+import traceback
+from dataclasses import dataclass, replace
+from typing import Any, Callable
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.srv import SelfTest
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
+                                SetParametersResult)
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+from rclpy.node import Node
+from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from trajectory_msgs.msg import JointTrajectory
+
+from .dynamics import Dynamics, DynamicsOptions
+from .errors import DynNodeError, STATE_ERROR, TrajectoryError
+from .model import RobotModel
+from .monitor import (ControllerTracker, Counts, Monitor, build_model, model_error_status, model_status,
+                      waiting_model_status, JOINT_STATES)
+from .ros_convert import (JointStateOut, RawTrajectory, diagnostic_array, encode_joint_trajectory_cdr,
+                          fill_trajectory_effort, parse_joint_trajectory_cdr, s_to_stamp,
+                          status_to_msg, stamp_to_s, trajectory_arrays)
+from .selftest import run_self_test
+from .settings import MODEL_PARAMETERS, PARAMETERS, SPECS, Settings, SettingsError, settings_from_mapping
+from .status import STALE, Status
+from .trajectory import validate_trajectory
+
+_KINDS = {"string": ParameterType.PARAMETER_STRING, "double": ParameterType.PARAMETER_DOUBLE,
+          "integer": ParameterType.PARAMETER_INTEGER, "bool": ParameterType.PARAMETER_BOOL,
+          "double_array": ParameterType.PARAMETER_DOUBLE_ARRAY}
+
+JOINT_STATES_QOS_RELIABILITY = ReliabilityPolicy.BEST_EFFORT  # matches reliable and best-effort publishers
+_DRAIN = 256  # most queued joint_states handled per executor wake-up
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+
+
+def _descriptor(spec) -> ParameterDescriptor:
+    d = ParameterDescriptor(name=spec.name, type=_KINDS[spec.kind], description=spec.description)
+    if spec.name == "qos_depth":
+        d.read_only = True
+        d.additional_constraints = "read at start-up only"
+    if spec.kind == "double" and spec.low is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float(spec.low), to_value=float(spec.high),
+                                                     step=0.0)]
+    elif spec.kind == "integer" and spec.low is not None:
+        d.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=1)]
+    return d
+
+
+@dataclass(frozen=True)
+class _Core:
+    """Everything the joint_states path needs, replaced as one reference."""
+
+    model: RobotModel
+    settings: Settings
+    monitor: Monitor
+    tracker: ControllerTracker
+    out_gravity: JointStateOut
+    out_inverse: JointStateOut
+
+
+class DynNode(Node):
+    """The live node. Construct in-process with ``DynNode(context=ctx, parameter_overrides=[...])``.
+
+    ``status_providers`` are extra callables returning a :class:`Status` appended to every
+    /diagnostics array (e.g. the recording bridge's status).
+    """
+
+    def __init__(self, node_name: str = "dyn_node", **kwargs: Any):
+        super().__init__(node_name, **kwargs)
+        self.status_providers: list[Callable[[], Status]] = []
+        for spec in PARAMETERS:
+            self.declare_parameter(spec.name, spec.default, _descriptor(spec))
+        self._counts = Counts()
+        self._last_seq: int | None = None
+        self._seq_gaps = 0
+        self._lost_total = 0
+        self._single_publisher = False
+        self._topic_urdf = ""
+        self._model_problem: Status | None = None
+        self._core: _Core | None = None
+        self._last_plan: tuple[Any, float] | None = None
+        self._callback_errors = 0
+        values = {spec.name: self.get_parameter(spec.name).value for spec in PARAMETERS}
+        # An unusable value at start-up raises SettingsError: better no node than a misconfigured one.
+        self.settings = settings_from_mapping(values)
+        if self.settings.has_model_source:
+            try:
+                self._core = self._make_core(self.settings, build_model(self.settings))
+            except DynNodeError as exc:
+                self.get_logger().error(f"cannot load the robot model: {exc}")
+                self._model_problem = model_error_status(exc, self.get_name(), None)
+        s = self.settings
+        self._description_sub = None
+        self._ensure_description_subscription()
+        qos = QoSProfile(depth=s.qos_depth, reliability=JOINT_STATES_QOS_RELIABILITY,
+                         history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+        # Output publishers go without rclpy's default QoS-event handlers: every waitable is rebuilt
+        # into the executor's wait set on each iteration, and at 1 kHz that overhead is the budget.
+        # Subscriptions keep theirs, so an incompatible publisher is still reported.
+        quiet = {"event_callbacks": PublisherEventCallbacks(use_default_callbacks=False)}
+        self._pub_inverse = self.create_publisher(JointState, "~/inverse_dynamics", 10, **quiet)
+        self._pub_gravity = self.create_publisher(JointState, "~/gravity_torque", 10, **quiet)
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10, **quiet)
+        self._pub_controller = self.create_publisher(DiagnosticStatus, "~/controller_status", 10, **quiet)
+        self._pub_feasibility = self.create_publisher(DiagnosticArray, "~/feasibility", LATCHED, **quiet)
+        self._pub_traj_effort = self.create_publisher(JointTrajectory, "~/trajectory_effort", 10, **quiet)
+        self._sub_js = self._subscribe_joint_states(qos)
+        # raw: the CDR bytes are read on the worker (see ros_convert.parse_joint_trajectory_cdr), so
+        # a 100,000-point trajectory never holds the executor thread while rclpy builds its objects
+        self._sub_traj = self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10,
+                                                  raw=True)
+        self._srv_self_test = self.create_service(SelfTest, "~/self_test", self._on_self_test)
+        self._diag_timer = self.create_timer(s.diagnostics_period, self._on_diagnostics)
+        self._ctrl_timer = self.create_timer(s.controller_status_period, self._on_controller_timer)
+        self._jobs: queue.Queue = queue.Queue(maxsize=64)
+        self._worker_dyn: dict[tuple[int, bool], Dynamics] = {}
+        self._worker = threading.Thread(target=self._feasibility_loop, name="dyn_node_feasibility", daemon=True)
+        self._worker.start()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        # Imported here: the bridge declares the record.* parameters and owns the recorder thread.
+        from .ros_recording import RecordingBridge
+        self.recording = RecordingBridge(self, lambda: self.model.urdf if self.model else "",
+                                         autostart=False)
+        self.status_providers.append(self.recording.status)
+        # Topics the node itself takes or publishes are recorded from their own callbacks and
+        # publish calls, with the bytes the node saw and said (subscriptions' QoS is recorded
+        # as the offered profile for inputs).
+        for endpoint in (self._sub_js, self._sub_traj, self._pub_inverse, self._pub_gravity,
+                         self._pub_diag, self._pub_controller, self._pub_feasibility,
+                         self._pub_traj_effort):
+            self.recording.add_publisher(endpoint)
+        self.recording.start_if_enabled()
+
+    # --- model and settings ----------------------------------------------------------------
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _make_core(self, settings: Settings, model: RobotModel) -> _Core:
+        tracker = ControllerTracker(model, settings)
+        core = _Core(model, settings, Monitor(model, settings, self._counts), tracker,
+                     JointStateOut(model.joint_names), JointStateOut(model.joint_names))
+        old = self._core
+        if old is not None and old.model.joint_names == model.joint_names and old.tracker._plan is not None:
+            tracker._plan = old.tracker._plan
+        return core
+
+    @property
+    def model(self) -> RobotModel | None:
+        core = self._core
+        return core.model if core else None
+
+    @property
+    def hardware_id(self) -> str:
+        core = self._core
+        return core.model.name if core else self.get_name()
+
+    def _ensure_description_subscription(self) -> None:
+        if self._description_sub is None and not self.settings.has_model_source:
+            self._description_sub = self.create_subscription(String, "robot_description",
+                                                             self._on_description, LATCHED)
+
+    def _on_description(self, msg: String) -> None:
+        if self.settings.has_model_source:
+            return  # a model parameter takes precedence over the topic
+        try:
+            model = build_model(self.settings, msg.data)
+        except DynNodeError as exc:
+            self._model_problem = model_error_status(exc, self.hardware_id, self.model)
+            self.get_logger().error(f"robot_description rejected, keeping the current model: {exc}")
+            return
+        except Exception as exc:  # never raise out of a callback
+            self._model_problem = model_error_status(exc, self.hardware_id, self.model)
+            self.get_logger().error(f"robot_description could not be used: {exc!r}")
+            return
+        self._topic_urdf = msg.data
+        self._core = self._make_core(self.settings, model)
+        self._model_problem = None
+        self.get_logger().info(f"model {model.name} ({model.nv} DoF) from robot_description")
+
+    def _on_set_parameters(self, params: list) -> SetParametersResult:
+        values = {p.name: p.value for p in params if p.name in SPECS}
+        if not values:
+            return SetParametersResult(successful=True)
+        try:
+            new = settings_from_mapping(values, base=self.settings)
+            core = self._core
+            if any(n in MODEL_PARAMETERS for n in values) and new.model_key() != self.settings.model_key():
+                if new.has_model_source or self._topic_urdf:
+                    core = self._make_core(new, build_model(new, self._topic_urdf))
+                else:
+                    core = None
+            elif core is not None:
+                core = self._make_core(new, core.model)
+        except DynNodeError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        except Exception as exc:  # anything unexpected still leaves the old settings intact
+            return SetParametersResult(successful=False, reason=f"{type(exc).__name__}: {exc}")
+        old = self.settings
+        self.settings = new
+        self._core = core
+        if core is not None:
+            self._model_problem = None
+        self._ensure_description_subscription()
+        if new.diagnostics_period != old.diagnostics_period:
+            self.destroy_timer(self._diag_timer)
+            self._diag_timer = self.create_timer(new.diagnostics_period, self._on_diagnostics)
+        if new.controller_status_period != old.controller_status_period:
+            self.destroy_timer(self._ctrl_timer)
+            self._ctrl_timer = self.create_timer(new.controller_status_period, self._on_controller_timer)
+        return SetParametersResult(successful=True)
+
+    # --- publishing ------------------------------------------------------------------------
+    def _publish(self, pub: Any, msg: Any) -> None:
+        """Publish, and when this topic is being recorded hand the recorder the same bytes.
+
+        Recording the node's own outputs from the publish path (instead of subscribing to itself)
+        saves a subscription callback per message and makes the bag hold exactly what was said.
+        """
+        rec = self.recording
+        if rec.records(pub):
+            data = msg if isinstance(msg, bytes) else serialize_message(msg)
+            pub.publish(data)
+            rec.record(pub, data)
+        else:
+            pub.publish(msg)
+
+    # --- joint_states (hot path) -----------------------------------------------------------
+    def _subscribe_joint_states(self, qos: QoSProfile):
+        try:
+            events = SubscriptionEventCallbacks(message_lost=self._on_message_lost)
+            return self.create_subscription(JointState, "joint_states", self._on_joint_state, qos,
+                                            event_callbacks=events, raw=True)
+        except Exception:  # an rmw without the message-lost event: drops cannot be counted
+            return self.create_subscription(JointState, "joint_states", self._on_joint_state, qos,
+                                            raw=True)
+
+    def _on_message_lost(self, info: Any) -> None:
+        self._lost_total = int(info.total_count)
+        core = self._core
+        if core is not None:
+            core.monitor.note_dropped(self._seq_gaps + self._lost_total)
+
+    def _count_sequence(self, info: dict | None) -> None:
+        """Count messages lost between the publisher and this node from sequence-number gaps.
+
+        Fast DDS numbers each publisher's samples; a gap is a sample the middleware discarded
+        (best-effort loss or a full history). rclpy does not say which publisher a sample came
+        from, so gaps are counted only while exactly one publisher is matched (checked on the
+        diagnostics timer); with several, the middleware's message-lost event is all there is.
+        """
+        seq = info.get("publication_sequence_number") if info else None
+        if not seq:
+            return
+        last = self._last_seq
+        self._last_seq = seq
+        if last is not None and seq > last + 1 and self._single_publisher:
+            self._seq_gaps += seq - last - 1
+            core = self._core
+            if core is not None:
+                core.monitor.note_dropped(self._seq_gaps + self._lost_total)
+
+    def _on_joint_state(self, data: bytes, info: dict | None = None) -> None:
+        # Taken raw so the recorder gets exactly the bytes the node processed (the audit's
+        # re-check then pairs every output with its input); deserialising costs what rclpy's
+        # own take would.
+        self._take_joint_state(data, info)
+        # Drain what is already queued before returning to the executor: rclpy takes one message
+        # per subscription per wait-set rebuild, and that rebuild (all timers, services and
+        # handlers of the node) costs more than the message itself. Bounded, so timers still run.
+        for _ in range(_DRAIN):
+            more = self._take_pending()
+            if more is None:
+                break
+            self._take_joint_state(more[0], more[1])
+
+    def _take_joint_state(self, data: bytes, info: dict | None) -> None:
+        self._count_sequence(info)
+        self.recording.record(self._sub_js, data)
+        try:
+            msg = deserialize_message(data, JointState)
+        except Exception:  # not a JointState after all: counted like any malformed message
+            self._counts.received += 1
+            self._callback_failed("joint_states deserialisation")
+            return
+        self._handle_joint_state(msg)
+
+    def _take_pending(self) -> tuple[bytes, dict] | None:
+        sub = self._sub_js
+        try:
+            with sub.handle:
+                info = sub.handle.take_message(sub.msg_type, sub.raw)
+        except Exception:  # subscription being destroyed: leave it to the executor
+            return None
+        return info if info is not None else None
+
+    def _handle_joint_state(self, msg: JointState) -> None:
+        core = self._core
+        receipt = self.get_clock().now().nanoseconds * 1e-9
+        if core is None:
+            self._counts.received += 1
+            return
+        try:
+            st = msg.header.stamp
+            r = core.monitor.process(msg.name, msg.position, msg.velocity, msg.effort,
+                                     st.sec + st.nanosec * 1e-9, receipt)
+            if r.accepted:
+                stamp = st if not r.zero_stamp else s_to_stamp(r.stamp_s)
+                self._publish(self._pub_inverse, core.out_inverse.fill(stamp, r.q, r.v, r.tau))
+                self._publish(self._pub_gravity, core.out_gravity.fill(stamp, r.q, r.v, r.gravity))
+            else:
+                self.get_logger().warn(f"joint_states rejected: {r.error}", throttle_duration_sec=5.0)
+            if core.tracker.update(r, receipt):
+                self._publish_controller_status(core, receipt)
+        except Exception:  # a bug must not kill the executor; it is counted and logged
+            self._callback_failed("joint_states callback")
+
+    # --- periodic outputs ----------------------------------------------------------------
+    def current_statuses(self, now_s: float | None = None) -> list[Status]:
+        """The statuses of one /diagnostics array (resets the monitor's worst-case window)."""
+        now = self._now_s() if now_s is None else now_s
+        core = self._core
+        hid = self.hardware_id
+        if self._model_problem is not None:
+            out = [self._model_problem]
+        elif core is None:
+            out = [waiting_model_status(hid)]
+        else:
+            out = [model_status(core.model, hid)]
+        if core is not None:
+            out += core.monitor.statuses(now, hid)
+        else:
+            out.append(Status(JOINT_STATES, STALE, "no robot model yet: joint_states cannot be used", hid,
+                              {"received_messages": self._counts.received, "failure_label": STATE_ERROR}))
+        for provider in list(self.status_providers):
+            try:
+                st = provider()
+                out.append(st if st.hardware_id else replace(st, hardware_id=hid))
+            except Exception as exc:
+                self.get_logger().error(f"status provider {provider!r} failed: {exc!r}",
+                                        throttle_duration_sec=10.0)
+        return out
+
+    def _on_diagnostics(self) -> None:
+        try:
+            self._single_publisher = self.count_publishers(self._sub_js.topic_name) == 1
+            now = self.get_clock().now()
+            self._publish(self._pub_diag, diagnostic_array(self.current_statuses(now.nanoseconds * 1e-9),
+                                                    now.to_msg()))
+        except Exception:
+            self._callback_failed("diagnostics")
+
+    def _publish_controller_status(self, core: _Core, now_s: float) -> None:
+        self._publish(self._pub_controller, status_to_msg(core.tracker.status(now_s, core.model.name)))
+
+    def _on_controller_timer(self) -> None:
+        core = self._core
+        if core is None:
+            return
+        try:
+            now = self._now_s()
+            core.tracker.tick(now)
+            self._publish_controller_status(core, now)
+        except Exception:
+            self._callback_failed("controller status")
+
+    def _callback_failed(self, what: str) -> None:
+        """Count and log an exception caught in a callback. During shutdown (SIGINT/SIGTERM
+        invalidate the context while a callback may be publishing) it is expected and silent."""
+        if not self.context.ok():
+            return
+        self._callback_errors += 1
+        self.get_logger().error(f"{what} failed:\n{traceback.format_exc()}", throttle_duration_sec=5.0)
+
+    # --- self-test -----------------------------------------------------------------------
+    def _on_self_test(self, request: SelfTest.Request, response: SelfTest.Response) -> SelfTest.Response:
+        core = self._core
+        if core is None:
+            response.passed = False
+            response.id = self.get_name()
+            response.status = [status_to_msg(self.current_statuses()[0])]
+            return response
+        try:
+            passed, statuses = run_self_test(core.model, core.settings.include_friction,
+                                             hardware_id=core.model.name)
+        except Exception as exc:
+            passed, statuses = False, [model_error_status(exc, core.model.name, core.model)]
+        response.passed = passed
+        response.id = f"{core.model.name} {core.model.urdf_hash[:12]}"
+        response.status = [status_to_msg(s) for s in statuses]
+        return response
+
+    # --- trajectories --------------------------------------------------------------------
+    def _on_trajectory(self, msg: bytes) -> None:
+        self.recording.record(self._sub_traj, msg)
+        core = self._core
+        receipt = self._now_s()
+        if core is None:
+            self.get_logger().warn("joint_trajectory ignored: no robot model yet", throttle_duration_sec=5.0)
+            return
+        try:
+            self._jobs.put_nowait((msg, receipt, core))
+        except queue.Full:
+            self.get_logger().error("feasibility checker busy: trajectory not checked", throttle_duration_sec=5.0)
+
+    def _feasibility_loop(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            try:
+                self._check_trajectory(*job)
+            except Exception:
+                self._callback_failed("trajectory check")
+
+    def _worker_dynamics(self, core: _Core) -> Dynamics:
+        key = (id(core.model), core.settings.include_friction)
+        dyn = self._worker_dyn.get(key)
+        if dyn is None or dyn.model is not core.model:
+            self._worker_dyn.clear()  # one model at a time: drop instances of replaced models
+            dyn = Dynamics(core.model, DynamicsOptions(include_friction=core.settings.include_friction))
+            self._worker_dyn[key] = dyn
+        return dyn
+
+    def _check_trajectory(self, data: bytes, receipt_s: float, core: _Core) -> None:
+        """Validate, hand to the controller tracker, check feasibility and publish the verdict."""
+        model, settings = core.model, core.settings
+        msg: JointTrajectory | None = None
+        raw: RawTrajectory | None = None
+        try:
+            raw = parse_joint_trajectory_cdr(data)
+            names, times, (P, V, A, _) = raw.names, raw.times, raw.fields
+            stamp = raw.stamp
+        except (ValueError, IndexError, struct.error, UnicodeDecodeError):
+            msg = deserialize_message(data, JointTrajectory)  # big-endian or unexpected: rclpy's way
+            names, times, P, V, A = trajectory_arrays(msg)
+            stamp = msg.header.stamp
+        stamp_s = stamp_to_s(stamp)
+        start = stamp_s if stamp_s != 0.0 else receipt_s
+        error: TrajectoryError | None = None
+        traj = None
+        try:
+            traj = validate_trajectory(model.joint_names, names, times, P, V, A, min_points=1)
+            current = self._core
+            if current is not None and current.model.joint_names == model.joint_names:
+                current.tracker.set_trajectory(traj, start)
+            if traj.n_points < 2:
+                validate_trajectory(model.joint_names, names, times, P, V, A, min_points=2)
+        except TrajectoryError as exc:
+            error = exc
+        from . import feasibility  # lazily: the node runs (and tracks) without loading it first
+
+        hid = model.name
+        duration = float(times[-1]) if times and all(map(math.isfinite, times)) else 0.0
+        if error is not None:
+            statuses = feasibility.rejected_statuses(error, hid, len(times), duration)
+        else:
+            options = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
+                                                     effort_warn_ratio=settings.effort_warn_ratio)
+            try:
+                result = feasibility.check_trajectory(self._worker_dynamics(core), traj, options)
+            except TrajectoryError as exc:  # e.g. motion so large the torques overflow
+                self._publish(self._pub_feasibility, diagnostic_array(
+                    feasibility.rejected_statuses(exc, hid, len(times), duration), stamp))
+                return
+            statuses = result.statuses(hid)
+            if raw is not None:
+                order = [model.joint_names.index(n) for n in names]
+                self._publish(self._pub_traj_effort, encode_joint_trajectory_cdr(raw, result.waypoint_effort[:, order]))
+            else:
+                self._publish(self._pub_traj_effort, fill_trajectory_effort(msg, result.waypoint_effort,
+                                                                     model.joint_names))
+        self._publish(self._pub_feasibility, diagnostic_array(statuses, stamp))
+
+    def destroy_node(self) -> None:
+        recording = getattr(self, "recording", None)
+        if recording is not None:
+            recording.close()  # finalise the bag (summary, metadata.yaml) before anything else goes
+        self._jobs.queue.clear()
+        try:
+            self._jobs.put_nowait(None)
+        except queue.Full:  # pragma: no cover - cleared just above
+            pass
+        if self._worker.is_alive() and self._worker is not threading.current_thread():
+            self._worker.join(timeout=0.5)  # a check in progress is abandoned (daemon thread)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    """Entry point of ``ros2 run dyn_node dyn_node``: spin until SIGINT/SIGTERM, then clean up.
+
+    SIGINT and SIGTERM only set an event that the spin loop checks: rclpy's own handlers would
+    shut the context down under a callback that is taking a message, which shows up as a
+    traceback at 1 kHz. The bag is finalised in ``destroy_node`` before the context goes.
+    A parameter rclpy itself refuses at start-up (wrong type, out of range) ends the process with
+    exit code 2 and a one-line error instead of a traceback.
+    """
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    node = None
+    code = 0
+    try:
+        node = DynNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (InvalidParameterValueException, InvalidParameterTypeException, SettingsError) as exc:
+        print(f"dyn_node: {exc}", file=sys.stderr)
+        code = 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    if code:
+        raise SystemExit(code)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,326 @@
+"""bag_reader: streaming, CRC-checked reading of MCAP files and rosbag2 dirs; damage as time ranges.
+
+Bags are written here with mcap + mcap_ros2 (independent of the reader under test) and messages
+are serialized with rclpy's own CDR serializer, the oracle for the hand-written JointState decoder.
+The helpers at the top are shared with test_audit.py and test_report.py.
+"""
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from dyn_node.bag_reader import BagError, BagReader, decode_joint_state, MessageDecoder
+
+SHARE = Path(sys.prefix) / "share"
+PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
+              "int32", "uint32", "int64", "uint64", "string", "wstring"}
+
+
+def msgdef(full_type: str) -> str:
+    """The full ros2msg definition text (main type + every dependency), as rosbag2 writes it."""
+    pkg, name = full_type.split("/msg/") if "/msg/" in full_type else full_type.split("/")
+
+    def text(p: str, n: str) -> str:
+        return (SHARE / p / "msg" / f"{n}.msg").read_text()
+
+    def deps(p: str, body: str) -> list[tuple[str, str]]:
+        out = []
+        for line in body.splitlines():
+            line = line.split("#")[0].strip()
+            if not line or "=" in line.split()[1 if len(line.split()) > 1 else 0]:
+                continue
+            t = re.sub(r"\[.*\]", "", line.split()[0])
+            t = re.sub(r"<=\d+", "", t)
+            if t in PRIMITIVES:
+                continue
+            if "/" in t:
+                dp, dn = t.split("/")[0], t.split("/")[-1]
+            elif t == "Header":
+                dp, dn = "std_msgs", "Header"
+            else:
+                dp, dn = p, t
+            out.append((dp, dn))
+        return out
+
+    seen: list[tuple[str, str]] = []
+    todo = deps(pkg, text(pkg, name))
+    while todo:
+        d = todo.pop(0)
+        if d in seen:
+            continue
+        seen.append(d)
+        todo.extend(deps(d[0], text(*d)))
+    parts = [text(pkg, name)]
+    for dp, dn in seen:
+        parts.append("=" * 80 + f"\nMSG: {dp}/{dn}\n" + text(dp, dn))
+    return "\n".join(parts)
+
+
+class BagWriter:
+    """Writes a rosbag2-layout directory (metadata.yaml + name_0.mcap) from rclpy messages."""
+
+    TYPES = {"sensor_msgs/msg/JointState", "trajectory_msgs/msg/JointTrajectory",
+             "diagnostic_msgs/msg/DiagnosticArray", "diagnostic_msgs/msg/DiagnosticStatus",
+             "std_msgs/msg/String"}
+
+    def __init__(self, path: Path, name: str = "bag", chunk_size: int = 64 * 1024,
+                 metadata: dict[str, str] | None = None, compression: str = "zstd",
+                 single_file: bool = False, index: int = 0):
+        from mcap.writer import CompressionType, Writer
+
+        self.dir = path
+        path.mkdir(parents=True, exist_ok=True)
+        self.file = path / f"{name}_{index}.mcap" if not single_file else path / f"{name}.mcap"
+        self._fh = open(self.file, "wb")
+        self.w = Writer(self._fh, chunk_size=chunk_size,
+                        compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+                                     "none": CompressionType.NONE}[compression],
+                        enable_crcs=True, enable_data_crcs=True)
+        self.w.start(profile="ros2", library="test")
+        self.single = single_file
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[str, tuple[int, str]] = {}
+        self.counts: dict[str, int] = {}
+        self.first = self.last = None
+        if metadata is not None:
+            self.w.add_metadata("dyn_node", metadata)
+
+    def write(self, topic: str, msg, log_ns: int, type_name: str | None = None) -> None:
+        from rclpy.serialization import serialize_message
+
+        t = type_name or f"{type(msg).__module__.split('.')[0]}/msg/{type(msg).__name__}"
+        if topic not in self.channels:
+            if t not in self.schemas:
+                self.schemas[t] = self.w.register_schema(t, "ros2msg", msgdef(t).encode())
+            cid = self.w.register_channel(topic, "cdr", self.schemas[t])
+            self.channels[topic] = (cid, t)
+        cid, _ = self.channels[topic]
+        self.w.add_message(cid, log_time=log_ns, data=serialize_message(msg), publish_time=log_ns,
+                           sequence=self.counts.get(topic, 0))
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.first = log_ns if self.first is None else min(self.first, log_ns)
+        self.last = log_ns if self.last is None else max(self.last, log_ns)
+
+    def close(self) -> Path:
+        self.w.finish()
+        self._fh.close()
+        if self.single:
+            return self.file
+        info = {"rosbag2_bagfile_information": {
+            "version": 8, "storage_identifier": "mcap",
+            "duration": {"nanoseconds": (self.last or 0) - (self.first or 0)},
+            "starting_time": {"nanoseconds_since_epoch": self.first or 0},
+            "message_count": sum(self.counts.values()),
+            "topics_with_message_count": [
+                {"topic_metadata": {"name": tp, "type": t, "serialization_format": "cdr",
+                                    "offered_qos_profiles": ""}, "message_count": self.counts[tp]}
+                for tp, (_, t) in self.channels.items()],
+            "compression_format": "", "compression_mode": "",
+            "relative_file_paths": [self.file.name],
+            "files": [{"path": self.file.name, "starting_time": {"nanoseconds_since_epoch": self.first},
+                       "duration": {"nanoseconds": (self.last or 0) - (self.first or 0)},
+                       "message_count": sum(self.counts.values())}],
+        }}
+        (self.dir / "metadata.yaml").write_text(yaml.safe_dump(info))
+        return self.dir
+
+
+def joint_state(names, q, v=(), e=(), stamp_ns=0):
+    from sensor_msgs.msg import JointState
+
+    m = JointState()
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    m.header.frame_id = "base"
+    m.name = list(names)
+    m.position = [float(x) for x in q]
+    m.velocity = [float(x) for x in v]
+    m.effort = [float(x) for x in e]
+    return m
+
+
+T0 = 1_700_000_000_000_000_000
+
+
+def simple_bag(path: Path, n: int = 2000, chunk_size: int = 16 * 1024, **kw) -> Path:
+    """n JointStates at 1 kHz (3 joints) and a String every 100 messages."""
+    from std_msgs.msg import String
+
+    w = BagWriter(path, chunk_size=chunk_size, **kw)
+    for i in range(n):
+        t = T0 + i * 1_000_000
+        w.write("/joint_states", joint_state(["a", "b", "c"], [i * 1e-3, 1.0, -1.0], [1, 0, 0],
+                                             [0.5, 0.25, i], stamp_ns=t), t)
+        if i % 100 == 0:
+            w.write("/chatter", String(data=f"s{i}"), t + 1)
+    return w.close()
+
+
+# --- tests -----------------------------------------------------------------------------------
+def test_joint_state_decoder_matches_rclpy_serializer():
+    from rclpy.serialization import serialize_message
+
+    rng = np.random.default_rng(0)
+    cases = [(["a"], [1.0], [], [2.0]), (["ab", "c"], [1, 2], [3, 4], [5, 6]), (["x"] * 0, [], [], []),
+             (["joint_with_long_name_7"], [0.1], [0.2], []), (["q"], [np.nan], [], [np.nan])]
+    for k in range(20):
+        nj = int(rng.integers(1, 9))
+        cases.append(([f"j{i}" * int(rng.integers(1, 4)) for i in range(nj)], rng.normal(size=nj),
+                      rng.normal(size=nj) if k % 2 else [], rng.normal(size=nj) if k % 3 else []))
+    for names, q, v, e in cases:
+        stamp = int(rng.integers(0, 2 ** 31 * 10 ** 9))
+        d = decode_joint_state(serialize_message(joint_state(names, q, v, e, stamp_ns=stamp)))
+        assert d.names == tuple(names) and d.frame_id == "base" and d.stamp_ns == stamp
+        np.testing.assert_array_equal(d.position, np.asarray(q, float))
+        np.testing.assert_array_equal(d.velocity, np.asarray(v, float))
+        np.testing.assert_array_equal(d.effort, np.asarray(e, float))
+    with pytest.raises(ValueError):
+        decode_joint_state(serialize_message(joint_state(["a", "b"], [1, 2], [3, 4], [5, 6]))[:30])
+
+
+def test_reads_rosbag2_dir_single_file_and_agrees_with_mcap_reader(tmp_path):
+    from mcap.reader import make_reader
+
+    bag = simple_bag(tmp_path / "bag")
+    r = BagReader(bag)
+    msgs = list(r.messages())
+    assert r.stats.message_counts == {"/joint_states": 2000, "/chatter": 20}
+    assert not r.unreadable and r.stats.data_crc == {"bag_0.mcap": "ok"}
+    assert r.stats.crc_checked_chunks == r.stats.chunks > 1
+    with open(bag / "bag_0.mcap", "rb") as fh:
+        ref = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(fh).iter_messages(
+            log_time_order=False)]
+    assert [(m.topic, m.log_time_ns, m.data) for m in msgs] == ref
+    # topic filter yields only those topics but counts all
+    r2 = BagReader(bag / "bag_0.mcap", topics=["/chatter"])
+    got = list(r2.messages())
+    assert [m.topic for m in got] == ["/chatter"] * 20
+    assert r2.stats.message_counts["/joint_states"] == 2000
+    assert MessageDecoder().decode(got[3].channel, got[3].data).data == "s300"
+    assert decode_joint_state([m for m in msgs if m.topic == "/joint_states"][5].data).effort[2] == 5.0
+
+
+def test_metadata_record_found_via_summary_and_by_scan(tmp_path):
+    bag = simple_bag(tmp_path / "bag", n=50, metadata={"robot_description": "<robot/>", "version": "1"})
+    r = BagReader(bag)
+    assert r.peek_metadata("dyn_node") == {"robot_description": "<robot/>", "version": "1"}
+    assert r.peek_metadata("other") is None
+    # without the summary (file cut before the footer) the record is found by scanning
+    f = bag / "bag_0.mcap"
+    data = f.read_bytes()
+    f.write_bytes(data[: len(data) // 2])
+    assert BagReader(bag).peek_metadata("dyn_node")["version"] == "1"
+
+
+def test_lz4_and_uncompressed_chunks(tmp_path):
+    for comp in ("lz4", "none"):
+        r = BagReader(simple_bag(tmp_path / comp, n=300, compression=comp))
+        assert sum(1 for _ in r.messages()) == 303 and not r.unreadable
+
+
+@pytest.mark.parametrize("fraction", [0.05, 0.3, 0.5, 0.77, 0.97, 0.999])
+def test_truncation_reports_the_lost_range(tmp_path, fraction):
+    bag = simple_bag(tmp_path / "bag")
+    f = bag / "bag_0.mcap"
+    full = f.read_bytes()
+    f.write_bytes(full[: int(len(full) * fraction)])
+    r = BagReader(bag)
+    msgs = [m for m in r.messages() if m.topic == "/joint_states"]
+    if len(msgs) == 2000:
+        # cut inside the summary section, after the data-end record: nothing is lost
+        assert not r.unreadable and r.stats.data_crc["bag_0.mcap"] == "ok"
+        return
+    assert r.unreadable, "a truncated file must be reported"
+    lost = r.unreadable[-1]
+    assert "truncated" in lost.reason
+    # what was read is a prefix; the lost range starts at or before the first missing message
+    # and (bounded by metadata.yaml) ends at the recording's end
+    times = [m.log_time_ns for m in msgs]
+    assert times == [T0 + i * 1_000_000 for i in range(len(times))]
+    first_missing = T0 + len(times) * 1_000_000
+    assert lost.start_ns is None or lost.start_ns <= first_missing
+    if lost.start_ns is not None:
+        assert lost.start_ns >= (times[-1] if times else T0) - 100 * 1_000_000
+    assert lost.end_ns == T0 + 1999 * 1_000_000 + 1 or lost.end_ns == T0 + 1999 * 1_000_000
+
+
+def test_corrupt_byte_inside_a_chunk_loses_exactly_that_chunk(tmp_path):
+    from mcap.reader import make_reader
+
+    bag = simple_bag(tmp_path / "bag", compression="none")
+    f = bag / "bag_0.mcap"
+    with open(f, "rb") as fh:
+        chunks = list(make_reader(fh).get_summary().chunk_indexes)
+    victim = chunks[len(chunks) // 2]
+    data = bytearray(f.read_bytes())
+    data[victim.chunk_start_offset + victim.chunk_length - 20] ^= 0xFF
+    f.write_bytes(bytes(data))
+    r = BagReader(bag)
+    msgs = list(r.messages())
+    assert len(r.unreadable) >= 1
+    bad = [u for u in r.unreadable if "chunk" in u.reason]
+    assert len(bad) == 1 and "CRC" in bad[0].reason
+    assert (bad[0].start_ns, bad[0].end_ns) == (victim.message_start_time, victim.message_end_time)
+    lost = [m for m in msgs if victim.message_start_time <= m.log_time_ns <= victim.message_end_time]
+    assert not lost
+    expected_lost = sum(1 for i in range(2000) if victim.message_start_time <= T0 + i * 1_000_000
+                        <= victim.message_end_time) + sum(
+        1 for i in range(0, 2000, 100) if victim.message_start_time <= T0 + i * 1_000_000 + 1
+        <= victim.message_end_time)
+    assert len(msgs) == 2020 - expected_lost
+
+
+def test_compressed_chunk_corruption_and_garbage_files(tmp_path):
+    from mcap.reader import make_reader
+
+    bag = simple_bag(tmp_path / "bag")
+    f = bag / "bag_0.mcap"
+    with open(f, "rb") as fh:
+        victim = list(make_reader(fh).get_summary().chunk_indexes)[1]
+    data = bytearray(f.read_bytes())
+    for off in (victim.chunk_start_offset + victim.chunk_length // 2,):
+        data[off] ^= 0x55
+    f.write_bytes(bytes(data))
+    r = BagReader(bag)
+    n = sum(1 for _ in r.messages())  # never raises
+    assert [(u.start_ns, u.end_ns) for u in r.unreadable] == [
+        (victim.message_start_time, victim.message_end_time)]
+    assert n < 2020 and r.stats.data_crc["bag_0.mcap"] == "mismatch"
+    (tmp_path / "junk.mcap").write_bytes(b"not an mcap at all")
+    r = BagReader(tmp_path / "junk.mcap")
+    assert list(r.messages()) == [] and "not an MCAP" in r.unreadable[0].reason
+    with pytest.raises(BagError):
+        BagReader(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BagError):
+        BagReader(tmp_path / "empty")
+
+
+def test_split_bag_reads_files_in_metadata_order(tmp_path):
+    """A split bag: files are read in metadata.yaml order (not name order), metadata from either."""
+    from std_msgs.msg import String
+
+    d = tmp_path / "split"
+    files = []
+    for k in range(3):
+        w = BagWriter(d, index=k, metadata={"version": str(k)})
+        for i in range(100):
+            t = T0 + (k * 100 + i) * 1_000_000
+            w.write("/joint_states", joint_state(["a"], [k * 100 + i]), t)
+        w.write("/robot_description", String(data="<robot/>"), T0 + k * 100 * 1_000_000)
+        w.w.finish()
+        w._fh.close()
+        files.append(w.file.name)
+    order = [files[0], files[1], files[2]]
+    (d / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
+        "relative_file_paths": order, "starting_time": {"nanoseconds_since_epoch": T0},
+        "duration": {"nanoseconds": 299 * 1_000_000}}}))
+    r = BagReader(d)
+    pos = [decode_joint_state(m.data).position[0] for m in r.messages() if m.topic == "/joint_states"]
+    assert pos == list(range(300)) and r.stats.message_counts["/robot_description"] == 3
+    assert r.peek_metadata("dyn_node") == {"version": "0"}
+    assert r.known_topics() is None or r.known_topics() == {"/joint_states", "/robot_description"}

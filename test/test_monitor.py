@@ -1,0 +1,293 @@
+"""The pure live monitor: torques, acceleration estimate, rejections, statuses, controller tracker."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dyn_node.dynamics import Dynamics
+from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, ModelError
+from dyn_node.model import load_model
+from dyn_node.monitor import (ControllerTracker, Monitor, build_model, model_error_status, model_status,
+                              waiting_model_status)
+from dyn_node.settings import Settings
+from dyn_node.status import ERROR, OK, STALE, WARN
+from dyn_node.trajectory import validate_trajectory
+
+PANDA = load_model(builtin="panda")
+PLANAR = load_model(builtin="planar_2link")
+NAMES = list(PANDA.joint_names)
+Q0 = np.array([0.1, -0.4, 0.2, -1.8, 0.3, 1.5, -0.2])
+
+
+def by_name(statuses, suffix):
+    return next(s for s in statuses if s.name == "dyn_node: " + suffix)
+
+
+def test_torques_match_dynamics_and_identity():
+    mon = Monitor(PANDA, Settings())
+    dyn = Dynamics(PANDA)
+    v1, v2 = np.full(7, 0.2), np.linspace(-0.5, 0.5, 7)
+    mon.process(NAMES, Q0, v1, [], 10.0, 10.0)
+    r = mon.process(NAMES, Q0 + 0.001, v2, [], 10.002, 10.003)
+    a = (v2 - v1) / (10.002 - 10.0)
+    np.testing.assert_array_equal(r.a_hat, a)
+    np.testing.assert_allclose(r.tau, dyn.rnea(Q0 + 0.001, v2, a), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r.gravity, dyn.gravity(Q0 + 0.001), rtol=0, atol=1e-9)
+    # independent identity: τ = M a + h
+    np.testing.assert_allclose(r.tau, dyn.mass_matrix(Q0 + 0.001) @ a + dyn.bias(Q0 + 0.001, v2), atol=1e-9)
+
+
+def test_input_order_and_ignored_names_are_handled():
+    mon = Monitor(PANDA, Settings())
+    perm = [6, 2, 0, 1, 5, 4, 3]
+    names = [NAMES[i] for i in perm] + ["panda_finger_joint1", "some_other_joint"]
+    q = list(Q0[perm]) + [0.04, 1.0]
+    r = mon.process(names, q, [], [], 1.0, 1.0)
+    assert r.accepted
+    np.testing.assert_array_equal(r.q, Q0)
+    np.testing.assert_array_equal(r.v, np.zeros(7))
+    assert mon.counts.ignored_joint_values == 2
+
+
+def test_acceleration_resets_and_filter():
+    s = Settings(acceleration_filter_hz=20.0, stale_timeout=0.5)
+    mon = Monitor(PANDA, s)
+    vs = [np.full(7, x) for x in (0.0, 0.01, 0.03, 0.04)]
+    ts = [1.0, 1.001, 1.002, 1.004]
+    r0 = mon.process(NAMES, Q0, vs[0], [], ts[0], ts[0])
+    np.testing.assert_array_equal(r0.a_hat, 0.0)  # first message: no difference yet
+    r1 = mon.process(NAMES, Q0, vs[1], [], ts[1], ts[1])
+    raw1 = (vs[1] - vs[0]) / (ts[1] - ts[0])
+    np.testing.assert_array_equal(r1.a_hat, raw1)  # the filter starts at the first raw value
+    r2 = mon.process(NAMES, Q0, vs[2], [], ts[2], ts[2])
+    raw2 = (vs[2] - vs[1]) / (ts[2] - ts[1])
+    alpha = 1 - math.exp(-2 * math.pi * 20.0 * (ts[2] - ts[1]))
+    np.testing.assert_allclose(r2.a_hat, raw1 + alpha * (raw2 - raw1), rtol=1e-15)
+    # stamp going backwards: counted, outputs computed, estimate reset
+    r3 = mon.process(NAMES, Q0, vs[3], [], 1.0005, 1.005)
+    assert r3.accepted and r3.out_of_order
+    np.testing.assert_array_equal(r3.a_hat, 0.0)
+    assert mon.counts.out_of_order == 1
+    # gap beyond stale_timeout: reset, not differentiated across the gap
+    mon.process(NAMES, Q0, vs[0], [], 2.0, 2.0)
+    r5 = mon.process(NAMES, Q0, vs[3], [], 2.6, 2.6)
+    np.testing.assert_array_equal(r5.a_hat, 0.0)
+
+
+def test_acceleration_source_zero():
+    mon = Monitor(PANDA, Settings(acceleration_source="zero"))
+    mon.process(NAMES, Q0, np.zeros(7), [], 1.0, 1.0)
+    r = mon.process(NAMES, Q0, np.ones(7), [], 1.001, 1.001)
+    np.testing.assert_array_equal(r.a_hat, 0.0)
+    np.testing.assert_allclose(r.tau, Dynamics(PANDA).rnea(Q0, np.ones(7), np.zeros(7)), atol=1e-9)
+
+
+def test_zero_stamp_uses_receipt_time():
+    mon = Monitor(PANDA, Settings())
+    mon.process(NAMES, Q0, np.zeros(7), [], 0.0, 5.0)
+    r = mon.process(NAMES, Q0, np.full(7, 0.01), [], 0.0, 5.001)
+    assert r.zero_stamp and r.stamp_s == 5.001
+    np.testing.assert_allclose(r.a_hat, np.full(7, 0.01) / (5.001 - 5.0), rtol=1e-12)
+    st = by_name(mon.statuses(5.01, "panda"), "joint_states")
+    assert st.level == WARN and "zero stamp" in st.message
+    assert st.values["zero_stamp_messages"] == 2 and st.values["failure_label"] == STATE_ERROR
+
+
+BAD = [
+    ("length_mismatch", NAMES, list(Q0[:6]), [], []),
+    ("non_finite", NAMES, [math.nan] + list(Q0[1:]), [], []),
+    ("non_finite", NAMES, list(Q0[:6]) + [math.inf], [], []),
+    ("non_finite", NAMES, list(Q0), [math.nan] * 7, []),
+    ("no_model_joints", ["a", "b"], [0.0, 1.0], [], []),
+    ("missing_joints", NAMES[:6], list(Q0[:6]), [], []),
+    ("empty", [], [], [], []),
+    ("duplicate_names", NAMES + [NAMES[0]], list(Q0) + [0.0], [], []),
+    ("length_mismatch", NAMES, list(Q0), [0.0] * 3, []),
+]
+
+
+@pytest.mark.parametrize("code,names,q,v,e", BAD)
+def test_bad_input_rejected_counted_and_next_valid_correct(code, names, q, v, e):
+    mon = Monitor(PANDA, Settings())
+    r = mon.process(names, q, v, e, 1.0, 1.0)
+    assert not r.accepted and r.error.code == code and r.tau is None
+    st = by_name(mon.statuses(1.01, "panda"), "joint_states")
+    assert st.level == ERROR and st.values["invalid_messages"] == 1
+    assert st.values[f"invalid_{code}"] == 1 and st.values["failure_label"] == STATE_ERROR
+    r2 = mon.process(NAMES, Q0, np.full(7, 0.1), [], 1.02, 1.02)
+    assert r2.accepted
+    np.testing.assert_allclose(r2.tau, Dynamics(PANDA).rnea(Q0, np.full(7, 0.1), np.zeros(7)), atol=1e-9)
+    assert by_name(mon.statuses(1.03, "panda"), "joint_states").level == OK
+
+
+def test_nan_effort_means_not_available():
+    mon = Monitor(PANDA, Settings())
+    r = mon.process(NAMES, Q0, [], [math.nan] * 7, 1.0, 1.0)
+    assert r.accepted and r.residual is None
+    st = by_name(mon.statuses(1.1, "panda"), "residual")
+    assert st.level == OK and st.values["effort_measured"] is False
+
+
+def test_effort_status_levels_and_message():
+    mon = Monitor(PANDA, Settings())
+    g = Dynamics(PANDA).gravity(Q0)
+    effort = g.copy()
+    effort[3] = 1.04 * 87.0
+    mon.process(NAMES, Q0, np.zeros(7), effort, 1.0, 1.0)
+    st = by_name(mon.statuses(1.5, "panda"), "effort")
+    assert st.level == ERROR and st.values["failure_label"] == CONTROL_ERROR
+    assert st.message.startswith("panda_joint4 at 104% of its 87 N·m effort limit")
+    assert st.values["panda_joint4_utilisation"] == pytest.approx(1.04, abs=1e-12)
+    assert st.values["worst_joint"] == "panda_joint4"
+    effort[3] = 0.95 * 87.0
+    mon.process(NAMES, Q0, np.zeros(7), effort, 2.0, 2.0)
+    st = by_name(mon.statuses(2.5, "panda"), "effort")
+    assert st.level == WARN and "95%" in st.message
+    mon.process(NAMES, Q0, np.zeros(7), g, 3.0, 3.0)
+    st = by_name(mon.statuses(3.5, "panda"), "effort")
+    assert st.level == OK
+    np.testing.assert_allclose(st.values["panda_joint2_utilisation"], abs(g[1]) / 87.0, rtol=1e-12)
+
+
+def test_residual_rms():
+    mon = Monitor(PANDA, Settings(residual_warn_ratio=0.1))
+    dyn = Dynamics(PANDA)
+    g = dyn.gravity(Q0)
+    offsets = [3.0, -5.0, 4.0]
+    for k, d in enumerate(offsets):
+        e = g.copy()
+        e[1] += d
+        e[5] = math.nan  # joint 6 not measured
+        mon.process(NAMES, Q0, np.zeros(7), e, 1.0 + k, 1.0 + k)
+    st = by_name(mon.statuses(4.0, "panda"), "residual")
+    rms = math.sqrt(sum(d * d for d in offsets) / 3)
+    assert st.values["panda_joint2_residual_rms_nm"] == pytest.approx(rms, abs=1e-9)
+    assert "panda_joint6_residual_rms_nm" not in st.values
+    assert st.level == OK  # 4.08 N·m < 10 % of 87 N·m
+    for k in range(3):
+        e = g.copy()
+        e[4] += 2.0  # 2 N·m of a 12 N·m limit: 17 %
+        mon.process(NAMES, Q0, np.zeros(7), e, 5.0 + k, 5.0 + k)
+    st = by_name(mon.statuses(8.0, "panda"), "residual")
+    assert st.level == WARN and st.values["worst_joint"] == "panda_joint5"
+    assert st.values["failure_label"] == CONTROL_ERROR and "panda_joint5 effort residual 2 N·m" in st.message
+
+
+def test_limits_status():
+    mon = Monitor(PLANAR, Settings())
+    names = list(PLANAR.joint_names)
+    mon.process(names, [0.0, 0.0], [0.0, 0.0], [], 1.0, 1.0)
+    st = by_name(mon.statuses(1.1, "planar"), "limits")
+    assert st.level == OK
+    mon.process(names, [2.95, 0.0], [0.0, 0.0], [], 2.0, 2.0)  # soft limit 2.9, hard 3.0
+    st = by_name(mon.statuses(2.1, "planar"), "limits")
+    assert st.level == WARN and st.values["soft_limit_violations"] == 1 and "joint1" in st.message
+    mon.process(names, [0.0, -2.7], [0.0, 4.5], [], 3.0, 3.0)
+    st = by_name(mon.statuses(3.1, "planar"), "limits")
+    assert st.level == ERROR and st.values["failure_label"] == CONTROL_ERROR
+    assert st.values["joint2_position_rad"] == -2.7 and st.values["joint2_velocity_rad_s"] == 4.5
+    assert st.message.startswith("joint2 position -2.7 rad below its lower limit -2.6 rad")
+    # exactly at the limits is within them (inclusive bounds, |v| ≤ max)
+    mon.process(names, [3.0, -2.6], [3.0, -4.0], [], 4.0, 4.0)
+    st = by_name(mon.statuses(4.1, "planar"), "limits")
+    assert st.values["position_violations"] == 0 and st.values["velocity_violations"] == 0
+
+
+def test_staleness_and_rate():
+    mon = Monitor(PANDA, Settings(stale_timeout=0.5))
+    st = mon.statuses(0.0, "panda")
+    assert by_name(st, "joint_states").level == STALE and by_name(st, "effort").level == STALE
+    for k in range(100):  # 100 messages in the window (0, 1] s after the first report
+        mon.process(NAMES, Q0, [], [], 0.01 * (k + 1), 0.01 * (k + 1))
+    st = by_name(mon.statuses(1.01, "panda"), "joint_states")
+    assert st.level == OK and st.values["rate_hz"] == pytest.approx(100 / 1.01)
+    assert st.values["age_s"] == pytest.approx(0.01)
+    st = mon.statuses(1.6, "panda")
+    assert by_name(st, "joint_states").level == STALE and "stale_timeout" in by_name(st, "joint_states").message
+
+
+def test_dropped_messages_counted():
+    mon = Monitor(PANDA, Settings())
+    mon.process(NAMES, Q0, [], [], 1.0, 1.0)
+    mon.note_dropped(7)
+    st = by_name(mon.statuses(1.1, "panda"), "joint_states")
+    assert st.level == WARN and st.values["dropped_messages"] == 7 and "7 dropped" in st.message
+
+
+def test_deterministic_replay():
+    rng = np.random.default_rng(3)
+    seq = [(Q0 + rng.normal(0, 0.01, 7), rng.normal(0, 0.3, 7), rng.normal(0, 5, 7), 1 + 0.001 * k)
+           for k in range(50)]
+    runs = []
+    for _ in range(2):
+        mon = Monitor(PANDA, Settings(acceleration_filter_hz=30.0))
+        runs.append([mon.process(NAMES, q, v, e, t, t + 1e-4) for q, v, e, t in seq])
+    for a, b in zip(*runs):
+        assert a.tau.tobytes() == b.tau.tobytes() and a.a_hat.tobytes() == b.a_hat.tobytes()
+
+
+def test_model_statuses():
+    st = model_status(PANDA, "panda")
+    assert st.level == OK and st.values["dof"] == 7 and st.values["urdf_sha256"] == PANDA.urdf_hash
+    assert st.values["total_mass_kg"] == PANDA.total_mass
+    assert waiting_model_status("x").level == STALE
+    assert waiting_model_status("x").message == "waiting for robot_description"
+    err = model_error_status(ModelError("bad"), "panda", PANDA)
+    assert err.level == ERROR and err.values["failure_label"] == EVALUATION_ERROR
+    with pytest.raises(ModelError):
+        build_model(Settings(), "<robot name='x'>")
+    m = build_model(Settings(robot_model="panda", payload_mass=2.0))
+    assert m.payload.mass == 2.0
+
+
+def _tracker_traj(times, positions):
+    return validate_trajectory(NAMES, NAMES, times, positions, min_points=1)
+
+
+def test_controller_tracker_states():
+    s = Settings(tracking_tolerance=0.05, stale_timeout=0.5)
+    mon, tr = Monitor(PANDA, s), ControllerTracker(PANDA, s)
+    assert tr.tick(0.0) is False and tr.state == "stale"
+    r = mon.process(NAMES, Q0, [], [], 1.0, 1.0)
+    assert tr.update(r, 1.0) and tr.state == "idle"
+    q1 = Q0 + 0.2
+    tr.set_trajectory(_tracker_traj([0.0, 1.0], [Q0, q1]), start_s=2.0)
+    # linear reference at t = 2.25: Q0 + 0.25·0.2
+    np.testing.assert_allclose(tr.reference(2.25), Q0 + 0.05, rtol=0, atol=1e-15)
+    r = mon.process(NAMES, Q0 + 0.05 + 0.01, [], [], 2.25, 2.25)
+    assert tr.update(r, 2.25) and tr.state == "tracking"
+    st = tr.status(2.3, "panda")
+    assert st.level == OK and st.values["panda_joint1_tracking_error_rad"] == pytest.approx(0.01, abs=1e-12)
+    assert st.values["time_in_state_s"] == pytest.approx(0.05)
+    r = mon.process(NAMES, Q0 + 0.5 * 0.2 + 0.08, [], [], 2.5, 2.5)
+    assert tr.update(r, 2.5) and tr.state == "deviating"
+    st = tr.status(2.5, "panda")
+    assert st.level == WARN and st.values["failure_label"] == CONTROL_ERROR and "0.05" in st.message
+    effort = np.zeros(7)
+    effort[0] = 90.0
+    r = mon.process(NAMES, Q0 + 0.12, [], effort, 2.6, 2.6)
+    assert tr.update(r, 2.6) and tr.state == "saturated" and tr.status(2.6, "p").level == ERROR
+    r = mon.process(NAMES[:3], Q0[:3], [], [], 2.7, 2.7)
+    assert tr.update(r, 2.7) and tr.state == "fault"
+    assert tr.status(2.7, "p").values["failure_label"] == STATE_ERROR
+    r = mon.process(NAMES, q1, [], [], 3.5, 3.5)  # after the last point: idle
+    assert tr.update(r, 3.5) and tr.state == "idle"
+    assert tr.tick(4.1) and tr.state == "stale" and tr.status(4.1, "p").level == STALE
+
+
+def test_tracker_reference_quintic_matches_interpolation():
+    from dyn_node.trajectory import interpolate
+
+    rng = np.random.default_rng(1)
+    P = Q0 + rng.normal(0, 0.1, (4, 7))
+    V = rng.normal(0, 0.1, (4, 7))
+    A = rng.normal(0, 0.1, (4, 7))
+    traj = validate_trajectory(NAMES, NAMES, [0.0, 0.4, 1.0, 1.5], P, V, A)
+    tr = ControllerTracker(PANDA, Settings())
+    tr.set_trajectory(traj, 10.0)
+    expected = interpolate(traj, "quintic").evaluate(np.array([0.7]))[0][0]
+    np.testing.assert_allclose(tr.reference(10.7), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tr.reference(10.4), P[1], rtol=0, atol=1e-12)
+    assert tr.reference(11.6) is None and tr.reference(9.9) is None

@@ -1,0 +1,291 @@
+"""The node's trajectory path: joint_trajectory → check in a worker → ~/feasibility and
+~/trajectory_effort, malformed trajectories rejected, joint_states answered during a long check."""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+import rclpy
+from builtin_interfaces.msg import Duration, Time
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from dyn_node.dynamics import Dynamics
+from dyn_node.errors import PLANNING_ERROR
+from dyn_node.feasibility import STATUS_NAME, check_trajectory
+from dyn_node.model import load_model
+from dyn_node.node import DynNode
+from dyn_node.status import ERROR, OK, WARN
+from dyn_node.trajectory import interpolate, validate_trajectory
+
+MODEL = load_model(builtin="planar_2link")
+NAMES = list(MODEL.joint_names)
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+SUMMARY_KEYS = ("feasible", "worst_joint", "worst_constraint", "worst_ratio",
+                "first_violation_time_s", "time_scale", "payload_margin_kg", "n_points",
+                "duration_s", "failure_label")
+_stamp = [500.0]
+
+
+def next_stamp() -> Time:
+    _stamp[0] += 1.0
+    return Time(sec=int(_stamp[0]), nanosec=250_000_000)
+
+
+def same(a: Time, b: Time) -> bool:
+    return a.sec == b.sec and a.nanosec == b.nanosec
+
+
+def dur(t: float) -> Duration:
+    sec = int(math.floor(t))
+    return Duration(sec=sec, nanosec=int(round((t - sec) * 1e9)))
+
+
+def trajectory(names, times, positions, velocities=None, accelerations=None) -> JointTrajectory:
+    msg = JointTrajectory()
+    msg.header.stamp = next_stamp()
+    msg.joint_names = list(names)
+    for i, t in enumerate(times):
+        p = JointTrajectoryPoint(positions=[float(x) for x in positions[i]], time_from_start=dur(t))
+        if velocities is not None:
+            p.velocities = [float(x) for x in velocities[i]]
+        if accelerations is not None:
+            p.accelerations = [float(x) for x in accelerations[i]]
+        msg.points.append(p)
+    return msg
+
+
+def kv(status) -> dict[str, str]:
+    return {k.key: k.value for k in status.values}
+
+
+class Harness:
+    def __init__(self, ctx: Context, namespace: str):
+        self.cond = threading.Condition()
+        self.got: dict[str, list] = {"feas": [], "teff": [], "gravity": []}
+        self.probe = rclpy.create_node("probe", namespace=namespace, context=ctx)
+        self.node = DynNode(namespace=namespace, context=ctx, parameter_overrides=[
+            Parameter("robot_model", value="planar_2link")])
+        self.traj_pub = self.probe.create_publisher(JointTrajectory, "joint_trajectory", 10)
+        self.js_pub = self.probe.create_publisher(JointState, "joint_states", RELIABLE)
+        sub = self.probe.create_subscription
+        sub(DiagnosticArray, "dyn_node/feasibility", self._cb("feas"), LATCHED)
+        sub(JointTrajectory, "dyn_node/trajectory_effort", self._cb("teff"), 10)
+        sub(JointState, "dyn_node/gravity_torque", self._cb("gravity"), RELIABLE)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self.ex.add_node(self.probe)
+        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
+        self.thread.start()
+        assert self.wait(lambda: self.traj_pub.get_subscription_count() >= 1
+                         and self.js_pub.get_subscription_count() >= 1
+                         and self.probe.count_publishers(f"{namespace}/dyn_node/feasibility") >= 1
+                         and self.probe.count_publishers(f"{namespace}/dyn_node/gravity_torque") >= 1)
+
+    def _cb(self, key: str) -> Callable[[Any], None]:
+        def cb(msg: Any) -> None:
+            with self.cond:
+                self.got[key].append(msg)
+                self.cond.notify_all()
+        return cb
+
+    def wait(self, pred: Callable[[], bool], timeout: float = 15.0) -> bool:
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while not pred():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self.cond.wait(min(left, 0.05))
+        return True
+
+    def verdict(self, msg: JointTrajectory, timeout: float = 30.0) -> DiagnosticArray:
+        hit: list = []
+
+        def pred() -> bool:
+            hit[:] = [a for a in self.got["feas"] if same(a.header.stamp, msg.header.stamp)]
+            return bool(hit)
+
+        assert self.wait(pred, timeout), "no ~/feasibility verdict for the trajectory"
+        return hit[0]
+
+    def close(self) -> None:
+        self.ex.shutdown(timeout_sec=5.0)
+        self.thread.join(timeout=5.0)
+        self.node.destroy_node()
+        self.probe.destroy_node()
+
+
+@pytest.fixture(scope="module")
+def harness():
+    from conftest import TEST_DOMAIN
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=TEST_DOMAIN)
+    h = Harness(ctx, "/feas")
+    yield h
+    h.close()
+    rclpy.try_shutdown(context=ctx)
+
+
+def rest_to_rest(duration: float):
+    """Quintic rest-to-rest move of joint1 by 2 rad: peak speed 1.875·2/duration (limit 3 rad/s)."""
+    return ([0.0, duration], [[0.0, 0.3], [2.0, 0.8]], [[0.0, 0.0], [0.0, 0.0]], [[0.0, 0.0], [0.0, 0.0]])
+
+
+def core_result(times, P, V, A):
+    traj = validate_trajectory(NAMES, NAMES, times, P, V, A)
+    return check_trajectory(Dynamics(MODEL), traj)
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("duration,feasible", [(4.0, True), (1.0, False)])
+def test_verdict_statuses_match_the_core(harness, duration, feasible):
+    times, P, V, A = rest_to_rest(duration)
+    msg = trajectory(NAMES, times, P, V, A)
+    harness.traj_pub.publish(msg)
+    arr = harness.verdict(msg)
+    want = core_result(times, P, V, A)
+    assert want.feasible is feasible
+    top = arr.status[0]
+    assert top.name == STATUS_NAME
+    assert top.hardware_id == MODEL.name
+    values = kv(top)
+    for key in SUMMARY_KEYS:
+        assert key in values
+    assert values["feasible"] == ("true" if feasible else "false")
+    assert top.message == want.message
+    assert float(values["time_scale"]) == pytest.approx(want.time_scale, rel=1e-12)
+    assert float(values["time_scale"]) == pytest.approx(1.875 * 2 / duration / 3.0, rel=1e-9)
+    if feasible:
+        assert top.level[0] in (OK, WARN)
+        assert top.message.startswith(f"feasible: worst {want.worst_joint} ")
+        assert top.message.endswith("could run 3.20× faster")
+        assert values["failure_label"] == ("" if top.level[0] == OK else PLANNING_ERROR)
+        assert values["first_violation_time_s"] == "nan"
+    else:
+        assert top.level[0] == ERROR
+        assert top.message.startswith("infeasible: joint1 velocity 125% of 3 rad/s at t = 0.50 s")
+        assert "run 1.25× slower" in top.message
+        assert values["failure_label"] == PLANNING_ERROR
+        assert 0.0 < float(values["first_violation_time_s"]) < 0.5
+    assert [s.name for s in arr.status[1:]] == [f"{STATUS_NAME}/{n}" for n in NAMES]
+    j1 = kv(arr.status[1])
+    assert float(j1["velocity_ratio"]) == pytest.approx(1.875 * 2 / duration / 3.0, rel=1e-9)
+    assert float(j1["effort_ratio"]) == pytest.approx(want.per_joint["joint1"]["effort"]["ratio"],
+                                                      rel=1e-12)
+    assert arr.status[1].level[0] == (ERROR if not feasible else arr.status[1].level[0])
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("mode", ["quintic", "cubic", "spline"])
+def test_trajectory_effort_is_rnea_at_waypoints_in_input_order(harness, mode):
+    t = np.array([0.0, 0.7, 1.5, 2.4])
+    P = np.column_stack([0.4 * np.sin(t), 0.2 + 0.5 * np.cos(t)])
+    V = np.column_stack([0.4 * np.cos(t), -0.5 * np.sin(t)]) if mode != "spline" else None
+    A = np.column_stack([-0.4 * np.sin(t), -0.5 * np.cos(t)]) if mode == "quintic" else None
+    order = [1, 0]  # the message lists joint2 first
+    msg = trajectory([NAMES[i] for i in order], t, P[:, order],
+                     None if V is None else V[:, order], None if A is None else A[:, order])
+    harness.traj_pub.publish(msg)
+    harness.verdict(msg)
+    assert harness.wait(lambda: any(same(m.header.stamp, msg.header.stamp) for m in harness.got["teff"]))
+    out = next(m for m in harness.got["teff"] if same(m.header.stamp, msg.header.stamp))
+    assert list(out.joint_names) == [NAMES[i] for i in order]
+    assert len(out.points) == len(t)
+    traj = validate_trajectory(NAMES, NAMES, t, P, V, A)
+    q, v, a, _ = interpolate(traj).evaluate(t)
+    dyn = Dynamics(MODEL)
+    for i, p in enumerate(out.points):
+        want = dyn.rnea(q[i], v[i], a[i])[order]
+        np.testing.assert_allclose(np.asarray(p.effort), want, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(np.asarray(p.positions), P[i, order])
+
+
+def _bad_messages():
+    good_t, good_p = [0.0, 1.0], [[0.0, 0.0], [0.1, 0.1]]
+    out = []
+    m = trajectory(NAMES, [], [])
+    out.append(("empty points", m, "no points"))
+    m = trajectory(NAMES, [0.0], [[0.0, 0.0]])
+    out.append(("single point", m, "at least 2"))
+    m = trajectory(NAMES, [0.0, 1.0, 1.0], [[0, 0], [0.1, 0.1], [0.2, 0.2]])
+    out.append(("non-increasing", m, "not strictly increasing"))
+    m = trajectory(NAMES, good_t, good_p)
+    m.points[1].positions = [0.1]
+    out.append(("length mismatch", m, "1 positions for 2 joints"))
+    m = trajectory(["joint1", "elbow"], good_t, good_p)
+    out.append(("unknown joint", m, "elbow"))
+    m = trajectory(["joint1"], good_t, [[0.0], [0.1]])
+    out.append(("missing joint", m, "joint2"))
+    m = trajectory(NAMES, good_t, [[0.0, 0.0], [float("nan"), 0.1]])
+    out.append(("nan", m, "nan"))
+    m = trajectory([], good_t, [[], []])
+    out.append(("no names", m, "no joint names"))
+    return out
+
+
+@pytest.mark.timeout(90)
+def test_malformed_trajectories_rejected_with_reason(harness):
+    cases = _bad_messages()
+    for label, msg, reason in cases:
+        # one at a time: ~/feasibility keeps only the last verdict (depth 1, transient local)
+        harness.traj_pub.publish(msg)
+        arr = harness.verdict(msg)
+        top = arr.status[0]
+        assert top.name == STATUS_NAME, label
+        assert top.level[0] == ERROR, label
+        assert reason in top.message, (label, top.message)
+        values = kv(top)
+        for key in SUMMARY_KEYS:
+            assert key in values, (label, key)
+        assert values["failure_label"] == PLANNING_ERROR
+        assert values["feasible"] == "false"
+    # a rejected trajectory produces no ~/trajectory_effort
+    assert not any(same(m.header.stamp, msg.header.stamp) for _, msg, _ in cases
+                   for m in harness.got["teff"])
+
+
+@pytest.mark.timeout(180)
+def test_hundred_thousand_points_checked_while_joint_states_answered(harness):
+    n = 100_000
+    t = np.linspace(0.0, 100.0, n)
+    P = np.column_stack([0.3 * (1 - np.cos(2 * np.pi * t / 20)), 0.2 * (1 - np.cos(2 * np.pi * t / 25))])
+    msg = JointTrajectory()
+    msg.header.stamp = next_stamp()
+    msg.joint_names = NAMES
+    msg.points = [JointTrajectoryPoint(positions=[float(a), float(b)], time_from_start=dur(float(x)))
+                  for x, a, b in zip(t, P[:, 0], P[:, 1])]
+    harness.traj_pub.publish(msg)
+    answered_before_verdict = 0
+    stamp = 9000.0
+    done = lambda: any(same(a.header.stamp, msg.header.stamp) for a in harness.got["feas"])  # noqa: E731
+    deadline = time.monotonic() + 150
+    while not done() and time.monotonic() < deadline:
+        stamp += 0.001
+        js = JointState(name=NAMES, position=[0.1, 0.2], velocity=[0.0, 0.0])
+        js.header.stamp = Time(sec=int(stamp), nanosec=int(round((stamp % 1) * 1e9)))
+        harness.js_pub.publish(js)
+        got = harness.wait(lambda: done() or any(same(g.header.stamp, js.header.stamp)
+                                                 for g in harness.got["gravity"][-5:]), 20.0)
+        assert got, "a joint_state went unanswered during the check"
+        if not done():
+            answered_before_verdict += 1
+    arr = harness.verdict(msg, timeout=1.0)
+    values = kv(arr.status[0])
+    assert values["n_points"] == str(n)
+    assert float(values["compute_time_s"]) > 0
+    assert arr.status[0].level[0] in (OK, WARN, ERROR)
+    print(f"answered {answered_before_verdict} joint_states during the check; compute_time_s {values['compute_time_s']}")
+    assert answered_before_verdict >= 3, answered_before_verdict

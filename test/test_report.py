@@ -1,0 +1,85 @@
+"""report.html: self-contained (no network), structure present, images embedded and equal to the PNGs."""
+from __future__ import annotations
+
+import base64
+import json
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+
+import jsonschema
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_audit import MS, T0, make_bag, trajectory_msg  # noqa: E402
+
+from dyn_node.audit import AuditOptions, run_audit  # noqa: E402
+from dyn_node.evidence import schema  # noqa: E402
+from dyn_node.report import PNG_FILES  # noqa: E402
+
+
+class Page(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.tags: list[tuple[str, dict]] = []
+        self.text: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+
+    def handle_data(self, data):
+        if data.strip():
+            self.text.append(data.strip())
+
+
+def parse(path: Path) -> tuple[str, Page]:
+    html = path.read_text(encoding="utf-8")
+    p = Page()
+    p.feed(html)
+    return html, p
+
+
+def test_report_is_self_contained_and_has_every_section(tmp_path):
+    trajs = [(100, trajectory_msg(T0 + 100 * MS)), (300, trajectory_msg(T0 + 300 * MS, scale=0.05))]
+    bag = make_bag(tmp_path / "bag", n=800, effort_spike=(500, 520), drop=range(600, 700),
+                   trajectories=trajs)
+    res = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "out")))
+    out = tmp_path / "out"
+    rec = json.loads((out / "evidence.json").read_text())
+    jsonschema.Draft202012Validator(schema()).validate(rec)
+    assert res.exit_code == 1
+    html, page = parse(out / "report.html")
+    # nothing fetched from anywhere: every src/href is a data: URI or an in-page anchor
+    for tag, attrs in page.tags:
+        for k in ("src", "href"):
+            if k in attrs:
+                assert attrs[k].startswith(("data:", "#")), (tag, attrs[k][:60])
+        assert tag not in ("script", "link", "iframe")
+    assert "http://" not in html and "https://" not in html
+    # every plot is embedded and identical to the PNG file beside the page
+    imgs = [a["src"] for t, a in page.tags if t == "img"]
+    assert len(imgs) == 3 and all(s.startswith("data:image/png;base64,") for s in imgs)
+    embedded = {base64.b64decode(s.split(",", 1)[1]) for s in imgs}
+    files = {(out / n).read_bytes() for n in PNG_FILES}
+    assert embedded == files and all(b.startswith(b"\x89PNG\r\n\x1a\n") for b in files)
+    # structure: verdict first, then the sections
+    ids = [a.get("id") for _, a in page.tags if a.get("id")]
+    assert ids[0] == "verdict"
+    for sec in ("effort", "utilisation", "violations", "trajectories", "input-quality", "recheck"):
+        assert sec in ids
+    assert page.text[page.text.index("VIOLATIONS FOUND") + 1] == rec["verdict"]["summary"]
+    # the tables carry the evidence's numbers
+    body = " ".join(page.text)
+    assert "panda_joint2" in body and "effort" in body
+    assert "gap" in body and "0.599" in body and "0.700" in body
+    assert "infeasible" in body and "feasible" in body
+
+
+def test_report_for_a_clean_bag_and_a_trajectory_only_bag(tmp_path):
+    bag = make_bag(tmp_path / "bag", n=200)
+    run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "o1")))
+    html, page = parse(tmp_path / "o1" / "report.html")
+    assert "FEASIBLE — no violations" in page.text
+    assert "No live limit violations (effort, position, velocity)." in page.text
+    assert not (tmp_path / "o1" / "trajectories.png").exists()
+    assert {a["alt"] for t, a in page.tags if t == "img"} == {
+        "per-joint effort vs limit over time", "utilisation heat map, joint by time"}

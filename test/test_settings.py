@@ -1,0 +1,71 @@
+"""Settings: every parameter validated as a whole; the shipped YAML holds every default."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import yaml
+
+from dyn_node.settings import (PARAMETERS, Settings, SettingsError, default_parameters, parse_locked_joints,
+                               settings_from_mapping)
+
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "dyn_node.yaml"
+
+
+def test_yaml_holds_every_parameter_with_its_default():
+    data = yaml.safe_load(CONFIG.read_text())
+    params = data["dyn_node"]["ros__parameters"]
+    assert params == default_parameters()
+    assert settings_from_mapping(params) == Settings()
+
+
+def test_defaults_from_the_issue():
+    s = Settings()
+    assert s.gravity == (0.0, 0.0, -9.81) and s.effort_warn_ratio == 0.9 and s.stale_timeout == 0.5
+    assert s.diagnostics_period == 1.0 and s.controller_status_period == 0.1
+    assert s.tracking_tolerance == 0.05 and s.acceleration_filter_hz == 0.0
+    assert s.acceleration_source == "finite_difference" and s.sample_period == 0.001
+    assert settings_from_mapping(Settings().to_parameters()) == Settings()
+
+
+@pytest.mark.parametrize("name,value,why", [
+    ("effort_warn_ratio", math.nan, "finite"),
+    ("effort_warn_ratio", 1.5, "outside"),
+    ("stale_timeout", -1.0, "outside"),
+    ("stale_timeout", "0.5", "number"),
+    ("include_friction", 1, "true or false"),
+    ("qos_depth", 0, "outside"),
+    ("qos_depth", 2.5, "integer"),
+    ("gravity", [0.0, -9.81], "3 numbers"),
+    ("gravity", [0.0, 0.0, math.inf], "finite"),
+    ("payload.com", ["a", 0.0, 0.0], "3 numbers"),
+    ("payload.mass", -0.1, "outside"),
+    ("acceleration_source", "central", "finite_difference"),
+    ("locked_joints", "a=x", "not a number"),
+    ("locked_joints", "a, a=1", "twice"),
+    ("no_such_parameter", 1.0, "unknown"),
+])
+def test_invalid_values_rejected_with_reason(name, value, why):
+    base = Settings(stale_timeout=0.7)
+    with pytest.raises(SettingsError, match=why) as info:
+        settings_from_mapping({"effort_warn_ratio": 0.8, name: value}, base=base)
+    assert name in str(info.value) or name == "no_such_parameter" or "locked_joints" in str(info.value)
+    assert base.stale_timeout == 0.7  # frozen: nothing half-applied
+
+
+def test_valid_update_over_base():
+    s = settings_from_mapping({"payload.mass": 1.5, "payload.com": [0, 0, 0.1], "locked_joints": "j1, j2=0.5"},
+                              base=Settings(robot_model="panda"))
+    assert s.robot_model == "panda" and s.payload_mass == 1.5 and s.payload_com == (0.0, 0.0, 0.1)
+    assert s.locked_joints == (("j1", 0.0), ("j2", 0.5))
+    assert s.model_key() != Settings(robot_model="panda").model_key()
+
+
+def test_locked_joints_parse_and_every_spec_has_description():
+    assert parse_locked_joints("") == ()
+    assert parse_locked_joints(" a = -0.25 ,b") == (("a", -0.25), ("b", 0.0))
+    for spec in PARAMETERS:
+        assert spec.description
+        if spec.low is not None:
+            assert spec.low <= spec.default <= spec.high

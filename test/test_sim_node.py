@@ -1,0 +1,142 @@
+"""dyn_sim as users run it: a separate process, talked to over DDS with rclpy only."""
+from __future__ import annotations
+
+import signal
+import time
+from typing import Callable
+
+import numpy as np
+import pytest
+
+from conftest import python_cmd
+from dyn_node.dynamics import Dynamics
+from dyn_node.model import builtin_urdf, load_model
+
+READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
+ARM = [f"panda_joint{i}" for i in range(1, 8)]
+
+
+def sim_cmd(*params: str) -> list[str]:
+    args = ["--ros-args", "-p", f"initial_positions:={READY}"]
+    for p in params:
+        args += ["-p", p]
+    return python_cmd("dyn_node.sim_node", *args)
+
+
+def spin_until(ctx, node, cond: Callable[[], bool], timeout: float, what: str) -> None:
+    from rclpy.executors import SingleThreadedExecutor
+
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    try:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+            ex.spin_once(timeout_sec=0.05)
+    finally:
+        ex.remove_node(node)
+
+
+def probe(ctx):
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+
+    node = Node("sim_probe", context=ctx)
+    got: dict[str, list] = {"js": [], "desc": []}
+    node.create_subscription(JointState, "joint_states", got["js"].append, 1000)
+    node.create_subscription(String, "robot_description", got["desc"].append,
+                             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                                        reliability=ReliabilityPolicy.RELIABLE))
+    return node, got
+
+
+@pytest.mark.timeout(60)
+def test_joint_states_at_configured_rate_and_latched_description(ros_context, spawn):
+    proc = spawn(sim_cmd("publish_rate_hz:=250.0"))
+    node, got = probe(ros_context)
+    try:
+        spin_until(ros_context, node, lambda: got["desc"] and len(got["js"]) >= 150, 30,
+                   "robot_description and 150 joint_states")
+    finally:
+        node.destroy_node()
+    # Latched: received although the probe subscribed after dyn_sim published it once.
+    assert got["desc"][0].data == builtin_urdf("panda")
+    js = got["js"]
+    assert list(js[0].name) == ARM + ["panda_finger_joint1", "panda_finger_joint2"]
+    stamps_ns = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in js])
+    # Stamps advance by exactly the publish period of simulation time (250 Hz → 4 ms).
+    assert set(np.diff(stamps_ns).tolist()) == {4_000_000}
+    # Holding still at READY with feedforward: measured effort is the gravity torque, which
+    # Pinocchio computes independently of MuJoCo.
+    last = js[-1]
+    np.testing.assert_allclose(last.position[:7], READY, atol=1e-9)
+    g = Dynamics(load_model(builtin="panda")).gravity(np.array(READY))
+    np.testing.assert_allclose(last.effort[:7], g, atol=1e-6)
+    rc, _, err = proc.stop(signal.SIGTERM)
+    assert rc == 0, err
+
+
+@pytest.mark.timeout(60)
+def test_executes_trajectory_and_rejects_bad_one(ros_context, spawn):
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    proc = spawn(sim_cmd())
+    node, got = probe(ros_context)
+    pub = node.create_publisher(JointTrajectory, "joint_trajectory", 10)
+    target = list(READY)
+    target[0] += 0.3
+    target[3] += 0.2
+
+    def traj(times: list[float], points: list[list[float]]) -> JointTrajectory:
+        msg = JointTrajectory(joint_names=ARM)  # zero stamp: start on receipt
+        for t, p in zip(times, points):
+            msg.points.append(JointTrajectoryPoint(
+                positions=p, time_from_start=Duration(sec=int(t), nanosec=int((t % 1) * 1e9))))
+        return msg
+
+    try:
+        spin_until(ros_context, node, lambda: len(got["js"]) >= 10 and pub.get_subscription_count() > 0,
+                   30, "dyn_sim to come up")
+        pub.publish(traj([0.5, 0.4], [target, READY]))  # times not increasing: rejected
+        pub.publish(traj([0.6], [target]))              # from the current state to target
+        spin_until(ros_context, node,
+                   lambda: np.abs(np.array(got["js"][-1].position[:7]) - target).max() < 1e-3
+                   and np.abs(got["js"][-1].velocity[:7]).max() < 1e-2,
+                   30, "the robot to reach the trajectory's point")
+    finally:
+        node.destroy_node()
+    js = got["js"]
+    pos = np.array([m.position[:7] for m in js])
+    # It moved along the commanded direction only (joints 1 and 4) and did not overshoot badly.
+    assert np.abs(pos[:, [1, 2, 4, 5, 6]] - np.array(READY)[[1, 2, 4, 5, 6]]).max() < 0.05
+    assert pos[:, 0].max() < target[0] + 0.05
+    rc, out, err = proc.stop(signal.SIGINT)
+    assert rc == 0, err
+    log = out + err
+    assert "trajectory rejected (planning error, bad_times)" in log
+    assert "executing trajectory: 1 points" in log
+
+
+@pytest.mark.timeout(60)
+def test_fast_mode_publishes_clock(ros_context, spawn):
+    from rosgraph_msgs.msg import Clock
+
+    proc = spawn(sim_cmd("real_time:=false", "publish_rate_hz:=100.0"))
+    node, got = probe(ros_context)
+    clocks: list = []
+    node.create_subscription(Clock, "/clock", clocks.append, 100)
+    try:
+        spin_until(ros_context, node, lambda: len(clocks) >= 20 and len(got["js"]) >= 20, 30,
+                   "/clock and joint_states")
+    finally:
+        node.destroy_node()
+    t = np.array([c.clock.sec + c.clock.nanosec * 1e-9 for c in clocks])
+    assert np.all(np.diff(t) > 0)
+    # Simulation time from 0, in 10 ms publish steps.
+    np.testing.assert_allclose(np.round(t / 0.01) * 0.01, t, atol=2e-9)
+    rc, _, err = proc.stop(signal.SIGINT)
+    assert rc == 0, err
