@@ -27,6 +27,10 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m benchmarks.run $(BENCH_ARGS)
 
+# Not in CI: the demo stack at 1 kHz with recording and splitting for SOAK_MINUTES (default 30).
+soak: $(STAMP)
+	$(PY) -m benchmarks.soak $(SOAK_ARGS)
+
 lock: $(STAMP)
 	@echo "review, then paste below the closure marker in requirements.txt:"
 	@$(PY) -m pip freeze --exclude-editable

@@ -13,23 +13,18 @@ from __future__ import annotations
 
 import math
 import queue
-import signal
 import struct
-import sys
 import threading
 import traceback
 from dataclasses import dataclass, replace
 from typing import Any, Callable
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from diagnostic_msgs.srv import SelfTest
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
                                 SetParametersResult)
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
@@ -42,6 +37,7 @@ from .errors import DynNodeError, STATE_ERROR, TrajectoryError
 from .model import RobotModel
 from .monitor import (ControllerTracker, Counts, Monitor, build_model, model_error_status, model_status,
                       waiting_model_status, JOINT_STATES)
+from .ros_main import spin_until_signalled
 from .ros_convert import (JointStateOut, RawTrajectory, diagnostic_array, encode_joint_trajectory_cdr,
                           fill_trajectory_effort, parse_joint_trajectory_cdr, s_to_stamp,
                           status_to_msg, stamp_to_s, trajectory_arrays)
@@ -515,33 +511,12 @@ class DynNode(Node):
 def main(args: list[str] | None = None) -> None:
     """Entry point of ``ros2 run dyn_node dyn_node``: spin until SIGINT/SIGTERM, then clean up.
 
-    SIGINT and SIGTERM only set an event that the spin loop checks: rclpy's own handlers would
-    shut the context down under a callback that is taking a message, which shows up as a
-    traceback at 1 kHz. The bag is finalised in ``destroy_node`` before the context goes.
-    A parameter rclpy itself refuses at start-up (wrong type, out of range) ends the process with
-    exit code 2 and a one-line error instead of a traceback.
+    The bag is finalised in ``destroy_node`` before the context goes. A parameter that cannot be
+    used at start-up (rclpy refuses its type or range, or the settings reject it) ends the process
+    with exit code 2 and a one-line error instead of a traceback.
     """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    node = None
-    code = 0
-    try:
-        node = DynNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (InvalidParameterValueException, InvalidParameterTypeException, SettingsError) as exc:
-        print(f"dyn_node: {exc}", file=sys.stderr)
-        code = 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    code = spin_until_signalled(DynNode, args, "dyn_node", fatal=(
+        InvalidParameterValueException, InvalidParameterTypeException, SettingsError))
     if code:
         raise SystemExit(code)
 

@@ -18,7 +18,6 @@ Run: ``ros2 run dyn_node dyn_sim`` or ``python -m dyn_node.sim_node [--ros-args 
 """
 from __future__ import annotations
 
-import signal
 import threading
 import time
 from dataclasses import dataclass
@@ -27,11 +26,9 @@ from typing import Any
 import rclpy
 from builtin_interfaces.msg import Time as TimeMsg
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -40,6 +37,7 @@ from trajectory_msgs.msg import JointTrajectory
 from .errors import DynNodeError
 from .model import DEFAULT_MODEL, model_from_source
 from .sim import DEFAULT_DAMPING_RATIO, DEFAULT_NATURAL_FREQUENCY, DEFAULT_TIMESTEP, SimConfig, Simulator
+from .ros_main import spin_until_signalled
 
 #: Largest backlog (s) a real-time run catches up. When the process was starved of CPU (a loaded
 #: machine), the steps that were due are computed in a burst with their own evenly spaced stamps,
@@ -267,34 +265,10 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Jazzy main(): spin until SIGINT/SIGTERM, then stop the sim thread and shut down cleanly.
-
-    The signal handlers only set a flag that the spin loop checks: a KeyboardInterrupt raised
-    while rclpy converts an incoming message surfaces as a pybind11 RuntimeError instead, so
-    raising from the handler would make a clean exit a matter of luck.
-    """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    node = None
-    rc = 0
-    try:
-        node = SimNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except DynNodeError as exc:
-        print(f"dyn_sim: {exc.failure_label}: {exc}", flush=True)
-        rc = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return rc
+    """Jazzy main(): spin until SIGINT/SIGTERM, then stop the sim thread and shut down cleanly
+    (signal handling in :mod:`dyn_node.ros_main`). A model that cannot be loaded exits with 1."""
+    return spin_until_signalled(SimNode, args, "dyn_sim", fatal=(DynNodeError,),
+                                describe=lambda exc: f"{exc.failure_label}: {exc}", fatal_code=1)
 
 
 if __name__ == "__main__":

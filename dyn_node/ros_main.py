@@ -1,0 +1,52 @@
+"""The process entry pattern shared by dyn_node and dyn_sim (Jazzy's main() with safe signals).
+
+SIGINT and SIGTERM only set an event that the spin loop checks. rclpy's own handlers shut the
+context down (or raise KeyboardInterrupt) wherever the executor happens to be, and while it is
+converting an incoming message that surfaces as a pybind11 RuntimeError and a traceback: at
+1 kHz that is most of the time. Checking an event makes a clean exit deterministic, at the cost
+of at most one spin timeout (0.1 s) of reaction time.
+"""
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from typing import Callable
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+
+def spin_until_signalled(make_node: Callable[[], Node], args: list[str] | None, program: str,
+                         fatal: tuple[type[BaseException], ...] = (),
+                         describe: Callable[[BaseException], str] = str, fatal_code: int = 2) -> int:
+    """Init rclpy, build the node, spin until SIGINT/SIGTERM, then destroy it and shut down.
+
+    Exceptions of the ``fatal`` types raised while building or spinning (configuration the
+    program cannot run with) print one line ``<program>: <describe(exc)>`` on stderr instead of a
+    traceback and make the return value ``fatal_code``; otherwise 0 is returned.
+    """
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    node = None
+    code = 0
+    try:
+        node = make_node()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except fatal as exc:
+        print(f"{program}: {describe(exc)}", file=sys.stderr, flush=True)
+        code = fatal_code
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
