@@ -61,12 +61,28 @@ class JointSample:
 
 
 def example_robot_data_dir() -> Path:
-    """Where example-robot-data's robots are installed (it ships data only, no Python module)."""
+    """Where example-robot-data's robots are installed (it ships data only, no Python module).
+
+    From PyPI (the .venv set-up) it lives under the wheel's ``cmeel.prefix``; in a colcon
+    workspace rosdep installs ``ros-jazzy-example-robot-data``, found through the ament index.
+    """
     try:
         dist = importlib.metadata.distribution("example-robot-data")
-    except importlib.metadata.PackageNotFoundError as exc:  # pragma: no cover - install problem
-        raise ModelError("example-robot-data is not installed", code="builtin_missing") from exc
-    return Path(str(dist.locate_file("cmeel.prefix/share/example-robot-data/robots")))
+        path = Path(str(dist.locate_file("cmeel.prefix/share/example-robot-data/robots")))
+        if path.is_dir():
+            return path
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        path = Path(get_package_share_directory("example-robot-data")) / "robots"
+        if path.is_dir():
+            return path
+    except Exception:  # not a ROS environment, or the package is not in the index
+        pass
+    raise ModelError("example-robot-data is not installed (pip: example-robot-data; ROS: "
+                     "ros-jazzy-example-robot-data)", code="builtin_missing")
 
 
 def builtin_urdf(name: str) -> str:
