@@ -12,10 +12,16 @@ Time scaling. Stretching the trajectory's duration by k (x = 1/k) gives q̇ ÷ k
 and torque τ(x) = s + w·x + i·x² with s = gravity + Coulomb friction, w = viscous friction,
 i = inertial + Coriolis + armature (:class:`~dyn_node.dynamics.TorqueTerms`). Each constraint at
 each sample is a polynomial of degree ≤ 3 in x (the torque-speed envelope piecewise so), so its
-first exit from the allowed band is found in closed form, vectorised over samples; the RMS
-(thermal) constraint, whose window covers a k-dependent stretch of samples, is found by bisection
-on k for that constraint alone. ``time_scale`` is the largest of these per-sample factors: the
-smallest k such that every k' ≥ k is feasible.
+first exit from the allowed band is found in closed form, vectorised over samples; cheap
+elementwise bounds (|s| + |w|·x + |i|·x² ≥ |τ(x)|) decide which samples could hold the largest
+factor, and only those are solved exactly. The RMS (thermal) constraint, whose window covers a
+k-dependent stretch of samples, is solved on k for that constraint alone (secant on log k, each
+trial decided exactly on a sparse grid of windows plus the gaps a bound cannot clear; see
+``_rms_time_scale``). ``time_scale`` is the largest of these per-sample factors: the smallest k
+such that every k' ≥ k is feasible.
+
+Cost: three batched RNEA passes (gravity, full, and the 1 kg payload for the margin; two without
+the margin) dominate; everything else is a fixed number of vectorised passes over the samples.
 
 Effort rate is dτ/dt, by finite differences inside each segment (where the interpolated motion is
 a polynomial and τ is smooth). Where a waypoint joins segments whose accelerations differ (cubic
@@ -310,34 +316,38 @@ def _first_exit(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, c3: np.ndarray,
 
 
 def _odd_exit(c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """First exit x of |c1·x + c2·x² + c3·x³| ≤ L per sample (M×m), exact where it can decide
-    the maximum of k = 1/x.
+    """Per column, the smallest first exit x over samples of |c1·x + c2·x² + c3·x³| ≤ L
+    (samples M×m; returns m), i.e. 1/(largest k): exact roots are solved only where a cheap
+    bound on a sample's k exceeds the best exact k found so far.
 
-    |c1|x + |c2|x² + |c3|x³ bounds the value from above; in k its crossing is the one positive
-    root of L·k³ − |c1|k² − |c2|k − |c3|, reached by Newton steps from above (the cubic is convex
-    and increasing there), so every iterate bounds each sample's k from above. Exact roots are
-    solved only where that bound exceeds the best exact k found at the bound's maximum.
+    In k = 1/x the bound |c1|x + |c2|x² + |c3|x³ ≤ L reads p(k) = L·k³ − |c1|k² − |c2|k − |c3|
+    ≥ 0; p has one positive root k_sum (one sign change), which bounds the sample's exact k
+    from above, and k_sum > k_best exactly when p(k_best) < 0: one Horner pass, no roots. The
+    first k_best is the exact k at the samples with the largest |c1|, |c2| and |c3|.
     """
+    m = c1.shape[1]
     A, B, C = np.abs(c1), np.abs(c2), np.abs(c3)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        k = np.maximum(np.maximum(3 * A / L, np.sqrt(3 * B / L)), np.cbrt(3 * C / L))
-        for _ in range(4):
-            f = ((L * k - A) * k - B) * k - C
-            fp = (3 * L * k - 2 * A) * k - B
-            step = f / fp
-            k = np.where((fp > 0) & (step > 0), k - step, k)
-        k *= 1 + 1e-9
-        x = np.divide(1.0, k)
-    rows = np.argmax(k, axis=0)
-    c = np.arange(k.shape[1])
-    best = _first_exit(np.zeros(len(c)), c1[rows, c], c2[rows, c], c3[rows, c], L)
-    with np.errstate(divide="ignore"):
-        k_best = np.where(best > 0, 1.0 / best, np.inf)
-    cand = k > k_best
-    if np.any(cand):
-        n, j = np.nonzero(cand)
-        x[n, j] = _first_exit(np.zeros(len(n)), c1[n, j], c2[n, j], c3[n, j], L[j])
-    return x
+    cols = np.arange(m)
+    rows = np.concatenate([np.argmax(A, axis=0), np.argmax(B, axis=0), np.argmax(C, axis=0)])
+    rc = np.tile(cols, 3)
+    x0 = _first_exit(np.zeros(len(rc)), c1[rows, rc], c2[rows, rc], c3[rows, rc], L[rc])
+    best = x0.reshape(3, m).min(axis=0)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        kb = np.where(np.isinf(best), 0.0, 1.0 / best) / (1 + 1e-9)
+        p = L * kb - A
+        p *= kb
+        p -= B
+        p *= kb
+        p -= C
+        cand = p < 0
+    none = kb == 0     # no exit found yet: any sample with motion may have one
+    if np.any(none):
+        cand[:, none] = (A[:, none] + B[:, none] + C[:, none]) > 0
+    n, j = np.nonzero(cand)
+    if len(n):
+        xs = _first_exit(np.zeros(len(n)), c1[n, j], c2[n, j], c3[n, j], L[j])
+        np.minimum.at(best, j, xs)
+    return best
 
 
 def _first_exit_quadratic(c0, c1, c2, limit) -> np.ndarray:
@@ -352,52 +362,84 @@ def _first_exit_quadratic(c0, c1, c2, limit) -> np.ndarray:
 
 
 def _effort_exit(s: np.ndarray, w: np.ndarray, i: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """First exit x of |s + w·x + i·x²| ≤ L per sample, exact where it can decide the maximum.
+    """Per column, the smallest first exit x over samples (M×m; returns m) of
+    |s + w·x + i·x²| ≤ L, i.e. 1/(largest k); 0 where |s| > L somewhere (outside the band
+    already at k = ∞).
 
-    |s| + |w|x + |i|x² bounds the torque from above, so its root x_lo ≤ x* cheaply bounds each
-    sample's factor k = 1/x* from above; exact roots are only needed where that bound exceeds the
-    largest exact factor found so far (elsewhere x_lo stands in: it cannot be the maximum).
+    |s| + |w|x + |i|x² bounds the torque from above, so a sample can only exit before the best
+    exact exit x_b found so far if that bound exceeds L at x_b: one pass, no roots. The first
+    x_b is the exact exit at the samples with the largest |s|, |w| and |i|.
     """
+    m = s.shape[1]
+    aS, aW, aI = np.abs(s), np.abs(w), np.abs(i)
+    cols = np.arange(m)
+    rows = np.concatenate([np.argmax(aS, axis=0), np.argmax(aW, axis=0), np.argmax(aI, axis=0)])
+    rc = np.tile(cols, 3)
+    x0 = _first_exit_quadratic(s[rows, rc], w[rows, rc], i[rows, rc], L[rc])
+    best = x0.reshape(3, m).min(axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        xb = best * (1 + 1e-9)
+        fin = np.isfinite(xb)
+        xb = np.where(fin, xb, 0.0)
+        q = aI * xb
+        q += aW
+        q *= xb
+        q += aS
+        cand = q >= L
+    if not np.all(fin):  # no exit found yet: any sample with motion may have one
+        nf = ~fin
+        cand[:, nf] |= (aW[:, nf] + aI[:, nf]) > 0
+    n, j = np.nonzero(cand)
+    if len(n):
+        np.minimum.at(best, j, _first_exit_quadratic(s[n, j], w[n, j], i[n, j], L[j]))
+    best[(aS > L).any(axis=0)] = 0.0
+    return best
+
+
+def _band_exit_bound(s: np.ndarray, w: np.ndarray, i: np.ndarray, L) -> np.ndarray:
+    """Elementwise lower bound on the first exit x of |s + w·x + i·x²| ≤ L: the root of
+    |s| + |w|·x + |i|·x² = L (0 where |s| ≥ L already, inf where nothing grows)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         room = L - np.abs(s)
         aw = np.abs(w)
-        k_ub = np.abs(i)
-        k_ub *= 4 * room
-        k_ub += aw * aw
-        np.sqrt(k_ub, out=k_ub)
-        k_ub += aw
-        del aw
-        k_ub /= 2 * room
-        k_ub[room <= 0] = np.inf
-        del room
-        x = np.divide(1.0, k_ub)
-    rows = np.argmax(k_ub, axis=0)
-    c = np.arange(s.shape[1])
-    best = _first_exit_quadratic(s[rows, c], w[rows, c], i[rows, c], L)
-    with np.errstate(divide="ignore"):
-        k_best = np.where(best > 0, 1.0 / best, np.inf)
-    cand = k_ub > k_best
-    if np.any(cand):
-        n, j = np.nonzero(cand)
-        x[n, j] = _first_exit_quadratic(s[n, j], w[n, j], i[n, j], L[j])
-    x[np.abs(s) > L] = 0.0   # outside the band already at k = ∞
+        d = np.abs(i) * (4 * room)
+        d += aw * aw
+        np.sqrt(d, out=d)
+        d += aw
+        x = 2 * room / d
+    x[~(room > 0)] = 0.0
     return x
+
+
+def _envelope_floor(curve: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """min of the envelope (piecewise linear, held constant outside its points) over the speeds
+    [0, speed], elementwise."""
+    sp, ef = curve[:, 0], curve[:, 1]
+    at = np.interp(speed, sp, ef)
+    if np.all(ef[1:] <= ef[:-1]):     # the usual falling curve: its floor is itself
+        return at
+    prefix = np.minimum.accumulate(ef)
+    k = np.searchsorted(sp, speed, side="right") - 1
+    return np.where(k >= 0, np.minimum(prefix[np.maximum(k, 0)], at), ef[0])
 
 
 def _envelope_exit(s, w, i, speed, curve: np.ndarray) -> np.ndarray:
     """First x where |s + w·x + i·x²| reaches the envelope E(|speed|·x) (piecewise linear, held
-    constant outside its points): one quadratic per curve piece."""
-    sp, ef = curve[:, 0], curve[:, 1]
+    constant outside its points): one quadratic per curve piece. ``curve`` is one P×2 curve or
+    one per element (n×P×2)."""
+    n = len(s)
+    sp = np.broadcast_to(curve[..., 0], (n, curve.shape[-2]))
+    ef = np.broadcast_to(curve[..., 1], (n, curve.shape[-2]))
     v = np.abs(speed)
     with np.errstate(divide="ignore", invalid="ignore"):
-        bounds = np.where(v[:, None] > 0, sp[None, :] / v[:, None], np.where(sp[None, :] > 0, np.inf, 0.0))
+        bounds = np.where(v[:, None] > 0, sp / v[:, None], np.where(sp > 0, np.inf, 0.0))
     best = np.full(s.shape, np.inf)
     # piece before the first point and after the last: constant envelope
-    pieces = [(np.zeros_like(s), bounds[:, 0], ef[0], 0.0, 0.0)]
-    for m in range(len(sp) - 1):
-        slope = (ef[m + 1] - ef[m]) / (sp[m + 1] - sp[m])
-        pieces.append((bounds[:, m], bounds[:, m + 1], ef[m], slope, sp[m]))
-    pieces.append((bounds[:, -1], np.full_like(s, np.inf), ef[-1], 0.0, 0.0))
+    pieces = [(np.zeros_like(s), bounds[:, 0], ef[:, 0], 0.0, 0.0)]
+    for m in range(sp.shape[1] - 1):
+        slope = (ef[:, m + 1] - ef[:, m]) / (sp[:, m + 1] - sp[:, m])
+        pieces.append((bounds[:, m], bounds[:, m + 1], ef[:, m], slope, sp[:, m]))
+    pieces.append((bounds[:, -1], np.full_like(s, np.inf), ef[:, -1], 0.0, 0.0))
     for lo, hi, e0, slope, s0 in pieces:
         # ±(s + w x + i x²) − (e0 + slope·(v·x − s0)) = 0
         for sign in (1.0, -1.0):
@@ -482,20 +524,27 @@ def _evaluate(coeffs: np.ndarray, breaks: np.ndarray, smp: _Samples,
     return out
 
 
-def _rms_value(tt: np.ndarray, tau2_cum: np.ndarray, hold2: float, window: float) -> np.ndarray:
-    """Windowed RMS ending at each sample, with the window reaching back before the start filled
-    by the hold torque² ``hold2``. ``tau2_cum`` is the cumulative trapezoid integral of τ²."""
-    start = tt - window
-    inside = np.interp(start, tt, tau2_cum)
-    before = np.minimum(start - tt[0], 0.0) * hold2
-    return np.sqrt(np.maximum(tau2_cum - inside - before, 0.0) / window)
-
-
 def _cumtrapz(tt: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Cumulative trapezoid integral of f (M or M×m) over times tt, starting at 0."""
-    out = np.zeros_like(f)
-    dt = np.diff(tt) if f.ndim == 1 else np.diff(tt)[:, None]
-    np.cumsum(0.5 * (f[1:] + f[:-1]) * dt, axis=0, out=out[1:])
+    fT = np.ascontiguousarray(f.T)           # sums along contiguous memory
+    out = np.empty_like(fT)
+    out[..., 0] = 0.0
+    np.add(fT[..., 1:], fT[..., :-1], out=out[..., 1:])
+    out[..., 1:] *= 0.5 * np.diff(tt)
+    np.cumsum(out[..., 1:], axis=-1, out=out[..., 1:])
+    return out.T
+
+
+def _windowed(tt: np.ndarray, cum: np.ndarray, window: np.ndarray,
+              hold: np.ndarray) -> np.ndarray:
+    """Integrals over the trailing window ending at each sample (r×M) from cumulative
+    integrals ``cum`` (r×M rows over times tt), window lengths ``window`` (r, s) and values
+    ``hold`` (r) integrated before the start: cum(t) − cum(t − window) + hold·(time before tt[0])."""
+    out = np.empty_like(cum)
+    for r in range(len(cum)):
+        start = tt - window[r]
+        out[r] = cum[r] - np.interp(start, tt, cum[r])
+        out[r] += np.maximum(tt[0] - start, 0.0) * hold[r]
     return out
 
 
@@ -522,13 +571,34 @@ def _unit_payload_dynamics(dynamics: Dynamics) -> Dynamics:
 
 def check_trajectory(dynamics: Dynamics, traj: Trajectory,
                      options: FeasibilityOptions = FeasibilityOptions()) -> FeasibilityResult:
-    """Check ``traj`` (model order) against every limit of ``dynamics.model``; see module doc."""
+    """Check ``traj`` (model order) against every limit of ``dynamics.model``; see module doc.
+
+    Raises only :class:`TrajectoryError` (so a caller can always publish a rejected status):
+    a numerical failure deep inside (overflow, a Pinocchio error) becomes one with code
+    ``evaluation_failed``.
+    """
+    try:
+        return _check(dynamics, traj, options)
+    except TrajectoryError:
+        raise
+    except (ArithmeticError, ValueError, RuntimeError, MemoryError) as exc:
+        raise TrajectoryError(f"trajectory could not be evaluated: {type(exc).__name__}: {exc}",
+                              code="evaluation_failed") from exc
+
+
+#: Beyond this magnitude a motion or torque is treated as non-finite: its square (RMS, power)
+#: and the time-scale polynomials would overflow.
+_HUGE = 1e100
+
+
+def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) -> FeasibilityResult:
     t_start = time.perf_counter()
     if traj.n_points < 2:
         raise TrajectoryError(f"trajectory has {traj.n_points} point(s); at least 2 are needed "
                               "to check motion", code="too_few_points")
     if not (options.sample_period > 0 and math.isfinite(options.sample_period)):
-        raise ValueError("sample_period must be a positive number of seconds")
+        raise TrajectoryError("sample_period must be a positive number of seconds",
+                              code="bad_options")
     model = dynamics.model
     lim: JointLimits = model.limits
     names = list(model.joint_names)
@@ -551,7 +621,10 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
     terms = dynamics.terms_batch(Q, V, A)
     S, W, I = terms.static, terms.viscous, terms.inertial
     tau = S + W + I
-    if not (np.all(np.isfinite(tau)) and np.all(np.isfinite(J))):
+    with np.errstate(invalid="ignore"):
+        huge = not (np.abs(tau).max() < _HUGE and np.abs(V).max() < _HUGE
+                    and np.abs(A).max() < _HUGE and (J.size == 0 or np.abs(J).max() < _HUGE))
+    if huge:
         raise TrajectoryError("the interpolated motion or its torque is not finite (values too "
                               "large for the time steps)", code="non_finite")
     coulomb = np.asarray(model.pin_model.friction, dtype=float) if dynamics.options.include_friction \
@@ -571,10 +644,6 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
     def limited(arr: np.ndarray) -> np.ndarray:
         return np.flatnonzero(np.isfinite(arr))
 
-    def record_exit(kind: str, cols: np.ndarray, x: np.ndarray) -> None:
-        idx = np.argmin(x, axis=0)
-        xstar[kind] = x[idx, np.arange(len(cols))]
-
     for kind, arr, power, lim_arr in (("velocity", V, 1, lim.velocity),
                                       ("acceleration", A, 2, lim.acceleration),
                                       ("jerk", J, 3, lim.jerk)):
@@ -583,8 +652,9 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
             val = np.abs(arr[:, cols])
             L = lim_arr[cols]
             values[kind] = (cols, val, np.broadcast_to(L, val.shape))
+            # the smallest (L/|value|)^(1/power) is at the largest |value|
             with np.errstate(divide="ignore"):
-                record_exit(kind, cols, (L / val) ** (1.0 / power))
+                xstar[kind] = (L / val.max(axis=0)) ** (1.0 / power)
     del J  # the largest temporaries go as soon as they are used: long trajectories are big
 
     cols = limited(lim.effort)
@@ -592,7 +662,7 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
         L = lim.effort[cols]
         values["effort"] = (cols, np.abs(tau[:, cols]), np.broadcast_to(L, (len(tt), len(cols))))
         s, w, i = S[:, cols], W[:, cols], I[:, cols]
-        record_exit("effort", cols, _effort_exit(s, w, i, L))
+        xstar["effort"] = _effort_exit(s, w, i, L)
         over = np.abs(s) / L
         if np.any(over > 1):
             n, c = np.unravel_index(int(np.argmax(over)), over.shape)   # the worst pose
@@ -602,31 +672,60 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
     if len(ecols):
         env = lim.effort_envelope(V)[:, ecols]
         values["effort_speed"] = (ecols, np.abs(tau[:, ecols]), env)
-        # |τ| ≤ min(envelope) is sufficient, so its exit bounds k from above; exact envelope
-        # exits are needed only where that bound exceeds the best exact k (cf. _effort_exit)
-        e_min = np.array([lim.effort_speed_curve[j][:, 1].min() for j in ecols])
-        xs = _effort_exit(S[:, ecols], W[:, ecols], I[:, ecols], np.maximum(e_min, 1e-300))
+        # Exact envelope exits only where a cheap bound cannot rule a sample out: below the
+        # best exact exit x_ref found so far the envelope is at least its minimum over speeds
+        # [0, |v|·x_ref], and the band |τ| ≤ that floor is left no later than the envelope.
+        # Columns whose curves have the same number of points are solved in one batch.
+        curves = [lim.effort_speed_curve[j] for j in ecols]
+        Se, We, Ie, Ve = S[:, ecols], W[:, ecols], I[:, ecols], V[:, ecols]
+        groups: dict[int, list[int]] = {}
+        for c, cv in enumerate(curves):
+            groups.setdefault(len(cv), []).append(c)
+
+        def exact(n: np.ndarray, c: np.ndarray) -> np.ndarray:
+            """Exact envelope exits of samples n of columns c (flat), batched by curve size."""
+            x = np.empty(len(n))
+            for cs in groups.values():
+                cs = np.array(cs)
+                sel = np.flatnonzero(np.isin(c, cs))
+                if len(sel):
+                    nn, cc = n[sel], c[sel]
+                    stack = np.stack([curves[k] for k in cs])[np.searchsorted(cs, cc)]
+                    x[sel] = _envelope_exit(Se[nn, cc], We[nn, cc], Ie[nn, cc], Ve[nn, cc], stack)
+            return x
+
+        # a first best exit: each column's sample most likely to leave first, by the bound
+        # with the envelope's minimum (valid at any speed)
+        e_min = np.array([max(cv[:, 1].min(), 1e-300) for cv in curves])
+        c0 = np.arange(len(ecols))
+        xs = exact(np.argmin(_band_exit_bound(Se, We, Ie, e_min), axis=0), c0)
+        floor = np.empty_like(Ve)
+        av = np.abs(Ve)
+        for c, cv in enumerate(curves):
+            with np.errstate(invalid="ignore"):
+                floor[:, c] = _envelope_floor(cv, np.where(av[:, c] > 0, av[:, c] * xs[c], 0.0))
+        n, c = np.nonzero(_band_exit_bound(Se, We, Ie, floor) < xs)
+        # the exact exit from the floor band is a tighter bound (two quadratics, not one per
+        # envelope piece) for samples that start inside it
+        sn, fl = Se[n, c], floor[n, c]
+        keep = (np.abs(sn) >= fl) | (_first_exit_quadratic(sn, We[n, c], Ie[n, c], fl) < xs[c])
+        n, c = n[keep], c[keep]
+        if len(n):
+            np.minimum.at(xs, c, exact(n, c))
         for c, j in enumerate(ecols):
-            curve = lim.effort_speed_curve[j]
-            n0 = int(np.argmin(xs[:, c]))
-            exact0 = _envelope_exit(S[n0:n0 + 1, j], W[n0:n0 + 1, j], I[n0:n0 + 1, j],
-                                    V[n0:n0 + 1, j], curve)[0]
-            cand = np.flatnonzero(xs[:, c] < exact0)
-            xs[n0, c] = exact0
-            if len(cand):
-                xs[cand, c] = _envelope_exit(S[cand, j], W[cand, j], I[cand, j], V[cand, j], curve)
-            e0 = float(np.interp(0.0, curve[:, 0], curve[:, 1]))
-            if np.any(np.abs(S[:, j]) > e0):
-                n = int(np.argmax(np.abs(S[:, j])))   # the worst pose
-                infinite_reason.append(("effort_speed", names[j], n, float(abs(S[n, j])), e0))
-        record_exit("effort_speed", ecols, xs)
+            e0 = float(np.interp(0.0, curves[c][:, 0], curves[c][:, 1]))
+            sj = S[:, j]
+            if np.any(np.abs(sj) > e0):
+                n = int(np.argmax(np.abs(sj)))   # the worst pose
+                infinite_reason.append(("effort_speed", names[j], n, float(abs(sj[n])), e0))
+        xstar["effort_speed"] = xs
 
     cols = limited(lim.power)
     if len(cols):
         L = lim.power[cols]
         v = V[:, cols]
         values["power"] = (cols, np.abs(tau[:, cols] * v), np.broadcast_to(L, v.shape))
-        record_exit("power", cols, _odd_exit(S[:, cols] * v, W[:, cols] * v, I[:, cols] * v, L))
+        xstar["power"] = _odd_exit(S[:, cols] * v, W[:, cols] * v, I[:, cols] * v, L)
 
     rate_cols = limited(lim.effort_rate)
     need_step = mode == "cubic"
@@ -637,7 +736,7 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
         dI = _segment_derivative(I[:, rate_cols], smp.first, smp.last, smp.h)
         rate = dG + dW + dI
         values["effort_rate"] = (rate_cols, np.abs(rate), np.broadcast_to(L, rate.shape))
-        record_exit("effort_rate", rate_cols, _odd_exit(dG, dW, dI, L))
+        xstar["effort_rate"] = _odd_exit(dG, dW, dI, L)
     effort_step = {}
     if len(traj.times) > 2:
         steps = np.abs(tau[smp.first[1:]] - tau[smp.last[:-1]])  # (N-2)×nv
@@ -660,10 +759,9 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
         R = lim.rms_effort[rms_cols]
         Wn = lim.rms_window[rms_cols]
         h2 = hold[rms_cols] ** 2
-        vals = np.empty((len(tt), len(rms_cols)))
-        cum = _cumtrapz(tt, tau[:, rms_cols] ** 2)
-        for c in range(len(rms_cols)):
-            vals[:, c] = _rms_value(tt, cum[:, c], float(h2[c]), float(Wn[c]))
+        # windowed ∫τ² (the payload margin's RMS part reuses it)
+        rms_win = _windowed(tt, _cumtrapz(tt, tau[:, rms_cols] ** 2).T, Wn, h2)
+        vals = np.sqrt(np.maximum(rms_win, 0.0) / Wn[:, None]).T
         s_max = np.maximum(np.abs(S[:, rms_cols]).max(axis=0), np.abs(hold[rms_cols]))
         static_bad = s_max > R
         for c in np.flatnonzero(static_bad):
@@ -674,8 +772,16 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
         good = ~static_bad
         if np.any(good):
             gc = rms_cols[good]
-            # RMS ≤ peak |τ|, so the effort-type exit at the RMS limit bounds k from above
-            x_up = _effort_exit(S[:, gc], W[:, gc], I[:, gc], R[good]).min(axis=0)
+            # RMS ≤ peak |τ| ≤ max|s| + max|w|·x + max|i|·x², so where that stays within the
+            # RMS limit every k is feasible: a bracket end (the exact peak-torque exit where
+            # gravity alone just reaches the limit and that bound is useless)
+            sg, wg, ig = S[:, gc], W[:, gc], I[:, gc]
+            x_up = _band_exit_bound(np.abs(sg).max(axis=0), np.abs(wg).max(axis=0),
+                                    np.abs(ig).max(axis=0), R[good])
+            tight = ~(x_up > 0)
+            if np.any(tight):
+                x_up[tight] = _effort_exit(sg[:, tight], wg[:, tight], ig[:, tight],
+                                           R[good][tight])
             with np.errstate(divide="ignore"):
                 k_up = np.where(np.isinf(x_up), 0.0, 1.0 / x_up)
             kr[good] = _rms_time_scale(tt, S[:, gc], W[:, gc], I[:, gc], h2[good], Wn[good],
@@ -723,12 +829,16 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
             continue
         cols, val, L = values[kind]
         with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(L > 0, val / L, np.where(val > 0, np.inf, 0.0))
+            if L.strides[0] == 0 and np.all(L[0] > 0):    # one positive limit per column
+                ratio = val / L[0]
+            else:
+                ratio = np.where(L > 0, val / L, np.where(val > 0, np.inf, 0.0))
         peak = np.argmax(ratio, axis=0)
         over = val > L
         anyo = over.any(axis=0)
-        firsts = np.argmax(over, axis=0)
-        dur = smp.weight @ over
+        if anyo.any():
+            firsts = np.argmax(over, axis=0)
+            dur = smp.weight @ over
         for c, j in enumerate(cols):
             n = int(peak[c])
             per_joint[names[j]][kind] = {"ratio": float(ratio[n, c]), "time_s": float(tt[n]),
@@ -776,7 +886,8 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
     margin = math.inf
     effort_limited = any(kind in values for kind in EFFORT_KINDS)
     if options.compute_payload_margin and effort_limited:
-        margin = _payload_margin(dynamics, Q, V, A, tau, values, smp, lim, hold)
+        margin = _payload_margin(dynamics, Q, V, A, tau, values, smp, lim, hold,
+                                 rms_win if "rms_effort" in values else None)
 
     # --- verdict ---------------------------------------------------------------------------------
     worst_joint, worst_kind, worst_ratio = "", "", 0.0
@@ -841,49 +952,153 @@ def _fmt_factor(f: float) -> str:
 
 def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
                     hold2: np.ndarray, window: np.ndarray, R: np.ndarray, k_up: np.ndarray,
-                    iters: int = 14) -> np.ndarray:
-    """Smallest k per column with windowed RMS ≤ R, by bisection on log k (vectorised over
-    columns), bracketed by k = 1 (so the answer agrees with the direct check) and ``k_up``."""
-    dt = np.diff(tt)[:, None]
+                    rtol: float = 1e-6) -> np.ndarray:
+    """Smallest k per column with windowed RMS ≤ R (the windowed mean square is taken to fall
+    with k, as everywhere in this module), bracketed by k = 1 (so the answer agrees with the
+    direct check) and ``k_up``; the result is the feasible end of a bracket of relative width
+    ≤ ``rtol``, found by the secant method on log k (safeguarded by bisection).
 
-    def ok(k: np.ndarray) -> np.ndarray:
-        tk = s + w / k + i / (k * k)
-        tk *= tk
-        cum = np.zeros_like(tk)
-        np.cumsum(0.5 * (tk[1:] + tk[:-1]) * dt, axis=0, out=cum[1:])
-        # a window of ``window`` s of stretched time covers window/k s of the original samples,
-        # over which the stretched integral is k × the original-time integral; before the start
-        # the robot holds q0
-        out = np.empty(len(k), dtype=bool)
-        for c in range(len(k)):
-            start = tt - window[c] / k[c]
-            held = np.maximum(tt[0] - start, 0.0) * hold2[c]
-            ms = k[c] * (cum[:, c] - np.interp(start, tt, cum[:, c]) + held) / window[c]
-            out[c] = bool(np.all(ms <= R[c] * R[c]))
+    Each trial k is decided exactly but cheaply. With x = 1/k, τ² = Σₚ xᵖ·Pₚ (P₀ = s²,
+    P₁ = 2sw, P₂ = w² + 2si, P₃ = 2wi, P₄ = i²), so the five cumulative integrals of Pₚ are
+    computed once and E(t), the integral of τ² up to t (with the hold torque before the start),
+    costs a few gathers at any k. The windowed integral is E(tₙ) − E(tₙ − window·x); it is
+    evaluated exactly at a sparse grid of window ends, and since E never decreases, a window
+    ending between grid points a < b integrates at most E(t_b) − E(t_a − window·x). Only the
+    gaps where that bound exceeds the limit are evaluated sample by sample.
+    """
+    moving = k_up > 0
+    if not np.all(moving):   # k_up = 0: no speed-dependent torque at all, nothing to search
+        out = np.zeros(len(k_up))
+        if np.any(moving):
+            out[moving] = _rms_time_scale(tt, s[:, moving], w[:, moving], i[:, moving],
+                                          hold2[moving], window[moving], R[moving],
+                                          k_up[moving], rtol)
         return out
+    M, m = s.shape
+    # cum[c, p]: cumulative trapezoid integral of Pₚ of column c at every sample; built one
+    # column at a time (sums along contiguous memory, small temporaries)
+    cum = np.empty((m, 5, M))
+    half_dt = 0.5 * np.diff(tt)
+    P = np.empty((5, M))
+    for c in range(m):
+        sc, wc, ic = s[:, c], w[:, c], i[:, c]
+        np.multiply(sc, sc, out=P[0])
+        np.multiply(sc, wc, out=P[1])
+        P[1] *= 2
+        np.multiply(sc, ic, out=P[2])
+        P[2] *= 2
+        P[2] += wc * wc
+        np.multiply(wc, ic, out=P[3])
+        P[3] *= 2
+        np.multiply(ic, ic, out=P[4])
+        out = cum[c]
+        out[:, 0] = 0.0
+        np.add(P[:, 1:], P[:, :-1], out=out[:, 1:])
+        out[:, 1:] *= half_dt
+        np.cumsum(out[:, 1:], axis=1, out=out[:, 1:])
+    del P
+    span = np.diff(tt)
+    R2W = R * R * window
+    powers = np.arange(5)
+    stride = max(1, M // 256)
+    grid = np.unique(np.concatenate([np.arange(0, M, stride), [M - 1]]))
+    ng = len(grid)
+    gc = np.repeat(np.arange(m), ng)
+    gn = np.tile(grid, m)
+    gap_len = np.diff(grid) - 1
 
-    m = len(R)
-    one = np.ones(m)
-    ok1 = ok(one)
+    def E_pair(k: np.ndarray, c: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(E(tₙ), E(tₙ − window·x)) for flat column / sample indices c, n."""
+        x = 1.0 / k[c]
+        xp = x[:, None] ** powers
+        end = np.einsum("lp,lp->l", cum[c, :, n], xp)
+        start = tt[n] - window[c] * x
+        j = np.searchsorted(tt, start, side="right")
+        j -= 1
+        np.clip(j, 0, M - 2, out=j)
+        h = span[j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = np.clip(np.where(h > 0, (start - tt[j]) / h, 0.0), 0.0, 1.0)
+        lo = np.einsum("lp,lp->l", cum[c, :, j], xp)
+        hi = np.einsum("lp,lp->l", cum[c, :, j + 1], xp)
+        return end, lo + f * (hi - lo) - np.maximum(tt[0] - start, 0.0) * hold2[c]
+
+    def g(k: np.ndarray) -> np.ndarray:
+        """log of the largest windowed-mean-square / R² per column (≤ 0: feasible at k)."""
+        end, st = E_pair(k, gc, gn)
+        scale = (k / R2W)[:, None]
+        end = end.reshape(m, ng)
+        st = st.reshape(m, ng)
+        worst = (scale[:, 0] * (end - st).max(axis=1)) if ng else np.zeros(m)
+        ub = scale * (end[:, 1:] - st[:, :-1])
+        # the true maximum is on the grid or in a gap whose bound exceeds the grid maximum
+        # (which, when the grid is feasible, covers every gap whose bound exceeds the limit)
+        doubt = (ub > worst[:, None] * (1.0 - 1e-12)) & (gap_len > 0)
+        cc, gg = np.nonzero(doubt)
+        if len(cc):
+            ln = gap_len[gg]
+            tot = int(ln.sum())
+            first = np.repeat(grid[gg] + 1 - (np.cumsum(ln) - ln), ln)
+            n = first + np.arange(tot)
+            c = np.repeat(cc, ln)
+            e, s_ = E_pair(k, c, n)
+            np.maximum.at(worst, c, (k / R2W)[c] * (e - s_))
+        return np.log(np.maximum(worst, 1e-300))
+
+    ltol = math.log1p(rtol)
+    g1 = g(np.ones(m))
+    ok1 = g1 <= 0.0
     hi = np.where(ok1, np.minimum(1.0, np.maximum(k_up, 1e-12)), np.maximum(k_up, 1.0))
-    lo = np.where(ok1, hi / 16, 1.0)
-    for _ in range(4):   # widen downwards while the lower end is still feasible
-        low_ok = ok1 & ok(lo)
-        if not np.any(low_ok):
+    # lower end: k = 1 where that fails, else step down by 8× while still feasible (below
+    # 8⁻⁶ of the feasible end the speed-dependent torque has vanished for any purpose)
+    lo = np.where(ok1, hi / 8, 1.0)
+    gl = np.where(ok1, g(lo), g1)
+    for _ in range(6):
+        down = ok1 & (gl <= 0)
+        if not np.any(down):
             break
-        hi = np.where(low_ok, lo, hi)
-        lo = np.where(low_ok, lo / 16, lo)
-    for _ in range(iters):
-        mid = np.sqrt(lo * hi)
-        good = ok(mid)
-        hi = np.where(good, mid, hi)
-        lo = np.where(good, lo, mid)
+        hi = np.where(down, lo, hi)
+        lo = np.where(down, lo / 8, lo)
+        gl = np.where(down, g(lo), gl)
+    hi = np.maximum(hi, lo)
+    gh = np.where(hi == 1.0, g1, np.nan)
+    need = np.isnan(gh)
+    if np.any(need):
+        gh = np.where(need, g(hi), gh)
+    ll, lh = np.log(lo), np.log(hi)
+    # secant through the last two trial points (g is smooth near the root, but for kinks where
+    # window starts cross samples), kept inside the bracket; a secant step that is not at most
+    # half the previous one bisects instead; a step inside the tolerance is pushed 0.4·tol
+    # past the newest point so that it brackets the root
+    u1, f1, u2, f2 = ll, gl, lh, gh
+    for _ in range(200):
+        width = lh - ll
+        active = width > ltol
+        if not np.any(active):
+            break
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            u = u1 - f1 * (u1 - u2) / (f1 - f2)
+            step = np.abs(u - u1)
+            slow = ~np.isfinite(u) | (u <= ll) | (u >= lh) | (step > 0.5 * np.abs(u1 - u2))
+        u = np.where(slow, 0.5 * (ll + lh), u)
+        small = ~slow & (step < 0.4 * ltol)
+        u = np.where(small, u1 + np.where(f1 > 0, 0.4, -0.4) * ltol, u)
+        u = np.clip(u, ll + 0.4 * ltol, lh - 0.4 * ltol)
+        u = np.where(active, u, lh)
+        gu = g(np.exp(u))
+        good = gu <= 0.0
+        lh = np.where(active & good, u, lh)
+        ll = np.where(active & ~good, u, ll)
+        u2, f2 = np.where(active, u1, u2), np.where(active, f1, f2)
+        u1, f1 = np.where(active, u, u1), np.where(active, gu, f1)
+    hi = np.where(lh == math.log(1.0), 1.0, np.exp(lh))
     return np.where(k_up > 0, hi, 0.0)
 
 
-def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold) -> float:
+def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold, rms_win) -> float:
     """Largest extra mass m (kg) at the payload point keeping every effort-type limit at the
-    trajectory's own timing: τ = τ0 + m·τ1 is affine in m, so each sample gives an interval."""
+    trajectory's own timing: τ = τ0 + m·τ1 is affine in m, so each sample gives an interval.
+    ``rms_win``: the windowed ∫τ0² of the RMS-limited joints (m×M), already computed."""
     heavy = _unit_payload_dynamics(dynamics)
     tau1 = heavy.rnea_batch(Q, V, A) - tau0
     lo, hi = -math.inf, math.inf
@@ -903,12 +1118,16 @@ def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold) -> float:
         hi = min(hi, float(np.nanmin(up)))
         lo = max(lo, float(np.nanmax(dn)))
 
-    if "effort" in values:
+    if ("effort" in values and "effort_speed" in values
+            and np.array_equal(values["effort"][0], values["effort_speed"][0])):
+        # the same joints: both bands at once, with the tighter limit at each sample
         cols, _, L = values["effort"]
-        linear(tau0[:, cols], tau1[:, cols], L)
-    if "effort_speed" in values:
-        cols, _, L = values["effort_speed"]
-        linear(tau0[:, cols], tau1[:, cols], L)
+        linear(tau0[:, cols], tau1[:, cols], np.minimum(L, values["effort_speed"][2]))
+    else:
+        for kind in ("effort", "effort_speed"):
+            if kind in values:
+                cols, _, L = values[kind]
+                linear(tau0[:, cols], tau1[:, cols], L)
     if "power" in values:
         cols, _, L = values["power"]
         v = V[:, cols]
@@ -923,31 +1142,27 @@ def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold) -> float:
         linear(d0, d1, L)
     if "rms_effort" in values:
         cols = values["rms_effort"][0]
-        heavy_hold = heavy.gravity(Q[0]) - hold
+        heavy_hold = (heavy.gravity(Q[0]) - hold)[cols]
+        h0 = hold[cols]
+        Wn, R = lim.rms_window[cols], lim.rms_effort[cols]
         tt = smp.t
-        for j in cols:
-            Wn, R = float(lim.rms_window[j]), float(lim.rms_effort[j])
-            a0, a1 = tau0[:, j], tau1[:, j]
-            start = tt - Wn
-            pre = np.maximum(tt[0] - start, 0.0)
-
-            def window(f: np.ndarray, h: float) -> np.ndarray:
-                cum = _cumtrapz(tt, f)
-                return cum - np.interp(start, tt, cum) + pre * h
-
-            C = window(a0 * a0, hold[j] ** 2)
-            B = window(a0 * a1, hold[j] * heavy_hold[j])
-            Aq = window(a1 * a1, heavy_hold[j] ** 2)
-            # A m² + 2B m + C ≤ R² W
-            c = C - R * R * Wn
-            r1, r2 = _quadratic_roots(Aq, 2 * B, c)
-            with np.errstate(invalid="ignore"):
-                up = np.where(Aq > 0, np.fmax(r1, r2), np.inf)
-                dn = np.where(Aq > 0, np.fmin(r1, r2), -np.inf)
-            if np.any(np.isnan(r1) & (c > 0)):
-                return -math.inf
-            hi = min(hi, float(np.nanmin(up)))
-            lo = max(lo, float(np.nanmax(dn)))
+        a0, a1 = tau0[:, cols], tau1[:, cols]
+        # windowed integrals of a0·a1 and a1² (hold torques before the start); a0² is given
+        cum = _cumtrapz(tt, np.concatenate([a0 * a1, a1 * a1], axis=1)).T
+        win = _windowed(tt, cum, np.concatenate([Wn, Wn]),
+                        np.concatenate([h0 * heavy_hold, heavy_hold * heavy_hold]))
+        m_ = len(cols)
+        C, B, Aq = rms_win, win[:m_], win[m_:]
+        # A m² + 2B m + C ≤ R² W
+        c = C - (R * R * Wn)[:, None]
+        r1, r2 = _quadratic_roots(Aq, 2 * B, c)
+        with np.errstate(invalid="ignore"):
+            up = np.where(Aq > 0, np.fmax(r1, r2), np.inf)
+            dn = np.where(Aq > 0, np.fmin(r1, r2), -np.inf)
+        if np.any(np.isnan(r1) & (c > 0)):
+            return -math.inf
+        hi = min(hi, float(np.nanmin(up)))
+        lo = max(lo, float(np.nanmax(dn)))
     if lo > hi:
         return -math.inf
     return hi

@@ -433,3 +433,127 @@ def test_hundred_thousand_points_finish():
     assert r.compute_time_s > 0 and math.isfinite(r.time_scale)
     assert r.waypoint_effort.shape == (n, 7)
     assert r.feasible
+
+
+# ----------------------------------------------------------------------------------------------
+# The fast paths inside the checker (bounds that skip exact roots, the RMS time-scale search on
+# a sparse grid with gap bounds) against straightforward references on random data: every
+# sample solved exactly, and the RMS contract checked by a direct windowed integral.
+
+def _random_terms(rng: np.random.Generator, M: int, m: int):
+    """Random static / viscous / inertial torque columns, smooth plus noise, some sign changes."""
+    t = np.sort(rng.uniform(0.0, 3.0, M))
+    t[0] = 0.0
+    dup = rng.choice(np.arange(1, M - 1), 3, replace=False)
+    t[dup] = t[dup - 1]                        # waypoints appear twice, as in the sampler
+    ph = rng.uniform(0, 2 * np.pi, (3, m))
+    fr = rng.uniform(0.5, 6.0, (3, m))
+    amp = rng.uniform(0.1, 20.0, (3, m))
+    S, W, I = (amp[k] * np.sin(fr[k] * t[:, None] + ph[k]) + rng.normal(0, 0.05 * amp[k], (M, m))
+               for k in range(3))
+    return t, S, W, I
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_exit_shortcuts_match_per_sample_exact_roots(seed):
+    from dyn_node import feasibility as F
+
+    rng = np.random.default_rng(100 + seed)
+    M, m = 2000, 4
+    _, S, W, I = _random_terms(rng, M, m)
+    L = np.abs(S).max(axis=0) * rng.uniform(0.7, 1.6, m)   # some columns statically infeasible
+    got = F._effort_exit(S, W, I, L)
+    for c in range(m):
+        # every sample solved exactly (elementwise; no bounds, no pruning)
+        ref = float(F._first_exit_quadratic(S[:, c], W[:, c], I[:, c], L[c]).min())
+        if np.any(np.abs(S[:, c]) > L[c]):
+            ref = 0.0
+        assert got[c] == ref
+    Lp = rng.uniform(5.0, 50.0, m)
+    got = F._odd_exit(S, W, I, Lp)
+    for c in range(m):
+        ref = float(F._first_exit(np.zeros(M), S[:, c], W[:, c], I[:, c], Lp[c]).min())
+        assert got[c] == ref
+
+
+def _rms_ok(t, s, w, i, hold2, window, R, k) -> bool:
+    """Direct check of the stretched trajectory: time t·k, torque s + w/k + i/k², windowed
+    mean square by trapezoids and linear interpolation, hold torque before the start."""
+    tk = t * k
+    f = (s + w / k + i / (k * k)) ** 2
+    cum = np.concatenate(([0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(tk))))
+    start = tk - window
+    inside = cum - np.interp(start, tk, cum) + np.maximum(tk[0] - start, 0.0) * hold2
+    return bool(np.all(inside / window <= R * R))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_rms_time_scale_meets_its_contract_on_random_torques(seed):
+    from dyn_node import feasibility as F
+
+    rng = np.random.default_rng(200 + seed)
+    M, m = 1500, 3
+    t, S, W, I = _random_terms(rng, M, m)
+    hold2 = S[0] ** 2
+    window = rng.uniform(0.05, 1.0, m)
+    peak = np.abs(S + W + I).max(axis=0)
+    s_max = np.maximum(np.abs(S).max(axis=0), np.sqrt(hold2))
+    R = s_max + rng.uniform(0.02, 1.5, m) * (peak - s_max).clip(0.1)
+    k_up = 1.0 / F._effort_exit(S, W, I, R)
+    k = F._rms_time_scale(t, S, W, I, hold2, window, R, k_up)
+    for c in range(m):
+        args = (t, S[:, c], W[:, c], I[:, c], hold2[c], window[c], R[c])
+        assert k[c] > 0
+        assert _rms_ok(*args, k[c]), (seed, c)
+        assert _rms_ok(*args, k[c] * 1.001)
+        assert not _rms_ok(*args, k[c] / (1 + 1e-5)), (seed, c)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
+    """Random curves (rising and falling pieces; at high speed some fall below what gravity
+    alone needs, so samples start outside parts of the envelope) against every sample solved
+    exactly with no bounds."""
+    from dyn_node import feasibility as F
+
+    rng = np.random.default_rng(300 + seed)
+    model = base_model("panda")
+    names = model.joint_names
+    limits = {}
+    for j, n in enumerate(names):
+        eff = float(rng.uniform(15.0, 90.0))
+        pts = np.sort(rng.uniform(0.05, 1.5, int(rng.integers(1, 4))))
+        curve = [[0.0, eff]] + [[float(p), eff * float(rng.uniform(0.05, 1.0))] for p in pts]
+        limits[n] = dict(has_effort_limits=True, max_effort=1e6, effort_speed_curve=curve)
+    m = model.with_limits(None).with_limits({"joint_limits": limits})
+    traj = make_traj("panda", ("quintic", "cubic", "spline")[seed % 3])
+    dyn = Dynamics(m)
+    r = check_trajectory(dyn, traj, FeasibilityOptions(sample_period=0.004,
+                                                       compute_payload_margin=False))
+    smp = F._sample(traj.times, 0.004, 250_000)
+    pp = interpolate(traj, traj.natural_interpolation)
+    Q, V, A = F._evaluate(pp.coeffs, pp.breaks, smp, 3)
+    terms = dyn.terms_batch(Q, V, A)
+    x = min(float(F._envelope_exit(terms.static[:, j], terms.viscous[:, j], terms.inertial[:, j],
+                                   V[:, j], m.limits.effort_speed_curve[j]).min())
+            for j in range(m.nv))
+    curves = m.limits.effort_speed_curve
+    if any(np.any(np.abs(terms.static[:, j]) > curves[j][0, 1]) for j in range(m.nv)):
+        # gravity alone exceeds the zero-speed envelope: no slowdown helps
+        assert r.time_scale_by_kind["effort_speed"] == math.inf and not r.feasible
+    else:
+        assert r.time_scale_by_kind["effort_speed"] == (0.0 if math.isinf(x) else 1.0 / x)
+
+
+def test_pathological_input_raises_trajectory_error_only():
+    model = base_model("planar_2link")
+    names = model.joint_names
+    # finite but astronomically fast: squares would overflow inside the checks
+    traj = validate_trajectory(names, names, [0.0, 1.0], [[0.0, 0.0], [1e120, 0.0]])
+    with pytest.raises(TrajectoryError) as info:
+        check_trajectory(Dynamics(model), traj)
+    assert info.value.code == "non_finite"
+    ok = validate_trajectory(names, names, [0.0, 1.0], [[0.0, 0.0], [0.1, 0.0]])
+    with pytest.raises(TrajectoryError) as info:
+        check_trajectory(Dynamics(model), ok, FeasibilityOptions(sample_period=0.0))
+    assert info.value.code == "bad_options"
