@@ -196,10 +196,12 @@ class SeriesBins:
 class LiveStats:
     """Time bins, per-joint peaks and violation episodes of the accepted joint states.
 
-    Rows are buffered and processed in vectorised batches (the per-message cost of the audit
-    beyond the Monitor is a few row copies); results equal a message-by-message update."""
+    Rows are buffered (references to the monitor's result arrays, which are never written after
+    they are returned) and processed in vectorised batches; results equal a message-by-message
+    update, including the order in which violation episodes close."""
 
     BATCH = 1024
+    KINDS = ("effort", "position", "velocity")
 
     def __init__(self, nv: int, lo: np.ndarray, hi: np.ndarray, vel: np.ndarray):
         self.nv, self.lo, self.hi, self.vel = nv, lo, hi, vel
@@ -209,35 +211,32 @@ class LiveStats:
         self.peak_t = np.zeros(nv, dtype=np.int64)
         self.peak_tau = np.zeros(nv)
         self.peak_limit = np.full(nv, np.inf)
-        B = self.BATCH
-        self.T = np.zeros(B, dtype=np.int64)
-        self.TAU, self.UTIL, self.LIM = np.zeros((B, nv)), np.zeros((B, nv)), np.zeros((B, nv))
-        self.Q, self.V, self.MEAS = np.zeros((B, nv)), np.zeros((B, nv)), np.zeros((B, nv))
-        self.k = 0
+        self.rows: list[tuple] = []
+        self._nan = np.full(nv, np.nan)
 
     def add(self, t_ns: int, tau, util, limit, q, v, measured) -> None:
-        k = self.k
-        self.T[k] = t_ns
-        self.TAU[k] = tau
-        self.UTIL[k] = util
-        self.LIM[k] = limit
-        self.Q[k] = q
-        self.V[k] = v
-        self.MEAS[k] = np.nan if measured is None else measured
-        self.k = k + 1
-        if self.k == self.BATCH:
+        rows = self.rows
+        rows.append((t_ns, tau, util, limit, q, v, measured))
+        if len(rows) >= self.BATCH:
             self.flush()
 
     def flush(self) -> None:
-        n = self.k
+        rows = self.rows
+        n = len(rows)
         if not n:
             return
-        self.k = 0
-        T, TAU, UTIL, LIM, Q, V = (self.T[:n], self.TAU[:n], self.UTIL[:n], self.LIM[:n],
-                                   self.Q[:n], self.V[:n])
+        self.rows = []
+        nan = self._nan
+        T = np.array([r[0] for r in rows], dtype=np.int64)
+        TAU = np.array([r[1] for r in rows], dtype=float)
+        UTIL = np.array([r[2] for r in rows], dtype=float)
+        LIM = np.array([r[3] for r in rows], dtype=float)
+        Q = np.array([r[4] for r in rows], dtype=float)
+        V = np.array([r[5] for r in rows], dtype=float)
+        MEAS = np.array([nan if r[6] is None else r[6] for r in rows], dtype=float)
         if self.series is None:
             self.series = SeriesBins(self.nv, int(T[0]))
-        self.series.add_batch(T, TAU, UTIL, LIM, self.MEAS[:n])
+        self.series.add_batch(T, TAU, UTIL, LIM, MEAS)
         k = np.argmax(UTIL, axis=0)  # first occurrence of each joint's batch maximum
         cols = np.arange(self.nv)
         best = UTIL[k, cols]
@@ -251,23 +250,87 @@ class LiveStats:
         over_p = (Q < self.lo) | (Q > self.hi)
         AV = np.abs(V)
         over_v = AV > self.vel
-        any_over = (over_e | over_p | over_v).any(axis=1)
-        # Episodes change only on rows that are over a limit and on the row right after one.
-        need = any_over.copy()
-        need[1:] |= any_over[:-1]
-        if self.episodes.open:
-            need[0] = True
-        ep, lo, hi, vel = self.episodes, self.lo, self.hi, self.vel
-        for r in np.flatnonzero(need):
-            t = int(T[r])
+        if self.episodes.open or over_e.any() or over_p.any() or over_v.any():
+            self._episodes(T, UTIL, LIM, Q, AV, (over_e, over_p, over_v))
+
+    def _values(self, kind: int, r: int, j: int, UTIL, LIM, Q, AV) -> tuple[float, float, float]:
+        """(value, limit, severity) of row r, joint j, as a message-by-message update has them."""
+        lo, hi, vel = self.lo, self.hi, self.vel
+        if kind == 0:
+            u, lim = float(UTIL[r, j]), float(LIM[r, j])
+            return u * lim, lim, u
+        if kind == 1:
+            qj = float(Q[r, j])
+            below = qj < lo[j]
+            return qj, float(lo[j] if below else hi[j]), float(lo[j] - qj if below else qj - hi[j])
+        return float(AV[r, j]), float(vel[j]), float(AV[r, j] / vel[j])
+
+    def _episodes(self, T, UTIL, LIM, Q, AV, overs) -> None:
+        """Episodes of consecutive over-limit rows per (joint, kind), run by run.
+
+        Equal to calling :meth:`Episodes.update` row by row, joint by joint, kind by kind: an
+        episode's peak is its earliest sample of largest severity (a NaN first sample stays the
+        peak, as ``>`` never replaces it), episodes close on the first row not over the limit, in
+        (row, joint, kind) order, and episodes still open keep that order for :meth:`finish`."""
+        ep = self.episodes
+        n = len(T)
+        sevs = (UTIL, np.where(Q < self.lo, self.lo - Q, Q - self.hi), AV / self.vel)
+        closing: list[tuple[int, int, int, tuple[int, str] | None, dict]] = []
+        opening: list[tuple[int, int, int, tuple[int, str], dict]] = []
+        for kind_i, kind in enumerate(self.KINDS):
+            OVER = overs[kind_i]
+            SEV = sevs[kind_i]
+            any_col = OVER.any(axis=0)
             for j in range(self.nv):
-                u, lim, qj = float(UTIL[r, j]), float(LIM[r, j]), float(Q[r, j])
-                ep.update(j, "effort", bool(over_e[r, j]), t, u * lim, lim, u)
-                below = qj < lo[j]
-                ep.update(j, "position", bool(over_p[r, j]), t, qj, float(lo[j] if below else hi[j]),
-                          float(lo[j] - qj if below else qj - hi[j]))
-                ep.update(j, "velocity", bool(over_v[r, j]), t, float(AV[r, j]), float(vel[j]),
-                          float(AV[r, j] / vel[j]))
+                key = (j, kind)
+                cur = ep.open.get(key)
+                if not any_col[j]:
+                    if cur is not None:
+                        closing.append((0, j, kind_i, key, cur))
+                    continue
+                o = OVER[:, j]
+                starts = np.flatnonzero(np.r_[o[0], o[1:] & ~o[:-1]])
+                ends = np.flatnonzero(np.r_[o[:-1] & ~o[1:], o[-1]])  # last row of each run
+                sev = SEV[:, j]
+                if cur is not None and starts[0] != 0:
+                    closing.append((0, j, kind_i, key, cur))
+                    cur = None
+                for s, e in zip(starts.tolist(), ends.tolist()):
+                    seg = sev[s:e + 1]
+                    clean = np.where(np.isnan(seg), -np.inf, seg)
+                    m = int(np.argmax(clean))
+                    if cur is not None:  # the open episode continues from the last batch (s == 0)
+                        d = cur
+                        d["end"] = int(T[e])
+                        d["n"] += e - s + 1
+                        if clean[m] > d["sev"]:
+                            value, limit, severity = self._values(kind_i, s + m, j, UTIL, LIM, Q, AV)
+                            d["peak"], d["peak_t"], d["limit"], d["sev"] = value, int(T[s + m]), limit, severity
+                        cur = None
+                    else:
+                        if math.isnan(seg[0]) or not clean[m] > clean[0]:
+                            m = 0
+                        value, limit, severity = self._values(kind_i, s + m, j, UTIL, LIM, Q, AV)
+                        d = {"j": j, "kind": kind, "start": int(T[s]), "end": int(T[e]),
+                             "peak_t": int(T[s + m]), "peak": value, "limit": limit, "n": e - s + 1,
+                             "sev": severity}
+                        if e == n - 1:
+                            opening.append((s, j, kind_i, key, d))
+                            continue
+                        closing.append((e + 1, j, kind_i, None, d))
+                        continue
+                    if e != n - 1:
+                        closing.append((e + 1, j, kind_i, key, d))
+        closing.sort(key=lambda c: c[:3])
+        for _r, _j, _k, key, d in closing:
+            if key is not None:
+                del ep.open[key]
+            ep.total += 1
+            if len(ep.closed) < MAX_EPISODES:
+                ep.closed.append(d)
+        opening.sort(key=lambda c: c[:3])
+        for _r, _j, _k, key, d in opening:
+            ep.open[key] = d
 
     def finish(self) -> None:
         self.flush()
@@ -519,8 +582,6 @@ class Audit:
         lim = model.limits
         lo, hi, vel_lim = lim.position_lower, lim.position_upper, lim.velocity
         names = model.joint_names
-        effort_lim = np.where(lim.effort > 0, lim.effort, np.inf)
-        has_curve = any(c is not None for c in lim.effort_speed_curve)
 
         roles: dict[str, str | None] = {}
         wanted = set(opts.topics)
@@ -630,8 +691,8 @@ class Audit:
                 if want_out[ROLE_ID]:
                     pend[ROLE_ID].put(stamp_key, r.tau)
                 tau = r.tau
-                live.add(t_ns, tau, r.utilisation, self._limit_at(r.v) if has_curve else effort_lim,
-                         r.q, r.v, None if r.residual is None else r.residual + tau)
+                live.add(t_ns, tau, r.utilisation, r.effort_limit, r.q, r.v,
+                         None if r.residual is None else r.residual + tau)
             elif role == ROLE_TRAJECTORY:
                 n_traj += 1
                 entry, ok_traj, res = self._trajectory(m, n_traj - 1)
@@ -855,13 +916,6 @@ class Audit:
         rec.finished_utc = utc_now()
         self.n_msgs = n_msgs
         return rec.to_dict(), exit_code, series
-
-    def _limit_at(self, v: np.ndarray) -> np.ndarray:
-        lim = self.model.limits
-        e = np.where(lim.effort > 0, lim.effort, np.inf)
-        if any(c is not None for c in lim.effort_speed_curve):
-            e = np.minimum(e, lim.effort_envelope(v))
-        return e
 
     def _settings_dict(self) -> dict:
         d = self.settings.to_parameters()

@@ -548,24 +548,59 @@ def decode_joint_state(data: bytes) -> JointStateData:
                     _name_cache[raw] = names
             if le:
                 _last_names[:] = [raw, names]
-        arrays = []
-        dt = "<f8" if le else ">f8"
-        for _ in range(3):
-            off = (off + 3) & ~3
-            count = u32(buf, off)[0]
-            off += 4
-            if count:
-                off = (off + 7) & ~7
-                if off + 8 * count > n:
-                    raise ValueError("JointState CDR array runs past the end")
-                a = np.frombuffer(buf, dtype=dt, count=count, offset=off)
-                arrays.append(a.astype(float) if not le else a)  # read-only view
-                off += 8 * count
-            else:
-                arrays.append(_EMPTY)
+        layout = _layouts.get((off, n)) if le else None
+        if layout is not None and layout[0].unpack_from(buf, off) == layout[1]:
+            # Same array sizes where the last such message had them: one view, three slices.
+            _, _, first, span, parts = layout
+            whole = np.frombuffer(buf, dtype="<f8", count=span, offset=first) if span else _EMPTY
+            arrays = [whole[i:j] if j else _EMPTY for i, j in parts]
+        else:
+            arrays = []
+            dt = "<f8" if le else ">f8"
+            off0, count_at, counts, starts = off, [], [], []
+            for _ in range(3):
+                off = (off + 3) & ~3
+                count = u32(buf, off)[0]
+                count_at.append(off)
+                counts.append(count)
+                off += 4
+                if count:
+                    off = (off + 7) & ~7
+                    if off + 8 * count > n:
+                        raise ValueError("JointState CDR array runs past the end")
+                    a = np.frombuffer(buf, dtype=dt, count=count, offset=off)
+                    arrays.append(a.astype(float) if not le else a)  # read-only view
+                    starts.append(off)
+                    off += 8 * count
+                else:
+                    arrays.append(_EMPTY)
+                    starts.append(None)
+            if le and len(_layouts) < 64:
+                _layouts[(off0, n)] = _layout(off0, count_at, counts, starts)
     except struct.error as exc:
         raise ValueError(f"JointState CDR ends early ({exc})") from None
     return JointStateData(sec, nsec, sec * 1_000_000_000 + nsec, frame, names, *arrays)
+
+
+_layouts: dict[tuple[int, int], tuple] = {}  # (offset after the names, size) → array layout
+
+
+def _layout(off0: int, count_at: list[int], counts: list[int], starts: list[int | None]) -> tuple:
+    """The little-endian array layout of a JointState whose arrays start at ``off0``: a Struct
+    reading the three counts, the counts, and where the doubles lie (all 8-aligned, so one
+    float64 view from the first array covers all three)."""
+    fmt, pos = "<", off0
+    for at in count_at:
+        fmt += f"{at - pos}xI"
+        pos = at + 4
+    present = [s for s in starts if s is not None]
+    if not present:
+        return struct.Struct(fmt), tuple(counts), 0, 0, [(0, 0)] * 3
+    first = present[0]
+    last = max(s + 8 * c for s, c in zip(starts, counts) if s is not None)
+    parts = [((s - first) // 8, (s - first) // 8 + c) if s is not None else (0, 0)
+             for s, c in zip(starts, counts)]
+    return struct.Struct(fmt), tuple(counts), first, (last - first) // 8, parts
 
 
 def _parse_names(raw: bytes, u32) -> tuple[str, ...]:

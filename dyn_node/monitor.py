@@ -23,6 +23,7 @@ A message without velocities is computed with q̇ = 0.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -122,6 +123,22 @@ class SampleResult:
     measured_ratio: float = float("nan")
     zero_stamp: bool = False
     out_of_order: bool = False
+    effort_limit: np.ndarray | None = None  # effort limit at the current speed (N·m; inf: none)
+
+
+_new = object.__new__
+
+
+def _accepted(t: float, q: np.ndarray, v: np.ndarray, a: np.ndarray, g: np.ndarray, tau: np.ndarray,
+              residual: np.ndarray | None, util: np.ndarray, measured_ratio: float, zero: bool,
+              ooo: bool, lim: np.ndarray) -> SampleResult:
+    # The hot path's constructor: the frozen dataclass __init__ sets 14 fields one by one through
+    # object.__setattr__ (~2 µs); filling the instance dict directly gives the same object.
+    r = _new(SampleResult)
+    r.__dict__.update(accepted=True, error=None, stamp_s=t, q=q, v=v, a_hat=a, gravity=g, tau=tau,
+                      residual=residual, utilisation=util, measured_ratio=measured_ratio,
+                      zero_stamp=zero, out_of_order=ooo, effort_limit=lim)
+    return r
 
 
 @dataclass
@@ -139,7 +156,13 @@ class Counts:
 
 
 class _Window:
-    """Worst cases since the last report (reset by :meth:`Monitor.statuses`)."""
+    """Worst cases since the last report (reset by :meth:`Monitor.statuses`).
+
+    Accepted messages are queued as rows (references to their result arrays) and folded into the
+    worst cases in batches by :meth:`fold`; the fold gives exactly the state a message-by-message
+    update would (earliest maximum wins, NaN never wins, squares summed in message order)."""
+
+    FOLD_ROWS = 512
 
     def __init__(self, nv: int, start_s: float | None):
         self.start_s = start_s
@@ -156,6 +179,48 @@ class _Window:
         self.vel_value = np.zeros(nv)
         self.res_sq = np.zeros(nv)
         self.res_n = np.zeros(nv, dtype=np.int64)
+        # (q, v, model ratio |τ|/limit, limit, measured ratio | None, residual | None) per message
+        self.rows: list[tuple] = []
+
+    @staticmethod
+    def _worst(x: np.ndarray, best: np.ndarray, *targets: tuple[np.ndarray, np.ndarray]) -> None:
+        """Per column, the first row of ``x`` with the column's largest value replaces ``best``
+        (and the same row of each ``(target, source)``) where it is strictly larger."""
+        x = np.where(np.isnan(x), -np.inf, x)  # a per-message ``>`` never picks NaN
+        cols = np.arange(x.shape[1])
+        k = np.argmax(x, axis=0)
+        top = x[k, cols]
+        b = top > best
+        if b.any():
+            best[b] = top[b]
+            for dst, src in targets:
+                dst[b] = src[k, cols][b]
+
+    def fold(self, lo, hi, slo, shi, soft: bool, vel, nan_row: np.ndarray) -> None:
+        rows = self.rows
+        if not rows:
+            return
+        self.rows = []
+        Q = np.array([r[0] for r in rows])
+        V = np.array([r[1] for r in rows])
+        UM = np.array([r[2] for r in rows])
+        L = np.array([r[3] for r in rows])
+        MR = np.array([nan_row if r[4] is None else r[4] for r in rows])
+        R = np.array([nan_row if r[5] is None else r[5] for r in rows])
+        # utilisation as process computed it; NaN measured ratio: unmeasured, the model's ratio
+        U = np.fmax(UM, MR)
+        self._worst(U, self.util, (self.util_limit, L), (self.util_measured, MR > UM))
+        self._worst(np.maximum(lo - Q, Q - hi), self.pos_excess, (self.pos_value, Q))
+        if soft:
+            self._worst(np.maximum(slo - Q, Q - shi), self.soft_excess, (self.soft_value, Q))
+        self._worst(np.abs(V) - vel, self.vel_excess, (self.vel_value, V))
+        ok = ~np.isnan(R)
+        if ok.any():
+            # cumsum adds row by row, in message order: the same rounding as ``res_sq += r²``
+            # message by message (adding +0.0 for an unmeasured joint changes nothing).
+            sq = np.where(ok, R * R, 0.0)
+            self.res_sq = np.cumsum(np.vstack([self.res_sq, sq]), axis=0)[-1]
+            self.res_n += ok.sum(axis=0)
 
 
 class Monitor:
@@ -173,17 +238,23 @@ class Monitor:
         self._names = model.joint_names
         self._nv = model.nv
         self._effort = np.where(lim.effort > 0, lim.effort, np.inf)
+        self._effort.setflags(write=False)
         self._has_curve = any(c is not None for c in lim.effort_speed_curve)
         self._lo, self._hi = lim.position_lower, lim.position_upper
         self._slo, self._shi = lim.soft_lower, lim.soft_upper
         self._vel = lim.velocity
         self._soft_distinct = bool(np.any(lim.soft_lower != lim.position_lower)
                                    or np.any(lim.soft_upper != lim.position_upper))
-        self._maps: dict[tuple[str, ...], tuple[np.ndarray, int]] = {}
+        # name list → (index array or None when the names are exactly the model's, ignored count)
+        self._maps: dict[tuple[str, ...], tuple[np.ndarray | None, int]] = {}
         self._zero = np.zeros(self._nv)
         self._zero.setflags(write=False)
+        self._nan = np.full(self._nv, np.nan)
+        self._nan.setflags(write=False)
         self._fd = settings.acceleration_source == "finite_difference"
         self._fc = settings.acceleration_filter_hz
+        self._stale = settings.stale_timeout
+        self._gravity_and_rnea = self.dynamics.gravity_and_rnea
         self.counts = counts if counts is not None else Counts()
         self.last_receipt_s: float | None = None
         self.last_error: InputError | None = None
@@ -201,7 +272,7 @@ class Monitor:
         self._prev_t, self._prev_v = t, v
         if not self._fd:
             return self._zero, out_of_order
-        if v is None or prev_v is None or out_of_order or t - prev_t > self.settings.stale_timeout:
+        if v is None or prev_v is None or out_of_order or t - prev_t > self._stale:
             self._a = self._zero
             self._filtered = False
             return self._a, out_of_order
@@ -220,26 +291,38 @@ class Monitor:
     def _to_model_order(self, names: Sequence[str], position: Sequence[float],
                         velocity: Sequence[float] | None, effort: Sequence[float] | None):
         """Fast path of :meth:`RobotModel.to_model_order` for the common, valid message: the name
-        mapping is cached per name list and finiteness is checked with one sum per array. Anything
-        unusual is handed to the model's full check, so errors are exactly the model's."""
+        mapping is cached per name list (no reindexing when the names are the model's, in its
+        order) and finiteness is checked with one Python sum per array. Anything unusual is handed
+        to the model's full check, so errors and results are exactly the model's."""
         n = len(names)
         key = names if isinstance(names, tuple) else tuple(names)
-        idx = self._maps.get(key)
+        m = self._maps.get(key)
         nvel = len(velocity) if velocity is not None else 0
         neff = len(effort) if effort is not None else 0
-        if idx is None or len(position) != n or nvel not in (0, n) or neff not in (0, n):
+        if m is None or len(position) != n or nvel not in (0, n) or neff not in (0, n):
             s = self.model.to_model_order(names, position, velocity, effort)
             if len(self._maps) < 64:
-                self._maps[key] = self.model.mapping(names)
+                idx, ignored = self.model.mapping(names)
+                same = ignored == 0 and n == self._nv and bool(np.all(idx == np.arange(n)))
+                self._maps[key] = (None if same else idx, ignored)
             return s.q, s.v, s.effort, s.ignored
-        idx, ignored = idx
-        q = np.asarray(position, dtype=float)[idx]
-        v = np.asarray(velocity, dtype=float)[idx] if nvel else None
-        e = np.asarray(effort, dtype=float)[idx] if neff else None
-        if not math.isfinite(q.sum()) or (v is not None and not math.isfinite(v.sum())) or (
-                e is not None and not math.isfinite(e.sum())):
-            s = self.model.to_model_order(names, position, velocity, effort)  # raises, or NaN effort
+        idx, ignored = m
+        if idx is None:  # a copy, as the reindexing would make: callers may keep the arrays
+            q = np.array(position, dtype=float)
+            v = np.array(velocity, dtype=float) if nvel else None
+            e = np.array(effort, dtype=float) if neff else None
+        else:
+            q = np.asarray(position, dtype=float)[idx]
+            v = np.asarray(velocity, dtype=float)[idx] if nvel else None
+            e = np.asarray(effort, dtype=float)[idx] if neff else None
+        # A Python sum of a few floats is NaN or ±inf iff an element is (or, rarely, it
+        # overflows: then the model's check decides); cheaper than any NumPy reduction.
+        if not math.isfinite(sum(q.tolist())) or (v is not None and not math.isfinite(sum(v.tolist()))):
+            s = self.model.to_model_order(names, position, velocity, effort)  # raises
             return s.q, s.v, s.effort, s.ignored
+        if e is not None and not math.isfinite(sum(e.tolist())):
+            s = self.model.to_model_order(names, position, velocity, effort)  # raises on ±inf
+            return s.q, s.v, s.effort, s.ignored  # NaN effort: "not available" (None if all NaN)
         return q, v, e, ignored
 
     def process(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float] | None,
@@ -265,42 +348,25 @@ class Monitor:
         a, ooo = self._accel(t, v)
         if v is None:
             v = self._zero
-        g, tau = self.dynamics.gravity_and_rnea(q, v, a)
+        g, tau = self._gravity_and_rnea(q, v, a)
         lim = self._effort
         if self._has_curve:
             lim = np.minimum(lim, self.model.limits.effort_envelope(v))
-        util = np.abs(tau) / lim
-        residual = None
+        util = model_ratio = np.abs(tau) / lim
+        residual = mr = None
         measured_ratio = math.nan
-        measured = None
         if e is not None:
             mr = np.abs(e) / lim
-            measured = mr > util  # NaN compares False: unmeasured joints keep the model ratio
             util = np.fmax(util, mr)
-            measured_ratio = float(np.nanmax(mr)) if not np.isnan(mr).all() else math.nan
             residual = e - tau
-            ok = ~np.isnan(residual)
-            w.res_sq[ok] += residual[ok] ** 2
-            w.res_n += ok
-        # worst cases of the window; the comparisons are cheap, the updates rare
-        better = util > w.util
-        if better.any():
-            w.util[better] = util[better]
-            w.util_limit[better] = lim[better]
-            w.util_measured[better] = measured[better] if measured is not None else False
-        pex = np.maximum(self._lo - q, q - self._hi)
-        b = pex > w.pos_excess
-        if b.any():
-            w.pos_excess[b], w.pos_value[b] = pex[b], q[b]
-        if self._soft_distinct:
-            sex = np.maximum(self._slo - q, q - self._shi)
-            b = sex > w.soft_excess
-            if b.any():
-                w.soft_excess[b], w.soft_value[b] = sex[b], q[b]
-        vex = np.abs(v) - self._vel
-        b = vex > w.vel_excess
-        if b.any():
-            w.vel_excess[b], w.vel_value[b] = vex[b], v[b]
+            mrl = mr.tolist()
+            if math.isfinite(sum(mrl)):  # no NaN: Python's max is NumPy's nanmax, exactly
+                measured_ratio = max(mrl)
+            else:
+                measured_ratio = float(np.fmax.reduce(mr))  # NaN only when every joint is NaN
+        w.rows.append((q, v, model_ratio, lim, mr, residual))
+        if len(w.rows) >= w.FOLD_ROWS:
+            self._fold()
         c.accepted += 1
         w.accepted += 1
         c.ignored_joint_values += ignored
@@ -311,9 +377,12 @@ class Monitor:
             c.out_of_order += 1
             w.out_of_order += 1
         self.last_error = None
-        r = SampleResult(True, None, t, q, v, a, g, tau, residual, util, measured_ratio, zero, ooo)
+        r = _accepted(t, q, v, a, g, tau, residual, util, measured_ratio, zero, ooo, lim)
         self.last_result = r
         return r
+
+    def _fold(self) -> None:
+        self._w.fold(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel, self._nan)
 
     def _reject(self, exc: InputError) -> SampleResult:
         c = self.counts
@@ -333,6 +402,7 @@ class Monitor:
     def statuses(self, now_s: float, hardware_id: str) -> list[Status]:
         """joint_states, effort, limits and residual statuses for the window ending at ``now_s``;
         starts a new window."""
+        self._fold()
         w = self._w
         out = [self._joint_states_status(now_s, hardware_id)]
         if w.accepted == 0:
@@ -477,8 +547,11 @@ class ControllerTracker:
         self.settings = settings
         self.state = "stale"
         self.since_s: float | None = None
-        self._plan: tuple[PiecewisePolynomial | None, np.ndarray, float, float, float] | None = None
-        self._error = np.full(model.nv, np.nan)
+        # (polynomial | None, hold position, start, active from, active until, breaks as floats)
+        self._plan: tuple[PiecewisePolynomial | None, np.ndarray, float, float, float, list] | None = None
+        self._nan = np.full(model.nv, np.nan)
+        self._nan.setflags(write=False)  # shared "no error known" value; never written
+        self._error = self._nan
         self._ratio = math.nan
         self._last_receipt: float | None = None
         self._fault: str = ""
@@ -495,26 +568,27 @@ class ControllerTracker:
             mode = "linear"
         poly = interpolate(traj, mode) if traj.n_points > 1 else None
         self._plan = (poly, traj.positions[-1], start_s, start_s + float(traj.times[0]),
-                      start_s + float(traj.times[-1]))
+                      start_s + float(traj.times[-1]), poly.breaks.tolist() if poly is not None else [])
 
     def reference(self, t: float) -> np.ndarray | None:
         """Reference position at time t (s), or None when no trajectory is active then."""
         plan = self._plan
         if plan is None:
             return None
-        poly, hold, start, t0, t1 = plan
+        poly, hold, start, t0, t1, br = plan
         if t < t0 or t > t1:
             return None
         if poly is None:
             return hold
         tau = t - start
-        seg = min(max(int(np.searchsorted(poly.breaks, tau, side="right")) - 1, 0), len(poly.coeffs) - 1)
-        s = min(max(tau - poly.breaks[seg], 0.0), poly.breaks[seg + 1] - poly.breaks[seg])
+        # bisect on the breaks as Python floats is np.searchsorted(side="right") without its overhead
+        seg = min(max(bisect_right(br, tau) - 1, 0), len(poly.coeffs) - 1)
+        s = min(max(tau - br[seg], 0.0), br[seg + 1] - br[seg])
         c = poly.coeffs[seg]
-        acc = c[-1].copy()
+        acc = c[-1]  # Horner; the first product makes a new array, c is never written
         for k in range(c.shape[0] - 2, -1, -1):
             acc = acc * s + c[k]
-        return acc
+        return acc if c.shape[0] > 1 else acc.copy()
 
     def update(self, result: SampleResult, receipt_s: float) -> bool:
         """Feed one monitor result; returns True when the state changed."""
@@ -525,10 +599,7 @@ class ControllerTracker:
             self._fault = ""
             ref = self.reference(result.stamp_s)
             self._active = ref is not None
-            if ref is not None:
-                self._error = result.q - ref
-            else:
-                self._error = np.full(self.model.nv, np.nan)
+            self._error = result.q - ref if ref is not None else self._nan
             self._ratio = result.measured_ratio
         return self.tick(receipt_s)
 
@@ -541,7 +612,9 @@ class ControllerTracker:
         if self._ratio >= 1.0 - 1e-9:
             return "saturated"
         if self._active:
-            err = np.nanmax(np.abs(self._error)) if not np.all(np.isnan(self._error)) else 0.0
+            err = float(np.fmax.reduce(np.abs(self._error)))  # nanmax; NaN only if all are NaN
+            if err != err:
+                err = 0.0
             return "deviating" if err > self.settings.tracking_tolerance else "tracking"
         return "idle"
 

@@ -522,3 +522,41 @@ def test_bag_written_by_the_rosbags_library(tmp_path, capsys):
     assert rec["inputs"]["topics"] == [{"name": "/robot1/joint_states", "type": "sensor_msgs/msg/JointState",
                                         "count": 400, "role": "joint_states"}]
     assert rec["input_quality"]["unreadable_ranges"] == []
+
+
+def test_batched_live_episodes_equal_a_message_by_message_update():
+    """LiveStats finds violation episodes run by run over a batch; the oracle is Episodes.update
+    called per message, per joint, per kind (same episodes, peaks, close order and total)."""
+    from dyn_node.audit import Episodes, LiveStats
+
+    rng = np.random.default_rng(5)
+    nv, n = 3, 5000
+    lo, hi, vel = np.array([-1.0, -2.0, -np.inf]), np.array([1.0, 2.0, np.inf]), np.array([1.0, 2.0, 3.0])
+    # piecewise-constant regimes so episodes span batches, start at a batch's first row, etc.
+    regime = np.repeat(rng.random((n // 50 + 1, nv)) < 0.4, 50, axis=0)[:n]
+    Q = np.where(regime, rng.uniform(-2.5, 2.5, (n, nv)), rng.uniform(-0.5, 0.5, (n, nv)))
+    V = rng.normal(0, 1.5, (n, nv))
+    U = np.where(rng.random((n, nv)) < 0.3, rng.uniform(0.5, 1.5, (n, nv)), 0.2)
+    U[rng.random((n, nv)) < 0.01] = np.nan
+    L = np.full((n, nv), 10.0)
+    T = np.arange(n, dtype=np.int64) * MS
+    live = LiveStats(nv, lo, hi, vel)
+    ref = Episodes()
+    for r in range(n):
+        live.add(int(T[r]), U[r] * 10.0, U[r], L[r], Q[r], V[r], None)
+        for j in range(nv):
+            u, lim, q, av = float(U[r, j]), float(L[r, j]), float(Q[r, j]), abs(float(V[r, j]))
+            ref.update(j, "effort", u > 1.0, int(T[r]), u * lim, lim, u)
+            below = q < lo[j]
+            ref.update(j, "position", bool(q < lo[j] or q > hi[j]), int(T[r]), q,
+                       float(lo[j] if below else hi[j]), float(lo[j] - q if below else q - hi[j]))
+            ref.update(j, "velocity", av > vel[j], int(T[r]), av, float(vel[j]), av / float(vel[j]))
+        if r == 2500:
+            live.flush()  # an early, partial batch
+    live.flush()
+    assert list(live.episodes.open) == list(ref.open)
+    assert live.episodes.open == ref.open
+    live.finish()
+    ref.finish()
+    assert live.episodes.total == ref.total > 100
+    assert live.episodes.closed == ref.closed

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.dynamics import Dynamics
+from dyn_node.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, ModelError
 from dyn_node.model import load_model
 from dyn_node.monitor import (ControllerTracker, Monitor, build_model, model_error_status, model_status,
@@ -291,3 +291,57 @@ def test_tracker_reference_quintic_matches_interpolation():
     np.testing.assert_allclose(tr.reference(10.7), expected, rtol=0, atol=1e-12)
     np.testing.assert_allclose(tr.reference(10.4), P[1], rtol=0, atol=1e-12)
     assert tr.reference(11.6) is None and tr.reference(9.9) is None
+
+
+def test_worst_case_window_over_many_messages_matches_a_direct_computation():
+    """The window is folded in batches; its report must equal the per-message definition:
+    per joint the largest utilisation (and the limit at that message), the worst position and
+    velocity excess with the value that caused it, and the RMS residual over measured messages."""
+    rng = np.random.default_rng(11)
+    mon = Monitor(PANDA, Settings(acceleration_source="zero", include_friction=False))
+    dyn = Dynamics(PANDA, DynamicsOptions(include_friction=False))
+    lim = PANDA.limits
+    n = 1300  # more than one fold batch, with a report in between
+    Q = rng.uniform(lim.position_lower - 0.2, lim.position_upper + 0.2, (n, 7))
+    V = rng.normal(0, 1.5, (n, 7))
+    E = rng.normal(0, 40, (n, 7))
+    E[rng.random((n, 7)) < 0.2] = np.nan  # unmeasured joints
+    split = 700
+    for k in range(n):
+        mon.process(NAMES, Q[k], V[k], E[k], 1.0 + 1e-3 * k, 1.0 + 1e-3 * k)
+        if k == split - 1:
+            mon.statuses(1.0 + 1e-3 * k, "panda")
+    sts = mon.statuses(2.5, "panda")
+    eff, lims, res = by_name(sts, "effort"), by_name(sts, "limits"), by_name(sts, "residual")
+    part = slice(split, n)
+    tau = np.array([dyn.rnea(q, v, np.zeros(7)) for q, v in zip(Q[part], V[part])])
+    util = np.fmax(np.abs(tau), np.abs(E[part])) / lim.effort
+    for j, name in enumerate(NAMES):
+        assert eff.values[f"{name}_utilisation"] == pytest.approx(util[:, j].max(), rel=1e-12)
+        r = E[part, j] - tau[:, j]
+        r = r[~np.isnan(r)]
+        assert res.values[f"{name}_residual_rms_nm"] == pytest.approx(math.sqrt(np.mean(r * r)), rel=1e-12)
+        pex = np.maximum(lim.position_lower[j] - Q[part, j], Q[part, j] - lim.position_upper[j])
+        if pex.max() > 0:
+            assert lims.values[f"{name}_position_rad"] == Q[part, j][np.argmax(pex)]
+        else:
+            assert f"{name}_position_rad" not in lims.values
+        vex = np.abs(V[part, j]) - lim.velocity[j]
+        if vex.max() > 0:
+            assert lims.values[f"{name}_velocity_rad_s"] == V[part, j][np.argmax(vex)]
+    assert lims.values["position_violations"] == int(np.sum(
+        (Q[part] < lim.position_lower).any(axis=0) | (Q[part] > lim.position_upper).any(axis=0)))
+
+
+def test_result_arrays_are_fresh_copies_of_the_input():
+    """Callers and the batched window keep the result arrays: they must not alias the input."""
+    mon = Monitor(PANDA, Settings())
+    q, v, e = Q0.copy(), np.full(7, 0.1), np.full(7, 1.0)
+    r = mon.process(NAMES, q, v, e, 1.0, 1.0)
+    q[:] = 9.0
+    v[:] = 9.0
+    e[:] = 9.0
+    np.testing.assert_array_equal(r.q, Q0)
+    np.testing.assert_array_equal(r.v, 0.1)
+    np.testing.assert_allclose(r.residual + r.tau, np.full(7, 1.0), rtol=0, atol=1e-12)
+    assert r.effort_limit is not None and np.all(r.effort_limit == PANDA.limits.effort)
