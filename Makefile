@@ -33,8 +33,7 @@ soak: $(STAMP)
 
 lock: $(STAMP)
 	@echo "review, then paste below the closure marker in requirements.txt:"
-	@$(PY) -m pip list --format=freeze --exclude-editable --not-required 2>/dev/null >/dev/null; \
-	$(PY) -c "import importlib.metadata as m; print('\n'.join(sorted(f\"{d.metadata['Name']}=={d.version}\" for d in m.distributions() if (d.read_text('INSTALLER') or '').strip() == 'pip' and d.metadata['Name'] != 'dyn_node')))" 
+	@$(PY) -c "import importlib.metadata as m; print('\n'.join(sorted(f\"{d.metadata['Name']}=={d.version}\" for d in m.distributions() if (d.read_text('INSTALLER') or '').strip() == 'pip' and d.metadata['Name'] != 'dyn_node')))" 
 
 clean:
 	rm -rf $(VENV) build *.egg-info
