@@ -4,10 +4,18 @@ Run it with ``ros2 run dyn_node dyn_node`` or ``python -m dyn_node.node``; param
 diagnostics are listed in the README. Everything numeric happens in the pure core; this module only
 converts messages, owns timers, publishers and parameters, and swaps immutable pieces atomically.
 
-Threads: all ROS callbacks run on one executor thread, so a callback never sees a half-applied
-model or settings (a new model is built aside and one reference, ``self._core``, is replaced).
-Trajectory feasibility runs on a worker thread with its own :class:`~dyn_node.dynamics.Dynamics`
-so joint_states keep flowing while a long trajectory is checked.
+Threads: joint_states are taken on a thread of their own (a hidden helper node ``_dyn_node_io``
+holding only that subscription, waited on by a minimal wait set: rclpy's executor would rebuild
+its wait set over all ~30 entities of this node on every message); timers, services, parameters
+and the other subscriptions run on the executor that spins this node. A callback never sees a
+half-applied model or settings: a new model is built aside and one reference, ``self._core``, is
+replaced, and each message reads it once. ``_io_lock`` serialises each message's work with the
+timers and the workers that read or feed the same monitor, tracker and recorder. Trajectory
+feasibility runs on a worker thread with its own :class:`~dyn_node.dynamics.Dynamics` so
+joint_states keep flowing while a long trajectory is checked. Both outputs are published as CDR
+bytes laid out once per model (:meth:`~dyn_node.ros_convert.JointStateOut.encode`) and the input
+is read from its CDR bytes (:func:`~dyn_node.ros_convert.parse_joint_state_cdr`, rclpy's
+deserialisation as the fallback), so the recorder gets exactly the bytes taken and sent.
 """
 from __future__ import annotations
 
@@ -25,6 +33,8 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 SetParametersResult)
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
@@ -39,8 +49,8 @@ from .monitor import (ControllerTracker, Counts, Monitor, build_model, model_err
                       waiting_model_status, JOINT_STATES)
 from .ros_main import spin_until_signalled
 from .ros_convert import (JointStateOut, RawTrajectory, diagnostic_array, encode_joint_trajectory_cdr,
-                          fill_trajectory_effort, parse_joint_trajectory_cdr, s_to_stamp,
-                          status_to_msg, stamp_to_s, trajectory_arrays)
+                          fill_trajectory_effort, parse_joint_state_cdr, parse_joint_trajectory_cdr,
+                          s_to_stamp, status_to_msg, stamp_to_s, trajectory_arrays)
 from .selftest import run_self_test
 from .settings import MODEL_PARAMETERS, PARAMETERS, SPECS, Settings, SettingsError, settings_from_mapping
 from .status import STALE, Status
@@ -127,7 +137,23 @@ class DynNode(Node):
         self._pub_controller = self.create_publisher(DiagnosticStatus, "~/controller_status", 10, **quiet)
         self._pub_feasibility = self.create_publisher(DiagnosticArray, "~/feasibility", LATCHED, **quiet)
         self._pub_traj_effort = self.create_publisher(JointTrajectory, "~/trajectory_effort", 10, **quiet)
+        # joint_states run on a node of their own, spun by their own executor on a dedicated
+        # thread: rclpy's executor rebuilds its wait set from every entity of its nodes on each
+        # wake-up (here ~30: parameter services, self-test, recording services, timers...), in
+        # Python, and at 1 kHz that cost more than the message. The outputs still go out on this
+        # node's publishers (~/ names unchanged). _io_lock serialises the per-message work with
+        # the timers, services and the feasibility worker that read or feed the same monitor,
+        # tracker and recorder.
+        self._io_lock = threading.Lock()
+        self._clock_handle = self.get_clock().handle
+        self._io_node = Node("_dyn_node_io", context=self.context, namespace=self.get_namespace(),
+                             use_global_arguments=False, enable_rosout=False,
+                             start_parameter_services=False)
         self._sub_js = self._subscribe_joint_states(qos)
+        self._io_stop = threading.Event()
+        self._io_wake = self._io_node.create_guard_condition(lambda: None)
+        self._io_executor: SingleThreadedExecutor | None = None  # only if the wait set fails
+        self._io_thread = threading.Thread(target=self._io_loop, name="dyn_node joint_states", daemon=True)
         # raw: the CDR bytes are read on the worker (see ros_convert.parse_joint_trajectory_cdr), so
         # a 100,000-point trajectory never holds the executor thread while rclpy builds its objects
         self._sub_traj = self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10,
@@ -152,7 +178,9 @@ class DynNode(Node):
                          self._pub_diag, self._pub_controller, self._pub_feasibility,
                          self._pub_traj_effort):
             self.recording.add_publisher(endpoint)
+        self.recording.guard = self._io_lock
         self.recording.start_if_enabled()
+        self._io_thread.start()
 
     # --- model and settings ----------------------------------------------------------------
     def _now_s(self) -> float:
@@ -249,19 +277,100 @@ class DynNode(Node):
 
     # --- joint_states (hot path) -----------------------------------------------------------
     def _subscribe_joint_states(self, qos: QoSProfile):
+        # Resolved (namespace, remappings) by this node: the io node ignores global arguments,
+        # so its name cannot be remapped onto this one's.
+        topic = self.resolve_topic_name("joint_states")
+        io = self._io_node
         try:
             events = SubscriptionEventCallbacks(message_lost=self._on_message_lost)
-            return self.create_subscription(JointState, "joint_states", self._on_joint_state, qos,
-                                            event_callbacks=events, raw=True)
+            return io.create_subscription(JointState, topic, self._on_joint_state, qos,
+                                          event_callbacks=events, raw=True)
         except Exception:  # an rmw without the message-lost event: drops cannot be counted
-            return self.create_subscription(JointState, "joint_states", self._on_joint_state, qos,
-                                            raw=True)
+            return io.create_subscription(JointState, topic, self._on_joint_state, qos, raw=True)
+
+    def _io_loop(self) -> None:
+        """The joint_states thread: a wait set of just the subscription, its QoS events and a
+        wake-up guard, rebuilt cheaply each time (what rclpy's executor does for every entity
+        of a node, generically and at several times the cost). Falls back to an executor."""
+        sub, wake, ctx = self._sub_js, self._io_wake, self.context
+        handlers = list(getattr(sub, "event_handlers", ()))
+        try:
+            n_events = sum(h.get_num_entities().num_events for h in handlers)
+            with ctx.handle:
+                ws = _rclpy.WaitSet(1, 1, 0, 0, 0, n_events, ctx.handle)
+        except Exception:  # an rclpy without this internal API
+            self._io_spin_executor()
+            return
+        failures = 0
+        while not self._io_stop.is_set():
+            try:
+                with ctx.handle, sub.handle, wake.handle:
+                    ws.clear_entities()
+                    ws.add_subscription(sub.handle)
+                    ws.add_guard_condition(wake.handle)
+                    for h in handlers:
+                        h.add_to_wait_set(ws)
+                    ws.wait(100_000_000)  # 0.1 s: the stop flag is seen even without a wake-up
+                if self._io_stop.is_set():
+                    return
+                for h in handlers:
+                    if h.is_ready(ws):
+                        _run_coroutine(h.execute(h.take_data()))
+                if ws.get_ready_entities("subscription"):
+                    first = self._take_pending()
+                    if first is not None:
+                        self._on_joint_state(first[0], first[1])
+                failures = 0
+            except Exception:  # context shut down under us, or a bug: never a dead thread
+                if self._io_stop.is_set() or not ctx.ok():
+                    return
+                failures += 1
+                self._callback_failed("joint_states thread")
+                if failures > 3:
+                    self._io_stop.wait(0.1)  # do not spin hot on a persistent fault
+
+    def _io_spin_executor(self) -> None:
+        ex = self._io_executor = SingleThreadedExecutor(context=self.context)
+        ex.add_node(self._io_node)
+        while not self._io_stop.is_set():
+            try:
+                ex.spin_once(timeout_sec=0.1)
+            except Exception:  # context shut down under us, or the executor was shut down
+                if self._io_stop.is_set() or not self.context.ok():
+                    return
+                self._callback_failed("joint_states executor")
+
+    def _stop_io(self) -> None:
+        """Stop the joint_states thread and destroy its node (idempotent)."""
+        self._io_stop.set()
+        try:
+            self._io_wake.trigger()
+        except Exception:  # context already gone: the 0.1 s wait timeout ends the loop
+            pass
+        ex = self._io_executor
+        if ex is not None:
+            try:
+                ex.wake()
+            except Exception:
+                pass
+        if self._io_thread.is_alive() and self._io_thread is not threading.current_thread():
+            self._io_thread.join(timeout=5.0)
+        if ex is not None:
+            try:
+                ex.shutdown(timeout_sec=1.0)
+            except Exception:
+                pass
+        try:
+            self._io_node.destroy_node()
+        except Exception:
+            pass
 
     def _on_message_lost(self, info: Any) -> None:
-        self._lost_total = int(info.total_count)
-        core = self._core
-        if core is not None:
-            core.monitor.note_dropped(self._seq_gaps + self._lost_total)
+        with self._io_lock:
+            self._lost_total = int(info.total_count)
+            core = self._core
+            if core is not None:
+                core.monitor.note_dropped(self._seq_gaps + self._lost_total)
 
     def _count_sequence(self, info: dict | None) -> None:
         """Count messages lost between the publisher and this node from sequence-number gaps.
@@ -297,15 +406,24 @@ class DynNode(Node):
             self._take_joint_state(more[0], more[1])
 
     def _take_joint_state(self, data: bytes, info: dict | None) -> None:
-        self._count_sequence(info)
-        self.recording.record(self._sub_js, data)
-        try:
-            msg = deserialize_message(data, JointState)
-        except Exception:  # not a JointState after all: counted like any malformed message
-            self._counts.received += 1
-            self._callback_failed("joint_states deserialisation")
-            return
-        self._handle_joint_state(msg)
+        with self._io_lock:
+            self._count_sequence(info)
+            clock = self._clock_handle
+            with clock:
+                receipt_ns = clock.get_now().nanoseconds  # one clock read: receipt and log time
+            self.recording.record(self._sub_js, data, receipt_ns)
+            try:
+                fields = parse_joint_state_cdr(data)
+            except Exception:  # not plain little-endian CDR: rclpy reads it (and judges it)
+                try:
+                    msg = deserialize_message(data, JointState)
+                except Exception:  # not a JointState after all: counted like any malformed message
+                    self._counts.received += 1
+                    self._callback_failed("joint_states deserialisation")
+                    return
+                st = msg.header.stamp
+                fields = (st.sec, st.nanosec, msg.name, msg.position, msg.velocity, msg.effort)
+            self._handle_joint_state(fields, receipt_ns)
 
     def _take_pending(self) -> tuple[bytes, dict] | None:
         sub = self._sub_js
@@ -316,20 +434,25 @@ class DynNode(Node):
             return None
         return info if info is not None else None
 
-    def _handle_joint_state(self, msg: JointState) -> None:
-        core = self._core
-        receipt = self.get_clock().now().nanoseconds * 1e-9
+    def _handle_joint_state(self, fields: tuple, receipt_ns: int) -> None:
+        """``fields`` = (stamp sec, stamp nanosec, names, position, velocity, effort)."""
+        core = self._core  # read once: a model swap applies from the next message
+        receipt = receipt_ns * 1e-9
         if core is None:
             self._counts.received += 1
             return
         try:
-            st = msg.header.stamp
-            r = core.monitor.process(msg.name, msg.position, msg.velocity, msg.effort,
-                                     st.sec + st.nanosec * 1e-9, receipt)
+            sec, nsec, names, position, velocity, effort = fields
+            r = core.monitor.process(names, position, velocity, effort, sec + nsec * 1e-9, receipt)
             if r.accepted:
-                stamp = st if not r.zero_stamp else s_to_stamp(r.stamp_s)
-                self._publish(self._pub_inverse, core.out_inverse.fill(stamp, r.q, r.v, r.tau))
-                self._publish(self._pub_gravity, core.out_gravity.fill(stamp, r.q, r.v, r.gravity))
+                if r.zero_stamp:
+                    st = s_to_stamp(r.stamp_s)
+                    sec, nsec = st.sec, st.nanosec
+                # Published as CDR bytes laid out here (ros_convert.JointStateOut.encode): rclpy's
+                # publish(msg) would convert and serialise each message, and the recorder gets
+                # the very bytes that went out.
+                self._publish(self._pub_inverse, core.out_inverse.encode(sec, nsec, r.q, r.v, r.tau))
+                self._publish(self._pub_gravity, core.out_gravity.encode(sec, nsec, r.q, r.v, r.gravity))
             else:
                 self.get_logger().warn(f"joint_states rejected: {r.error}", throttle_duration_sec=5.0)
             if core.tracker.update(r, receipt):
@@ -350,7 +473,8 @@ class DynNode(Node):
         else:
             out = [model_status(core.model, hid)]
         if core is not None:
-            out += core.monitor.statuses(now, hid)
+            with self._io_lock:
+                out += core.monitor.statuses(now, hid)
         else:
             out.append(Status(JOINT_STATES, STALE, "no robot model yet: joint_states cannot be used", hid,
                               {"received_messages": self._counts.received, "failure_label": STATE_ERROR}))
@@ -380,9 +504,10 @@ class DynNode(Node):
         if core is None:
             return
         try:
-            now = self._now_s()
-            core.tracker.tick(now)
-            self._publish_controller_status(core, now)
+            with self._io_lock:
+                now = self._now_s()
+                core.tracker.tick(now)
+                self._publish_controller_status(core, now)
         except Exception:
             self._callback_failed("controller status")
 
@@ -465,7 +590,8 @@ class DynNode(Node):
             traj = validate_trajectory(model.joint_names, names, times, P, V, A, min_points=1)
             current = self._core
             if current is not None and current.model.joint_names == model.joint_names:
-                current.tracker.set_trajectory(traj, start)
+                with self._io_lock:
+                    current.tracker.set_trajectory(traj, start)
             if traj.n_points < 2:
                 validate_trajectory(model.joint_names, names, times, P, V, A, min_points=2)
         except TrajectoryError as exc:
@@ -495,6 +621,8 @@ class DynNode(Node):
         self._publish(self._pub_feasibility, diagnostic_array(statuses, stamp))
 
     def destroy_node(self) -> None:
+        if hasattr(self, "_io_thread"):
+            self._stop_io()  # no joint_states (nor their recording) after this
         recording = getattr(self, "recording", None)
         if recording is not None:
             recording.close()  # finalise the bag (summary, metadata.yaml) before anything else goes
@@ -506,6 +634,16 @@ class DynNode(Node):
         if self._worker.is_alive() and self._worker is not threading.current_thread():
             self._worker.join(timeout=0.5)  # a check in progress is abandoned (daemon thread)
         super().destroy_node()
+
+
+def _run_coroutine(coro: Any) -> None:
+    """Run a coroutine that never suspends (rclpy's QoS event handlers with plain callbacks)."""
+    try:
+        coro.send(None)
+    except StopIteration:
+        pass
+    else:  # pragma: no cover - a handler that awaits something: not ours to drive
+        coro.close()
 
 
 def main(args: list[str] | None = None) -> None:

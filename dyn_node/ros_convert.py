@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import array
 import struct
+import sys
 from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
 
@@ -66,6 +67,7 @@ class JointStateOut:
     def __init__(self, names: Sequence[str]):
         self.msg = JointState()
         self.msg.name = list(names)
+        self._segments: tuple[bytes, bytes, bytes, bytes] | None = None
 
     def fill(self, stamp: Time, q: np.ndarray, v: np.ndarray, effort: np.ndarray) -> JointState:
         m = self.msg
@@ -74,6 +76,109 @@ class JointStateOut:
         m.velocity = as_double_array(v)
         m.effort = as_double_array(effort)
         return m
+
+    def encode(self, sec: int, nanosec: int, q: np.ndarray, v: np.ndarray, effort: np.ndarray) -> bytes:
+        """The CDR bytes (little endian) of :meth:`fill`'s message, for ``publish(bytes)``.
+
+        rclpy's ``publish(msg)`` converts the Python message to C and serialises it on every
+        call; the names never change, so everything but the stamp and the three arrays is laid
+        out once here. Each array must have one float64 per name (the model's order). Padding
+        bytes are zero (Fast DDS leaves them unspecified); deserialising gives the same message.
+        """
+        segs = self._segments
+        if segs is None:
+            segs = self._segments = _joint_state_segments(list(self.msg.name))
+        return b"".join((segs[0], _TIME.pack(sec, nanosec), segs[1],
+                         np.asarray(q, dtype="<f8").tobytes(), segs[2],
+                         np.asarray(v, dtype="<f8").tobytes(), segs[3],
+                         np.asarray(effort, dtype="<f8").tobytes()))
+
+
+def _joint_state_segments(names: list[str]) -> tuple[bytes, bytes, bytes, bytes]:
+    """Constant parts of a JointState's CDR with ``names`` and len(names) values per array:
+    (encapsulation header, stamp → first double, between arrays 1 and 2, between 2 and 3).
+    Offsets count from the end of the 4-byte encapsulation header, as CDR alignment does."""
+    body = bytearray(8)  # the stamp's place
+
+    def pad(to: int) -> None:
+        body.extend(b"\0" * ((-len(body)) % to))
+
+    body += _U32.pack(1) + b"\0"  # frame_id ""
+    pad(4)
+    body += _U32.pack(len(names))
+    for name in names:
+        b = name.encode() + b"\0"
+        pad(4)
+        body += _U32.pack(len(b)) + b
+    marks = []
+    for _ in range(3):
+        marks.append(len(body))
+        pad(4)
+        body += _U32.pack(len(names))
+        if names:  # CDR aligns the first element; an empty sequence has none
+            pad(8)
+        marks.append(len(body))
+        body += bytes(8 * len(names))  # the array's place
+    b = bytes(body)
+    return (b"\x00\x01\x00\x00", b[8:marks[1]], b[marks[2]:marks[3]], b[marks[4]:marks[5]])
+
+
+_names_cache: list = [(b"", [])]  # [(CDR of the last name sequence, its names)]: senders repeat them
+
+
+def parse_joint_state_cdr(data: bytes) -> tuple[int, int, list, array.array, array.array, array.array]:
+    """(stamp sec, stamp nanosec, names, position, velocity, effort) of a little-endian CDR
+    sensor_msgs/JointState (what Fast DDS sends on x86 and ARM), with the types rclpy's
+    deserialisation gives, without building rclpy's message object. Raises ValueError (or
+    struct.error/UnicodeDecodeError) on anything else; callers then fall back to
+    ``deserialize_message``, which decides what is malformed."""
+    if len(data) < 20 or data[0] != 0 or data[1] != 1 or not _LITTLE:
+        raise ValueError("not little-endian CDR on a little-endian host")
+    end = len(data)
+    sec, nsec = _TIME.unpack_from(data, 4)
+    (n,) = _U32.unpack_from(data, 12)
+    pos = 16 + n  # absolute; CDR aligns relative to 4, so 4-alignment is the same either way
+    if pos > end:
+        raise ValueError("frame_id beyond the data")
+    pos += (-pos) % 4
+    start = pos
+    cached, names = _names_cache[0]
+    if data.startswith(cached, start) and cached:
+        pos += len(cached)
+    else:
+        (count,) = _U32.unpack_from(data, pos)
+        pos += 4
+        if count * 4 > end - pos:
+            raise ValueError("name count beyond the data")
+        names = []
+        for _ in range(count):
+            pos += (-pos) % 4
+            (n,) = _U32.unpack_from(data, pos)
+            pos += 4
+            if n == 0 or pos + n > end or data[pos + n - 1] != 0:
+                raise ValueError("bad string")
+            raw = data[pos:pos + n - 1]
+            if b"\0" in raw:
+                raise ValueError("NUL inside a name")
+            names.append(raw.decode())
+            pos += n
+        _names_cache[0] = (bytes(data[start:pos]), names)  # one reference: atomic for readers
+    out = [sec, nsec, list(names)]
+    for _ in range(3):
+        pos += (-pos) % 4
+        (count,) = _U32.unpack_from(data, pos)
+        pos += 4
+        a = array.array("d")
+        if count:
+            if pos % 8 != 4:  # the first double sits 8-aligned in the body (offset pos - 4)
+                pos += 4
+            stop = pos + 8 * count
+            if stop > end:
+                raise ValueError("array beyond the data")
+            a.frombytes(data[pos:stop])
+            pos = stop
+        out.append(a)
+    return tuple(out)  # type: ignore[return-value]
 
 
 def _rows(seqs: list) -> np.ndarray | list:
@@ -125,6 +230,7 @@ def fill_trajectory_effort(msg: JointTrajectory, effort_model_order: np.ndarray,
 
 _U32 = struct.Struct("<I")
 _TIME = struct.Struct("<iI")
+_LITTLE = sys.byteorder == "little"  # array('d') is native-endian
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ time, reads the header stamp straight from the CDR bytes, and queues.
 """
 from __future__ import annotations
 
+import threading
 from typing import Any, Callable
 
 import yaml
@@ -52,6 +53,11 @@ class RecordingBridge:
                  opener: Callable[[str], Any] | None = None, autostart: bool = True):
         self.node = node
         self._clock = node.get_clock()
+        self._clock_handle = self._clock.handle
+        # Held while the recorder is swapped in or out. An owner that records from another
+        # thread (the node's joint_states thread) sets its own lock here and holds it around
+        # each message, so a message and its outputs are recorded together or not at all.
+        self.guard: Any = threading.Lock()
         self._description_fn = robot_description
         self._flush_period_s = flush_period_s
         self._opener = opener  # tests inject a failing file here
@@ -63,6 +69,8 @@ class RecordingBridge:
         self._unknown: set[str] = set()
         self._outgoing: dict[str, TopicInfo] = {}  # this node's publishers, recorded directly
         self._direct: set[str] = set()
+        # publisher or subscription object -> (topic, stamped): topic_name is a call into rcl
+        self._endpoints: dict[Any, tuple[str, bool]] = {}
         node.declare_parameter("record.enabled", False, _descriptor(
             "Start recording at startup (services ~/start_recording, ~/stop_recording toggle it).",
             ParameterType.PARAMETER_BOOL))
@@ -112,6 +120,7 @@ class RecordingBridge:
         exactly what the node saw and said."""
         cls = publisher.msg_type
         type_name = f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}"
+        self._endpoints[publisher] = (publisher.topic_name, has_header_first(type_name))
         q = publisher.qos_profile
         self._outgoing[publisher.topic_name] = TopicInfo(publisher.topic_name, type_name, (
             qos_profile_dict(reliability=_RELIABILITY.get(q.reliability, "unknown"),
@@ -124,18 +133,32 @@ class RecordingBridge:
 
     def records(self, publisher: Any) -> bool:
         """Whether bytes published on ``publisher`` are being recorded right now."""
-        return self._recorder is not None and publisher.topic_name in self._direct
+        if self._recorder is None:
+            return False
+        entry = self._endpoints.get(publisher)
+        return (entry[0] if entry else publisher.topic_name) in self._direct
 
-    def record(self, publisher: Any, data: bytes) -> None:
-        """Record serialized bytes this node just published on ``publisher`` (see
-        :meth:`add_publisher`); a no-op when not recording or the topic is not recorded."""
+    def record(self, publisher: Any, data: bytes, now_ns: int | None = None) -> None:
+        """Record serialized bytes this node just published (or took) on ``publisher`` (see
+        :meth:`add_publisher`); a no-op when not recording or the topic is not recorded.
+        ``now_ns``: the log time if the caller already read the node's clock (else read here)."""
         rec = self._recorder
-        topic = publisher.topic_name
-        if rec is None or topic not in self._direct:
+        if rec is None:
             return
-        now = self._clock.now().nanoseconds
-        stamp = header_stamp_ns(data) if has_header_first(self._outgoing[topic].type) else None
-        rec.write(topic, data, now, stamp if stamp else now)
+        entry = self._endpoints.get(publisher)
+        if entry is None:
+            topic = publisher.topic_name
+            entry = (topic, has_header_first(self._outgoing[topic].type)) if topic in self._outgoing \
+                else (topic, False)
+        topic, stamped = entry
+        if topic not in self._direct:
+            return
+        if now_ns is None:
+            clock = self._clock_handle
+            with clock:
+                now_ns = clock.get_now().nanoseconds
+        stamp = header_stamp_ns(data) if stamped else None
+        rec.write(topic, data, now_ns, stamp if stamp else now_ns)
 
     def set_robot_description(self, urdf: str) -> None:
         """Description to embed in every file (repeated on /robot_description + metadata)."""
@@ -156,15 +179,17 @@ class RecordingBridge:
                 max_bag_duration_s=float(p("record.max_bag_duration_s").value),
                 flush_period_s=self._flush_period_s,
                 description_topic=self.node.resolve_topic_name("robot_description"))
-            self._recorder = Recorder(config, robot_description=self._current_description(),
-                                      parameters_yaml=self.parameters_yaml(),
-                                      opener=self._opener, on_state=self._on_state)
+            rec = Recorder(config, robot_description=self._current_description(),
+                           parameters_yaml=self.parameters_yaml(),
+                           opener=self._opener, on_state=self._on_state)
         except (RecordingError, OSError) as exc:
             return False, str(exc)
-        self._topics = self._resolved_topics()
-        self._direct = {t for t in self._topics if t in self._outgoing}
-        for t in self._direct:
-            self._recorder.add_topic(self._outgoing[t])
+        topics = self._resolved_topics()
+        direct = {t for t in topics if t in self._outgoing}
+        for t in direct:
+            rec.add_topic(self._outgoing[t])
+        with self.guard:  # between two messages of the owner's recording thread
+            self._topics, self._direct, self._recorder = topics, direct, rec
         self._discover()
         self.node.get_logger().info(f"recording to {self._recorder.path}")
         return True, str(self._recorder.path)
@@ -177,8 +202,9 @@ class RecordingBridge:
         for sub in self._subs.values():
             self.node.destroy_subscription(sub)
         self._subs.clear()
-        self._direct = set()
-        self._recorder = None
+        with self.guard:  # no message of the owner's recording thread is half recorded
+            self._direct = set()
+            self._recorder = None
         self._last_stats = rec.close()
         return self._last_stats.state != "error", str(rec.path)
 
@@ -311,10 +337,11 @@ class RecordingBridge:
                 cls, topic, self._callback(rec, topic, has_header_first(msg_type)), qos, raw=True)
 
     def _callback(self, rec: Recorder, topic: str, stamped: bool) -> Callable[[bytes], None]:
-        clock = self.node.get_clock()
+        clock = self._clock_handle
 
         def on_message(data: bytes) -> None:
-            now = clock.now().nanoseconds
+            with clock:
+                now = clock.get_now().nanoseconds
             stamp = header_stamp_ns(data) if stamped else None
             rec.write(topic, data, now, stamp if stamp else now)
         return on_message

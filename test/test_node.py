@@ -555,3 +555,71 @@ def test_trajectory_cdr_codec_matches_rclpy():
             assert out == tr, trial
             encoded += 1
     assert encoded > 50
+
+
+def test_joint_state_cdr_codec_matches_rclpy():
+    """joint_states are read from CDR bytes and both outputs written as CDR bytes: every read
+    equals rclpy's deserialisation (same values and types) or is refused (then rclpy reads it);
+    every write deserialises to the message rclpy would have published (rclpy's buffer may
+    carry trailing bytes beyond the data, never fewer)."""
+    import array
+
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from dyn_node.ros_convert import JointStateOut, parse_joint_state_cdr
+
+    rng = np.random.default_rng(1)
+    parsed = refused = 0
+    specials = [math.nan, math.inf, -math.inf, -0.0, 5e-324, 1.7976931348623157e308]
+    for trial in range(300):
+        n = int(rng.integers(0, 9))
+        names = ["".join(rng.choice(list("abcxyzé_0"), size=int(rng.integers(1, 14)))) for _ in range(n)]
+        if trial % 3 == 0:  # the node's own answer: one value per name
+            q, v, e = (rng.normal(size=n) for _ in range(3))
+            if n:
+                q[int(rng.integers(0, n))] = specials[trial % len(specials)]
+            out = JointStateOut(names)
+            sec, nsec = int(rng.integers(-3, 2**31 - 1)), int(rng.integers(0, 10**9))
+            data = out.encode(sec, nsec, q, v, e)
+            ref = out.fill(Time(sec=sec, nanosec=nsec), q, v, e)
+            assert len(data) <= len(serialize_message(ref)), trial
+            got = deserialize_message(data, JointState)
+            assert got.header.stamp == ref.header.stamp and got.name == ref.name, trial
+            for f in ("position", "velocity", "effort"):
+                assert np.array_equal(getattr(got, f), getattr(ref, f), equal_nan=True), (trial, f)
+            msg = ref
+        else:  # arbitrary input: lengths disagree, arrays empty, frame ids of any length
+            msg = js(names, rng.normal(size=int(rng.integers(0, 9))), rng.normal(size=int(rng.integers(0, 9))),
+                     rng.normal(size=int(rng.integers(0, 9))), stamp=float(rng.integers(0, 1000)) / 7)
+            msg.header.frame_id = "f" * int(rng.integers(0, 7))
+        data = serialize_message(msg)
+        ref = deserialize_message(data, JointState)
+        try:
+            sec, nsec, got_names, p, v, e = parse_joint_state_cdr(data)
+        except ValueError:
+            refused += 1
+            continue
+        parsed += 1
+        assert (sec, nsec) == (ref.header.stamp.sec, ref.header.stamp.nanosec) and got_names == ref.name
+        for got, want in ((p, ref.position), (v, ref.velocity), (e, ref.effort)):
+            assert isinstance(got, array.array) and got.typecode == "d"
+            assert np.array_equal(got, want, equal_nan=True), trial
+        end = len(JointStateOut(ref.name).encode(0, 0, ref.position, ref.position, ref.position)) \
+            if len(ref.position) == len(ref.name) == len(ref.velocity) == len(ref.effort) \
+            and not ref.header.frame_id else None
+        if end is not None:  # the data proper ends here (rclpy pads its buffer): any cut is refused
+            for cut in range(end - 1, 3, -max(1, end // 9)):
+                with pytest.raises(Exception):
+                    parse_joint_state_cdr(data[:cut])
+    assert parsed == 300 and refused == 0
+    with pytest.raises(ValueError):  # big-endian CDR: left to rclpy
+        parse_joint_state_cdr(b"\x00\x00" + serialize_message(js(NAMES, Q0, V0, V0))[2:])
+
+
+@pytest.mark.timeout(60)
+def test_destroy_stops_the_joint_states_thread(module_ctx):
+    node = DynNode("io_teardown", context=module_ctx, namespace="/teardown",
+                   parameter_overrides=[Parameter("robot_model", value="panda")])
+    assert node._io_thread.is_alive() and node._sub_js.topic_name == "/teardown/joint_states"
+    node.destroy_node()
+    assert not node._io_thread.is_alive()

@@ -270,7 +270,8 @@ def test_sigkill_then_recover_contiguous_prefix(spawn, tmp_path):
     before = [n for t, n in progress if t <= kill_ns - 1_000_000_000]
     assert before, "no progress report older than one second"
     assert len(seqs) >= before[-1], "more than the last second was lost"
-    assert len(seqs) <= progress[-1][1]
+    # No upper bound from the reports: a flush may land between the last 0.1 s report and the
+    # kill. That nothing was invented is the contiguity of the sequence numbers above.
 
 
 @pytest.mark.timeout(90)
