@@ -349,6 +349,11 @@ class Monitor:
         if v is None:
             v = self._zero
         g, tau = self._gravity_and_rnea(q, v, a)
+        if not math.isfinite(float(tau.sum()) + float(g.sum())):
+            # finite inputs can still overflow the dynamics (|q̇| ~ 1e300): never publish NaN
+            return self._reject(InputError("model torques are not finite: position, velocity or "
+                                           "acceleration estimate out of any physical range",
+                                           code="non_finite_torque"))
         lim = self._effort
         if self._has_curve:
             lim = np.minimum(lim, self.model.limits.effort_envelope(v))
@@ -427,6 +432,10 @@ class Monitor:
         for code, n in sorted(c.invalid_by_reason.items()):
             vals[f"invalid_{code}"] = n
         stale = self.settings.stale_timeout
+        if self.last_receipt_s is not None and now_s < self.last_receipt_s:
+            # the clock jumped back (a replayed /clock restarting): staleness counts from now
+            self.last_receipt_s = now_s
+            age = vals["age_s"] = 0.0
         if self.last_receipt_s is None:
             level, msg = STALE, "no joint_states received yet: is the publisher running and the topic remapped?"
         elif age > stale:
@@ -604,6 +613,8 @@ class ControllerTracker:
         return self.tick(receipt_s)
 
     def _evaluate(self, now_s: float) -> str:
+        if self._last_receipt is not None and now_s < self._last_receipt:
+            self._last_receipt = now_s  # the clock jumped back: staleness counts from the jump
         if self._last_receipt is None or now_s - self._last_receipt > self.settings.stale_timeout:
             return "stale"
         if self._fault:

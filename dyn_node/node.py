@@ -107,7 +107,9 @@ class DynNode(Node):
         self._last_seq: int | None = None
         self._seq_gaps = 0
         self._lost_total = 0
-        self._single_publisher = False
+        # Assume one publisher until the graph (checked each diagnostics period) says otherwise,
+        # so gaps from the very first burst are counted.
+        self._single_publisher = True
         self._topic_urdf = ""
         self._model_problem: Status | None = None
         self._core: _Core | None = None
@@ -368,9 +370,14 @@ class DynNode(Node):
     def _on_message_lost(self, info: Any) -> None:
         with self._io_lock:
             self._lost_total = int(info.total_count)
-            core = self._core
-            if core is not None:
-                core.monitor.note_dropped(self._seq_gaps + self._lost_total)
+            self._report_dropped()
+
+    def _report_dropped(self) -> None:
+        # Sequence gaps are exact and include what the middleware's lost event reports, so the
+        # event's count is used only while no sequence numbers are seen (never both: no double count).
+        core = self._core
+        if core is not None:
+            core.monitor.note_dropped(self._seq_gaps if self._last_seq is not None else self._lost_total)
 
     def _count_sequence(self, info: dict | None) -> None:
         """Count messages lost between the publisher and this node from sequence-number gaps.
@@ -387,11 +394,11 @@ class DynNode(Node):
         self._last_seq = seq
         if last is not None and seq > last + 1 and self._single_publisher:
             self._seq_gaps += seq - last - 1
-            core = self._core
-            if core is not None:
-                core.monitor.note_dropped(self._seq_gaps + self._lost_total)
+            self._report_dropped()
 
-    def _on_joint_state(self, data: bytes, info: dict | None = None) -> None:
+    def _on_joint_state(self, data: bytes, info: dict) -> None:
+        # Two required arguments: rclpy binds a callback that accepts one argument as
+        # message-only, and then no sequence numbers would ever arrive.
         # Taken raw so the recorder gets exactly the bytes the node processed (the audit's
         # re-check then pairs every output with its input); deserialising costs what rclpy's
         # own take would.

@@ -1,0 +1,241 @@
+"""Limit edge cases (issue 9): values exactly at, and ε either side of, every limit kind.
+
+Classification must match ros2_control's: bounds are inclusive (a value equal to its limit is
+allowed, |τ| ≤ max is OK), lower and upper position bounds and negative efforts/velocities are
+treated symmetrically, and continuous joints have no position limit at all.
+
+Method for the derived kinds (velocity, acceleration, jerk, effort, effort rate, power, RMS effort,
+torque-speed envelope): the value a limit is compared against does not depend on the limit, so a
+first check with a very loose limit gives the exact peak value; the limit is then set to that
+peak (must be feasible, ratio exactly 1, time_scale ≤ 1) and to the peak·(1 ∓ 1e-9) (must be
+infeasible / feasible). Position is checked on held poses, where the interpolated value equals the
+waypoint bit for bit. The live :class:`~dyn_node.monitor.Monitor` is checked the same way with
+single messages.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from dyn_node.dynamics import Dynamics
+from dyn_node.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.model import builtin_urdf, load_model
+from dyn_node.monitor import EFFORT, LIMITS, Monitor
+from dyn_node.settings import Settings
+from dyn_node.status import ERROR, OK, WARN
+from dyn_node.trajectory import validate_trajectory
+
+PLANAR = load_model(builtin="planar_2link")
+NAMES = list(PLANAR.joint_names)
+EPS = 1e-9
+OPTS = FeasibilityOptions(sample_period=0.005, compute_payload_margin=False)
+LOOSE = 1e12
+
+
+def _with(model, **arrays):
+    """The model with limit arrays replaced (limits only: the pinocchio model is unchanged)."""
+    return replace(model, limits=replace(model.limits, **arrays))
+
+
+def _moving_traj():
+    # a quintic motion with a sign change of velocity and torque, so peaks of |x| can be negative x
+    times = [0.0, 0.4, 1.0]
+    P = [[0.0, 0.2], [0.8, -0.6], [-0.3, 0.4]]
+    V = [[0.0, 0.0], [1.5, -2.0], [0.0, 0.0]]
+    A = [[0.0, 0.0], [-3.0, 4.0], [0.0, 0.0]]
+    return validate_trajectory(NAMES, NAMES, times, P, V, A)
+
+
+TRAJ = _moving_traj()
+
+
+def _unlimited_except(model, kind_arrays: dict):
+    inf = np.full(model.nv, np.inf)
+    base = dict(velocity=inf, acceleration=inf, jerk=inf, effort=inf, effort_rate=inf, power=inf,
+                rms_effort=inf, effort_speed_curve=(None,) * model.nv,
+                position_lower=np.full(model.nv, -np.inf), position_upper=inf,
+                soft_lower=np.full(model.nv, -np.inf), soft_upper=inf)
+    base.update(kind_arrays)
+    return _with(model, **base)
+
+
+def _check(model, traj=TRAJ):
+    return check_trajectory(Dynamics(model), traj, OPTS)
+
+
+def _limit_arrays(kind: str, j: int, value: float, nv: int) -> dict:
+    inf = np.full(nv, np.inf)
+    arr = inf.copy()
+    arr[j] = value
+    if kind == "effort_speed":
+        curve = [None] * nv
+        curve[j] = np.array([[0.0, value], [1e3, value]])  # flat envelope: |τ| ≤ value at any speed
+        return {"effort_speed_curve": tuple(curve)}
+    if kind == "rms_effort":
+        win = np.full(nv, 0.2)
+        return {"rms_effort": arr, "rms_window": win}
+    return {kind: arr}
+
+
+DERIVED = ("velocity", "acceleration", "jerk", "effort", "effort_rate", "power", "rms_effort",
+           "effort_speed")
+
+
+@pytest.mark.parametrize("kind", DERIVED)
+@pytest.mark.parametrize("j", [0, 1])
+def test_feasibility_at_and_either_side_of_every_limit_kind(kind, j):
+    loose = _unlimited_except(PLANAR, _limit_arrays(kind, j, LOOSE, PLANAR.nv))
+    peak = _check(loose).per_joint[NAMES[j]][kind]["value"]
+    assert peak > 0
+    at = _check(_unlimited_except(PLANAR, _limit_arrays(kind, j, peak, PLANAR.nv)))
+    assert at.feasible, (kind, j, at.message)
+    assert at.per_joint[NAMES[j]][kind]["ratio"] == 1.0
+    assert at.time_scale <= 1.0 and not at.violations
+    inside = _check(_unlimited_except(PLANAR, _limit_arrays(kind, j, peak * (1 + EPS), PLANAR.nv)))
+    assert inside.feasible and inside.time_scale <= 1.0
+    below = _check(_unlimited_except(PLANAR, _limit_arrays(kind, j, peak * (1 - EPS), PLANAR.nv)))
+    assert not below.feasible
+    assert [(v.joint, v.kind) for v in below.violations] == [(NAMES[j], kind)]
+    assert below.time_scale > 1.0
+    assert below.failure_label == "planning error"
+
+
+def test_negative_peaks_use_magnitude():
+    """The trajectory's peak |velocity| and |τ| of some joint are negative values; at exactly the
+    magnitude they are allowed (|x| ≤ max), so a negative extreme is classified like a positive one."""
+    from dyn_node.trajectory import interpolate
+
+    pp = interpolate(TRAJ, "quintic")
+    t = np.linspace(0, 1.0, 2001)
+    q, qd, qdd, _ = pp.evaluate(t)
+    tau = Dynamics(PLANAR).rnea_batch(q, qd, qdd)
+    assert (qd.min(axis=0) < 0).all() and (tau.min() < 0)
+    for kind in ("velocity", "effort"):
+        for j in range(2):
+            loose = _unlimited_except(PLANAR, _limit_arrays(kind, j, LOOSE, 2))
+            e = _check(loose).per_joint[NAMES[j]][kind]
+            assert _check(_unlimited_except(PLANAR, _limit_arrays(kind, j, e["value"], 2))).feasible
+
+
+def _hold(q_row):
+    q = [list(q_row), list(q_row)]
+    z = [[0.0, 0.0], [0.0, 0.0]]
+    return validate_trajectory(NAMES, NAMES, [0.0, 0.5], q, z, z)
+
+
+@pytest.mark.parametrize("j", [0, 1])
+@pytest.mark.parametrize("side", ["lower", "upper"])
+def test_feasibility_position_exactly_at_and_beyond(j, side):
+    lim = PLANAR.limits
+    bound = float(lim.position_lower[j] if side == "lower" else lim.position_upper[j])
+    out = -1.0 if side == "lower" else 1.0
+    model = _unlimited_except(PLANAR, {"position_lower": lim.position_lower.copy(),
+                                       "position_upper": lim.position_upper.copy()})
+    for delta, ok in ((0.0, True), (-out * EPS, True), (out * EPS, False)):
+        q = [0.0, 0.0]
+        q[j] = bound + delta
+        r = _check(model, _hold(q))
+        assert r.feasible is ok, (side, j, delta, r.message)
+        if not ok:
+            assert [(v.joint, v.kind) for v in r.violations] == [(NAMES[j], "position")]
+
+
+CONTINUOUS_URDF = builtin_urdf("planar_2link").replace('name="joint1" type="revolute"',
+                                                       'name="joint1" type="continuous"', 1)
+
+
+def test_continuous_joint_has_no_position_limit():
+    assert 'type="continuous"' in CONTINUOUS_URDF
+    model = load_model(urdf=CONTINUOUS_URDF)
+    assert bool(model.limits.continuous[0]) and not bool(model.limits.continuous[1])
+    assert model.limits.position_lower[0] == -np.inf and model.limits.position_upper[0] == np.inf
+    for q0 in (7.0, -50.0, 1e3):  # many turns either way
+        r = _check(_with(model, effort=np.full(2, np.inf), velocity=np.full(2, np.inf)),
+                   _hold([q0, 0.0]))
+        assert r.feasible and not r.violations
+        assert r.per_joint["joint1"]["position"]["ratio"] is None
+        m = Monitor(model, Settings())
+        res = m.process(NAMES, [q0, 0.0], [0.0, 0.0], [], 1.0, 1.0)
+        assert res.accepted
+        st = {s.name: s for s in m.statuses(1.1, "t")}[LIMITS]
+        assert st.values["position_violations"] == 0
+
+
+# --- the live monitor ----------------------------------------------------------------------
+def _monitor_statuses(model, q, v, e):
+    m = Monitor(model, Settings(acceleration_source="zero", include_friction=False))
+    r = m.process(NAMES, q, v, e, 1.0, 1.0)
+    assert r.accepted, r.error
+    return r, {s.name: s for s in m.statuses(1.1, "t")}
+
+
+@pytest.mark.parametrize("j", [0, 1])
+@pytest.mark.parametrize("side", ["lower", "upper"])
+def test_monitor_position_at_and_beyond(j, side):
+    lim = PLANAR.limits
+    bound = float(lim.position_lower[j] if side == "lower" else lim.position_upper[j])
+    out = -1.0 if side == "lower" else 1.0
+    for delta, violations in ((0.0, 0), (-out * EPS, 0), (out * EPS, 1)):
+        q = [0.0, 0.0]
+        q[j] = bound + delta
+        _, st = _monitor_statuses(PLANAR, q, [0.0, 0.0], [])
+        assert st[LIMITS].values["position_violations"] == violations, (side, j, delta)
+        assert (st[LIMITS].level == ERROR) is (violations == 1)
+
+
+@pytest.mark.parametrize("j", [0, 1])
+@pytest.mark.parametrize("side", ["lower", "upper"])
+def test_monitor_soft_limit_at_and_beyond(j, side):
+    lim = PLANAR.limits
+    bound = float(lim.soft_lower[j] if side == "lower" else lim.soft_upper[j])
+    assert bound != float(lim.position_lower[j] if side == "lower" else lim.position_upper[j])
+    out = -1.0 if side == "lower" else 1.0
+    for delta, violations in ((0.0, 0), (-out * EPS, 0), (out * EPS, 1)):
+        q = [0.0, 0.0]
+        q[j] = bound + delta
+        _, st = _monitor_statuses(PLANAR, q, [0.0, 0.0], [])
+        assert st[LIMITS].values["soft_limit_violations"] == violations, (side, j, delta)
+        assert st[LIMITS].values["position_violations"] == 0
+        assert st[LIMITS].level == (WARN if violations else OK)
+
+
+@pytest.mark.parametrize("j", [0, 1])
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_monitor_velocity_at_and_beyond(j, sign):
+    vmax = float(PLANAR.limits.velocity[j])
+    for scale, violations in ((1.0, 0), (1 - EPS, 0), (1 + EPS, 1)):
+        v = [0.0, 0.0]
+        v[j] = sign * vmax * scale
+        _, st = _monitor_statuses(PLANAR, [0.1, 0.2], v, [])
+        assert st[LIMITS].values["velocity_violations"] == violations, (j, sign, scale)
+
+
+@pytest.mark.parametrize("j", [0, 1])
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_monitor_measured_effort_at_and_beyond(j, sign):
+    """|τ_measured| = max is allowed (WARN for being above effort_warn_ratio, not ERROR); ε more is
+    ERROR; the same for negative efforts."""
+    emax = float(PLANAR.limits.effort[j])
+    for scale, level in ((1.0, WARN), (1 - EPS, WARN), (1 + EPS, ERROR)):
+        e = [0.0, 0.0]
+        e[j] = sign * emax * scale
+        r, st = _monitor_statuses(PLANAR, [0.0, 0.0], [0.0, 0.0], e)
+        assert st[EFFORT].level == level, (j, sign, scale, st[EFFORT].message)
+        assert r.utilisation[j] == pytest.approx(scale, rel=0, abs=1e-15)
+        if level == ERROR:
+            assert st[EFFORT].values["worst_joint"] == NAMES[j]
+
+
+def test_monitor_model_torque_exactly_at_effort_limit():
+    """The model torque (gravity at a held pose) as the effort limit: utilisation exactly 1, not
+    an ERROR; the limit one ulp-ish below makes it an ERROR."""
+    q = [0.4, -0.3]
+    g = np.abs(Dynamics(PLANAR).gravity(np.array(q)))
+    j = int(np.argmax(g))
+    for lim_j, level in ((g[j], WARN), (g[j] * (1 - EPS), ERROR)):
+        eff = np.full(2, np.inf)
+        eff[j] = lim_j
+        r, st = _monitor_statuses(_with(PLANAR, effort=eff), q, [0.0, 0.0], [])
+        assert st[EFFORT].level == level
