@@ -974,19 +974,29 @@ class Audit:
             entry["level"] = LEVEL_NAMES.get(entry.get("level"), str(entry.get("level")))
         return entry, traj, res
 
+    def _recorded_and_recomputed(self, m: BagMessage, pending: _Pending,
+                                 chk: Recheck) -> tuple[Any, int, Any] | None:
+        """(recorded output, its header stamp in ns, the value recomputed for that stamp), or None
+        (counted as unmatched) when the output cannot be decoded or has no recomputed input."""
+        try:
+            msg = self.decoder.decode(m.channel, m.data)
+        except Exception:  # noqa: BLE001 - a damaged output is a finding, not a crash
+            chk.unmatched += 1
+            return None
+        key = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+        want = pending.take(key)
+        if want is None:
+            chk.unmatched += 1
+            return None
+        return msg, key, want
+
     def _recheck_feasibility(self, m: BagMessage, pending: _Pending, chk: Recheck) -> None:
         from .status import format_value
 
-        try:
-            arr = self.decoder.decode(m.channel, m.data)
-        except Exception:  # noqa: BLE001
-            chk.unmatched += 1
+        found = self._recorded_and_recomputed(m, pending, chk)
+        if found is None:
             return
-        key = int(arr.header.stamp.sec) * 1_000_000_000 + int(arr.header.stamp.nanosec)
-        res = pending.take(key)
-        if res is None:
-            chk.unmatched += 1
-            return
+        arr, key, res = found
         if isinstance(res, dict):  # rejected: the node published rejected_statuses
             from .feasibility import rejected_statuses
 
@@ -1021,16 +1031,10 @@ class Audit:
 
 
     def _recheck_traj_effort(self, m: BagMessage, pending: _Pending, chk: Recheck) -> None:
-        try:
-            msg = self.decoder.decode(m.channel, m.data)
-        except Exception:  # noqa: BLE001
-            chk.unmatched += 1
+        found = self._recorded_and_recomputed(m, pending, chk)
+        if found is None:
             return
-        key = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-        want = pending.take(key)
-        if want is None:
-            chk.unmatched += 1
-            return
+        msg, key, want = found
         try:
             order = [list(msg.joint_names).index(n) for n in self.model.joint_names]
             got = np.array([[p.effort[i] for i in order] for p in msg.points], dtype=float)

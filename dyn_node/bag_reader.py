@@ -430,35 +430,20 @@ def _summary_records(path: Path) -> list[tuple[int, memoryview]] | None:
 
 
 def _metadata_from_summary(path: Path, name: str) -> dict[str, str] | None:
-    with open(path, "rb") as fh:
-        size = os.fstat(fh.fileno()).st_size
-        if size < 8 + 9 + 20 + 8:
+    """The metadata record ``name`` found through the summary's metadata index, if any."""
+    for op, body in _summary_records(path) or ():
+        if op != OP_METADATA_INDEX:
+            continue
+        moff, mlen = struct.unpack_from("<QQ", body, 0)
+        if _str(body, 16)[0] != name:
+            continue
+        with open(path, "rb") as fh:
+            fh.seek(moff)
+            rec = memoryview(fh.read(mlen))
+        if len(rec) < 9 or rec[0] != OP_METADATA:
             return None
-        fh.seek(size - 8 - 29)
-        tail = fh.read(29 + 8)
-        if tail[-8:] != MAGIC or tail[0] != OP_FOOTER:
-            return None
-        summary_start, _, _ = struct.unpack_from("<QQI", tail, 9)
-        if summary_start == 0 or summary_start >= size:
-            return None
-        fh.seek(summary_start)
-        summary = memoryview(fh.read(size - 8 - 29 - summary_start))
-        off = 0
-        while off + 9 <= len(summary):
-            op, length = _U8_U64.unpack_from(summary, off)
-            off += 9
-            if op == OP_METADATA_INDEX:
-                moff, mlen = struct.unpack_from("<QQ", summary, off)
-                mname, _ = _str(summary, off + 16)
-                if mname == name:
-                    fh.seek(moff)
-                    rec = memoryview(fh.read(mlen))
-                    if rec[0] != OP_METADATA:
-                        return None
-                    rname, o = _str(rec, 9)
-                    meta, _ = _map(rec, o)
-                    return meta
-            off += length
+        _rname, o = _str(rec, 9)
+        return _map(rec, o)[0]
     return None
 
 

@@ -9,8 +9,10 @@ import os
 import signal as _signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import pytest
 
@@ -47,6 +49,52 @@ def ros_context(ros_domain: int) -> Iterator["object"]:
         yield ctx
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture(scope="module")
+def module_ros_context(ros_domain: int) -> Iterator["object"]:
+    """One rclpy Context for a whole test module (nodes that are slow to discover share it)."""
+    import rclpy
+    from rclpy.context import Context
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    try:
+        yield ctx
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+class Collected:
+    """Messages collected per key by subscription callbacks, and a condition every callback
+    notifies, so a test waits for what it needs instead of sleeping."""
+
+    default_timeout = 10.0
+
+    def __init__(self, keys: Iterable[str] = ()):
+        self.cond = threading.Condition()
+        self.got: dict[str, list] = {k: [] for k in keys}
+
+    def collector(self, key: str, stamp_receipt: bool = False) -> Callable[[Any], None]:
+        """A subscription callback appending to ``got[key]`` ((monotonic time, msg) if asked)."""
+        self.got.setdefault(key, [])
+
+        def cb(msg: Any) -> None:
+            with self.cond:
+                self.got[key].append((time.monotonic(), msg) if stamp_receipt else msg)
+                self.cond.notify_all()
+        return cb
+
+    def wait(self, pred: Callable[[], bool], timeout: float | None = None) -> bool:
+        """Wait on the condition (woken by every collected message) until pred() or the deadline."""
+        deadline = time.monotonic() + (self.default_timeout if timeout is None else timeout)
+        with self.cond:
+            while not pred():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self.cond.wait(min(left, 0.05))
+        return True
 
 
 def child_env(**extra: str) -> dict[str, str]:

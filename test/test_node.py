@@ -9,7 +9,7 @@ import sys
 import textwrap
 import threading
 import time
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -26,7 +26,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from conftest import REPO, child_env, python_cmd
+from conftest import REPO, Collected, child_env, python_cmd
 from dyn_node.dynamics import Dynamics
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR
 from dyn_node.model import Payload, builtin_urdf, load_model
@@ -64,7 +64,7 @@ def values(status: DiagnosticStatus) -> dict[str, str]:
     return {kv.key: kv.value for kv in status.values}
 
 
-class Harness:
+class Harness(Collected):
     """The node under test plus a probe node on one executor spun in a background thread."""
 
     def __init__(self, ctx: Context, overrides: list[Parameter], namespace: str):
@@ -73,19 +73,18 @@ class Harness:
         self.ctx = ctx
         self.ns = namespace
         self.probe = rclpy.create_node("probe", namespace=namespace, context=ctx)
-        self.cond = threading.Condition()
-        self.got: dict[str, list] = {k: [] for k in ("inverse", "gravity", "diag", "ctrl", "feas", "teff")}
+        super().__init__(("inverse", "gravity", "diag", "ctrl", "feas", "teff"))
         self.desc_pub = self.probe.create_publisher(String, "robot_description", LATCHED)
         self.node = DynNode(namespace=namespace, context=ctx, parameter_overrides=overrides)
         self.js_pub = self.probe.create_publisher(JointState, "joint_states", RELIABLE)
         self.traj_pub = self.probe.create_publisher(JointTrajectory, "joint_trajectory", 10)
         sub = self.probe.create_subscription
-        sub(JointState, "dyn_node/inverse_dynamics", self._cb("inverse"), RELIABLE)
-        sub(JointState, "dyn_node/gravity_torque", self._cb("gravity"), RELIABLE)
-        sub(DiagnosticArray, "/diagnostics", self._cb("diag"), 100)
-        sub(DiagnosticStatus, "dyn_node/controller_status", self._cb("ctrl"), 100)
-        sub(DiagnosticArray, "dyn_node/feasibility", self._cb("feas"), LATCHED)
-        sub(JointTrajectory, "dyn_node/trajectory_effort", self._cb("teff"), 10)
+        sub(JointState, "dyn_node/inverse_dynamics", self.collector("inverse"), RELIABLE)
+        sub(JointState, "dyn_node/gravity_torque", self.collector("gravity"), RELIABLE)
+        sub(DiagnosticArray, "/diagnostics", self.collector("diag"), 100)
+        sub(DiagnosticStatus, "dyn_node/controller_status", self.collector("ctrl"), 100)
+        sub(DiagnosticArray, "dyn_node/feasibility", self.collector("feas"), LATCHED)
+        sub(JointTrajectory, "dyn_node/trajectory_effort", self.collector("teff"), 10)
         self.params = AsyncParameterClient(self.probe, f"{namespace}/dyn_node")
         self.self_test = self.probe.create_client(SelfTest, "dyn_node/self_test")
         self.ex = SingleThreadedExecutor(context=ctx)
@@ -96,24 +95,6 @@ class Harness:
         assert self.wait(lambda: self.js_pub.get_subscription_count() >= 1
                          and self.probe.count_publishers(f"{namespace}/dyn_node/inverse_dynamics") >= 1
                          and self.probe.count_publishers("/diagnostics") >= 1), "discovery"
-
-    def _cb(self, key: str) -> Callable[[Any], None]:
-        def cb(msg: Any) -> None:
-            with self.cond:
-                self.got[key].append(msg)
-                self.cond.notify_all()
-        return cb
-
-    def wait(self, pred: Callable[[], bool], timeout: float = 10.0) -> bool:
-        """Wait on the condition (woken by every received message) until pred() or the deadline."""
-        deadline = time.monotonic() + timeout
-        with self.cond:
-            while not pred():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.cond.wait(min(left, 0.05))
-        return True
 
     def answer(self, stamp: float, key: str = "inverse", timeout: float = 10.0) -> JointState:
         found: list = []
@@ -157,18 +138,8 @@ class Harness:
 
 
 @pytest.fixture(scope="module")
-def module_ctx():
-    from conftest import TEST_DOMAIN
-
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=TEST_DOMAIN)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-@pytest.fixture(scope="module")
-def panda(module_ctx):
-    h = Harness(module_ctx, [Parameter("robot_model", value="panda"), *FAST_DIAG], "/inproc")
+def panda(module_ros_context):
+    h = Harness(module_ros_context, [Parameter("robot_model", value="panda"), *FAST_DIAG], "/inproc")
     yield h
     h.close()
 
@@ -617,8 +588,8 @@ def test_joint_state_cdr_codec_matches_rclpy():
 
 
 @pytest.mark.timeout(60)
-def test_destroy_stops_the_joint_states_thread(module_ctx):
-    node = DynNode("io_teardown", context=module_ctx, namespace="/teardown",
+def test_destroy_stops_the_joint_states_thread(module_ros_context):
+    node = DynNode("io_teardown", context=module_ros_context, namespace="/teardown",
                    parameter_overrides=[Parameter("robot_model", value="panda")])
     assert node._io_thread.is_alive() and node._sub_js.topic_name == "/teardown/joint_states"
     node.destroy_node()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import threading
 import time
-from typing import Any, Callable
 
 import numpy as np
 import pytest
@@ -26,6 +25,7 @@ from dyn_node.model import load_model
 from dyn_node.node import DynNode
 from dyn_node.status import ERROR, OK, WARN
 from dyn_node.trajectory import interpolate, validate_trajectory
+from conftest import Collected  # noqa: E402
 
 MODEL = load_model(builtin="planar_2link")
 NAMES = list(MODEL.joint_names)
@@ -70,19 +70,20 @@ def kv(status) -> dict[str, str]:
     return {k.key: k.value for k in status.values}
 
 
-class Harness:
+class Harness(Collected):
+    default_timeout = 15.0
+
     def __init__(self, ctx: Context, namespace: str):
-        self.cond = threading.Condition()
-        self.got: dict[str, list] = {"feas": [], "teff": [], "gravity": []}
+        super().__init__(("feas", "teff", "gravity"))
         self.probe = rclpy.create_node("probe", namespace=namespace, context=ctx)
         self.node = DynNode(namespace=namespace, context=ctx, parameter_overrides=[
             Parameter("robot_model", value="planar_2link")])
         self.traj_pub = self.probe.create_publisher(JointTrajectory, "joint_trajectory", 10)
         self.js_pub = self.probe.create_publisher(JointState, "joint_states", RELIABLE)
         sub = self.probe.create_subscription
-        sub(DiagnosticArray, "dyn_node/feasibility", self._cb("feas"), LATCHED)
-        sub(JointTrajectory, "dyn_node/trajectory_effort", self._cb("teff"), 10)
-        sub(JointState, "dyn_node/gravity_torque", self._cb("gravity"), RELIABLE)
+        sub(DiagnosticArray, "dyn_node/feasibility", self.collector("feas"), LATCHED)
+        sub(JointTrajectory, "dyn_node/trajectory_effort", self.collector("teff"), 10)
+        sub(JointState, "dyn_node/gravity_torque", self.collector("gravity"), RELIABLE)
         self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.node)
         self.ex.add_node(self.probe)
@@ -92,23 +93,6 @@ class Harness:
                          and self.js_pub.get_subscription_count() >= 1
                          and self.probe.count_publishers(f"{namespace}/dyn_node/feasibility") >= 1
                          and self.probe.count_publishers(f"{namespace}/dyn_node/gravity_torque") >= 1)
-
-    def _cb(self, key: str) -> Callable[[Any], None]:
-        def cb(msg: Any) -> None:
-            with self.cond:
-                self.got[key].append(msg)
-                self.cond.notify_all()
-        return cb
-
-    def wait(self, pred: Callable[[], bool], timeout: float = 15.0) -> bool:
-        deadline = time.monotonic() + timeout
-        with self.cond:
-            while not pred():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.cond.wait(min(left, 0.05))
-        return True
 
     def verdict(self, msg: JointTrajectory, timeout: float = 30.0) -> DiagnosticArray:
         hit: list = []

@@ -17,7 +17,6 @@ import textwrap
 import threading
 import time
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -35,7 +34,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
-from conftest import python_cmd
+from conftest import Collected, python_cmd
 from dyn_node.dynamics import Dynamics, DynamicsOptions
 from dyn_node.model import builtin_urdf, load_model
 from dyn_node.node import DynNode
@@ -75,14 +74,13 @@ def kv(status) -> dict[str, str]:
     return {k.key: k.value for k in status.values}
 
 
-class Probe:
+class Probe(Collected):
     """A node that collects what it is told to subscribe to; its executor spins in a thread
     (together with any in-process node under test)."""
 
     def __init__(self, ctx: Context, name: str, nodes: tuple = ()):
+        super().__init__()
         self.node = rclpy.create_node(name, context=ctx)
-        self.cond = threading.Condition()
-        self.got: dict[str, list] = {}
         self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.node)
         for n in nodes:
@@ -92,22 +90,7 @@ class Probe:
 
     def sub(self, key: str, msg_type, topic: str, qos, stamp_receipt: bool = False) -> None:
         self.got[key] = []
-
-        def cb(msg):
-            with self.cond:
-                self.got[key].append((time.monotonic(), msg) if stamp_receipt else msg)
-                self.cond.notify_all()
-        self.node.create_subscription(msg_type, topic, cb, qos)
-
-    def wait(self, pred: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        with self.cond:
-            while not pred():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.cond.wait(min(left, 0.05))
-        return True
+        self.node.create_subscription(msg_type, topic, self.collector(key, stamp_receipt), qos)
 
     def statuses(self, key: str, name: str, hardware_id: str | None = None) -> list:
         with self.cond:
@@ -129,13 +112,8 @@ class Probe:
 
 
 @pytest.fixture(scope="module")
-def ctx():
-    from conftest import TEST_DOMAIN
-
-    c = Context()
-    rclpy.init(context=c, domain_id=TEST_DOMAIN)
-    yield c
-    rclpy.try_shutdown(context=c)
+def ctx(module_ros_context):
+    return module_ros_context
 
 
 # --- overload -------------------------------------------------------------------------------
