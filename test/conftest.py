@@ -5,6 +5,7 @@ concurrent test runs on one machine never hear each other. Set DYN_TEST_DOMAIN t
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import signal as _signal
 import subprocess
@@ -37,32 +38,31 @@ def ros_domain() -> int:
     return TEST_DOMAIN
 
 
-@pytest.fixture
-def ros_context(ros_domain: int) -> Iterator["object"]:
-    """A fresh rclpy Context initialised on the test domain, shut down afterwards."""
+@contextlib.contextmanager
+def _context(domain: int) -> Iterator["object"]:
     import rclpy
     from rclpy.context import Context
 
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
+    rclpy.init(context=ctx, domain_id=domain)
     try:
         yield ctx
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def ros_context(ros_domain: int) -> Iterator["object"]:
+    """A fresh rclpy Context initialised on the test domain, shut down afterwards."""
+    with _context(ros_domain) as ctx:
+        yield ctx
 
 
 @pytest.fixture(scope="module")
 def module_ros_context(ros_domain: int) -> Iterator["object"]:
     """One rclpy Context for a whole test module (nodes that are slow to discover share it)."""
-    import rclpy
-    from rclpy.context import Context
-
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    try:
+    with _context(ros_domain) as ctx:
         yield ctx
-    finally:
-        rclpy.try_shutdown(context=ctx)
 
 
 class Collected:
