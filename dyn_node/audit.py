@@ -9,6 +9,12 @@ stamps and log (receipt) times as time; each joint_trajectory goes through
 (``*/gravity_torque``, ``*/inverse_dynamics``, ``*/feasibility``) they are recomputed and the
 largest difference per topic reported (0.0: bit-identical).
 
+Speed: runs of consecutive joint_states on one topic with one byte layout and no gap are decoded
+at once and replayed through :meth:`Monitor.process_batch` / :meth:`ControllerTracker.update_batch`,
+which give exactly the numbers of message-by-message replay (tests compare the two evidence
+records); any other message, and any run the batch path declines (an invalid message in it), is
+replayed message by message.
+
 Exit codes: 0 everything feasible, 1 violations found, 2 unusable input (one-line error).
 """
 from __future__ import annotations
@@ -26,7 +32,8 @@ import numpy as np
 import yaml
 
 from . import __version__
-from .bag_reader import BagError, BagMessage, BagReader, MessageDecoder, decode_joint_state
+from .bag_reader import (BagError, BagMessage, BagReader, MessageDecoder, decode_joint_state,
+                         decode_joint_state_batch)
 from .errors import (CONTROL_ERROR, EVALUATION_ERROR, PLANNING_ERROR, STATE_ERROR, DynNodeError,
                      TrajectoryError)
 from .evidence import EvidenceRecord, utc_now
@@ -37,6 +44,8 @@ MAX_EPISODES = 1000      # violation episodes listed (the rest are counted)
 MAX_EXAMPLES = 50        # invalid / out-of-order examples and gaps listed
 MAX_TRAJECTORIES = 1000  # per-trajectory verdicts listed (the rest are counted)
 MAX_PENDING = 20_000     # recomputed outputs waiting for their recorded counterpart (20 s at 1 kHz)
+MIN_BATCH = 16           # shorter runs of joint_states are replayed message by message
+MAX_RUN = 2048           # joint_states replayed per batch (bounds memory)
 RECHECK_EXCLUDED_KEYS = ("compute_time",)  # wall-clock figures cannot be reproduced
 
 ROLE_JOINT_STATES, ROLE_TRAJECTORY = "joint_states", "joint_trajectory"
@@ -234,6 +243,15 @@ class LiveStats:
         Q = np.array([r[4] for r in rows], dtype=float)
         V = np.array([r[5] for r in rows], dtype=float)
         MEAS = np.array([nan if r[6] is None else r[6] for r in rows], dtype=float)
+        self._rows(T, TAU, UTIL, LIM, Q, V, MEAS)
+
+    def add_arrays(self, T, TAU, UTIL, LIM, Q, V, MEAS) -> None:
+        """N rows of :meth:`add` at once ((N,) int64 log times ns, N×nv arrays; ``MEAS`` NaN
+        where not measured); the same result as N calls of :meth:`add`."""
+        self.flush()
+        self._rows(T, TAU, UTIL, np.ascontiguousarray(LIM), Q, V, MEAS)
+
+    def _rows(self, T, TAU, UTIL, LIM, Q, V, MEAS) -> None:
         if self.series is None:
             self.series = SeriesBins(self.nv, int(T[0]))
         self.series.add_batch(T, TAU, UTIL, LIM, MEAS)
@@ -615,6 +633,126 @@ class Audit:
         want_out = {r: known is None or any(t.rstrip("/").rsplit("/", 1)[-1] == r for t in known)
                     for r in (ROLE_GRAVITY, ROLE_ID, ROLE_FEAS, ROLE_TRAJ_EFFORT)}
         n_msgs = 0
+        gap_ns = opts.gap_threshold_s * 1e9
+        # Consecutive joint_states of one topic with one byte layout and no gap are queued as a
+        # run and replayed in one batch (decoded at once, Monitor.process_batch); anything else,
+        # and any run the batch path declines, goes message by message. Both give the same numbers.
+        run_topic, run_len, run_t, run_d = "", -1, [], []
+
+        def gap_check(topic: str, t_ns: int) -> None:
+            nonlocal prev_log, n_gaps, n_stale, ctrl_last
+            js_topics.add(topic)
+            if prev_log is not None and t_ns - prev_log > gap_ns:
+                g = {"start_ns": prev_log, "end_ns": t_ns}
+                n_gaps += 1
+                if len(gaps) < MAX_EXAMPLES:
+                    gaps.append(g)
+                if t_ns - prev_log > settings.stale_timeout * 1e9:
+                    n_stale += 1
+                    if len(stale) < MAX_EXAMPLES:
+                        stale.append(g)
+                    # The node's controller-status timer sees the silence: stale just after
+                    # stale_timeout (its timer period is not replayed).
+                    stale_ns = prev_log + int(settings.stale_timeout * 1e9) + 1000
+                    if self.tracker.tick(stale_ns * 1e-9):
+                        if ctrl_last is not None:
+                            ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (
+                                stale_ns - ctrl_last[1]) * 1e-9
+                        ctrl_last = (self.tracker.state, stale_ns)
+                        if len(ctrl_transitions) < MAX_EPISODES:
+                            ctrl_transitions.append({"t_ns": stale_ns, "state": self.tracker.state})
+            prev_log = t_ns if prev_log is None or t_ns > prev_log else prev_log
+
+        def transition(st: str, t_ns: int) -> None:
+            nonlocal ctrl_last
+            if ctrl_last is not None:
+                ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (t_ns - ctrl_last[1]) * 1e-9
+            ctrl_last = (st, t_ns)
+            if len(ctrl_transitions) < MAX_EPISODES:
+                ctrl_transitions.append({"t_ns": t_ns, "state": st})
+
+        def js_one(topic: str, t_ns: int, data: bytes) -> None:
+            nonlocal invalid_count
+            receipt_s = t_ns * 1e-9
+            try:
+                js = decode_joint_state(data)
+            except ValueError as exc:
+                invalid_count += 1
+                invalid_by_reason["undecodable"] = invalid_by_reason.get("undecodable", 0) + 1
+                if len(invalid_examples) < MAX_EXAMPLES:
+                    invalid_examples.append({"t_ns": t_ns, "reason": str(exc), "code": "undecodable",
+                                             "topic": topic})
+                return
+            stamp_s = js.sec + js.nanosec * 1e-9
+            r = self.monitor.process(js.names, js.position, js.velocity, js.effort, stamp_s, receipt_s)
+            if self.tracker.update(r, receipt_s) or ctrl_last is None:
+                transition(self.tracker.state, t_ns)
+            if not r.accepted:
+                invalid_count += 1
+                code = r.error.code
+                invalid_by_reason[code] = invalid_by_reason.get(code, 0) + 1
+                if len(invalid_examples) < MAX_EXAMPLES:
+                    invalid_examples.append({"t_ns": t_ns, "reason": str(r.error), "code": code,
+                                             "topic": topic})
+                return
+            if r.out_of_order and len(ooo_examples) < MAX_EXAMPLES:
+                ooo_examples.append({"t_ns": t_ns, "stamp_ns": js.stamp_ns})
+            stamp_key = js.stamp_ns
+            if want_out[ROLE_GRAVITY]:
+                pend[ROLE_GRAVITY].put(stamp_key, r.gravity)
+                input_log[stamp_key] = t_ns
+                if len(input_log) > MAX_PENDING:
+                    input_log.popitem(last=False)
+            if want_out[ROLE_ID]:
+                pend[ROLE_ID].put(stamp_key, r.tau)
+            tau = r.tau
+            live.add(t_ns, tau, r.utilisation, r.effort_limit, r.q, r.v,
+                     None if r.residual is None else r.residual + tau)
+
+        def js_batch(ts: list[int], datas: list[bytes]) -> bool:
+            jb = decode_joint_state_batch(datas)
+            if jb is None or jb.position is None:
+                return False
+            stamp_s = jb.sec.astype(float) + jb.nanosec.astype(float) * 1e-9
+            T = np.array(ts, dtype=np.int64)
+            receipt = T.astype(float) * 1e-9
+            b = self.monitor.process_batch(jb.names, jb.position, jb.velocity, jb.effort, stamp_s,
+                                           receipt)
+            if b is None:
+                return False
+            before = self.tracker.state
+            changes = self.tracker.update_batch(b, receipt)
+            if ctrl_last is None and (not changes or changes[0][0] != 0):
+                changes.insert(0, (0, before))  # row 0 left the state as it was
+            for k, st in changes:
+                transition(st, ts[k])
+            if len(ooo_examples) < MAX_EXAMPLES and b.out_of_order.any():
+                for k in np.flatnonzero(b.out_of_order)[:MAX_EXAMPLES - len(ooo_examples)].tolist():
+                    ooo_examples.append({"t_ns": ts[k], "stamp_ns": int(jb.stamp_ns[k])})
+            if want_out[ROLE_GRAVITY] or want_out[ROLE_ID]:
+                for k, key in enumerate(jb.stamp_ns.tolist()):
+                    if want_out[ROLE_GRAVITY]:
+                        pend[ROLE_GRAVITY].put(key, b.gravity[k])
+                        input_log[key] = ts[k]
+                        if len(input_log) > MAX_PENDING:
+                            input_log.popitem(last=False)
+                    if want_out[ROLE_ID]:
+                        pend[ROLE_ID].put(key, b.tau[k])
+            meas = (b.residual + b.tau if b.residual is not None
+                    else np.full(b.tau.shape, np.nan))
+            live.add_arrays(T, b.tau, b.utilisation, b.effort_limit, b.q, b.v, meas)
+            return True
+
+        def flush() -> None:
+            nonlocal run_d, run_t, prev_log
+            if not run_d:
+                return
+            ts, datas = run_t, run_d
+            run_t, run_d = [], []
+            if len(datas) < MIN_BATCH or not js_batch(ts, datas):
+                for t, d in zip(ts, datas):
+                    js_one(run_topic, t, d)
+            prev_log = max(prev_log, ts[-1])
 
         for m in reader.messages():
             n_msgs += 1
@@ -631,69 +769,18 @@ class Audit:
                 continue
             t_ns = m.log_time_ns
             if role == ROLE_JOINT_STATES:
-                js_topics.add(topic)
-                if prev_log is not None and t_ns - prev_log > opts.gap_threshold_s * 1e9:
-                    g = {"start_ns": prev_log, "end_ns": t_ns}
-                    n_gaps += 1
-                    if len(gaps) < MAX_EXAMPLES:
-                        gaps.append(g)
-                    if t_ns - prev_log > settings.stale_timeout * 1e9:
-                        n_stale += 1
-                        if len(stale) < MAX_EXAMPLES:
-                            stale.append(g)
-                        # The node's controller-status timer sees the silence: stale just after
-                        # stale_timeout (its timer period is not replayed).
-                        stale_ns = prev_log + int(settings.stale_timeout * 1e9) + 1000
-                        if self.tracker.tick(stale_ns * 1e-9):
-                            if ctrl_last is not None:
-                                ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (
-                                    stale_ns - ctrl_last[1]) * 1e-9
-                            ctrl_last = (self.tracker.state, stale_ns)
-                            if len(ctrl_transitions) < MAX_EPISODES:
-                                ctrl_transitions.append({"t_ns": stale_ns, "state": self.tracker.state})
-                prev_log = t_ns if prev_log is None or t_ns > prev_log else prev_log
-                receipt_s = t_ns * 1e-9
-                try:
-                    js = decode_joint_state(m.data)
-                except ValueError as exc:
-                    invalid_count += 1
-                    invalid_by_reason["undecodable"] = invalid_by_reason.get("undecodable", 0) + 1
-                    if len(invalid_examples) < MAX_EXAMPLES:
-                        invalid_examples.append({"t_ns": t_ns, "reason": str(exc), "code": "undecodable",
-                                                 "topic": topic})
+                data = m.data
+                if (topic == run_topic and len(data) == run_len and run_d
+                        and 0 <= t_ns - run_t[-1] <= gap_ns and len(run_d) < MAX_RUN):
+                    run_t.append(t_ns)
+                    run_d.append(data)
                     continue
-                stamp_s = js.sec + js.nanosec * 1e-9
-                r = self.monitor.process(js.names, js.position, js.velocity, js.effort, stamp_s,
-                                         receipt_s)
-                if self.tracker.update(r, receipt_s) or ctrl_last is None:
-                    st = self.tracker.state
-                    if ctrl_last is not None:
-                        ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (t_ns - ctrl_last[1]) * 1e-9
-                    ctrl_last = (st, t_ns)
-                    if len(ctrl_transitions) < MAX_EPISODES:
-                        ctrl_transitions.append({"t_ns": t_ns, "state": st})
-                if not r.accepted:
-                    invalid_count += 1
-                    code = r.error.code
-                    invalid_by_reason[code] = invalid_by_reason.get(code, 0) + 1
-                    if len(invalid_examples) < MAX_EXAMPLES:
-                        invalid_examples.append({"t_ns": t_ns, "reason": str(r.error), "code": code,
-                                                 "topic": topic})
-                    continue
-                if r.out_of_order and len(ooo_examples) < MAX_EXAMPLES:
-                    ooo_examples.append({"t_ns": t_ns, "stamp_ns": js.stamp_ns})
-                stamp_key = js.stamp_ns
-                if want_out[ROLE_GRAVITY]:
-                    pend[ROLE_GRAVITY].put(stamp_key, r.gravity)
-                    input_log[stamp_key] = t_ns
-                    if len(input_log) > MAX_PENDING:
-                        input_log.popitem(last=False)
-                if want_out[ROLE_ID]:
-                    pend[ROLE_ID].put(stamp_key, r.tau)
-                tau = r.tau
-                live.add(t_ns, tau, r.utilisation, r.effort_limit, r.q, r.v,
-                         None if r.residual is None else r.residual + tau)
-            elif role == ROLE_TRAJECTORY:
+                flush()
+                gap_check(topic, t_ns)
+                run_topic, run_len, run_t, run_d = topic, len(data), [t_ns], [data]
+                continue
+            flush()
+            if role == ROLE_TRAJECTORY:
                 n_traj += 1
                 entry, ok_traj, res = self._trajectory(m, n_traj - 1)
                 if entry.get("failure_label"):
@@ -744,6 +831,7 @@ class Audit:
                         recorded_ctrl[state] = recorded_ctrl.get(state, 0) + 1
                 except Exception:  # noqa: BLE001 - recorded status is informational only
                     pass
+        flush()
         progress.done(n_msgs)
         live.finish()
         series, episodes = live.series, live.episodes

@@ -343,7 +343,7 @@ class _FileReader:
                 stats.crc_checked_chunks += 1
                 if zlib.crc32(data) != ucrc:
                     raise ValueError("chunk CRC mismatch")
-            msgs = list(self._records(memoryview(data)))
+            msgs = self._records(bytes(data))
         except Exception as exc:  # any decoder error means: this chunk's time range is lost
             stats.chunks_bad += 1
             try:
@@ -356,17 +356,52 @@ class _FileReader:
             return
         yield from msgs
 
-    def _records(self, buf: memoryview) -> Iterator[BagMessage]:
+    def _records(self, buf: bytes) -> list[BagMessage]:
+        """The messages of one decompressed chunk. Messages are handled inline (the hot loop of
+        a replay): the same counts, span and messages as :meth:`_record` gives one by one, and
+        stats updated as far as the chunk was read when it turns out malformed."""
         off, n = 0, len(buf)
-        while off < n:
-            op, length = _U8_U64.unpack_from(buf, off)
-            off += 9
-            if off + length > n:
-                raise ValueError("record runs past the end of the chunk")
-            m = self._record(op, buf[off:off + length])
-            off += length
-            if m is not None:
-                yield m
+        head = _U8_U64.unpack_from
+        msg_head = _MSG_HEAD.unpack_from
+        channels = self.channels
+        topics = self.topics
+        st = self.stats
+        counts = st.message_counts
+        first, last, flast = st.first_ns, st.last_ns, self.last_ns
+        new = tuple.__new__
+        out: list[BagMessage] = []
+        try:
+            while off < n:
+                op, length = head(buf, off)
+                off += 9
+                end = off + length
+                if end > n:
+                    raise ValueError("record runs past the end of the chunk")
+                if op == OP_MESSAGE:
+                    if length < 22:  # raises the error _record gives for a short message record
+                        _MSG_HEAD.unpack_from(memoryview(buf)[off:end], 0)
+                    cid, seq, log_ns, pub_ns = msg_head(buf, off)
+                    ch = channels.get(cid)
+                    if ch is None:
+                        raise ValueError(f"message on unknown channel {cid}")
+                    topic = ch.topic
+                    counts[topic] = counts.get(topic, 0) + 1
+                    if first is None or log_ns < first:
+                        first = log_ns
+                    if last is None or log_ns > last:
+                        last = log_ns
+                    if flast is None or log_ns > flast:
+                        flast = log_ns
+                    if topics is None or topic in topics:
+                        out.append(new(BagMessage, (topic, ch, log_ns, pub_ns, buf[off + 22:end], seq)))
+                else:
+                    m = self._record(op, memoryview(buf)[off:end])
+                    if m is not None:
+                        out.append(m)
+                off = end
+        finally:
+            st.first_ns, st.last_ns, self.last_ns = first, last, flast
+        return out
 
     def _record(self, op: int, body: memoryview) -> BagMessage | None:
         if op == OP_MESSAGE:
@@ -586,6 +621,93 @@ def _layout(off0: int, count_at: list[int], counts: list[int], starts: list[int 
     parts = [((s - first) // 8, (s - first) // 8 + c) if s is not None else (0, 0)
              for s, c in zip(starts, counts)]
     return struct.Struct(fmt), tuple(counts), first, (last - first) // 8, parts
+
+
+class JointStateBatch(NamedTuple):
+    """N decoded JointStates with one byte layout (same names, frame and array sizes): header
+    stamps as (N,) int64 arrays, value arrays N×len(names) float64 (None when the messages have
+    none). Row k equals :func:`decode_joint_state` of message k."""
+
+    names: tuple[str, ...]
+    sec: "np.ndarray"
+    nanosec: "np.ndarray"
+    stamp_ns: "np.ndarray"
+    position: "np.ndarray | None"
+    velocity: "np.ndarray | None"
+    effort: "np.ndarray | None"
+
+
+def _array_spans(data: bytes) -> list[tuple[int, int]] | None:
+    """Byte offsets (into ``data``) and counts of position, velocity and effort of a
+    little-endian JointState, or None when it is not one that parses."""
+    if len(data) < 12 or data[0] != 0 or data[1] != 1:
+        return None
+    u32 = _LE_U32.unpack_from
+    n = len(data)
+    try:
+        off = 16 + u32(data, 12)[0]
+        off = 4 + ((off - 4 + 3) & ~3)
+        count = u32(data, off)[0]
+        off += 4
+        if count > n:
+            return None
+        for _ in range(count):
+            off = 4 + ((off - 4 + 3) & ~3)
+            off += 4 + u32(data, off)[0]
+        spans = []
+        for _ in range(3):
+            off = 4 + ((off - 4 + 3) & ~3)
+            count = u32(data, off)[0]
+            off += 4
+            if count:
+                off = 4 + ((off - 4 + 7) & ~7)
+            if off + 8 * count > n:
+                return None
+            spans.append((off, count))
+            off += 8 * count
+    except struct.error:
+        return None
+    return spans
+
+
+def decode_joint_state_batch(datas: Sequence[bytes]) -> JointStateBatch | None:
+    """Decode N little-endian JointStates of equal size at once, or None unless every message
+    has exactly the first one's bytes outside its stamp and its float64 values (then the caller
+    decodes them one by one with :func:`decode_joint_state`, which reports the bad ones)."""
+    import numpy as np
+
+    if not datas:
+        return None
+    first = datas[0]
+    size = len(first)
+    spans = _array_spans(first)
+    if spans is None or any(len(d) != size for d in datas):
+        return None
+    try:
+        names = decode_joint_state(first).names
+    except ValueError:
+        return None
+    joined = b"".join(datas)
+    rows = np.frombuffer(joined, dtype=np.uint8).reshape(len(datas), size)
+    keep = np.ones(size, dtype=bool)
+    keep[4:12] = False
+    for off, count in spans:
+        keep[off:off + 8 * count] = False
+    fixed = rows[:, keep]
+    if not (fixed == fixed[0]).all():
+        return None
+    stride = (size,)
+    sec = np.ndarray(len(datas), dtype="<i4", buffer=joined, offset=4, strides=stride).astype(np.int64)
+    nsec = np.ndarray(len(datas), dtype="<u4", buffer=joined, offset=8, strides=stride).astype(np.int64)
+    arrays = []
+    for off, count in spans:
+        if count:
+            view = np.ndarray((len(datas), count), dtype="<f8", buffer=joined, offset=off,
+                              strides=(size, 8))
+            arrays.append(np.array(view, dtype=float))  # aligned, contiguous, writable copy
+        else:
+            arrays.append(None)
+    return JointStateBatch(names, sec, nsec, sec * 1_000_000_000 + nsec, *arrays)
 
 
 def _parse_names(raw: bytes, u32) -> tuple[str, ...]:

@@ -141,6 +141,39 @@ def _accepted(t: float, q: np.ndarray, v: np.ndarray, a: np.ndarray, g: np.ndarr
     return r
 
 
+@dataclass(frozen=True)
+class BatchResult:
+    """What :meth:`Monitor.process_batch` produced for N accepted messages: row k holds exactly
+    the values :meth:`Monitor.process` returns for message k (same units and order as
+    :class:`SampleResult`). ``residual`` is None when the messages carry no effort;
+    ``measured_ratio`` is NaN then. ``effort_limit`` may be a read-only broadcast view."""
+
+    stamp_s: np.ndarray          # (N,) s
+    q: np.ndarray                # N×nv
+    v: np.ndarray
+    a_hat: np.ndarray
+    gravity: np.ndarray
+    tau: np.ndarray
+    residual: np.ndarray | None
+    utilisation: np.ndarray
+    measured_ratio: np.ndarray   # (N,)
+    zero_stamp: np.ndarray       # (N,) bool
+    out_of_order: np.ndarray     # (N,) bool
+    effort_limit: np.ndarray
+    measured: np.ndarray | None = None  # (N,) bool: rows with effort (None: all, or none)
+
+    def __len__(self) -> int:
+        return len(self.stamp_s)
+
+    def result(self, k: int) -> SampleResult:
+        """Row k as the :class:`SampleResult` :meth:`Monitor.process` would have returned."""
+        return _accepted(float(self.stamp_s[k]), self.q[k], self.v[k], self.a_hat[k], self.gravity[k],
+                         self.tau[k], None if self.residual is None or (
+                             self.measured is not None and not self.measured[k]) else self.residual[k],
+                         self.utilisation[k], float(self.measured_ratio[k]), bool(self.zero_stamp[k]),
+                         bool(self.out_of_order[k]), self.effort_limit[k])
+
+
 @dataclass
 class Counts:
     """Totals since the node started (they survive model and settings changes)."""
@@ -207,6 +240,11 @@ class _Window:
         L = np.array([r[3] for r in rows])
         MR = np.array([nan_row if r[4] is None else r[4] for r in rows])
         R = np.array([nan_row if r[5] is None else r[5] for r in rows])
+        self.fold_arrays(lo, hi, slo, shi, soft, vel, Q, V, UM, L, MR, R)
+
+    def fold_arrays(self, lo, hi, slo, shi, soft: bool, vel, Q, V, UM, L, MR, R) -> None:
+        """Fold N rows given as N×nv arrays (queued rows must be folded first, to keep the
+        message order). ``MR`` and ``R`` are NaN where not measured."""
         # utilisation as process computed it; NaN measured ratio: unmeasured, the model's ratio
         U = np.fmax(UM, MR)
         self._worst(U, self.util, (self.util_limit, L), (self.util_measured, MR > UM))
@@ -385,6 +423,145 @@ class Monitor:
         r = _accepted(t, q, v, a, g, tau, residual, util, measured_ratio, zero, ooo, lim)
         self.last_result = r
         return r
+
+    def process_batch(self, names: Sequence[str], position: np.ndarray, velocity: np.ndarray | None,
+                      effort: np.ndarray | None, stamp_s: np.ndarray,
+                      receipt_s: np.ndarray) -> BatchResult | None:
+        """N messages with the same name list at once (N×len(names) arrays; ``velocity`` /
+        ``effort`` None when the messages have none; stamps and receipts (N,) in s).
+
+        Gives exactly the numbers, counts and state that N calls of :meth:`process` give (the
+        offline audit's fast path). Only for regular input: when any message would be rejected
+        or needs the model's special handling (NaN effort, non-finite values or stamps, torques
+        out of any physical range), it returns None and changes nothing; the caller then feeds
+        the messages one by one to :meth:`process`, so findings stay exact.
+        """
+        n_msg = len(stamp_s)
+        key = names if isinstance(names, tuple) else tuple(names)
+        m = self._maps.get(key)
+        if m is None:
+            try:
+                idx, ignored = self.model.mapping(key)
+            except InputError:
+                return None
+            same = ignored == 0 and len(key) == self._nv and bool(np.all(idx == np.arange(len(key))))
+            m = (None if same else idx, ignored)
+            if len(self._maps) < 64:
+                self._maps[key] = m
+        n = len(key)
+        shape = (n_msg, n)
+        if n_msg == 0 or position.shape != shape or (velocity is not None and velocity.shape != shape) \
+                or (effort is not None and effort.shape != shape):
+            return None
+        idx, ignored = m
+        Q, V, E = ((x if x is None or idx is None else x[:, idx]) for x in (position, velocity, effort))
+        zero = stamp_s == 0.0
+        T = np.where(zero, receipt_s, stamp_s)
+        if not (np.isfinite(Q).all() and (V is None or np.isfinite(V).all())
+                and (E is None or not np.isinf(E).any()) and np.isfinite(T).all()):
+            return None
+        measured = None  # rows with some effort value (NaN effort: not available, as in process)
+        if E is not None:
+            measured = ~np.isnan(E).all(axis=1)
+            if not measured.any():
+                E = measured = None
+        A, ooo, state = self._accel_batch(T, V)
+        Vd = V if V is not None else np.zeros((n_msg, self._nv))
+        dyn = self.dynamics
+        TAU = dyn.rnea_batch(Q, Vd, A)
+        G = dyn.gravity_batch(Q)
+        # process rejects a row whose torque sum is not finite; rows that large never occur in a
+        # physical recording, so they are left to process (exact) rather than mirrored here.
+        if not (np.abs(TAU).max() < 1e300 and np.abs(G).max() < 1e300):
+            return None
+        lim = self._effort
+        if self._has_curve:
+            lim = np.minimum(lim, self.model.limits.effort_envelope(Vd))
+        else:
+            lim = np.broadcast_to(lim, TAU.shape)
+        UM = np.abs(TAU) / lim
+        util = UM
+        if E is not None:
+            MR = np.abs(E) / lim
+            util = np.fmax(UM, MR)
+            RES = E - TAU
+            mratio = np.fmax.reduce(MR, axis=1)  # nanmax, as in process (NaN: no effort at all)
+            MRf, Rf = MR, RES
+        else:
+            RES = None
+            mratio = np.full(n_msg, np.nan)
+            MRf = Rf = np.broadcast_to(self._nan, TAU.shape)
+        # --- commit: from here on the state advances exactly as N process calls would ---------
+        self._prev_t, self._prev_v, self._a, self._filtered = state
+        c, w = self.counts, self._w
+        c.received += n_msg
+        w.received += n_msg
+        if w.start_s is None:
+            w.start_s = float(receipt_s[0])
+        self.last_receipt_s = float(receipt_s[-1])
+        self._fold()
+        w.fold_arrays(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel,
+                      Q, Vd, UM, lim, MRf, Rf)
+        c.accepted += n_msg
+        w.accepted += n_msg
+        c.ignored_joint_values += ignored * n_msg
+        nz, no = int(zero.sum()), int(ooo.sum())
+        c.zero_stamp += nz
+        w.zero_stamp += nz
+        c.out_of_order += no
+        w.out_of_order += no
+        self.last_error = None
+        out = BatchResult(T, Q, Vd, A, G, TAU, RES, util, mratio, zero, ooo, lim,
+                          None if measured is None or measured.all() else measured)
+        self.last_result = out.result(n_msg - 1)
+        return out
+
+    def _accel_batch(self, T: np.ndarray, V: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, tuple]:
+        """:meth:`_accel` over N rows without touching the state: (A, out_of_order, the state
+        after the last row as (prev_t, prev_v, a, filtered))."""
+        n_msg = len(T)
+        prev_T = np.empty(n_msg)
+        prev_T[0] = self._prev_t if self._prev_t is not None else np.nan
+        prev_T[1:] = T[:-1]
+        ooo = T < prev_T  # NaN (no previous message) compares False, as in _accel
+        last_v = None if V is None else V[-1]
+        zeros = np.zeros((n_msg, self._nv))
+        if not self._fd:
+            return zeros, ooo, (float(T[-1]), last_v, self._a, self._filtered)
+        if V is None:
+            return zeros, ooo, (float(T[-1]), None, self._zero, False)
+        if self._fc > 0.0:
+            # the low-pass filter is recursive: run _accel row by row on a saved state
+            saved = (self._prev_t, self._prev_v, self._a, self._filtered)
+            try:
+                A = np.array([self._accel(float(t), v)[0] for t, v in zip(T, V)])
+                state = (self._prev_t, self._prev_v, self._a, self._filtered)
+            finally:
+                self._prev_t, self._prev_v, self._a, self._filtered = saved
+            return A, ooo, state
+        dt = T - prev_T
+        reset = ooo | (dt > self._stale)
+        if self._prev_v is None:
+            reset[0] = True
+        eq = (dt == 0.0) & ~reset
+        prev_V = np.empty_like(V)
+        prev_V[0] = self._prev_v if self._prev_v is not None else np.nan
+        prev_V[1:] = V[:-1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            A = (V - prev_V) / dt[:, None]
+        A[reset] = 0.0
+        moved = ~eq
+        if eq.any():
+            # an equal stamp keeps the previous estimate (the state's, before the first row)
+            src = np.maximum.accumulate(np.where(moved, np.arange(n_msg), -1))
+            A = np.vstack([self._a[None, :], A])[src + 1]
+        last = np.flatnonzero(moved)
+        if len(last):
+            filtered = not bool(reset[last[-1]])
+        else:
+            filtered = self._filtered
+        a_state = A[-1] if len(last) else self._a
+        return A, ooo, (float(T[-1]), last_v, a_state, filtered)
 
     def _fold(self) -> None:
         self._w.fold(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel, self._nan)
@@ -612,6 +789,50 @@ class ControllerTracker:
             self._ratio = result.measured_ratio
         return self.tick(receipt_s)
 
+    _STATE_CODES = ("idle", "tracking", "deviating", "saturated")
+
+    def update_batch(self, batch: BatchResult, receipt_s: np.ndarray) -> list[tuple[int, str]]:
+        """:meth:`update` for every row of an accepted batch, in order (receipt times (N,) s);
+        returns (row, new state) for each row at which :meth:`update` would return True."""
+        n = len(batch)
+        if n == 0:
+            return []
+        ratio = batch.measured_ratio
+        sat = ratio >= 1.0 - 1e-9  # NaN compares False, as in _evaluate
+        code = np.where(sat, 3, 0)
+        plan = self._plan
+        active = np.zeros(n, dtype=bool)
+        last_error = self._nan
+        if plan is not None:
+            T = batch.stamp_s
+            active = (T >= plan[3]) & (T <= plan[4])  # where reference() is not None
+            tol = self.settings.tracking_tolerance
+            rows = np.flatnonzero(active & ~sat)
+            if active[-1] and sat[-1]:
+                rows = np.append(rows, n - 1)
+            for k in rows.tolist():
+                error = batch.q[k] - self.reference(float(T[k]))
+                if k == n - 1:
+                    last_error = error
+                if not sat[k]:
+                    err = float(np.fmax.reduce(np.abs(error)))
+                    if err != err:
+                        err = 0.0
+                    code[k] = 2 if err > tol else 1
+        prev = self._STATE_CODES.index(self.state) if self.state in self._STATE_CODES else -1
+        changed = np.flatnonzero(code != np.r_[prev, code[:-1]])
+        if self.since_s is None:
+            self.since_s = float(receipt_s[0])
+        if len(changed):
+            self.since_s = float(receipt_s[changed[-1]])
+        self.state = self._STATE_CODES[int(code[-1])]
+        self._last_receipt = float(receipt_s[-1])
+        self._fault = ""
+        self._active = bool(active[-1])
+        self._error = last_error
+        self._ratio = float(ratio[-1])
+        return [(k, self._STATE_CODES[int(code[k])]) for k in changed.tolist()]
+
     def _evaluate(self, now_s: float) -> str:
         if self._last_receipt is not None and now_s < self._last_receipt:
             self._last_receipt = now_s  # the clock jumped back: staleness counts from the jump
@@ -667,5 +888,6 @@ class ControllerTracker:
         return Status(CONTROLLER, level, msg, hardware_id, vals)
 
 
-__all__ = ["Monitor", "ControllerTracker", "SampleResult", "Counts", "build_model", "model_status",
+__all__ = ["Monitor", "ControllerTracker", "SampleResult", "BatchResult", "Counts", "build_model",
+           "model_status",
            "waiting_model_status", "model_error_status", "CONTROLLER_STATES"]

@@ -2,8 +2,9 @@
 
 Verdict at the top; per-joint effort vs limit over time with the ±limit envelope; utilisation heat
 map (joint × time); violations table; each trajectory's time scale and margins; input-quality
-findings; re-check and latency. Plots are drawn with matplotlib's Agg backend through the
-object-oriented API (no pyplot global state) and embedded as base64 ``data:`` URIs.
+findings; re-check and latency. Plots are drawn with Pillow (anti-aliased by drawing at twice the
+size) and embedded as base64 ``data:`` URIs; matplotlib is not imported, since importing and laying
+out a matplotlib figure took longer than auditing a minute of 1 kHz joint states.
 """
 from __future__ import annotations
 
@@ -15,9 +16,6 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 PNG_FILES = ("effort.png", "utilisation.png", "trajectories.png")
 
@@ -56,11 +54,205 @@ def _num(x: Any, fmt: str = "{:.4g}") -> str:
     return _e(x)
 
 
-def _png(fig: Figure) -> bytes:
-    FigureCanvasAgg(fig)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    return buf.getvalue()
+# --- plots: drawn with Pillow (no matplotlib: its import and layout cost more than a whole audit)
+_S = 2  # supersampling: drawn at 2× and box-averaged down, which anti-aliases lines and edges
+_WHITE = (255, 255, 255)
+_GRID, _AXIS, _TEXT = (226, 229, 234), (60, 64, 72), (29, 36, 51)
+_BLUE, _DARK_BLUE, _ORANGE, _RED, _GREEN = "#2f6db5", "#1b3f6b", "#e08a00", "#b3261e", "#1e7d3a"
+# ColorBrewer RdYlGn, reversed (green = low utilisation, red = at or over the limit)
+_RDYLGN_R = ("#006837", "#1a9850", "#66bd63", "#a6d96a", "#d9ef8b", "#ffffbf", "#fee08b", "#fdae61",
+             "#f46d43", "#d73027", "#a50026")
+_fonts: dict[Any, Any] = {}  # pixel size → font; "file" → the font file
+
+
+def _rgb(c: str | tuple) -> tuple[int, int, int]:
+    if isinstance(c, tuple):
+        return c
+    return int(c[1:3], 16), int(c[3:5], 16), int(c[5:7], 16)
+
+
+def _blend(c: str | tuple, alpha: float) -> tuple[int, int, int]:
+    """``c`` at opacity ``alpha`` over white (areas are drawn first, on the white axes)."""
+    return tuple(int(round(255 + alpha * (x - 255))) for x in _rgb(c))
+
+
+def _font_file() -> str | None:
+    """A DejaVu Sans file: the one in matplotlib's data (located without importing matplotlib),
+    else Debian's fonts-dejavu-core; None when neither is there."""
+    import importlib.util
+
+    candidates = []
+    try:
+        spec = importlib.util.find_spec("matplotlib")
+        if spec is not None and spec.origin:
+            candidates.append(Path(spec.origin).parent / "mpl-data" / "fonts" / "ttf" / "DejaVuSans.ttf")
+    except (ImportError, ValueError):
+        pass
+    candidates.append(Path("/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf"))
+    return next((str(c) for c in candidates if c.is_file()), None)
+
+
+def _font(size: float):
+    """DejaVu Sans at ``size`` points of the final image; Pillow's built-in font when no DejaVu
+    file is found."""
+    px = int(round(size * _S * 1.3))
+    f = _fonts.get(px)
+    if f is None:
+        from PIL import ImageFont
+
+        path = _fonts.get("file", "?")
+        if path == "?":
+            path = _fonts["file"] = _font_file()
+        try:
+            f = ImageFont.truetype(path, px) if path else ImageFont.load_default(px)
+        except OSError:
+            f = ImageFont.load_default(px)
+        _fonts[px] = f
+    return f
+
+
+def _nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
+    """Round tick values (1, 2, 2.5, 5 × 10^k steps) inside [lo, hi]."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        return [lo] if math.isfinite(lo) else []
+    raw = (hi - lo) / max(n, 1)
+    mag = 10 ** math.floor(math.log10(raw))
+    step = next(m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw)
+    first = math.ceil(lo / step - 1e-9) * step
+    out = []
+    k = 0
+    while first + k * step <= hi + 1e-9 * step:
+        v = first + k * step
+        out.append(0.0 if abs(v) < step * 1e-9 else v)
+        k += 1
+    return out
+
+
+def _fmt_tick(v: float, ticks: Sequence[float]) -> str:
+    step = abs(ticks[1] - ticks[0]) if len(ticks) > 1 else abs(v) or 1.0
+    mag = math.floor(math.log10(step))
+    digits = max(0, -mag + (1 if round(step / 10 ** mag, 6) == 2.5 else 0))  # 0.25 needs 2 digits
+    return f"{v:.{digits}f}".replace("-", "−")
+
+
+class _Canvas:
+    """A white image of ``w`` × ``h`` final pixels, drawn at :data:`_S` times that size."""
+
+    def __init__(self, w: int, h: int):
+        from PIL import Image, ImageDraw
+
+        self.img = Image.new("RGB", (w * _S, h * _S), _WHITE)
+        self.d = ImageDraw.Draw(self.img)
+
+    def text(self, x: float, y: float, s: str, size: float = 8, anchor: str = "la", color=_TEXT) -> None:
+        self.d.text((x * _S, y * _S), s, fill=_rgb(color), font=_font(size), anchor=anchor)
+
+    def png(self) -> bytes:
+        small = self.img.reduce(_S)  # box average of each S×S block: the anti-aliasing
+        buf = io.BytesIO()
+        small.save(buf, format="PNG")
+        return buf.getvalue()
+
+
+class _Axes:
+    """A plot box at final-pixel rectangle (left, top, right, bottom) with data limits."""
+
+    def __init__(self, cv: _Canvas, box: tuple[float, float, float, float],
+                 xlim: tuple[float, float], ylim: tuple[float, float]):
+        self.cv, self.d = cv, cv.d
+        self.l, self.t, self.r, self.b = (v * _S for v in box)
+        self.x0, self.x1 = xlim if xlim[1] != xlim[0] else (xlim[0] - 0.5, xlim[0] + 0.5)
+        self.y0, self.y1 = ylim if ylim[1] != ylim[0] else (ylim[0] - 0.5, ylim[0] + 0.5)
+
+    def px(self, x) -> np.ndarray:
+        return self.l + (np.asarray(x, dtype=float) - self.x0) / (self.x1 - self.x0) * (self.r - self.l)
+
+    def py(self, y) -> np.ndarray:
+        return self.b - (np.asarray(y, dtype=float) - self.y0) / (self.y1 - self.y0) * (self.b - self.t)
+
+    def _clip_y(self, y: np.ndarray) -> np.ndarray:
+        return np.clip(y, self.t - 2 * _S, self.b + 2 * _S)
+
+    def grid(self, xticks: Sequence[float], yticks: Sequence[float], xlabels: bool = True,
+             ylabels: bool = True, size: float = 7.5, ygrid: bool = True, xgrid: bool = True) -> None:
+        d = self.d
+        for v in xticks if xgrid else ():
+            x = float(self.px(v))
+            d.line([(x, self.t), (x, self.b)], fill=_GRID, width=_S)
+        for v in yticks if ygrid else ():
+            y = float(self.py(v))
+            d.line([(self.l, y), (self.r, y)], fill=_GRID, width=_S)
+        for v in xticks:
+            x = float(self.px(v))
+            d.line([(x, self.b), (x, self.b + 3 * _S)], fill=_AXIS, width=_S)
+            if xlabels:
+                self.cv.text(x / _S, self.b / _S + 4, _fmt_tick(v, xticks), size, "ma")
+        for v in yticks:
+            y = float(self.py(v))
+            d.line([(self.l - 3 * _S, y), (self.l, y)], fill=_AXIS, width=_S)
+            if ylabels:
+                self.cv.text(self.l / _S - 5, y / _S, _fmt_tick(v, yticks), size, "rm")
+
+    def frame(self) -> None:
+        self.d.rectangle([self.l, self.t, self.r, self.b], outline=_AXIS, width=_S)
+
+    def vspan(self, x0: float, x1: float, color) -> None:
+        a, b = float(np.clip(self.px(x0), self.l, self.r)), float(np.clip(self.px(x1), self.l, self.r))
+        if b > a:
+            self.d.rectangle([a, self.t, max(b, a + _S), self.b], fill=color)
+
+    def hline(self, y: float, color, width: float = 1.0, dash: bool = False) -> None:
+        yy = float(self.py(y))
+        if not self.t <= yy <= self.b:
+            return
+        w = max(1, int(round(width * _S)))
+        if not dash:
+            self.d.line([(self.l, yy), (self.r, yy)], fill=_rgb(color), width=w)
+            return
+        x, step = self.l, 6 * _S
+        while x < self.r:
+            self.d.line([(x, yy), (min(x + step * 0.6, self.r), yy)], fill=_rgb(color), width=w)
+            x += step
+
+    def line(self, x, y, color, width: float = 1.0) -> None:
+        """A polyline through the finite points (NaN breaks it)."""
+        X, Y = self.px(x), self._clip_y(self.py(y))
+        ok = np.isfinite(X) & np.isfinite(Y)
+        w = max(1, int(round(width * _S)))
+        for seg in np.split(np.arange(len(X)), np.flatnonzero(np.diff(ok.astype(np.int8)) != 0) + 1):
+            if len(seg) and ok[seg[0]]:
+                pts = list(zip(X[seg].tolist(), Y[seg].tolist()))
+                if len(pts) == 1:
+                    pts = pts * 2
+                self.d.line(pts, fill=_rgb(color), width=w, joint="curve")
+
+    def steps(self, centres, width_s: float, y, color, width: float = 1.0) -> None:
+        """A step line: value y[i] over [centre − w/2, centre + w/2] (matplotlib's steps-mid)."""
+        c = np.asarray(centres, dtype=float)
+        y = np.asarray(y, dtype=float)
+        x = np.column_stack([c - width_s / 2, c + width_s / 2]).ravel()
+        self.line(x, np.repeat(y, 2), color, width)
+
+    def bars(self, left, right, lo, hi, color) -> None:
+        """Filled rectangles [left, right] × [lo, hi] (NaN: skipped); one colour or one each."""
+        L, R = self.px(left), self.px(right)
+        A, B = self._clip_y(self.py(lo)), self._clip_y(self.py(hi))
+        colors = [color] * len(L) if isinstance(color, (str, tuple)) else color
+        for l, r, a, b, c in zip(L.tolist(), R.tolist(), A.tolist(), B.tolist(), colors):
+            if a == a and b == b:
+                top, bot = min(a, b), max(a, b)
+                self.d.rectangle([l, top, max(r, l + _S) - 1, max(bot, top + _S)], fill=_rgb(c))
+
+
+def _legend(cv: _Canvas, x: float, y: float, items: Sequence[tuple[str, Any, str]]) -> None:
+    """One row of (label, colour, 'line' | 'area') entries starting at final pixel (x, y)."""
+    for label, color, kind in items:
+        if kind == "area":
+            cv.d.rectangle([x * _S, (y - 4) * _S, (x + 18) * _S, (y + 4) * _S], fill=_rgb(color))
+        else:
+            cv.d.line([(x * _S, y * _S), ((x + 18) * _S, y * _S)], fill=_rgb(color), width=2 * _S)
+        cv.text(x + 23, y, label, 8, "lm")
+        x += 23 + _font(8).getlength(label) / _S + 18
 
 
 def _centres(series, start_ns: int) -> np.ndarray:
@@ -69,109 +261,169 @@ def _centres(series, start_ns: int) -> np.ndarray:
 
 
 def effort_plot(series, joint_names: Sequence[str], start_ns: int, violations: list[dict]) -> bytes:
-    """Per joint: the band of RNEA torque (min..max per time bin) and the ±limit envelope."""
+    """Per joint: the band of RNEA torque (min..max per time bin), the largest |measured effort|
+    per bin and the ±limit envelope (N·m) over time since the bag start (s)."""
     nv = len(joint_names)
-    fig = Figure(figsize=(11, 1.55 * nv + 0.8))
-    axes = fig.subplots(nv, 1, sharex=True, squeeze=False)[:, 0]
+    W, row, top, left, right = 1100, 150, 62, 110, 16
+    H = top + nv * row + 40
+    cv = _Canvas(W, H)
+    cv.text(W / 2, 16, "Effort vs limit over time (shaded red: effort violations)", 11, "ma")
     t = _centres(series, start_ns)
     n = series.n
-    for j, ax in enumerate(axes):
-        lo, hi, lim = series.tau_min[:n, j], series.tau_max[:n, j], series.limit[:n, j]
-        have = series.count[:n] > 0
-        lo = np.where(have, lo, np.nan)
-        hi = np.where(have, hi, np.nan)
-        ax.fill_between(t, lo, hi, color="#2f6db5", alpha=0.55, linewidth=0, step="mid",
-                        label="model torque (min–max per bin)")
-        ax.plot(t, (lo + hi) / 2, color="#1b3f6b", linewidth=0.6)
+    have = series.count[:n] > 0
+    legend = [("model torque (min–max per bin)", _blend(_BLUE, 0.55), "area")]
+    if np.isfinite(series.measured[:n]).any():
+        legend.append(("|measured effort| (max per bin)", _ORANGE, "line"))
+    if (have[:, None] & np.isfinite(series.limit[:n])).any():
+        legend.append(("±effort limit", _RED, "line"))
+    _legend(cv, left, 44, legend)
+    w_s = series.width * 1e-9
+    xlim = (float(t[0] - w_s / 2), float(t[-1] + w_s / 2)) if n else (0.0, 1.0)
+    xticks = _nice_ticks(*xlim, n=10)
+    band = _blend(_BLUE, 0.55)
+    shade = _blend(_RED, 0.18)
+    for j in range(nv):
+        lo = np.where(have, series.tau_min[:n, j], np.nan)
+        hi = np.where(have, series.tau_max[:n, j], np.nan)
+        lim = series.limit[:n, j]
         meas = series.measured[:n, j]
-        if np.isfinite(meas).any():
-            ax.plot(t, meas, color="#e08a00", linewidth=0.9, drawstyle="steps-mid",
-                    label="|measured effort| (max per bin)")
         finite = have & np.isfinite(lim)
+        env = np.where(finite, lim, np.nan)
+        vals = np.concatenate([lo[have], hi[have], env[finite], meas[np.isfinite(meas)]])
         if finite.any():
-            env = np.where(finite, lim, np.nan)
-            ax.plot(t, env, color="#b3261e", linewidth=1.2, drawstyle="steps-mid", label="±effort limit")
-            ax.plot(t, -env, color="#b3261e", linewidth=1.2, drawstyle="steps-mid")
-            top = np.nanmax(np.abs(np.concatenate([lo[have], hi[have], env[finite],
-                                                   meas[np.isfinite(meas)]])))
-            ax.set_ylim(-1.15 * top, 1.15 * top)
+            big = float(np.nanmax(np.abs(vals)))
+            ylim = (-1.15 * big, 1.15 * big)
+        elif vals.size:
+            a, b = float(np.min(vals)), float(np.max(vals))
+            pad = 0.05 * (b - a) or 0.5
+            ylim = (a - pad, b + pad)
+        else:
+            ylim = (-1.0, 1.0)
+        y_top = top + j * row
+        ax = _Axes(cv, (left, y_top, W - right, y_top + row - 14), xlim, ylim)
         for v in violations:
             if v["joint"] == joint_names[j] and v["kind"] == "effort":
-                ax.axvspan(v["start_s"], max(v["end_s"], v["start_s"] + series.width * 1e-9),
-                           color="#b3261e", alpha=0.18)
-        ax.set_ylabel(f"{joint_names[j]}\nN·m", fontsize=8)
-        ax.tick_params(labelsize=8)
-        ax.grid(alpha=0.3)
-    handles = {}
-    for ax in axes:
-        for h, lbl in zip(*ax.get_legend_handles_labels()):
-            handles.setdefault(lbl, h)
-    axes[0].legend(handles.values(), handles.keys(), loc="upper right", fontsize=8, ncol=3)
-    axes[-1].set_xlabel("time since bag start (s)")
-    fig.suptitle("Effort vs limit over time (shaded red: effort violations)", fontsize=11)
-    fig.tight_layout()
-    return _png(fig)
+                ax.vspan(v["start_s"], max(v["end_s"], v["start_s"] + w_s), shade)
+        ax.grid(xticks, _nice_ticks(*ylim, n=4), xlabels=j == nv - 1)
+        ax.bars(t - w_s / 2, t + w_s / 2, lo, hi, band)
+        ax.line(t, (lo + hi) / 2, _DARK_BLUE, 0.7)
+        if np.isfinite(meas).any():
+            ax.steps(t, w_s, meas, _ORANGE, 1.0)
+        if finite.any():
+            ax.steps(t, w_s, env, _RED, 1.3)
+            ax.steps(t, w_s, -env, _RED, 1.3)
+        ax.frame()
+        cv.text(8, y_top + (row - 14) / 2 - 7, str(joint_names[j]), 8, "lm")
+        cv.text(8, y_top + (row - 14) / 2 + 7, "N·m", 8, "lm")
+    cv.text(left + (W - right - left) / 2, H - 14, "time since bag start (s)", 9, "ms")
+    return cv.png()
+
+
+def _colormap(u: np.ndarray, vmax: float) -> np.ndarray:
+    """RGB (uint8) of utilisation values on the reversed RdYlGn scale 0..vmax; NaN: light grey."""
+    stops = np.array([_rgb(c) for c in _RDYLGN_R], dtype=float)
+    pos = np.linspace(0.0, 1.0, len(stops))
+    x = np.clip(np.nan_to_num(u / vmax, nan=0.0), 0.0, 1.0)
+    rgb = np.stack([np.interp(x, pos, stops[:, k]) for k in range(3)], axis=-1)
+    rgb[np.isnan(u)] = (238, 240, 243)
+    return np.round(rgb).astype(np.uint8)
 
 
 def utilisation_plot(series, joint_names: Sequence[str], start_ns: int) -> bytes:
     """Heat map of the largest utilisation (|τ| / limit) per joint and time bin."""
+    from PIL import Image
+
     n = series.n
-    u = np.where(series.count[:n, None] > 0, series.util[:n], np.nan).T
-    fig = Figure(figsize=(11, 0.42 * len(joint_names) + 1.6))
-    ax = fig.subplots()
+    nv = len(joint_names)
+    u = np.where(series.count[:n, None] > 0, series.util[:n], np.nan).T  # nv × n
+    W, left, right, top, rowh = 1100, 120, 110, 34, 30
+    H = top + nv * rowh + 48
+    cv = _Canvas(W, H)
+    cv.text((left + W - right) / 2, 10, "Effort utilisation, joint × time (max per bin)", 11, "ma")
     t = _centres(series, start_ns)
-    x0 = t[0] - series.width * 0.5e-9 if n else 0.0
-    x1 = t[-1] + series.width * 0.5e-9 if n else 1.0
+    w_s = series.width * 1e-9
+    x0 = float(t[0] - w_s / 2) if n else 0.0
+    x1 = float(t[-1] + w_s / 2) if n else 1.0
     vmax = max(1.2, float(np.nanmax(u)) if np.isfinite(u).any() else 1.2)
-    im = ax.imshow(u, aspect="auto", interpolation="nearest", cmap="RdYlGn_r", vmin=0.0, vmax=vmax,
-                   extent=(x0, x1, len(joint_names) - 0.5, -0.5))
-    ax.set_yticks(range(len(joint_names)))
-    ax.set_yticklabels(joint_names, fontsize=8)
-    ax.set_xlabel("time since bag start (s)")
-    cb = fig.colorbar(im, ax=ax, pad=0.01)
-    cb.set_label("utilisation (1 = at the limit)", fontsize=8)
-    cb.ax.axhline(1.0, color="k", linewidth=1.0)
-    ax.set_title("Effort utilisation, joint × time (max per bin)", fontsize=11)
-    fig.tight_layout()
-    return _png(fig)
+    ax = _Axes(cv, (left, top, W - right, top + nv * rowh), (x0, x1), (nv - 0.5, -0.5))
+    if n:
+        heat = Image.fromarray(_colormap(u, vmax), "RGB").resize(
+            (int(ax.r - ax.l), int(ax.b - ax.t)), Image.Resampling.NEAREST)
+        cv.img.paste(heat, (int(ax.l), int(ax.t)))
+    ax.grid(_nice_ticks(x0, x1, n=10), [], ygrid=False, xgrid=False)
+    for j, name in enumerate(joint_names):
+        y = float(ax.py(j)) / _S
+        cv.d.line([(ax.l - 3 * _S, y * _S), (ax.l, y * _S)], fill=_AXIS, width=_S)
+        cv.text(left - 6, y, str(name), 8, "rm")
+    ax.frame()
+    cv.text(left + (W - right - left) / 2, H - 10, "time since bag start (s)", 9, "ms")
+    # colour bar
+    cl, cr = W - right + 14, W - right + 30
+    bar = _Axes(cv, (cl, top, cr, top + nv * rowh), (0.0, 1.0), (0.0, vmax))
+    ramp = _colormap(np.linspace(vmax, 0.0, int(bar.b - bar.t))[:, None].repeat(2, axis=1), vmax)
+    cv.img.paste(Image.fromarray(ramp, "RGB").resize((int(bar.r - bar.l), int(bar.b - bar.t))),
+                 (int(bar.l), int(bar.t)))
+    bar.hline(1.0, (0, 0, 0), 1.2)
+    ticks = _nice_ticks(0.0, vmax, n=5)
+    for v in ticks:
+        y = float(bar.py(v))
+        cv.d.line([(bar.r, y), (bar.r + 3 * _S, y)], fill=_AXIS, width=_S)
+        cv.text(cr + 5, y / _S, _fmt_tick(v, ticks), 7.5, "lm")
+    bar.frame()
+    lbl = "utilisation (1 = at the limit)"
+    f = _font(8)
+    tw = int(f.getlength(lbl)) + 4 * _S
+    from PIL import ImageDraw
+
+    tag = Image.new("RGB", (tw, int(14 * _S)), _WHITE)
+    ImageDraw.Draw(tag).text((2 * _S, 7 * _S), lbl, fill=_TEXT, font=f, anchor="lm")
+    tag = tag.rotate(90, expand=True)
+    cv.img.paste(tag, (int((cr + 38) * _S), int(bar.t + (bar.b - bar.t - tag.size[1]) / 2)))
+    return cv.png()
 
 
 def trajectories_plot(trajs: list[dict]) -> bytes:
-    """Time scale k per trajectory (k ≤ 1 feasible) and the payload margin."""
-    fig = Figure(figsize=(11, 3.2))
-    ax1, ax2 = fig.subplots(1, 2)
+    """Time scale k per trajectory (k ≤ 1 feasible) and the payload margin (kg)."""
+    W, H, top, bottom = 1100, 320, 34, 44
+    cv = _Canvas(W, H)
     idx = [t["index"] for t in trajs]
+    lo_i, hi_i = (min(idx) - 0.6, max(idx) + 0.6) if idx else (-0.6, 0.6)
+    xticks = [float(v) for v in _nice_ticks(lo_i, hi_i, n=8) if float(v).is_integer()]
+    colors = [_GREEN if t["feasible"] else _RED for t in trajs]
     ks = [_finite(t.get("time_scale")) for t in trajs]
-    colors = ["#1e7d3a" if t["feasible"] else "#b3261e" for t in trajs]
     kplot = [k if k is not None else 0.0 for k in ks]
-    ax1.bar(idx, kplot, color=colors)
-    for i, t in zip(idx, trajs):
-        if t.get("time_scale") == "inf":
-            ax1.annotate("∞", (i, 0), ha="center", va="bottom", color="#b3261e", fontsize=12)
-        elif not t["accepted"]:
-            ax1.annotate("rejected", (i, 0), ha="center", va="bottom", color="#b3261e", fontsize=7,
-                         rotation=90)
-    ax1.axhline(1.0, color="k", linewidth=1, linestyle="--")
-    ax1.set_xlabel("trajectory #")
-    ax1.set_ylabel("time scale k")
-    ax1.set_title("Time scale (≤ 1: feasible)", fontsize=10)
     pm = [_finite(t.get("payload_margin_kg")) for t in trajs]
-    ax2.bar(idx, [p if p is not None else 0.0 for p in pm],
-            color=["#1e7d3a" if (p or 0) >= 0 else "#b3261e" for p in pm])
-    for i, t in zip(idx, trajs):
-        if t.get("payload_margin_kg") == "-inf":
-            ax2.annotate("−∞", (i, 0), ha="center", va="top", color="#b3261e", fontsize=12)
-    ax2.axhline(0.0, color="k", linewidth=1)
-    ax2.set_xlabel("trajectory #")
-    ax2.set_ylabel("kg")
-    ax2.set_title("Payload margin", fontsize=10)
-    from matplotlib.ticker import MaxNLocator
-
-    for ax in (ax1, ax2):
-        ax.grid(alpha=0.3, axis="y")
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    fig.tight_layout()
-    return _png(fig)
+    pplot = [p if p is not None else 0.0 for p in pm]
+    panels = (("Time scale (≤ 1: feasible)", "time scale k", kplot, colors, 1.0, True),
+              ("Payload margin", "kg", pplot, [_GREEN if p >= 0 else _RED for p in pplot], 0.0, False))
+    half = W / 2
+    for p_i, (title, ylabel, vals, cols, ref, dashed) in enumerate(panels):
+        x_off = p_i * half
+        lo = min([0.0, ref, *vals])
+        hi = max([0.0, ref, *vals])
+        pad = 0.08 * (hi - lo) or 0.5
+        # room below zero for the −∞ marks of payload margins
+        minus_inf = p_i == 1 and any(t.get("payload_margin_kg") == "-inf" for t in trajs)
+        ylim = (lo - (pad if lo < 0 else 0.0) - (2.5 * pad if minus_inf else 0.0), hi + pad)
+        ax = _Axes(cv, (x_off + 78, top, x_off + half - 18, H - bottom), (lo_i, hi_i), ylim)
+        cv.text(x_off + (78 + half - 18) / 2, 10, title, 10, "ma")
+        ax.grid(xticks, _nice_ticks(*ylim, n=5), xgrid=False)
+        xs = np.asarray(idx, dtype=float)
+        ax.bars(xs - 0.4, xs + 0.4, np.zeros(len(vals)), np.asarray(vals, dtype=float), cols)
+        ax.hline(ref, (0, 0, 0), 1.0, dash=dashed)
+        for i, t in zip(idx, trajs):
+            x = float(ax.px(i)) / _S
+            y0 = float(ax.py(0.0)) / _S
+            if p_i == 0 and t.get("time_scale") == "inf":
+                cv.text(x, y0 - 2, "∞", 12, "ms", _RED)
+            elif p_i == 0 and not t["accepted"]:
+                cv.text(x, y0 - 2, "rejected", 7, "ms", _RED)
+            elif p_i == 1 and t.get("payload_margin_kg") == "-inf":
+                cv.text(x, y0 + 2, "−∞", 12, "ma", _RED)
+        ax.frame()
+        cv.text(x_off + 8, (top + H - bottom) / 2, ylabel, 8, "lm")
+        cv.text(x_off + (78 + half - 18) / 2, H - 10, "trajectory #", 9, "ms")
+    return cv.png()
 
 
 def _finite(x: Any) -> float | None:

@@ -46,8 +46,12 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
              effort_spike: tuple[int, int] | None = None, drop: range | None = None,
              invalid: dict[int, str] | None = None, out_of_order: int | None = None,
              trajectories: list | None = None, description_topic: bool = False,
-             perturb: int | None = None, single_file: bool = False) -> Path:
-    """A Panda bag: 1 kHz joint_states (+ optional node outputs made with the node's Monitor)."""
+             perturb: int | None = None, single_file: bool = False, measured: bool = False,
+             output_burst: int = 1) -> Path:
+    """A Panda bag: 1 kHz joint_states (+ optional node outputs made with the node's Monitor).
+
+    ``measured``: finite efforts on the model joints (else NaN: not measured); ``output_burst``:
+    the outputs are written after every that many inputs (as a recorder that fell behind)."""
     from dyn_node.monitor import Monitor
     from dyn_node.settings import settings_from_mapping
     from std_msgs.msg import String
@@ -60,6 +64,7 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
     mon = Monitor(PANDA, settings_from_mapping({"robot_model": "panda"}))
     names = list(PANDA.joint_names) + ["panda_finger_joint1", "panda_finger_joint2"]
     traj_at = {k: tr for k, tr in (trajectories or [])}
+    pending: list = []
     for i in range(n):
         if i in traj_at:
             w.write("/joint_trajectory", traj_at[i], T0 + i * MS + 500)
@@ -69,6 +74,8 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
             continue
         q, v = q_at(i)
         e = [float("nan")] * 9
+        if measured:
+            e = [float(x) for x in 30.0 * np.sin(2 * np.pi * 0.5 * i * 1e-3 + np.arange(7))] + [0.0, 0.0]
         if effort_spike and effort_spike[0] <= i < effort_spike[1]:
             e[1] = 90.0 + (i - effort_spike[0]) * 0.1  # joint2 limit 87 N·m: peak at the last one
         pos = list(q) + [0.01, 0.01]
@@ -96,7 +103,13 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
                                        ("/dyn_node/inverse_dynamics", tau, 250_000)):
                     o = joint_state(PANDA.joint_names, r.q, r.v, eff, stamp_ns=stamp)
                     o.header.frame_id = ""
-                    w.write(topic, o, T0 + i * MS + dt)
+                    pending.append((topic, o, T0 + i * MS + dt))
+            if len(pending) >= 2 * output_burst:
+                for args in pending:
+                    w.write(*args)
+                pending.clear()
+    for args in pending:
+        w.write(*args)
     return w.close()
 
 
@@ -560,3 +573,44 @@ def test_batched_live_episodes_equal_a_message_by_message_update():
     ref.finish()
     assert live.episodes.total == ref.total > 100
     assert live.episodes.closed == ref.closed
+
+
+@pytest.mark.parametrize("kind", ["measured", "quality", "trajectories", "outputs_in_bursts"])
+def test_batched_replay_gives_exactly_the_per_message_evidence(tmp_path, monkeypatch, kind):
+    """Runs of regular joint_states are replayed in batches (Monitor.process_batch); the evidence
+    must be exactly what message-by-message replay gives (MIN_BATCH raised past every run), with
+    gaps, invalid and out-of-order messages, trajectories being tracked and outputs re-checked."""
+    import dyn_node.audit as audit_mod
+    from dyn_node.monitor import Monitor
+
+    trajs = [(300, trajectory_msg(T0 + 300 * MS)), (1200, trajectory_msg(T0 + 1200 * MS, scale=0.3))]
+    bag = make_bag(tmp_path / "bag", **{
+        "measured": dict(n=2500, measured=True, effort_spike=(700, 760)),
+        "quality": dict(n=2500, measured=True, drop=range(900, 1500), out_of_order=2000,
+                        invalid={300: "nan", 301: "missing", 1800: "nan"}),
+        "trajectories": dict(n=2500, trajectories=trajs),
+        "outputs_in_bursts": dict(n=800, outputs=True, output_burst=100, trajectories=trajs[:1]),
+    }[kind])
+    used = []
+    batch = Monitor.process_batch
+
+    def spy(self, *args):
+        out = batch(self, *args)
+        used.append(out is not None)
+        return out
+
+    monkeypatch.setattr(Monitor, "process_batch", spy)
+    fast = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "fast"), report=False)).record
+    assert any(used)
+    monkeypatch.setattr(audit_mod, "MIN_BATCH", 10 ** 9)
+    used.clear()
+    slow = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "slow"), report=False)).record
+    assert not used
+    validated(tmp_path / "fast")
+    for rec in (fast, slow):
+        rec.pop("timestamps")
+    assert json.dumps(fast, sort_keys=True) == json.dumps(slow, sort_keys=True)
+    if kind == "outputs_in_bursts":
+        for topic in ("/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics"):
+            assert fast["outputs"]["recheck"][topic]["identical"] is True
+            assert fast["outputs"]["recheck"][topic]["matched"] == 800

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import yaml
 
-from dyn_node.bag_reader import BagError, BagReader, decode_joint_state, MessageDecoder
+from dyn_node.bag_reader import (BagError, BagReader, MessageDecoder, decode_joint_state,
+                                 decode_joint_state_batch)
 
 SHARE = Path(sys.prefix) / "share"
 PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
@@ -180,6 +181,52 @@ def test_joint_state_decoder_matches_rclpy_serializer():
         np.testing.assert_array_equal(d.effort, np.asarray(e, float))
     with pytest.raises(ValueError):
         decode_joint_state(serialize_message(joint_state(["a", "b"], [1, 2], [3, 4], [5, 6]))[:30])
+
+
+def test_batch_decoder_equals_the_message_decoder_and_declines_irregular_runs():
+    """decode_joint_state_batch: row k is decode_joint_state of message k (rclpy's serializer
+    as the oracle for the bytes); a run whose bytes differ outside stamps and values (other
+    names, frame, sizes, big-endian) is declined, so the caller decodes it message by message."""
+    from rclpy.serialization import serialize_message
+
+    rng = np.random.default_rng(5)
+    for names, nv, ne in ((["a", "bb", "ccc"], 3, 3), (["j1", "j2"], 0, 2), (["x"] * 1, 1, 0),
+                          ([f"panda_joint{i}" for i in range(1, 10)], 9, 9)):
+        n = len(names)
+        datas, want = [], []
+        for k in range(40):
+            stamp = int(rng.integers(0, 2 ** 31 * 10 ** 9))
+            e = rng.normal(size=ne)
+            if ne and k % 7 == 0:
+                e[0] = np.nan
+            d = serialize_message(joint_state(names, rng.normal(size=n), rng.normal(size=nv), e,
+                                              stamp_ns=stamp))
+            datas.append(d)
+            want.append(decode_joint_state(d))
+        b = decode_joint_state_batch(datas)
+        assert b is not None and b.names == tuple(names)
+        assert b.stamp_ns.tolist() == [w.stamp_ns for w in want]
+        assert b.sec.tolist() == [w.sec for w in want]
+        assert b.nanosec.tolist() == [w.nanosec for w in want]
+        for field in ("position", "velocity", "effort"):
+            got = getattr(b, field)
+            rows = [getattr(w, field) for w in want]
+            if len(rows[0]) == 0:
+                assert got is None
+            else:
+                np.testing.assert_array_equal(got, np.array(rows))
+                assert np.array_equal(np.signbit(got), np.signbit(np.array(rows)))
+    base = serialize_message(joint_state(["a", "b"], [1, 2], [3, 4], [5, 6]))
+    other_name = serialize_message(joint_state(["a", "c"], [1, 2], [3, 4], [5, 6]))
+    other_frame = bytearray(base)
+    other_frame[16] ^= 1  # first byte of the frame id
+    shorter = serialize_message(joint_state(["a", "b"], [1, 2], [], [5, 6]))
+    for bad in (other_name, bytes(other_frame), shorter, base[:30]):
+        assert decode_joint_state_batch([base, base, bad]) is None
+    big_endian = bytearray(base)
+    big_endian[1] = 0
+    assert decode_joint_state_batch([bytes(big_endian)] * 2) is None
+    assert decode_joint_state_batch([]) is None
 
 
 def test_reads_rosbag2_dir_single_file_and_agrees_with_mcap_reader(tmp_path):

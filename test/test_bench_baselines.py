@@ -102,27 +102,6 @@ def test_mujoco_reference_matches_pinocchio(robot: str) -> None:
     np.testing.assert_allclose(out, _pin_loop(model.pin_model, Q, V, A), rtol=0, atol=1e-9)
 
 
-def test_mujoco_fallback_loader_matches_pinocchio(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The URDF loader used when dyn_node.mujoco_model is absent agrees too (incl. point masses)."""
-    import builtins
-
-    real_import = builtins.__import__
-
-    def no_mujoco_model(name, globals=None, locals=None, fromlist=(), level=0):
-        if fromlist and "mujoco_model" in fromlist and name == "dyn_node":
-            raise ImportError("hidden for this test")
-        return real_import(name, globals, locals, fromlist, level)
-
-    monkeypatch.setattr(builtins, "__import__", no_mujoco_model)
-    for robot in ("panda", "planar_2link"):
-        model = load_model(builtin=robot)
-        mj = MujocoInverse(model)
-        assert mj.source.startswith("benchmarks/mujoco_ref.py")
-        Q, V, A = random_states(model, 50, seed=8)
-        out = np.array([mj.rnea(Q[i], V[i], A[i]) for i in range(len(Q))])
-        np.testing.assert_allclose(out, _pin_loop(model.pin_model, Q, V, A), rtol=0, atol=1e-9)
-
-
 @pytest.mark.timeout(60)
 def test_kdl_worker_matches_pinocchio_or_reports_why() -> None:
     ok, why = system_pykdl()

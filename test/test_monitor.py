@@ -345,3 +345,109 @@ def test_result_arrays_are_fresh_copies_of_the_input():
     np.testing.assert_array_equal(r.v, 0.1)
     np.testing.assert_allclose(r.residual + r.tau, np.full(7, 1.0), rtol=0, atol=1e-12)
     assert r.effort_limit is not None and np.all(r.effort_limit == PANDA.limits.effort)
+
+
+def _same(a, b) -> bool:
+    """Bitwise equality of results (None, floats, bools or arrays; NaN equals NaN, −0 ≠ +0)."""
+    if a is None or b is None:
+        return a is None and b is None
+    a, b = np.asarray(a), np.asarray(b)
+    return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+            and np.array_equal(np.signbit(a), np.signbit(b)))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_process_batch_equals_process_message_by_message(seed):
+    """The audit's fast path: process_batch + update_batch must leave exactly the results, counts,
+    statuses and tracker transitions of N process/update calls (random models, settings, name
+    orders, stamps with repeats, jumps back, stale gaps and zero stamps, NaN efforts, with and
+    without velocities, with and without an active trajectory)."""
+    rng = np.random.default_rng(seed)
+    models = {"panda": PANDA, "planar_2link": PLANAR, "ur5": load_model(builtin="ur5")}
+    fields = ("stamp_s", "q", "v", "a_hat", "gravity", "tau", "residual", "utilisation",
+              "measured_ratio", "zero_stamp", "out_of_order", "effort_limit")
+    for trial in range(25):
+        model = models[str(rng.choice(list(models)))]
+        nv, names = model.nv, list(model.joint_names)
+        settings = Settings(acceleration_filter_hz=float(rng.choice([0.0, 0.0, 15.0])),
+                            acceleration_source=str(rng.choice(["finite_difference", "zero"],
+                                                               p=[.8, .2])),
+                            include_friction=bool(rng.integers(2)), tracking_tolerance=0.3)
+        order = rng.permutation(nv) if rng.integers(2) else np.arange(nv)
+        msg_names = tuple(names[i] for i in order)
+        n = int(rng.integers(1, 200))
+        t = 1.0 + np.cumsum(rng.choice([1e-3, 0.0, -2e-3, 0.7], size=n, p=[.85, .05, .05, .05]))
+        if rng.integers(2):
+            t[rng.integers(n)] = 0.0
+        receipt = 1.0 + 1e-3 * np.arange(n) + 1e-4
+        P = rng.uniform(-2.5, 2.5, (n, nv))
+        V = rng.uniform(-3, 3, (n, nv)) if rng.integers(4) else None
+        E = rng.uniform(-150, 150, (n, nv)) if rng.integers(3) else None
+        if E is not None and rng.integers(2):
+            E[rng.random((n, nv)) < 0.3] = np.nan
+            E[rng.random(n) < 0.2] = np.nan  # whole messages without effort
+        one, many = Monitor(model, settings), Monitor(model, settings)
+        tr_one, tr_many = ControllerTracker(model, settings), ControllerTracker(model, settings)
+        if rng.integers(2):
+            q_mid = np.zeros(nv) + 0.5
+            traj = validate_trajectory(names, names, [0.0, 0.05, 0.1],
+                                       [np.zeros(nv), q_mid, np.zeros(nv)], min_points=1)
+            start = 1.0 + 0.02 * float(rng.integers(0, 4))
+            for tr in (tr_one, tr_many):
+                tr.set_trajectory(traj, start_s=start)
+        for k in range(int(rng.integers(0, 3))):  # a common history before the batch
+            for mon, tr in ((one, tr_one), (many, tr_many)):
+                r = mon.process(msg_names, P[0], [] if V is None else V[0], [], 0.5 + 1e-3 * k, 0.5)
+                tr.update(r, 0.5)
+        results, changes = [], []
+        for k in range(n):
+            r = one.process(msg_names, P[k], [] if V is None else V[k], [] if E is None else E[k],
+                            float(t[k]), float(receipt[k]))
+            results.append(r)
+            if tr_one.update(r, float(receipt[k])):
+                changes.append((k, tr_one.state))
+        batch = many.process_batch(msg_names, P, V, E, t, receipt)
+        assert batch is not None and len(batch) == n
+        assert tr_many.update_batch(batch, receipt) == changes
+        for k, r in enumerate(results):
+            rb = batch.result(k)
+            for f in fields:
+                assert _same(getattr(r, f), getattr(rb, f)), (trial, k, f)
+        assert _same(one._a, many._a) and _same(one._prev_v, many._prev_v)
+        assert (one._prev_t, one._filtered) == (many._prev_t, many._filtered)
+        assert vars(one.counts) == vars(many.counts)
+        assert _same(one.last_result.tau, many.last_result.tau)
+        # the next message continues identically, and so do the reports
+        for mon in (one, many):
+            mon.process(msg_names, P[0], [] if V is None else V[0], [], float(t[-1]) + 1e-3, 9.0)
+        assert _same(one.last_result.a_hat, many.last_result.a_hat)
+        # repr: the values hold NaN (no tracking error known), which == never matches
+        assert repr(one.statuses(9.5, "h")) == repr(many.statuses(9.5, "h"))
+        assert (tr_one.state, tr_one.since_s) == (tr_many.state, tr_many.since_s)
+        assert repr(tr_one.status(9.5, "h")) == repr(tr_many.status(9.5, "h"))
+
+
+def test_process_batch_declines_what_process_must_judge_and_changes_nothing():
+    """Invalid or special messages (non-finite values, infinite effort, unknown names, wrong
+    shapes, non-finite stamps) are left to process: process_batch returns None, state untouched."""
+    mon = Monitor(PANDA, Settings())
+    mon.process(NAMES, Q0, np.zeros(7), [], 1.0, 1.0)
+    before = (vars(mon.counts).copy(), mon._prev_t, mon._a.copy(), mon.last_result)
+    P = np.tile(Q0, (5, 1))
+    t = 1.001 + 1e-3 * np.arange(5)
+    cases = []
+    bad = P.copy()
+    bad[2, 3] = np.nan
+    cases.append((NAMES, bad, None, None, t))
+    inf_e = np.ones((5, 7))
+    inf_e[1, 0] = np.inf
+    cases.append((NAMES, P, None, inf_e, t))
+    cases.append((NAMES[:6], P[:, :6], None, None, t))        # a model joint missing
+    cases.append((NAMES + ["extra"], P, None, None, t))       # shape does not match the names
+    bad_t = t.copy()
+    bad_t[3] = np.inf
+    cases.append((NAMES, P, None, None, bad_t))
+    for names, pos, vel, eff, stamps in cases:
+        assert mon.process_batch(names, pos, vel, eff, stamps, stamps) is None
+    assert (vars(mon.counts), mon._prev_t) == (before[0], before[1])
+    assert np.array_equal(mon._a, before[2]) and mon.last_result is before[3]
