@@ -102,34 +102,46 @@ class Dynamics:
         return h
 
     # --- batched -----------------------------------------------------------------------------
-    def _rnea_rigid_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> np.ndarray:
+    def batch_threads(self, threads: int | None = None) -> int:
+        """Threads a batched call will use: ``threads`` (None: the constructor's setting),
+        clamped to [1, cpu_count]."""
+        n = self._threads if threads is None else int(threads)
+        return max(1, min(n, os.cpu_count() or 1))
+
+    def _rnea_rigid_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
+                          threads: int | None = None) -> np.ndarray:
         Q, V, A = (np.ascontiguousarray(x, dtype=float) for x in (Q, V, A))
         n = len(Q)
         if n == 0:
             return np.zeros((0, self.nv))
-        if self._pool is None:
-            self._pool = pin.ModelPool(self._pm, self._threads)
+        nt = self.batch_threads(threads)
+        if self._pool is None or self._pool.size() < nt:
+            self._pool = pin.ModelPool(self._pm, nt)
         out = np.empty((self.nv, n), order="F")
         # Pinocchio's batch wants one state per column; the row-major N×nv arrays transposed are
-        # exactly that memory, so no copy is made on the way in or out.
-        pin.rneaInParallel(self._threads, self._pool, Q.T, V.T, A.T, out)
+        # exactly that memory, so no copy is made on the way in or out. Each state is computed
+        # by the same sequential RNEA whatever the thread count, so results do not depend on it.
+        pin.rneaInParallel(nt, self._pool, Q.T, V.T, A.T, out)
         return out.T
 
-    def rnea_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> np.ndarray:
-        """rnea over N states: Q, V, A are N×nv; returns N×nv (N·m)."""
-        tau = self._rnea_rigid_batch(Q, V, A)
+    def rnea_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
+                   threads: int | None = None) -> np.ndarray:
+        """rnea over N states: Q, V, A are N×nv; returns N×nv (N·m). ``threads``: OpenMP
+        threads for this call (None: the constructor's setting)."""
+        tau = self._rnea_rigid_batch(Q, V, A, threads)
         if self._has_friction:
             tau = tau + self._damping * V + self._coulomb * np.sign(V)
         return tau
 
-    def gravity_batch(self, Q: np.ndarray) -> np.ndarray:
+    def gravity_batch(self, Q: np.ndarray, threads: int | None = None) -> np.ndarray:
         """g(q) over N states (N×nv, N·m)."""
         Z = np.zeros_like(Q, dtype=float)
-        return self._rnea_rigid_batch(Q, Z, Z)
+        return self._rnea_rigid_batch(Q, Z, Z, threads)
 
-    def terms_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> TorqueTerms:
+    def terms_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
+                    threads: int | None = None) -> TorqueTerms:
         """RNEA split into static, viscous and inertial parts (see :class:`TorqueTerms`)."""
-        g = self.gravity_batch(Q)
-        inertial = self._rnea_rigid_batch(Q, V, A) - g
+        g = self.gravity_batch(Q, threads)
+        inertial = self._rnea_rigid_batch(Q, V, A, threads) - g
         return TorqueTerms(static=g + self._coulomb * np.sign(V), viscous=self._damping * V,
                            inertial=inertial)

@@ -21,7 +21,11 @@ trial decided exactly on a sparse grid of windows plus the gaps a bound cannot c
 such that every k' ≥ k is feasible.
 
 Cost: three batched RNEA passes (gravity, full, and the 1 kg payload for the margin; two without
-the margin) dominate; everything else is a fixed number of vectorised passes over the samples.
+the margin) are the largest part; everything else is a fixed number of vectorised passes over the
+samples, the RMS time-scale search being the largest of them. With ``FeasibilityOptions.threads``
+above one, the RNEA passes use that many OpenMP threads and the RMS search and the payload margin
+run on a background thread beside the other checks; every number is computed by the same
+operations either way, so the result is identical.
 
 Effort rate is dτ/dt, by finite differences inside each segment (where the interpolated motion is
 a polynomial and τ is smooth). Where a waypoint joins segments whose accelerations differ (cubic
@@ -72,12 +76,17 @@ class FeasibilityOptions:
     """``sample_period`` (s): longest step between samples; ``effort_warn_ratio``: a feasible
     trajectory whose peak ratio to any non-position limit exceeds this is WARN;
     ``max_samples``: the sample period is raised (with a warning) so that at most about this many
-    samples are used, bounding memory for very long trajectories."""
+    samples are used, bounding memory for very long trajectories; ``threads``: OpenMP threads
+    for the batched RNEA passes (None: the Dynamics' own setting, one unless built otherwise).
+    Every state is computed by the same sequential RNEA whatever the count, so the result does
+    not depend on it; more threads only help when cores are free (a live node's joint_states
+    path needs one)."""
 
     sample_period: float = 0.001
     effort_warn_ratio: float = 0.9
     compute_payload_margin: bool = True
     max_samples: int = 250_000
+    threads: int | None = None
 
 
 @dataclass(frozen=True)
@@ -233,6 +242,29 @@ def _describe_violation(v: Violation) -> str:
             f"{_fmt(v.limit)} {v.unit} at t = {v.peak_time_s:.2f} s")
 
 
+def _take(X: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """X[:, cols] without the copy when cols is every column in order (the common case); the
+    caller must not write into the result."""
+    if len(cols) == X.shape[1] and (len(cols) == 0 or (cols[0] == 0 and cols[-1] == len(cols) - 1
+                                                         and np.all(np.diff(cols) == 1))):
+        return X
+    return X[:, cols]
+
+
+def _colmax(X: np.ndarray) -> np.ndarray:
+    """X.max(axis=0), the same numbers, faster for M×m arrays with few columns: max along axis
+    0 runs a short inner loop per row, argmax works down each column at once (no copy for the
+    column-major arrays ``_check`` uses)."""
+    if X.ndim != 2 or not X.shape[0]:
+        return X.max(axis=0)
+    return X[np.argmax(X, axis=0), np.arange(X.shape[1])]
+
+
+def _colany(B: np.ndarray) -> np.ndarray:
+    """B.any(axis=0) for a boolean M×m array (see :func:`_colmax`)."""
+    return _colmax(B)
+
+
 def _units(dynamics: Dynamics) -> dict[str, list[str]]:
     pm = dynamics.model.pin_model
     prismatic = [pm.joints[i].shortname().startswith("JointModelP") for i in range(1, pm.njoints)]
@@ -306,12 +338,21 @@ def _cubic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> 
 def _first_exit(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, c3: np.ndarray,
                 limit: np.ndarray) -> np.ndarray:
     """Smallest x > 0 where |c0 + c1·x + c2·x² + c3·x³| reaches ``limit``; inf if none."""
-    best = np.full(np.broadcast(c0, c1, c2, c3, limit).shape, np.inf)
-    for sign in (1.0, -1.0):
-        for x in _cubic_roots(sign * c3, sign * c2, sign * c1, sign * c0 - limit):
-            with np.errstate(invalid="ignore"):
-                ok = (x > 0) & np.isfinite(x)
-            best = np.where(ok & (x < best), x, best)
+    # both signs of the band in one elementwise batch (axis 0), then the least valid root
+    c0, c1, c2, c3, limit = np.broadcast_arrays(c0, c1, c2, c3, limit)
+    roots = _cubic_roots(*(np.stack([c, -c]) for c in (c3, c2, c1)),
+                         np.stack([c0, -c0]) - limit)
+    return _least_positive(roots)
+
+
+def _least_positive(roots: list[np.ndarray]) -> np.ndarray:
+    """Elementwise over the roots (each 2×shape: the two signs) the smallest finite x > 0."""
+    best = np.full(roots[0].shape[1:], np.inf)
+    with np.errstate(invalid="ignore"):
+        for x in roots:
+            for half in x:
+                ok = (half > 0) & (half < best)     # x < best ≤ inf: also finite
+                np.copyto(best, half, where=ok)
     return best
 
 
@@ -352,13 +393,10 @@ def _odd_exit(c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, L: np.ndarray) -> 
 
 def _first_exit_quadratic(c0, c1, c2, limit) -> np.ndarray:
     """Smallest x > 0 where |c0 + c1·x + c2·x²| reaches ``limit``; inf if none."""
-    best = np.full(np.broadcast(c0, c1, c2, limit).shape, np.inf)
-    for sign in (1.0, -1.0):
-        for x in _quadratic_roots(sign * c2, sign * c1, sign * c0 - limit):
-            with np.errstate(invalid="ignore"):
-                ok = (x > 0) & np.isfinite(x)
-            best = np.where(ok & (x < best), x, best)
-    return best
+    c0, c1, c2, limit = np.broadcast_arrays(c0, c1, c2, limit)
+    roots = _quadratic_roots(np.stack([c2, -c2]), np.stack([c1, -c1]),
+                             np.stack([c0, -c0]) - limit)
+    return _least_positive(list(roots))
 
 
 def _effort_exit(s: np.ndarray, w: np.ndarray, i: np.ndarray, L: np.ndarray) -> np.ndarray:
@@ -392,21 +430,27 @@ def _effort_exit(s: np.ndarray, w: np.ndarray, i: np.ndarray, L: np.ndarray) -> 
     n, j = np.nonzero(cand)
     if len(n):
         np.minimum.at(best, j, _first_exit_quadratic(s[n, j], w[n, j], i[n, j], L[j]))
-    best[(aS > L).any(axis=0)] = 0.0
+    best[_colany(aS > L)] = 0.0
     return best
 
 
 def _band_exit_bound(s: np.ndarray, w: np.ndarray, i: np.ndarray, L) -> np.ndarray:
     """Elementwise lower bound on the first exit x of |s + w·x + i·x²| ≤ L: the root of
     |s| + |w|·x + |i|·x² = L (0 where |s| ≥ L already, inf where nothing grows)."""
+    s, w, i, L = np.broadcast_arrays(s, w, i, L)
     with np.errstate(divide="ignore", invalid="ignore"):
-        room = L - np.abs(s)
+        room = np.abs(s)
+        np.subtract(L, room, out=room)             # L − |s|
         aw = np.abs(w)
-        d = np.abs(i) * (4 * room)
-        d += aw * aw
+        d = np.multiply(room, 4)
+        t = np.abs(i)
+        d *= t                                     # |i|·4·room
+        np.multiply(aw, aw, out=t)
+        d += t
         np.sqrt(d, out=d)
         d += aw
-        x = 2 * room / d
+        x = np.multiply(room, 2, out=t)
+        x /= d                                     # 2·room / (|w| + √(w² + 4|i|·room))
     x[~(room > 0)] = 0.0
     return x
 
@@ -440,13 +484,22 @@ def _envelope_exit(s, w, i, speed, curve: np.ndarray) -> np.ndarray:
         slope = (ef[:, m + 1] - ef[:, m]) / (sp[:, m + 1] - sp[:, m])
         pieces.append((bounds[:, m], bounds[:, m + 1], ef[:, m], slope, sp[:, m]))
     pieces.append((bounds[:, -1], np.full_like(s, np.inf), ef[:, -1], 0.0, 0.0))
+    # every piece and both signs in one elementwise batch: ±(s + w x + i x²) −
+    # (e0 + slope·(v·x − s0)) = 0, a root counting only inside its piece's speed range
+    qa, qb, qc, qlo, qhi = [], [], [], [], []
     for lo, hi, e0, slope, s0 in pieces:
-        # ±(s + w x + i x²) − (e0 + slope·(v·x − s0)) = 0
         for sign in (1.0, -1.0):
-            for x in _quadratic_roots(sign * i, sign * w - slope * v, sign * s - e0 + slope * s0):
-                with np.errstate(invalid="ignore"):
-                    ok = (x >= lo) & (x <= hi) & (x > 0) & np.isfinite(x)
-                best = np.where(ok & (x < best), x, best)
+            qa.append(np.broadcast_to(sign * i, s.shape))
+            qb.append(np.broadcast_to(sign * w - slope * v, s.shape))
+            qc.append(np.broadcast_to(sign * s - e0 + slope * s0, s.shape))
+            qlo.append(np.broadcast_to(lo, s.shape))
+            qhi.append(np.broadcast_to(hi, s.shape))
+    lo, hi = np.stack(qlo), np.stack(qhi)
+    for x in _quadratic_roots(np.stack(qa), np.stack(qb), np.stack(qc)):
+        with np.errstate(invalid="ignore"):
+            ok = (x >= lo) & (x <= hi) & (x > 0) & (x < np.inf)
+        if ok.any():
+            np.minimum(best, np.where(ok, x, np.inf).min(axis=0), out=best)
     return best
 
 
@@ -526,13 +579,17 @@ def _evaluate(coeffs: np.ndarray, breaks: np.ndarray, smp: _Samples,
 
 def _cumtrapz(tt: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Cumulative trapezoid integral of f (M or M×m) over times tt, starting at 0."""
-    fT = np.ascontiguousarray(f.T)           # sums along contiguous memory
+    return _cumtrapz_rows(tt, np.ascontiguousarray(f.T)).T   # sums along contiguous memory
+
+
+def _cumtrapz_rows(tt: np.ndarray, fT: np.ndarray) -> np.ndarray:
+    """Cumulative trapezoid integral of each row of fT (r×M, C-contiguous) over times tt."""
     out = np.empty_like(fT)
     out[..., 0] = 0.0
     np.add(fT[..., 1:], fT[..., :-1], out=out[..., 1:])
     out[..., 1:] *= 0.5 * np.diff(tt)
     np.cumsum(out[..., 1:], axis=-1, out=out[..., 1:])
-    return out.T
+    return out
 
 
 def _windowed(tt: np.ndarray, cum: np.ndarray, window: np.ndarray,
@@ -565,6 +622,42 @@ def _unit_payload_dynamics(dynamics: Dynamics) -> Dynamics:
     with _CACHE_LOCK:
         _PAYLOAD_CACHE[dynamics] = (model, dyn)
     return dyn
+
+
+class _Job:
+    """``fn(*args)``, either on a background thread (started now) or on the caller's thread when
+    its result is asked for. NumPy releases the GIL inside its array loops, so a background job
+    uses the second core; the result is the same either way (the job only reads its inputs)."""
+
+    def __init__(self, fn, args: tuple, background: bool):
+        self._fn, self._args = fn, args
+        self._out: Any = None
+        self._exc: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        if background:
+            self._thread = threading.Thread(target=self._run, name="dyn_node feasibility",
+                                            daemon=True)
+            self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._out = self._fn(*self._args)
+        except BaseException as exc:  # re-raised on the caller's thread by result()
+            self._exc = exc
+
+    def result(self) -> Any:
+        if self._thread is None:
+            self._run()
+        else:
+            self._thread.join()
+        if self._exc is not None:
+            raise self._exc
+        return self._out
+
+
+def _batch_threads(dynamics: Dynamics, threads: int | None) -> int:
+    bt = getattr(dynamics, "batch_threads", None)
+    return int(bt(threads)) if bt is not None else 1
 
 
 # ----------------------------------------------------------------------------------------------
@@ -618,15 +711,38 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     jerk_limited = bool(np.any(np.isfinite(lim.jerk)))
     Q, V, A, *rest = _evaluate(pp.coeffs, pp.breaks, smp, 4 if jerk_limited else 3)
     J = rest[0] if jerk_limited else np.zeros((0, nv))
-    terms = dynamics.terms_batch(Q, V, A)
+    terms = dynamics.terms_batch(Q, V, A, options.threads)
+    parallel = _batch_threads(dynamics, options.threads) > 1
     S, W, I = terms.static, terms.viscous, terms.inertial
     tau = S + W + I
     with np.errstate(invalid="ignore"):
-        huge = not (np.abs(tau).max() < _HUGE and np.abs(V).max() < _HUGE
-                    and np.abs(A).max() < _HUGE and (J.size == 0 or np.abs(J).max() < _HUGE))
+        # |X|.max() < _HUGE without forming |X| (NaN fails either comparison, as it should)
+        huge = not all(X.size == 0 or (X.max() < _HUGE and X.min() > -_HUGE)
+                       for X in (tau, V, A, J))
     if huge:
         raise TrajectoryError("the interpolated motion or its torque is not finite (values too "
                               "large for the time steps)", code="non_finite")
+    # the third batched RNEA pass (1 kg more at the payload point), done here with the other
+    # two; only the effort-type limits depend on payload
+    effort_limited = bool(np.any(np.isfinite(lim.effort)) or np.any(np.isfinite(lim.power))
+                          or np.any(np.isfinite(lim.effort_rate))
+                          or np.any(np.isfinite(lim.rms_effort))
+                          or any(c is not None for c in lim.effort_speed_curve))
+    tau1 = _payload_torque(dynamics, Q, V, A, tau, options.threads) \
+        if options.compute_payload_margin and effort_limited else None
+    # From here on the per-sample arrays are column-major (each joint's samples contiguous):
+    # the same numbers, but per-joint reductions and per-joint limits then run along
+    # contiguous memory. Q stays row-major (single states go to Pinocchio).
+    del terms, rest      # no second copy of the row-major arrays stays alive
+    S = np.asfortranarray(S)     # one at a time: each row-major original goes at once
+    W = np.asfortranarray(W)
+    I = np.asfortranarray(I)
+    tau = np.asfortranarray(tau)
+    V = np.asfortranarray(V)
+    A = np.asfortranarray(A)
+    J = np.asfortranarray(J)
+    if tau1 is not None:
+        tau1 = np.asfortranarray(tau1)
     coulomb = np.asarray(model.pin_model.friction, dtype=float) if dynamics.options.include_friction \
         else np.zeros(nv)
     G = S - coulomb * np.sign(V) if np.any(coulomb) else S
@@ -644,24 +760,54 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     def limited(arr: np.ndarray) -> np.ndarray:
         return np.flatnonzero(np.isfinite(arr))
 
+    # RMS: the time-scale search (the largest share of the work after the RNEA passes) needs
+    # only S, W, I; with more than one thread it runs beside everything else until it is needed
+    rms_cols = limited(lim.rms_effort)
+    hold = dynamics.gravity(Q[0])
+    rms_search: _Job | None = None
+    if len(rms_cols):
+        R = lim.rms_effort[rms_cols]
+        Wn = lim.rms_window[rms_cols]
+        h2 = hold[rms_cols] ** 2
+        s_max = np.maximum(_colmax(np.abs(_take(S, rms_cols))), np.abs(hold[rms_cols]))
+        static_bad = s_max > R
+        good = ~static_bad
+        if np.any(good):
+            gc = rms_cols[good]
+            # RMS ≤ peak |τ| ≤ max|s| + max|w|·x + max|i|·x², so where that stays within the
+            # RMS limit every k is feasible: a bracket end (the exact peak-torque exit where
+            # gravity alone just reaches the limit and that bound is useless)
+            sg, wg, ig = _take(S, gc), _take(W, gc), _take(I, gc)
+            x_up = _band_exit_bound(_colmax(np.abs(sg)), _colmax(np.abs(wg)),
+                                    _colmax(np.abs(ig)), R[good])
+            tight = ~(x_up > 0)
+            if np.any(tight):
+                x_up[tight] = _effort_exit(sg[:, tight], wg[:, tight], ig[:, tight],
+                                           R[good][tight])
+            with np.errstate(divide="ignore"):
+                k_up = np.where(np.isinf(x_up), 0.0, 1.0 / x_up)
+            rms_search = _Job(_rms_time_scale, (tt, sg, wg, ig, h2[good], Wn[good], R[good], k_up),
+                              background=parallel)
+
     for kind, arr, power, lim_arr in (("velocity", V, 1, lim.velocity),
                                       ("acceleration", A, 2, lim.acceleration),
                                       ("jerk", J, 3, lim.jerk)):
         cols = limited(lim_arr)
         if len(cols):
-            val = np.abs(arr[:, cols])
+            val = np.abs(_take(arr, cols))
             L = lim_arr[cols]
             values[kind] = (cols, val, np.broadcast_to(L, val.shape))
             # the smallest (L/|value|)^(1/power) is at the largest |value|
             with np.errstate(divide="ignore"):
-                xstar[kind] = (L / val.max(axis=0)) ** (1.0 / power)
+                xstar[kind] = (L / _colmax(val)) ** (1.0 / power)
     del J  # the largest temporaries go as soon as they are used: long trajectories are big
 
     cols = limited(lim.effort)
     if len(cols):
         L = lim.effort[cols]
-        values["effort"] = (cols, np.abs(tau[:, cols]), np.broadcast_to(L, (len(tt), len(cols))))
-        s, w, i = S[:, cols], W[:, cols], I[:, cols]
+        values["effort"] = (cols, np.abs(_take(tau, cols)),
+                            np.broadcast_to(L, (len(tt), len(cols))))
+        s, w, i = _take(S, cols), _take(W, cols), _take(I, cols)
         xstar["effort"] = _effort_exit(s, w, i, L)
         over = np.abs(s) / L
         if np.any(over > 1):
@@ -670,14 +816,14 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
 
     ecols = np.array([j for j in range(nv) if lim.effort_speed_curve[j] is not None], dtype=int)
     if len(ecols):
-        env = lim.effort_envelope(V)[:, ecols]
-        values["effort_speed"] = (ecols, np.abs(tau[:, ecols]), env)
+        env = np.asfortranarray(lim.effort_envelope(V)[:, ecols])
+        values["effort_speed"] = (ecols, np.abs(_take(tau, ecols)), env)
         # Exact envelope exits only where a cheap bound cannot rule a sample out: below the
         # best exact exit x_ref found so far the envelope is at least its minimum over speeds
         # [0, |v|·x_ref], and the band |τ| ≤ that floor is left no later than the envelope.
         # Columns whose curves have the same number of points are solved in one batch.
         curves = [lim.effort_speed_curve[j] for j in ecols]
-        Se, We, Ie, Ve = S[:, ecols], W[:, ecols], I[:, ecols], V[:, ecols]
+        Se, We, Ie, Ve = _take(S, ecols), _take(W, ecols), _take(I, ecols), _take(V, ecols)
         groups: dict[int, list[int]] = {}
         for c, cv in enumerate(curves):
             groups.setdefault(len(cv), []).append(c)
@@ -723,27 +869,27 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     cols = limited(lim.power)
     if len(cols):
         L = lim.power[cols]
-        v = V[:, cols]
-        values["power"] = (cols, np.abs(tau[:, cols] * v), np.broadcast_to(L, v.shape))
-        xstar["power"] = _odd_exit(S[:, cols] * v, W[:, cols] * v, I[:, cols] * v, L)
+        v = _take(V, cols)
+        values["power"] = (cols, np.abs(_take(tau, cols) * v), np.broadcast_to(L, v.shape))
+        xstar["power"] = _odd_exit(_take(S, cols) * v, _take(W, cols) * v, _take(I, cols) * v, L)
 
     rate_cols = limited(lim.effort_rate)
     need_step = mode == "cubic"
     if len(rate_cols):
         L = lim.effort_rate[rate_cols]
-        dG = _segment_derivative(G[:, rate_cols], smp.first, smp.last, smp.h)
-        dW = _segment_derivative(W[:, rate_cols], smp.first, smp.last, smp.h)
-        dI = _segment_derivative(I[:, rate_cols], smp.first, smp.last, smp.h)
+        dG = _segment_derivative(_take(G, rate_cols), smp.first, smp.last, smp.h)
+        dW = _segment_derivative(_take(W, rate_cols), smp.first, smp.last, smp.h)
+        dI = _segment_derivative(_take(I, rate_cols), smp.first, smp.last, smp.h)
         rate = dG + dW + dI
         values["effort_rate"] = (rate_cols, np.abs(rate), np.broadcast_to(L, rate.shape))
         xstar["effort_rate"] = _odd_exit(dG, dW, dI, L)
     effort_step = {}
     if len(traj.times) > 2:
         steps = np.abs(tau[smp.first[1:]] - tau[smp.last[:-1]])  # (N-2)×nv
-        peak = steps.max(axis=0)
+        peak = _colmax(steps)
         for j in range(nv):
             effort_step[names[j]] = float(peak[j])
-        scale = np.maximum(np.abs(tau).max(axis=0), 1e-9)
+        scale = np.maximum(_colmax(np.abs(tau)), 1e-9)
         if need_step and np.any(peak > 1e-6 * scale):
             j = int(np.argmax(peak / scale))
             w_ = int(np.argmax(steps[:, j])) + 1
@@ -753,40 +899,27 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     if np.any(coulomb) and np.any(np.diff(np.sign(V), axis=0) != 0) and len(rate_cols):
         warnings.append("Coulomb friction steps at velocity reversals are not counted as effort rate")
 
-    rms_cols = limited(lim.rms_effort)
-    hold = dynamics.gravity(Q[0])
     if len(rms_cols):
-        R = lim.rms_effort[rms_cols]
-        Wn = lim.rms_window[rms_cols]
-        h2 = hold[rms_cols] ** 2
         # windowed ∫τ² (the payload margin's RMS part reuses it)
-        rms_win = _windowed(tt, _cumtrapz(tt, tau[:, rms_cols] ** 2).T, Wn, h2)
+        f = _take(tau, rms_cols).T ** 2
+        rms_win = _windowed(tt, _cumtrapz_rows(tt, np.ascontiguousarray(f)), Wn, h2)
+        del f
         vals = np.sqrt(np.maximum(rms_win, 0.0) / Wn[:, None]).T
-        s_max = np.maximum(np.abs(S[:, rms_cols]).max(axis=0), np.abs(hold[rms_cols]))
-        static_bad = s_max > R
+        values["rms_effort"] = (rms_cols, vals, np.broadcast_to(R, vals.shape))
+
+    # payload margin: every effort-type value is in place; beside the rest when parallel
+    margin_job = None if tau1 is None else _Job(
+        _payload_margin_from, (dynamics, Q, V, tau, tau1, values, smp, lim, hold,
+                               rms_win if "rms_effort" in values else None), background=parallel)
+
+    if len(rms_cols):
         for c in np.flatnonzero(static_bad):
             j = rms_cols[c]
             n = int(np.argmax(np.abs(S[:, j])))
             infinite_reason.append(("rms_effort", names[j], n, float(s_max[c]), float(R[c])))
         kr = np.full(len(rms_cols), np.inf)
-        good = ~static_bad
-        if np.any(good):
-            gc = rms_cols[good]
-            # RMS ≤ peak |τ| ≤ max|s| + max|w|·x + max|i|·x², so where that stays within the
-            # RMS limit every k is feasible: a bracket end (the exact peak-torque exit where
-            # gravity alone just reaches the limit and that bound is useless)
-            sg, wg, ig = S[:, gc], W[:, gc], I[:, gc]
-            x_up = _band_exit_bound(np.abs(sg).max(axis=0), np.abs(wg).max(axis=0),
-                                    np.abs(ig).max(axis=0), R[good])
-            tight = ~(x_up > 0)
-            if np.any(tight):
-                x_up[tight] = _effort_exit(sg[:, tight], wg[:, tight], ig[:, tight],
-                                           R[good][tight])
-            with np.errstate(divide="ignore"):
-                k_up = np.where(np.isinf(x_up), 0.0, 1.0 / x_up)
-            kr[good] = _rms_time_scale(tt, S[:, gc], W[:, gc], I[:, gc], h2[good], Wn[good],
-                                       R[good], k_up)
-        values["rms_effort"] = (rms_cols, vals, np.broadcast_to(R, vals.shape))
+        if rms_search is not None:
+            kr[good] = rms_search.result()
         xstar["rms_effort"] = np.where(kr > 0, 1.0 / np.where(kr > 0, kr, 1.0), np.inf)
 
     # position: hard limits (violations, independent of k), soft limits (warnings)
@@ -831,14 +964,15 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         with np.errstate(divide="ignore", invalid="ignore"):
             if L.strides[0] == 0 and np.all(L[0] > 0):    # one positive limit per column
                 ratio = val / L[0]
+                anyo = _colmax(val) > L[0]
             else:
                 ratio = np.where(L > 0, val / L, np.where(val > 0, np.inf, 0.0))
+                anyo = _colany(val > L)
         peak = np.argmax(ratio, axis=0)
-        over = val > L
-        anyo = over.any(axis=0)
         if anyo.any():
+            over = val > L
             firsts = np.argmax(over, axis=0)
-            dur = smp.weight @ over
+            dur = smp.weight @ np.ascontiguousarray(over)   # the same summation path
         for c, j in enumerate(cols):
             n = int(peak[c])
             per_joint[names[j]][kind] = {"ratio": float(ratio[n, c]), "time_s": float(tt[n]),
@@ -883,11 +1017,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
             warnings.append(f"time scale {k:.6g} disagrees with the direct check (rounding)")
 
     # --- payload margin -------------------------------------------------------------------------
-    margin = math.inf
-    effort_limited = any(kind in values for kind in EFFORT_KINDS)
-    if options.compute_payload_margin and effort_limited:
-        margin = _payload_margin(dynamics, Q, V, A, tau, values, smp, lim, hold,
-                                 rms_win if "rms_effort" in values else None)
+    margin = math.inf if margin_job is None else margin_job.result()
 
     # --- verdict ---------------------------------------------------------------------------------
     worst_joint, worst_kind, worst_ratio = "", "", 0.0
@@ -977,26 +1107,26 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
     M, m = s.shape
     # cum[c, p]: cumulative trapezoid integral of Pₚ of column c at every sample; built one
     # column at a time (sums along contiguous memory, small temporaries)
-    cum = np.empty((m, 5, M))
-    half_dt = 0.5 * np.diff(tt)
-    P = np.empty((5, M))
-    for c in range(m):
-        sc, wc, ic = s[:, c], w[:, c], i[:, c]
-        np.multiply(sc, sc, out=P[0])
-        np.multiply(sc, wc, out=P[1])
-        P[1] *= 2
-        np.multiply(sc, ic, out=P[2])
-        P[2] *= 2
-        P[2] += wc * wc
-        np.multiply(wc, ic, out=P[3])
-        P[3] *= 2
-        np.multiply(ic, ic, out=P[4])
-        out = cum[c]
-        out[:, 0] = 0.0
-        np.add(P[:, 1:], P[:, :-1], out=out[:, 1:])
-        out[:, 1:] *= half_dt
-        np.cumsum(out[:, 1:], axis=1, out=out[:, 1:])
+    # Pₚ for all columns at once, rows contiguous (m×5×M), then the trapezoid sums in place
+    sT, wT, iT = (np.ascontiguousarray(x.T) for x in (s, w, i))   # one row per column
+    P = np.empty((m, 5, M))
+    np.multiply(sT, sT, out=P[:, 0])
+    np.multiply(sT, wT, out=P[:, 1])
+    P[:, 1] *= 2
+    np.multiply(sT, iT, out=P[:, 2])
+    P[:, 2] *= 2
+    np.multiply(wT, wT, out=P[:, 4])       # scratch: w² (row 4 is written last)
+    P[:, 2] += P[:, 4]
+    np.multiply(wT, iT, out=P[:, 3])
+    P[:, 3] *= 2
+    np.multiply(iT, iT, out=P[:, 4])
+    del sT, wT, iT
+    cum = np.empty_like(P)
+    cum[:, :, 0] = 0.0
+    np.add(P[:, :, 1:], P[:, :, :-1], out=cum[:, :, 1:])
     del P
+    cum[:, :, 1:] *= 0.5 * np.diff(tt)
+    np.cumsum(cum[:, :, 1:], axis=-1, out=cum[:, :, 1:])
     span = np.diff(tt)
     R2W = R * R * window
     powers = np.arange(5)
@@ -1007,12 +1137,22 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
     gn = np.tile(grid, m)
     gap_len = np.diff(grid) - 1
 
-    def E_pair(k: np.ndarray, c: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(E(tₙ), E(tₙ − window·x)) for flat column / sample indices c, n."""
-        x = 1.0 / k[c]
-        xp = x[:, None] ** powers
-        end = np.einsum("lp,lp->l", cum[c, :, n], xp)
-        start = tt[n] - window[c] * x
+    cum_grid = cum[gc, :, gn]         # the grid's window ends never move
+    t_grid = tt[gn]
+
+    def E_pair(k: np.ndarray, c: np.ndarray, n: np.ndarray | None, cg=None, tg=None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """(E(tₙ), E(tₙ − window·x)) for flat column / sample indices c, n (None: grid rows
+        whose integrals and times are cg, tg)."""
+        xk = 1.0 / k
+        x = xk[c]
+        xp = (xk[:, None] ** powers)[c]   # x depends on the column only
+        if n is None:
+            end = np.einsum("lp,lp->l", cg, xp)
+            start = tg - window[c] * x
+        else:
+            end = np.einsum("lp,lp->l", cum[c, :, n], xp)
+            start = tt[n] - window[c] * x
         j = np.searchsorted(tt, start, side="right")
         j -= 1
         np.clip(j, 0, M - 2, out=j)
@@ -1023,13 +1163,24 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
         hi = np.einsum("lp,lp->l", cum[c, :, j + 1], xp)
         return end, lo + f * (hi - lo) - np.maximum(tt[0] - start, 0.0) * hold2[c]
 
-    def g(k: np.ndarray) -> np.ndarray:
-        """log of the largest windowed-mean-square / R² per column (≤ 0: feasible at k)."""
-        end, st = E_pair(k, gc, gn)
-        scale = (k / R2W)[:, None]
-        end = end.reshape(m, ng)
-        st = st.reshape(m, ng)
-        worst = (scale[:, 0] * (end - st).max(axis=1)) if ng else np.zeros(m)
+    def g(k: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+        """log of the largest windowed-mean-square / R² per column (≤ 0: feasible at k), for
+        the columns ``sel`` (boolean; None: all) and NaN for the others. Columns are
+        independent, so evaluating fewer changes nothing in the ones evaluated."""
+        if sel is None:
+            cols, mc, gcs, cg, tg = None, m, gc, cum_grid, t_grid
+        else:
+            cols = np.flatnonzero(sel)
+            mc = len(cols)
+            if not mc:
+                return np.full(m, np.nan)
+            rows = (cols[:, None] * ng + np.arange(ng)).ravel()
+            gcs, cg, tg = gc[rows], cum_grid[rows], t_grid[rows]
+        end, st = E_pair(k, gcs, None, cg, tg)
+        scale = (k / R2W)[:, None] if cols is None else (k[cols] / R2W[cols])[:, None]
+        end = end.reshape(mc, ng)
+        st = st.reshape(mc, ng)
+        worst = (scale[:, 0] * (end - st).max(axis=1)) if ng else np.zeros(mc)
         ub = scale * (end[:, 1:] - st[:, :-1])
         # the true maximum is on the grid or in a gap whose bound exceeds the grid maximum
         # (which, when the grid is feasible, covers every gap whose bound exceeds the limit)
@@ -1040,10 +1191,16 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
             tot = int(ln.sum())
             first = np.repeat(grid[gg] + 1 - (np.cumsum(ln) - ln), ln)
             n = first + np.arange(tot)
-            c = np.repeat(cc, ln)
+            c_local = np.repeat(cc, ln)
+            c = c_local if cols is None else cols[c_local]
             e, s_ = E_pair(k, c, n)
-            np.maximum.at(worst, c, (k / R2W)[c] * (e - s_))
-        return np.log(np.maximum(worst, 1e-300))
+            np.maximum.at(worst, c_local, (k / R2W)[c] * (e - s_))
+        res = np.log(np.maximum(worst, 1e-300))
+        if cols is None:
+            return res
+        out = np.full(m, np.nan)
+        out[cols] = res
+        return out
 
     ltol = math.log1p(rtol)
     g1 = g(np.ones(m))
@@ -1052,19 +1209,19 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
     # lower end: k = 1 where that fails, else step down by 8× while still feasible (below
     # 8⁻⁶ of the feasible end the speed-dependent torque has vanished for any purpose)
     lo = np.where(ok1, hi / 8, 1.0)
-    gl = np.where(ok1, g(lo), g1)
+    gl = np.where(ok1, g(lo, ok1), g1)
     for _ in range(6):
         down = ok1 & (gl <= 0)
         if not np.any(down):
             break
         hi = np.where(down, lo, hi)
         lo = np.where(down, lo / 8, lo)
-        gl = np.where(down, g(lo), gl)
+        gl = np.where(down, g(lo, down), gl)
     hi = np.maximum(hi, lo)
     gh = np.where(hi == 1.0, g1, np.nan)
     need = np.isnan(gh)
     if np.any(need):
-        gh = np.where(need, g(hi), gh)
+        gh = np.where(need, g(hi, need), gh)
     ll, lh = np.log(lo), np.log(hi)
     # secant through the last two trial points (g is smooth near the root, but for kinks where
     # window starts cross samples), kept inside the bracket; a secant step that is not at most
@@ -1085,7 +1242,7 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
         u = np.where(small, u1 + np.where(f1 > 0, 0.4, -0.4) * ltol, u)
         u = np.clip(u, ll + 0.4 * ltol, lh - 0.4 * ltol)
         u = np.where(active, u, lh)
-        gu = g(np.exp(u))
+        gu = g(np.exp(u), active)
         good = gu <= 0.0
         lh = np.where(active & good, u, lh)
         ll = np.where(active & ~good, u, ll)
@@ -1095,50 +1252,71 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
     return np.where(k_up > 0, hi, 0.0)
 
 
-def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold, rms_win) -> float:
+def _payload_torque(dynamics: Dynamics, Q, V, A, tau0, threads: int | None = None) -> np.ndarray:
+    """τ1 (M×nv, N·m per kg): the torque of 1 kg more at the payload point, as the difference
+    of a batched RNEA with that mass and the trajectory's own torque τ0."""
+    tau1 = _unit_payload_dynamics(dynamics).rnea_batch(Q, V, A, threads)
+    tau1 -= tau0
+    return tau1
+
+
+def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold, rms_win,
+                    threads: int | None = None) -> float:
     """Largest extra mass m (kg) at the payload point keeping every effort-type limit at the
     trajectory's own timing: τ = τ0 + m·τ1 is affine in m, so each sample gives an interval.
     ``rms_win``: the windowed ∫τ0² of the RMS-limited joints (m×M), already computed."""
+    tau1 = _payload_torque(dynamics, Q, V, A, tau0, threads)
+    return _payload_margin_from(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms_win)
+
+
+def _payload_margin_from(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms_win) -> float:
+    """:func:`_payload_margin` given τ1 (see :func:`_payload_torque`)."""
     heavy = _unit_payload_dynamics(dynamics)
-    tau1 = heavy.rnea_batch(Q, V, A) - tau0
     lo, hi = -math.inf, math.inf
 
     def linear(a: np.ndarray, b: np.ndarray, L: np.ndarray) -> None:
         # |a + m·b| ≤ L  →  m ∈ [(−L − a·sgn b)/|b|, (L − a·sgn b)/|b|]; b = 0 gives ±inf
+        # (NaN where 0/0, which the NaN-ignoring reductions skip)
         nonlocal lo, hi
         if not a.size:
             return
         with np.errstate(divide="ignore", invalid="ignore"):
             ab = np.abs(b)
-            a_s = a * np.sign(b)
-            up = (L - a_s) / ab
-            dn = (-L - a_s) / ab
-        if np.any((ab == 0) & (np.abs(a) > L)):
-            lo, hi = math.inf, -math.inf
-        hi = min(hi, float(np.nanmin(up)))
-        lo = max(lo, float(np.nanmax(dn)))
+            a_s = np.sign(b)
+            a_s *= a
+            t = np.subtract(L, a_s)
+            t /= ab
+            hi = min(hi, float(np.fmin.reduce(t, axis=None)))
+            np.subtract(-L, a_s, out=t)
+            t /= ab
+            lo = max(lo, float(np.fmax.reduce(t, axis=None)))
+        zero = ab == 0
+        if zero.any():
+            Lb = np.broadcast_to(L, a.shape)
+            if np.any(np.abs(a[zero]) > Lb[zero]):
+                lo, hi = math.inf, -math.inf
 
     if ("effort" in values and "effort_speed" in values
             and np.array_equal(values["effort"][0], values["effort_speed"][0])):
         # the same joints: both bands at once, with the tighter limit at each sample
         cols, _, L = values["effort"]
-        linear(tau0[:, cols], tau1[:, cols], np.minimum(L, values["effort_speed"][2]))
+        linear(_take(tau0, cols), _take(tau1, cols), np.minimum(L, values["effort_speed"][2]))
     else:
         for kind in ("effort", "effort_speed"):
             if kind in values:
                 cols, _, L = values[kind]
-                linear(tau0[:, cols], tau1[:, cols], L)
+                linear(_take(tau0, cols), _take(tau1, cols), L)
     if "power" in values:
         cols, _, L = values["power"]
-        v = V[:, cols]
-        linear(tau0[:, cols] * v, tau1[:, cols] * v, L)
+        v = _take(V, cols)
+        linear(_take(tau0, cols) * v, _take(tau1, cols) * v, L)
     if "effort_rate" in values:
         cols, _, L = values["effort_rate"]
         coul = np.asarray(dynamics.model.pin_model.friction, dtype=float)[cols] \
             if dynamics.options.include_friction else 0.0
-        smooth0 = tau0[:, cols] - coul * np.sign(V[:, cols])
+        smooth0 = _take(tau0, cols) - coul * np.sign(_take(V, cols))
         d0 = _segment_derivative(smooth0, smp.first, smp.last, smp.h)
-        d1 = _segment_derivative(tau1[:, cols], smp.first, smp.last, smp.h)
+        d1 = _segment_derivative(_take(tau1, cols), smp.first, smp.last, smp.h)
         linear(d0, d1, L)
     if "rms_effort" in values:
         cols = values["rms_effort"][0]
@@ -1146,23 +1324,49 @@ def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold, rms_win) ->
         h0 = hold[cols]
         Wn, R = lim.rms_window[cols], lim.rms_effort[cols]
         tt = smp.t
-        a0, a1 = tau0[:, cols], tau1[:, cols]
+        a0, a1 = _take(tau0, cols), _take(tau1, cols)
         # windowed integrals of a0·a1 and a1² (hold torques before the start); a0² is given
-        cum = _cumtrapz(tt, np.concatenate([a0 * a1, a1 * a1], axis=1)).T
+        f = np.empty((2 * len(cols), len(tt)))
+        np.multiply(a0.T, a1.T, out=f[:len(cols)])
+        np.multiply(a1.T, a1.T, out=f[len(cols):])
+        cum = _cumtrapz_rows(tt, f)
+        del f
         win = _windowed(tt, cum, np.concatenate([Wn, Wn]),
                         np.concatenate([h0 * heavy_hold, heavy_hold * heavy_hold]))
         m_ = len(cols)
         C, B, Aq = rms_win, win[:m_], win[m_:]
         # A m² + 2B m + C ≤ R² W
         c = C - (R * R * Wn)[:, None]
-        r1, r2 = _quadratic_roots(Aq, 2 * B, c)
-        with np.errstate(invalid="ignore"):
-            up = np.where(Aq > 0, np.fmax(r1, r2), np.inf)
-            dn = np.where(Aq > 0, np.fmin(r1, r2), -np.inf)
-        if np.any(np.isnan(r1) & (c > 0)):
-            return -math.inf
-        hi = min(hi, float(np.nanmin(up)))
-        lo = max(lo, float(np.nanmax(dn)))
+        # the roots of Aq·m² + b·m + c, b = 2B, exactly as _quadratic_roots computes them
+        # (stable form), with fewer temporaries
+        with np.errstate(all="ignore"):
+            b = 2 * B
+            sq = b * b
+            t = 4 * Aq
+            t *= c
+            sq -= t                                  # discriminant
+            np.sqrt(sq, out=sq)                      # NaN where negative
+            np.negative(sq, out=sq, where=~(b >= 0))
+            q = np.add(b, sq, out=sq)
+            q *= -0.5
+            r1 = np.divide(q, Aq, out=t)
+            a_zero = Aq == 0
+            if a_zero.any():
+                r1[a_zero] = np.nan
+            r2 = c / q
+            q_zero = q == 0
+            if q_zero.any():
+                bz, cz = b[q_zero], c[q_zero]
+                r2[q_zero] = np.where(a_zero[q_zero] & (bz != 0), -cz / bz, np.nan)
+            if np.any(np.isnan(r1) & (c > 0)):
+                return -math.inf
+            pos = Aq > 0
+            up = np.fmax(r1, r2)
+            up[~pos] = np.inf
+            hi = min(hi, float(np.fmin.reduce(up, axis=None)))
+            np.fmin(r1, r2, out=up)
+            up[~pos] = -np.inf
+            lo = max(lo, float(np.fmax.reduce(up, axis=None)))
     if lo > hi:
         return -math.inf
     return hi

@@ -140,6 +140,26 @@ def test_batches_equal_single_state(arm):
     assert dyn.rnea_batch(Q[:0], V[:0], A[:0]).shape == (0, arm.nv)
 
 
+def test_batch_thread_count_changes_no_bit(arm):
+    """Each state is one sequential RNEA whatever the OpenMP thread count: the batched results
+    with 1 and 2 threads (per call, or from the constructor) are bit-identical."""
+    import os
+    Q, V, A = random_states(arm, 257, 12)
+    one = Dynamics(arm)
+    two = Dynamics(arm, threads=2)
+    ref = one.rnea_batch(Q, V, A)
+    assert np.array_equal(two.rnea_batch(Q, V, A), ref)
+    assert np.array_equal(one.rnea_batch(Q, V, A, threads=2), ref)
+    assert np.array_equal(two.rnea_batch(Q, V, A, threads=1), ref)
+    t1, t2 = one.terms_batch(Q, V, A, 1), one.terms_batch(Q, V, A, 2)
+    for a, b in ((t1.static, t2.static), (t1.viscous, t2.viscous), (t1.inertial, t2.inertial)):
+        assert np.array_equal(a, b)
+    assert np.array_equal(one.gravity_batch(Q, threads=2), one.gravity_batch(Q))
+    cores = os.cpu_count() or 1
+    assert one.batch_threads() == 1 and one.batch_threads(0) == 1
+    assert one.batch_threads(10_000) == cores and two.batch_threads() == min(2, cores)
+
+
 def point_jacobian(model, q, frame, com):
     """Linear Jacobian (world axes) of the point ``com`` fixed in ``frame``, from Pinocchio's frame
     Jacobian and frame placement: J_p = J_v − [r]× J_ω with r the world-axes offset of the point."""

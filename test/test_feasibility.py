@@ -557,3 +557,51 @@ def test_pathological_input_raises_trajectory_error_only():
     with pytest.raises(TrajectoryError) as info:
         check_trajectory(Dynamics(model), ok, FeasibilityOptions(sample_period=0.0))
     assert info.value.code == "bad_options"
+
+
+def test_thread_count_does_not_change_the_result():
+    """threads=2 runs the batched RNEA passes on two OpenMP threads and the RMS time-scale
+    search beside the other checks: the verdict must be the same, number for number."""
+    from benchmarks.feasibility_bench import every_limit_kind
+
+    model = base_model("panda").with_limits(None)
+    model = model.with_limits(every_limit_kind(model))
+    dyn = Dynamics(model)
+    for traj in (make_traj("panda", "quintic"), stretch(make_traj("panda", "cubic"), 0.4)):
+        one = check_trajectory(dyn, traj, FeasibilityOptions(sample_period=0.002, threads=1))
+        two = check_trajectory(dyn, traj, FeasibilityOptions(sample_period=0.002, threads=2))
+        assert one.time_scale_by_kind["rms_effort"] > 0   # the RMS search did run
+        d1, d2 = one.to_dict(), two.to_dict()
+        d1.pop("compute_time_s"), d2.pop("compute_time_s")
+        assert json.dumps(d1) == json.dumps(d2)
+
+
+def test_background_job_reraises_on_the_caller():
+    from dyn_node import feasibility as F
+
+    def boom(x):
+        raise FloatingPointError(f"bad {x}")
+
+    for background in (False, True):
+        job = F._Job(boom, (3,), background=background)
+        with pytest.raises(FloatingPointError, match="bad 3"):
+            job.result()
+    assert F._Job(lambda a, b: a + b, (2, 5), background=True).result() == 7
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_column_reductions_equal_numpy(seed):
+    from dyn_node import feasibility as F
+
+    rng = np.random.default_rng(400 + seed)
+    X = rng.normal(size=(500, 5))
+    X[rng.integers(0, 500, 3), rng.integers(0, 5, 3)] = np.nan
+    X[:, 2] = 7.0                                           # ties: the same value
+    assert np.array_equal(F._colmax(X), X.max(axis=0), equal_nan=True)
+    B = X > 1.5
+    B[:, 3] = False
+    assert np.array_equal(F._colany(B), B.any(axis=0))
+    cols = np.arange(5)
+    assert F._take(X, cols) is X
+    np.testing.assert_array_equal(F._take(X, np.array([0, 2, 4])), X[:, [0, 2, 4]])
+    np.testing.assert_array_equal(F._take(X, np.array([1, 2, 3])), X[:, 1:4])

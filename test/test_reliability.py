@@ -118,7 +118,7 @@ def ctx(module_ros_context):
 
 # --- overload -------------------------------------------------------------------------------
 BURST_PUBLISHER = textwrap.dedent("""
-    import math, sys, time
+    import math, select, sys, time
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
@@ -132,28 +132,36 @@ BURST_PUBLISHER = textwrap.dedent("""
     deadline = time.monotonic() + 30
     while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.01)
-    print("READY", flush=True)
-    sys.stdin.readline()  # "go"
     msg = JointState(name=names)
-    sent, t_begin = 0, time.perf_counter()
+
+    def tag(seq):  # sequence-tagged: stamp.sec = 1000 + sequence number; q, v derived from it
+        msg.header.stamp.sec = 1000 + seq
+        msg.position = [q + 0.01 * math.sin(0.1 * seq + k) for k, q in enumerate(q0)]
+        msg.velocity = [v + 0.01 * math.cos(0.1 * seq + k) for k, v in enumerate(v0)]
+        return msg
+
+    # Slow samples until the test says "go", so the node has taken at least one before the
+    # bursts: drops are counted from the first sample the node takes from a publisher (a gap
+    # before it cannot be seen), and the publisher's match alone does not mean the node's has.
+    print("READY", flush=True)
+    sent = 0
+    while not select.select([sys.stdin], [], [], 0.05)[0]:
+        pub.publish(tag(sent)); sent += 1
+    sys.stdin.readline()  # "stop"
+    print("PRIMED", sent, flush=True)
+    sys.stdin.readline()  # "go"
+    t_begin = time.perf_counter()
     for b in range(int(bursts)):
         t0, n0 = time.perf_counter(), sent
         while (el := time.perf_counter() - t0) < burst_s:
             due = n0 + int(el * rate) + 1
             while sent < due:
-                # sequence-tagged: stamp.sec = 1000 + sequence number; q, v derived from it
-                msg.header.stamp.sec = 1000 + sent
-                msg.position = [q + 0.01 * math.sin(0.1 * sent + k) for k, q in enumerate(q0)]
-                msg.velocity = [v + 0.01 * math.cos(0.1 * sent + k) for k, v in enumerate(v0)]
-                pub.publish(msg); sent += 1
+                pub.publish(tag(sent)); sent += 1
         t1 = time.perf_counter()
         while time.perf_counter() - t1 < pause_s:
             rclpy.spin_once(node, timeout_sec=0.01)
     for _ in range(20):  # a slow tail, so a loss at the very end is followed by a later sample
-        msg.header.stamp.sec = 1000 + sent
-        msg.position = [q + 0.01 * math.sin(0.1 * sent + k) for k, q in enumerate(q0)]
-        msg.velocity = [v + 0.01 * math.cos(0.1 * sent + k) for k, v in enumerate(v0)]
-        pub.publish(msg); sent += 1
+        pub.publish(tag(sent)); sent += 1
         rclpy.spin_once(node, timeout_sec=0.01)
     print("SENT", sent, time.perf_counter() - t_begin, flush=True)
     node.destroy_node(); rclpy.try_shutdown()
@@ -195,8 +203,35 @@ def test_overload_5khz_bursts_during_100k_point_check(ctx, spawn):
         pub = spawn([sys.executable, "-c", BURST_PUBLISHER, f"{ns}/joint_states", ",".join(NAMES), "5000", "1.0",
                      str(bursts), "0.3", fmt(Q0), fmt(V0)], stdin=subprocess.PIPE)
         assert pub.proc.stdout.readline().strip() == "READY", pub.stop()[2]
+
+        def counts():
+            sts = p.statuses("diag", "dyn_node: joint_states", "panda")
+            if not sts:
+                return None
+            v = kv(sts[-1][1])
+            return (int(v["received_messages"]), int(v["dropped_messages"]), int(v["invalid_messages"]),
+                    int(v["out_of_order_messages"]))
+
         assert p.wait(lambda: traj_pub.get_subscription_count() >= 1
-                      and bool(p.statuses("diag", "dyn_node: joint_states", "panda")), 60), node.stop()[2]
+                      and (c := counts()) is not None and c[0] >= 1, 60), node.stop()[2]
+        pub.proc.stdin.write("stop\n")
+        pub.proc.stdin.flush()
+        line = pub.proc.stdout.readline().split()
+        assert line and line[0] == "PRIMED", pub.stop()[2]
+        primed = int(line[1])
+
+        def settled():  # the priming counts, once three diagnostics periods agree
+            sts = p.statuses("diag", "dyn_node: joint_states", "panda")[-3:]
+            c = [(kv(s)["received_messages"], kv(s)["dropped_messages"]) for _, s in sts]
+            return len(c) == 3 and len(set(c)) == 1
+
+        n_diag = len(p.got["diag"])
+        assert p.wait(lambda: len(p.got["diag"]) > n_diag + 3 and settled(), 30)
+        r0, d0, _, _ = counts()
+        # Samples published before the node's reader matched the publisher (the publisher's own
+        # match can come first) are invisible: no sequence gap precedes the first one taken.
+        unseen = primed - r0 - d0
+        assert 0 <= unseen <= 5, (primed, r0, d0)
         data = _long_trajectory_cdr(100_000, Time(sec=5, nanosec=0))
         traj_pub.publish(data)
         t_go = time.monotonic()
@@ -207,16 +242,9 @@ def test_overload_5khz_bursts_during_100k_point_check(ctx, spawn):
         assert line and line[0] == "SENT", pub.stop()[2]
         sent, took = int(line[1]), float(line[2])
 
-        def counts():
-            sts = p.statuses("diag", "dyn_node: joint_states", "panda")
-            if not sts:
-                return None
-            v = kv(sts[-1][1])
-            return (int(v["received_messages"]), int(v["dropped_messages"]), int(v["invalid_messages"]),
-                    int(v["out_of_order_messages"]))
-
-        # wait (bounded) for the counts to cover what was sent; they may not (see below)
-        p.wait(lambda: (c := counts()) is not None and c[0] + c[1] >= sent, 15)
+        # wait (bounded) for the counts to cover what was sent: the last samples may still sit in
+        # the node's reader queue while the 100k-point check and a busy machine compete for CPU
+        p.wait(lambda: (c := counts()) is not None and c[0] + c[1] >= sent - unseen, 60)
         # let one more diagnostics period pass so a late count would show up
         n_diag = len(p.got["diag"])
         p.wait(lambda: len(p.got["diag"]) > n_diag + 3, 5)
@@ -225,16 +253,16 @@ def test_overload_5khz_bursts_during_100k_point_check(ctx, spawn):
         t_feas = time.monotonic()
         levels = [(t, s.level, s.message) for t, s in p.statuses("diag", "dyn_node: joint_states", "panda")
                   if t_go <= t <= t_done + 1.0]
-        print(f"overload: sent {sent} in {took:.2f} s ({sent / took:.0f} Hz), node received {received}, "
+        print(f"overload: sent {sent} ({unseen} before the node's reader matched) in {took:.2f} s ({sent / took:.0f} Hz), node received {received}, "
               f"dropped {dropped}, invalid {invalid}, out of order {ooo}; answered "
               f"{len(p.got['grav'])}; 100k-point verdict {t_feas - t_go:.1f} s after the first burst "
               f"(bursts ended after {t_done - t_go:.1f} s); levels while sending "
               f"{sorted({lv[0] for _, lv, _ in levels})}")
-        # Accounting: a message taken by the node is never also counted as dropped (gaps in the
-        # DDS publication sequence numbers). Exact equality received + dropped == sent is NOT yet
-        # reached: a handful of samples (~16 of 10,000) stay unaccounted, most likely lost before
-        # the first sample the node saw, where no gap is visible (RELIABILITY.md, open).
-        assert 0 < received <= sent and received + dropped <= sent, (sent, received, dropped)
+        # Accounting: every sample from the first one the node took on is either received or
+        # counted as dropped (gaps in the DDS publication sequence numbers), never both.
+        accountable = sent - unseen
+        assert 0 < received <= accountable and received + dropped == accountable, \
+            (sent, unseen, received, dropped)
         assert invalid == 0 and ooo == 0
         # torques correct for everything processed (acceleration_source zero: RNEA(q, v, 0))
         with p.cond:
