@@ -107,9 +107,11 @@ class DynNode(Node):
         self._last_seq: int | None = None
         self._seq_gaps = 0
         self._lost_total = 0
-        # Assume one publisher until the graph (checked each diagnostics period) says otherwise,
-        # so gaps from the very first burst are counted.
+        # Assume one publisher until the subscription's matched event (or, on an rmw without it,
+        # the graph checked each diagnostics period) says otherwise, so gaps from the very first
+        # burst are counted.
         self._single_publisher = True
+        self._matched_event = False
         self._topic_urdf = ""
         self._model_problem: Status | None = None
         self._core: _Core | None = None
@@ -284,7 +286,8 @@ class DynNode(Node):
         topic = self.resolve_topic_name("joint_states")
         io = self._io_node
         try:
-            events = SubscriptionEventCallbacks(message_lost=self._on_message_lost)
+            events = SubscriptionEventCallbacks(message_lost=self._on_message_lost,
+                                                matched=self._on_matched)
             return io.create_subscription(JointState, topic, self._on_joint_state, qos,
                                           event_callbacks=events, raw=True)
         except Exception:  # an rmw without the message-lost event: drops cannot be counted
@@ -371,6 +374,13 @@ class DynNode(Node):
         with self._io_lock:
             self._lost_total = int(info.total_count)
             self._report_dropped()
+
+    def _on_matched(self, info: Any) -> None:
+        # The moment the publisher set changes, not up to a diagnostics period later: a gap from a
+        # second publisher's samples must never be counted as a drop.
+        with self._io_lock:
+            self._matched_event = True
+            self._single_publisher = int(info.current_count) == 1
 
     def _report_dropped(self) -> None:
         # Sequence gaps are exact and include what the middleware's lost event reports, so the
@@ -496,7 +506,8 @@ class DynNode(Node):
 
     def _on_diagnostics(self) -> None:
         try:
-            self._single_publisher = self.count_publishers(self._sub_js.topic_name) == 1
+            if not self._matched_event:
+                self._single_publisher = self.count_publishers(self._sub_js.topic_name) == 1
             now = self.get_clock().now()
             self._publish(self._pub_diag, diagnostic_array(self.current_statuses(now.nanoseconds * 1e-9),
                                                     now.to_msg()))

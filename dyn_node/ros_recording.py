@@ -6,22 +6,32 @@ message is the bag path), subscribes with ``raw=True`` to every configured topic
 tells its type (re-checked every ``discovery_period_s``), and hands the serialized bytes to a
 :class:`dyn_node.recording.Recorder`. The callback does no disk I/O: it stamps the receipt
 time, reads the header stamp straight from the CDR bytes, and queues.
+
+The node's own endpoints registered with :meth:`RecordingBridge.add_publisher` are recorded
+from the node's calls instead (no subscription to itself): its subscriptions (they see every
+publisher of the topic) and its publishers under its private ``~/`` namespace (nobody else
+publishes there). A publisher on a shared topic, e.g. ``/diagnostics``, is recorded by a raw
+subscription like any input, so other nodes' messages on it are in the bag too, and the
+node's own once each (the subscription receives them; the publish path does not record them).
 """
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any, Callable
 
 import yaml
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.clock import ClockType
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
                        ReliabilityPolicy)
 from std_srvs.srv import Trigger
 
 from .errors import EVALUATION_ERROR
-from .recording import (COMPRESSIONS, Recorder, RecorderConfig, RecorderStats, RecordingError,
-                        TopicInfo, has_header_first, header_stamp_ns, qos_profile_dict)
+from .recording import (COMPRESSIONS, HEADER_STAMP, Recorder, RecorderConfig, RecorderStats,
+                        RecordingError, TopicInfo, has_header_first, qos_profile_dict)
 from .status import ERROR, NAME_PREFIX, OK, WARN, Status
 
 STATUS_NAME = NAME_PREFIX + "recorder"
@@ -48,12 +58,15 @@ class RecordingBridge:
     """Owns the recorder of a node. ``robot_description`` is a callable returning the URDF in
     use (or ""); without one, the node's ``robot_description`` parameter is used if declared."""
 
+    _PARAMETERS_REFRESH = 10  # discovery ticks between parameter snapshots without a set
+
     def __init__(self, node: Node, robot_description: Callable[[], str] | None = None, *,
                  discovery_period_s: float = 1.0, flush_period_s: float = 0.5,
                  opener: Callable[[str], Any] | None = None, autostart: bool = True):
         self.node = node
         self._clock = node.get_clock()
         self._clock_handle = self._clock.handle
+        self._ros_clock = self._clock.clock_type == ClockType.ROS_TIME
         # Held while the recorder is swapped in or out. An owner that records from another
         # thread (the node's joint_states thread) sets its own lock here and holds it around
         # each message, so a message and its outputs are recorded together or not at all.
@@ -71,6 +84,7 @@ class RecordingBridge:
         self._direct: set[str] = set()
         # publisher or subscription object -> (topic, stamped): topic_name is a call into rcl
         self._endpoints: dict[Any, tuple[str, bool]] = {}
+        self._live: dict[Any, tuple[str, bool]] = {}  # the endpoints recorded right now
         node.declare_parameter("record.enabled", False, _descriptor(
             "Start recording at startup (services ~/start_recording, ~/stop_recording toggle it).",
             ParameterType.PARAMETER_BOOL))
@@ -93,6 +107,9 @@ class RecordingBridge:
         self._start_srv = node.create_service(Trigger, "~/start_recording", self._on_start)
         self._stop_srv = node.create_service(Trigger, "~/stop_recording", self._on_stop)
         self._timer = node.create_timer(discovery_period_s, self._discover)
+        self._ticks = 0
+        self._parameters_changed = False
+        node.add_post_set_parameters_callback(self._on_parameters_set)
         if autostart:
             self.start_if_enabled()
 
@@ -117,7 +134,15 @@ class RecordingBridge:
         """Record this node's own publisher (or subscription) directly instead of subscribing to
         it: the node hands the serialized bytes it publishes or takes to :meth:`record`. Saves one
         subscription callback per message (the dominant recording cost in rclpy) and records
-        exactly what the node saw and said."""
+        exactly what the node saw and said.
+
+        A subscription sees every publisher of its topic, so recording what it takes is the
+        whole topic. A publisher is the whole topic only under the node's private namespace
+        (``~/`` names): on a shared topic such as ``/diagnostics`` other nodes publish too, so
+        such a publisher is left to a raw subscription like any input (which also receives the
+        node's own samples, each exactly once) and :meth:`records` is False for it."""
+        if isinstance(publisher, Publisher) and not self.is_private(publisher.topic_name):
+            return  # a shared topic: _discover subscribes to it
         cls = publisher.msg_type
         type_name = f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}"
         self._endpoints[publisher] = (publisher.topic_name, has_header_first(type_name))
@@ -129,36 +154,52 @@ class RecordingBridge:
                              liveliness=_LIVELINESS.get(q.liveliness, "unknown")),))
         if self._recorder is not None and publisher.topic_name in self._topics:
             self._recorder.add_topic(self._outgoing[publisher.topic_name])
-            self._direct.add(publisher.topic_name)
+            self._direct = self._direct | {publisher.topic_name}
+        self._update_live()
+
+    def is_private(self, topic: str) -> bool:
+        """Whether a resolved topic name lies under this node's private namespace (``~/``),
+        where only this node publishes."""
+        return topic.startswith(self.node.get_fully_qualified_name().rstrip("/") + "/")
 
     def records(self, publisher: Any) -> bool:
         """Whether bytes published on ``publisher`` are being recorded right now."""
-        if self._recorder is None:
-            return False
-        entry = self._endpoints.get(publisher)
-        return (entry[0] if entry else publisher.topic_name) in self._direct
+        return publisher in self._live
 
     def record(self, publisher: Any, data: bytes, now_ns: int | None = None) -> None:
         """Record serialized bytes this node just published (or took) on ``publisher`` (see
         :meth:`add_publisher`); a no-op when not recording or the topic is not recorded.
         ``now_ns``: the log time if the caller already read the node's clock (else read here)."""
+        # Runs up to 3 times per joint state on the node's hot thread: the header stamp is read
+        # on the recorder's thread (HEADER_STAMP), the clock inline (see now_ns).
+        entry = self._live.get(publisher)
         rec = self._recorder
-        if rec is None:
-            return
-        entry = self._endpoints.get(publisher)
-        if entry is None:
-            topic = publisher.topic_name
-            entry = (topic, has_header_first(self._outgoing[topic].type)) if topic in self._outgoing \
-                else (topic, False)
-        topic, stamped = entry
-        if topic not in self._direct:
+        if entry is None or rec is None:
             return
         if now_ns is None:
-            clock = self._clock_handle
-            with clock:
-                now_ns = clock.get_now().nanoseconds
-        stamp = header_stamp_ns(data) if stamped else None
-        rec.write(topic, data, now_ns, stamp if stamp else now_ns)
+            if self._ros_clock and not self._clock_handle.get_ros_time_override_is_enabled():
+                now_ns = time.time_ns()
+            else:
+                now_ns = self.now_ns()
+        rec.write(entry[0], data, now_ns, HEADER_STAMP if entry[1] else None)
+
+    def now_ns(self) -> int:
+        """The node's clock (ROS time) in ns. Without a /clock override ROS time is the system
+        time, read here with ``time.time_ns`` (0.1 µs) instead of through rclpy's clock handle
+        (~2.5 µs, paid per recorded output at 1 kHz)."""
+        h = self._clock_handle
+        # No ``with h``: the node keeps its clock (and handle) for its whole life, and the
+        # bridge stops recording before the node is destroyed.
+        if self._ros_clock and not h.get_ros_time_override_is_enabled():
+            return time.time_ns()
+        with h:
+            return h.get_now().nanoseconds
+
+    def _update_live(self) -> None:
+        """Endpoints recorded from the node's own calls right now (read without a lock by
+        :meth:`record`: the dict is replaced, never mutated)."""
+        direct = self._direct if self._recorder is not None else set()
+        self._live = {ep: entry for ep, entry in self._endpoints.items() if entry[0] in direct}
 
     def set_robot_description(self, urdf: str) -> None:
         """Description to embed in every file (repeated on /robot_description + metadata)."""
@@ -190,6 +231,7 @@ class RecordingBridge:
             rec.add_topic(self._outgoing[t])
         with self.guard:  # between two messages of the owner's recording thread
             self._topics, self._direct, self._recorder = topics, direct, rec
+            self._update_live()
         self._discover()
         self.node.get_logger().info(f"recording to {self._recorder.path}")
         return True, str(self._recorder.path)
@@ -205,6 +247,7 @@ class RecordingBridge:
         with self.guard:  # no message of the owner's recording thread is half recorded
             self._direct = set()
             self._recorder = None
+            self._update_live()
         self._last_stats = rec.close()
         return self._last_stats.state != "error", str(rec.path)
 
@@ -297,7 +340,12 @@ class RecordingBridge:
         desc = self._current_description()
         if desc:
             rec.set_robot_description(desc)
-        rec.set_parameters_yaml(self.parameters_yaml())  # recorded again only when changed
+        # Dumping every parameter to YAML costs ~1 ms: done after a parameter was set, and every
+        # _PARAMETERS_REFRESH ticks for parameters declared later (written only when changed).
+        self._ticks += 1
+        if self._parameters_changed or self._ticks % self._PARAMETERS_REFRESH == 0:
+            self._parameters_changed = False
+            rec.set_parameters_yaml(self.parameters_yaml())
         missing = [t for t in self._topics if t not in self._subs and t not in self._direct]
         if not missing:
             return
@@ -336,14 +384,18 @@ class RecordingBridge:
             self._subs[topic] = self.node.create_subscription(
                 cls, topic, self._callback(rec, topic, has_header_first(msg_type)), qos, raw=True)
 
+    def _on_parameters_set(self, _parameters: list) -> None:
+        self._parameters_changed = True
+
     def _callback(self, rec: Recorder, topic: str, stamped: bool) -> Callable[[bytes], None]:
         clock = self._clock_handle
+
+        pub = HEADER_STAMP if stamped else None
 
         def on_message(data: bytes) -> None:
             with clock:
                 now = clock.get_now().nanoseconds
-            stamp = header_stamp_ns(data) if stamped else None
-            rec.write(topic, data, now, stamp if stamp else now)
+            rec.write(topic, data, now, pub)
         return on_message
 
     def _on_state(self, stats: RecorderStats) -> None:

@@ -120,7 +120,11 @@ def test_bag_directory_and_errors(bag, tmp_path, capsys):
 @pytest.mark.timeout(60)
 def test_runs_as_module_without_traceback(bag, tmp_path):
     src = tmp_path / "t.mcap"
-    src.write_bytes(_mcap_of(bag).read_bytes()[:-5000])
+    data = _mcap_of(bag).read_bytes()
+    # The Footer's fields (summary start u64, summary offset start u64, CRC u32) end 8 bytes
+    # (the magic) before the end of the file. Cut 1000 bytes into the data section.
+    (summary_start,) = struct.unpack_from("<Q", data, len(data) - 8 - 20)
+    src.write_bytes(data[:summary_start - 1000])
     r = subprocess.run([sys.executable, "-m", "dyn_node.bag_recover", str(src)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 3, r.stderr

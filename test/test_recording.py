@@ -2,13 +2,20 @@
 from __future__ import annotations
 
 import errno
+import io
+import struct
 import threading
+import zlib
 import time
 from pathlib import Path
 
 import pytest
 import yaml
+from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
+from mcap.records import (Channel, Chunk, ChunkIndex, Message, MessageIndex, Metadata,
+                          MetadataIndex, Statistics, SummaryOffset)
+from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader as Rosbag2Reader
 from rosbags.typesys import Stores, get_typestore, get_types_from_msg
@@ -126,6 +133,138 @@ def test_bag_read_back_by_independent_readers(tmp_path):
     assert meta_yaml["dyn_node"]["topics"][JS] == {"received": 3000, "written": 3000, "dropped": 0}
 
 
+def _records_at(data: bytes, start: int, end: int) -> list[tuple[int, int, bytes]]:
+    """Top-level MCAP records in data[start:end] as (offset, opcode, body); they must tile it."""
+    out, pos = [], start
+    while pos < end:
+        op, n = struct.unpack_from("<BQ", data, pos)
+        assert pos + 9 + n <= end, f"record at {pos} overruns"
+        out.append((pos, op, data[pos + 9:pos + 9 + n]))
+        pos += 9 + n
+    assert pos == end
+    return out
+
+
+def _parse(cls, body: bytes, *extra):
+    stream = ReadDataStream(io.BytesIO(body))
+    rec = cls.read(stream, *extra)
+    assert stream.count == len(body), cls.__name__
+    return rec
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_mcap_layout_follows_the_spec(tmp_path, compression):
+    """The recorder writes MCAP itself: every index, offset, count and CRC is checked here
+    against the bytes, record by record (mcap's reader is used only to parse record bodies
+    and, as a second opinion, to stream the file with CRC validation)."""
+    rec = make_recorder(tmp_path, chunk_size=3000, compression=compression)
+    logs: dict[str, list[int]] = {JS: [], "/chatter": []}
+    for seq in range(700):
+        log = 10**18 + seq * 1_000_000 - (seq % 3) * 1_500_000  # not monotone within a chunk
+        rec.write(JS, joint_state(seq), log)
+        logs[JS].append(log)
+        if seq % 50 == 0:
+            rec.write("/chatter", cdr_string(f"m{seq}"), log + 7)
+            logs["/chatter"].append(log + 7)
+        if seq == 350:
+            rec.set_parameters_yaml("/dyn_node:\n  ros__parameters:\n    a: 2\n")
+    stats = rec.close()
+    assert stats.state == "closed" and stats.dropped == 0
+    path = Path(stats.files[0])
+    data = path.read_bytes()
+
+    # Second opinion: mcap's stream reader validates the data-section and chunk CRCs.
+    n_stream = sum(isinstance(r, Message) for r in
+                   StreamReader(io.BytesIO(data), validate_crcs=True).records)
+    assert n_stream == 700 + 14 + 1  # + the description copy
+
+    magic = b"\x89MCAP0\r\n"
+    assert data[:8] == magic and data[-8:] == magic
+    footer_at = len(data) - 8 - 29
+    op, n = struct.unpack_from("<BQ", data, footer_at)
+    assert (op, n) == (0x02, 20)
+    summary_start, offsets_start, summary_crc = struct.unpack_from("<QQI", data, footer_at + 9)
+    assert summary_crc == zlib.crc32(data[summary_start:footer_at + 9 + 16])
+
+    # Data section: Header, then records up to Data End, whose CRC covers magic..last record.
+    data_recs = _records_at(data, 8, summary_start)
+    assert data_recs[0][1] == 0x01 and data_recs[-1][1] == 0x0F
+    data_end_at = data_recs[-1][0]
+    assert struct.unpack("<I", data_recs[-1][2]) == (zlib.crc32(data[:data_end_at]),)
+    by_offset = {off: (op, body) for off, op, body in data_recs}
+    chunks = [(off, body) for off, op, body in data_recs if op == 0x06]
+    metas = [(off, body) for off, op, body in data_recs if op == 0x0C]
+    channels = {c.id: c for c in (_parse(Channel, b) for _o, op, b in data_recs if op == 0x04)}
+    topic_of = {cid: c.topic for cid, c in channels.items()}
+
+    # Summary: groups tile [summary_start, offsets_start), each of one opcode; then the offsets.
+    summary = _records_at(data, summary_start, footer_at)
+    groups = [_parse(SummaryOffset, b) for off, op, b in summary if off >= offsets_start]
+    assert all(op == 0x0E for off, op, _b in summary if off >= offsets_start)
+    pos = summary_start
+    grouped: dict[int, list[bytes]] = {}
+    for g in groups:
+        assert g.group_start == pos
+        recs = _records_at(data, pos, pos + g.group_length)
+        assert {op for _o, op, _b in recs} == {g.group_opcode}
+        grouped[g.group_opcode] = [b for _o, _op, b in recs]
+        pos += g.group_length
+    assert pos == offsets_start
+    assert set(grouped) == {0x03, 0x04, 0x0B, 0x08, 0x0D}
+    assert {c.id: c for c in map(lambda b: _parse(Channel, b), grouped[0x04])} == channels
+
+    # Chunk indexes: each points at its chunk; message indexes point at each message.
+    seen: dict[int, list[int]] = {}
+    indexes = [_parse(ChunkIndex, b) for b in grouped[0x08]]
+    assert [ci.chunk_start_offset for ci in indexes] == [off for off, _b in chunks]
+    for ci, (off, body) in zip(indexes, chunks):
+        chunk = _parse(Chunk, body)
+        assert ci.chunk_length == 9 + len(body)
+        assert (ci.compression, ci.compressed_size, ci.uncompressed_size) == (
+            chunk.compression, len(chunk.data), chunk.uncompressed_size)
+        assert chunk.compression == {"none": ""}.get(compression, compression)
+        records = get_chunk_data_stream(chunk, validate_crc=True)[0].read(chunk.uncompressed_size)
+        inner = _records_at(records, 0, len(records))
+        messages = {o: _parse(Message, b, len(b)) for o, op, b in inner if op == 0x05}
+        assert {op for _o, op, _b in inner} == {0x05}
+        times = [m.log_time for m in messages.values()]
+        assert (ci.message_start_time, ci.message_end_time) == (min(times), max(times))
+        assert (chunk.message_start_time, chunk.message_end_time) == (min(times), max(times))
+        idx_at = off + ci.chunk_length
+        assert sum(by_offset[o][0] == 0x07 and 1 for o in ci.message_index_offsets.values()) \
+            == len(ci.message_index_offsets)
+        covered = 0
+        for cid, mi_off in sorted(ci.message_index_offsets.items(), key=lambda kv: kv[1]):
+            assert mi_off == idx_at
+            mi = _parse(MessageIndex, by_offset[mi_off][1])
+            assert mi.channel_id == cid
+            for log, moff in mi.records:
+                assert messages[moff].channel_id == cid and messages[moff].log_time == log
+                seen.setdefault(cid, []).append(log)
+            covered += len(mi.records)
+            idx_at += 9 + len(by_offset[mi_off][1])
+        assert covered == len(messages)
+        assert idx_at - off - ci.chunk_length == ci.message_index_length
+    assert sorted(seen[next(c for c, t in topic_of.items() if t == JS)]) == sorted(logs[JS])
+    assert sorted(seen[next(c for c, t in topic_of.items() if t == "/chatter")]) == \
+        sorted(logs["/chatter"])
+
+    # Statistics from the bytes above; metadata indexes point at their records.
+    st = _parse(Statistics, grouped[0x0B][0])
+    all_logs = [t for v in seen.values() for t in v]
+    assert st.message_count == len(all_logs) == 715
+    assert dict(st.channel_message_counts) == {cid: len(v) for cid, v in seen.items()}
+    assert (st.message_start_time, st.message_end_time) == (min(all_logs), max(all_logs))
+    assert (st.chunk_count, st.metadata_count, st.channel_count, st.schema_count,
+            st.attachment_count) == (len(chunks), len(metas), len(channels), 2, 0)
+    assert len(grouped[0x03]) == sum(op == 0x03 for _o, op, _b in data_recs) == 2
+    assert len(metas) == 2
+    mindex = [_parse(MetadataIndex, b) for b in grouped[0x0D]]
+    assert [(m.offset, m.length, m.name) for m in mindex] == [
+        (off, 9 + len(body), "dyn_node") for off, body in metas]
+    assert _parse(Metadata, metas[1][1]).metadata["parameters"].endswith("a: 2\n")
+
+
 @pytest.mark.parametrize("split", ["size", "duration"])
 def test_split_files_each_valid_and_union_exact(tmp_path, split):
     kw = {"max_bag_size_mb": 0.05} if split == "size" else {"max_bag_duration_s": 0.5}
@@ -235,6 +374,51 @@ def test_queue_full_drops_are_counted(tmp_path):
     c = stats.topics[JS]
     assert c.received == 300 and c.dropped == results.count(False) >= 200
     assert c.written == results.count(True) and stats.state == "closed"
+
+
+def test_concurrent_writers_and_close_counted_exactly(tmp_path):
+    """write() takes no lock on its fast path: threads writing one topic at once, a small queue
+    (drops), and a close() in the middle of it all still give received == calls and
+    written + dropped == received, with exactly the written messages in the file."""
+    rec = make_recorder(tmp_path, queue_size=64, chunk_size=2048)
+    payloads = [joint_state(i) for i in range(50)]
+    calls = {JS: 0, "/chatter": 0}
+    accepted = {JS: 0, "/chatter": 0}
+    lock = threading.Lock()
+    start = threading.Barrier(5)
+
+    def writer(k: int) -> None:
+        topic = JS if k % 2 else "/chatter"
+        start.wait()
+        n = ok = 0
+        for i in range(3000):
+            ok += rec.write(topic, payloads[i % 50], 10**18 + i)
+            n += 1
+        with lock:
+            calls[topic] += n
+            accepted[topic] += ok
+
+    threads = [threading.Thread(target=writer, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    start.wait()
+    while rec.stats().topics[JS].received < 2000:  # close while the writers are busy
+        threading.Event().wait(0.001)
+    stats = rec.close()
+    for t in threads:
+        t.join()
+    final = rec.stats()
+    assert final.queued == 0 and final.state == "closed" and stats.state == "closed"
+    msgs, _meta = read_mcap(Path(final.files[0]))
+    for topic in (JS, "/chatter"):
+        c = final.topics[topic]
+        assert c.received == calls[topic] == 6000
+        assert c.written + c.dropped == c.received and c.written <= accepted[topic]
+        assert c.dropped > 0  # the queue of 64 overflowed, or the writes came after close()
+        assert sum(1 for m in msgs if m[0] == topic) == c.written
+    meta = yaml.safe_load((Path(final.path) / "metadata.yaml").read_text())["dyn_node"]["topics"]
+    for topic in (JS, "/chatter"):  # the file's counts are final for everything before close
+        assert meta[topic]["written"] == final.topics[topic].written
 
 
 def test_never_overwrites_and_rejects_bad_config(tmp_path):

@@ -214,6 +214,151 @@ def test_1khz_joint_states_recorded_exactly(ros_context, tmp_path):
         "offered_qos_profiles"]
 
 
+@pytest.mark.timeout(90)
+def test_shared_diagnostics_recorded_from_every_publisher(ros_context, tmp_path):
+    """/diagnostics is shared: a DynNode recording it keeps another node's DiagnosticArrays as
+    well as its own, each exactly once (a raw subscription, not the node's publish path)."""
+    from collections import Counter
+
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import Reader as Rosbag2Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    from dyn_node.node import DynNode
+
+    node = DynNode(context=ros_context, parameter_overrides=[
+        Parameter("robot_model", value="planar_2link"), Parameter("record.enabled", value=True),
+        Parameter("record.directory", value=str(tmp_path)),
+        Parameter("diagnostics_period", value=0.05)])
+    bridge = node.recording
+    # Every array the node itself sends on /diagnostics, as the bytes that went out.
+    own: list[bytes] = []
+    diag_pub = node._pub_diag
+    publish = diag_pub.publish
+
+    def spy(msg) -> None:
+        data = msg if isinstance(msg, bytes) else serialize_message(msg)
+        publish(data)
+        own.append(data)
+    diag_pub.publish = spy
+    other = Node("other_diagnostics_publisher", context=ros_context)
+    other_pub = other.create_publisher(DiagnosticArray, "/diagnostics", 100)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    ex.add_node(other)
+
+    def spin_until(cond, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not cond():
+            ex.spin_once(timeout_sec=0.01)
+        return cond()
+
+    theirs: list[bytes] = []
+    n_other = 60
+    try:
+        assert bridge.recording and not bridge.records(diag_pub)
+        assert spin_until(lambda: other_pub.get_subscription_count() >= 1
+                          and "/diagnostics" in bridge._subs, 15.0), "bridge never subscribed"
+        for k in range(n_other):
+            msg = DiagnosticArray()
+            msg.header.stamp.sec, msg.header.frame_id = k, "other"
+            msg.status = [DiagnosticStatus(level=DiagnosticStatus.WARN, name=f"other: {k}",
+                                           hardware_id="other_robot",
+                                           values=[KeyValue(key="seq", value=str(k))])]
+            data = serialize_message(msg)
+            other_pub.publish(data)
+            theirs.append(data)
+            spin_until(lambda: False, 0.005)
+        assert spin_until(lambda: len(own) >= 10, 20.0), len(own)
+        stats = bridge.recorder.stats
+
+        def all_received() -> bool:
+            c = stats().topics.get("/diagnostics")
+            return c is not None and c.received == len(own) + len(theirs)
+        # Checked between spins: the node's diagnostics timer only runs inside spin_once, so
+        # nothing is published between the last check and stop().
+        assert spin_until(all_received, 20.0), (len(own), len(theirs), stats().topics)
+        ok, path = bridge.stop()
+        assert ok, path
+    finally:
+        bridge.close()
+        ex.shutdown()
+        node.destroy_node()
+        other.destroy_node()
+    final = bridge._last_stats.topics["/diagnostics"]
+    assert (final.received, final.written, final.dropped) == (len(own) + n_other,) * 2 + (0,)
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with Rosbag2Reader(Path(path)) as reader:
+        conns = [c for c in reader.connections if c.topic == "/diagnostics"]
+        assert len(conns) == 1 and conns[0].msgcount == len(own) + n_other
+        got = [bytes(raw) for _c, _t, raw in reader.messages(connections=conns)]
+    # Exactly the two publishers' messages, each once, each publisher's in its own order.
+    assert Counter(got) == Counter(own + theirs)
+    theirs_set = set(theirs)
+    assert [g for g in got if g in theirs_set] == theirs
+    assert [g for g in got if g not in theirs_set] == own
+    decoded = [ts.deserialize_cdr(g, "diagnostic_msgs/msg/DiagnosticArray") for g in got]
+    others = [d for d in decoded if d.status and d.status[0].hardware_id == "other_robot"]
+    assert [d.status[0].values[0].value for d in others] == [str(k) for k in range(n_other)]
+    mine = [d for d in decoded if not (d.status and d.status[0].hardware_id == "other_robot")]
+    assert len(mine) == len(own) and all(s.name.startswith("dyn_node: ") for d in mine
+                                         for s in d.status)
+
+
+@pytest.mark.timeout(60)
+def test_parameter_change_recorded_as_metadata(ros_context, tmp_path):
+    """A parameter set while recording appears in a new ``dyn_node`` metadata record."""
+    from mcap.reader import make_reader
+    from rclpy.parameter import Parameter
+
+    rig = Rig(ros_context, str(tmp_path), ["joint_states"])
+    try:
+        rig.host.declare_parameter("gain", 1.0)
+        rec = rig.bridge.recorder
+        assert rig.spin_until(lambda: "gain: 1.0" in rec._parameters_yaml, 10.0)
+        assert rig.host.set_parameters([Parameter("gain", value=2.5)])[0].successful
+        assert rig.spin_until(lambda: "gain: 2.5" in rec._parameters_yaml, 5.0)
+        ok, path = rig.bridge.stop()
+        assert ok
+    finally:
+        rig.destroy()
+    with open(next(Path(path).glob("*.mcap")), "rb") as f:
+        params = [r.metadata["parameters"] for r in make_reader(f).iter_metadata()]
+    assert "gain: 2.5" in params[-1] and not any("gain: 2.5" in p for p in params[:-1])
+
+
+def test_log_time_is_the_node_clock_system_or_simulated(ros_context, tmp_path):
+    """The bridge's clock read (used as the log time of recorded outputs) is the node's ROS
+    time: the system time without a /clock override, the override's time with one."""
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.time import Time
+
+    from dyn_node.ros_recording import RecordingBridge
+
+    host = Node("clock_host", context=ros_context, parameter_overrides=[
+        Parameter("record.directory", value=str(tmp_path))])
+    try:
+        bridge = RecordingBridge(host, autostart=False)
+        before = time.time_ns()
+        now = bridge.now_ns()
+        assert before <= now <= time.time_ns()
+        clock = host.get_clock()
+        clock._set_ros_time_is_active(True)  # what rclpy's TimeSource does for use_sim_time
+        clock.set_ros_time_override(Time(seconds=42, nanoseconds=7))
+        assert bridge.now_ns() == 42 * 10**9 + 7 == clock.now().nanoseconds
+        clock._set_ros_time_is_active(False)
+        before = time.time_ns()
+        assert before <= bridge.now_ns() <= time.time_ns()
+    finally:
+        host.destroy_node()
+
+
 class ChildOutput:
     """Collects a child's stdout lines on a thread (pipes have no read timeout)."""
 
