@@ -637,52 +637,63 @@ class JointStateBatch(NamedTuple):
     effort: "np.ndarray | None"
 
 
-def _array_spans(data: bytes) -> list[tuple[int, int]] | None:
+def _array_spans(data: bytes) -> tuple[list[tuple[int, int]], list[tuple[int, int]]] | None:
     """Byte offsets (into ``data``) and counts of position, velocity and effort of a
-    little-endian JointState, or None when it is not one that parses."""
+    little-endian JointState, and the (offset, length) of every alignment padding run; None when
+    it is not one that parses. Padding matters because CDR leaves it unspecified: Fast CDR
+    serialises whatever the buffer held there, so two equal messages may differ in those bytes."""
     if len(data) < 12 or data[0] != 0 or data[1] != 1:
         return None
     u32 = _LE_U32.unpack_from
     n = len(data)
+    pads: list[tuple[int, int]] = []
+
+    def align(off: int, to: int) -> int:
+        aligned = 4 + ((off - 4 + to - 1) & ~(to - 1))
+        if aligned > off:
+            pads.append((off, aligned - off))
+        return aligned
+
     try:
-        off = 16 + u32(data, 12)[0]
-        off = 4 + ((off - 4 + 3) & ~3)
+        off = align(16 + u32(data, 12)[0], 4)
         count = u32(data, off)[0]
         off += 4
         if count > n:
             return None
         for _ in range(count):
-            off = 4 + ((off - 4 + 3) & ~3)
+            off = align(off, 4)
             off += 4 + u32(data, off)[0]
         spans = []
         for _ in range(3):
-            off = 4 + ((off - 4 + 3) & ~3)
+            off = align(off, 4)
             count = u32(data, off)[0]
             off += 4
             if count:
-                off = 4 + ((off - 4 + 7) & ~7)
+                off = align(off, 8)
             if off + 8 * count > n:
                 return None
             spans.append((off, count))
             off += 8 * count
     except struct.error:
         return None
-    return spans
+    return spans, pads
 
 
 def decode_joint_state_batch(datas: Sequence[bytes]) -> JointStateBatch | None:
     """Decode N little-endian JointStates of equal size at once, or None unless every message
-    has exactly the first one's bytes outside its stamp and its float64 values (then the caller
-    decodes them one by one with :func:`decode_joint_state`, which reports the bad ones)."""
+    has exactly the first one's bytes outside its stamp, its float64 values and its alignment
+    padding (then the caller decodes them one by one with :func:`decode_joint_state`, which
+    reports the bad ones)."""
     import numpy as np
 
     if not datas:
         return None
     first = datas[0]
     size = len(first)
-    spans = _array_spans(first)
-    if spans is None or any(len(d) != size for d in datas):
+    layout = _array_spans(first)
+    if layout is None or any(len(d) != size for d in datas):
         return None
+    spans, pads = layout
     try:
         names = decode_joint_state(first).names
     except ValueError:
@@ -693,6 +704,8 @@ def decode_joint_state_batch(datas: Sequence[bytes]) -> JointStateBatch | None:
     keep[4:12] = False
     for off, count in spans:
         keep[off:off + 8 * count] = False
+    for off, length in pads:
+        keep[off:off + length] = False
     fixed = rows[:, keep]
     if not (fixed == fixed[0]).all():
         return None

@@ -226,6 +226,39 @@ def test_batch_decoder_equals_the_message_decoder_and_declines_irregular_runs():
     big_endian = bytearray(base)
     big_endian[1] = 0
     assert decode_joint_state_batch([bytes(big_endian)] * 2) is None
+
+
+def test_batch_decoder_ignores_what_alignment_padding_holds():
+    """CDR leaves alignment padding unspecified and Fast CDR serialises whatever its buffer held
+    there (seen in a CI run: garbage after strings and before the first double). Messages equal
+    but for their padding are one run, decoded as each decodes alone; a changed byte that is not
+    padding still splits the run."""
+    from rclpy.serialization import serialize_message
+
+    from dyn_node.bag_reader import _array_spans
+
+    names = ["panda_joint1", "j2", "abc"]  # NUL-terminated lengths 13, 3, 4: padding after each
+    rng = np.random.default_rng(11)
+    datas = [serialize_message(joint_state(names, rng.normal(size=3), rng.normal(size=3),
+                                           rng.normal(size=3), stamp_ns=k * 1_000_000 + 7))
+             for k in range(30)]
+    spans, pads = _array_spans(datas[0])
+    assert pads and sum(n for _, n in pads) >= 6
+    padded = []
+    for k, d in enumerate(datas):
+        b = bytearray(d)
+        for off, n in pads:
+            b[off:off + n] = rng.integers(1, 256, n, dtype=np.uint8).tobytes()
+        padded.append(bytes(b))
+    got = decode_joint_state_batch(padded)
+    assert got is not None and got.names == tuple(names)
+    for field, (off, count) in zip(("position", "velocity", "effort"), spans):
+        assert count == 3
+        np.testing.assert_array_equal(getattr(got, field),
+                                      np.array([getattr(decode_joint_state(d), field) for d in padded]))
+    not_padding = bytearray(padded[5])
+    not_padding[pads[0][0] - 1] ^= 0x20  # the last letter of the frame id: a real difference
+    assert decode_joint_state_batch(padded[:5] + [bytes(not_padding)]) is None
     assert decode_joint_state_batch([]) is None
 
 
