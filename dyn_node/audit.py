@@ -437,8 +437,11 @@ class _Pending:
     def put(self, key: int, value: Any) -> None:
         self.d.setdefault(key, []).append(value)
         if len(self.d) > MAX_PENDING:
-            self.d.popitem(last=False)
-            self.evicted += 1
+            self.evicted += len(self.d.popitem(last=False)[1])
+
+    def left(self) -> int:
+        """Values never taken: evicted ones and those still waiting."""
+        return self.evicted + sum(len(v) for v in self.d.values())
 
     def take(self, key: int) -> Any:
         lst = self.d.get(key)
@@ -464,8 +467,11 @@ class Recheck:
             self.max_diff = d if not math.isnan(d) else math.inf
             self.worst = where
 
-    def to_dict(self, pending: int = 0) -> dict:
-        out = {"matched": self.matched, "unmatched": self.unmatched + pending,
+    def to_dict(self, unanswered: int = 0) -> dict:
+        """``unmatched``: recorded outputs with no recomputed counterpart (a real discrepancy);
+        ``unanswered``: recomputed outputs the bag has no recorded output for (inputs the node
+        did not answer: taken before it had a model, or after the recording stopped)."""
+        out = {"matched": self.matched, "unmatched": self.unmatched, "unanswered": unanswered,
                "max_abs_difference": self.max_diff if self.matched else None,
                "identical": bool(self.matched and self.max_diff == 0.0 and not self.mismatched_values)}
         if self.mismatched_values:
@@ -906,7 +912,7 @@ class Audit:
         rc = {}
         for role, chk in recheck.items():
             if chk.matched or chk.unmatched:
-                d = chk.to_dict(len(pend[role].d) if role != ROLE_FEAS else 0)
+                d = chk.to_dict(pend[role].left())
                 d["topic"] = recheck_topics.get(role, "")
                 if chk.worst and "t_ns" in chk.worst:
                     d["worst"] = {"stamp_ns": chk.worst.get("stamp_ns"), "time_s": rel(chk.worst["t_ns"]),

@@ -719,6 +719,7 @@ def audit_recheck_lines(evidence: Path) -> list[str]:
     lines = ["dyn-audit recomputed the live outputs from the bag alone:"]
     for topic, d in sorted(recheck.items()):
         lines.append(f"  {topic:<36} matched {d.get('matched')}, unmatched {d.get('unmatched')}, "
+                     f"not answered live {d.get('unanswered', 0)}, "
                      f"max |difference| {d.get('max_abs_difference')}, identical {d.get('identical')}")
     return lines
 

@@ -552,10 +552,12 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
 
     p.append("<h2 id='recheck'>Re-check of the node's outputs</h2>")
     if out["recheck"]:
-        p.append(_table(["topic", "matched", "unmatched", "largest |difference|", "identical"],
+        p.append(_table(["topic", "matched", "unmatched", "not answered by the node",
+                         "largest |difference|", "identical"],
                         [[_e(t), str(d["matched"]), str(d.get("unmatched", 0)),
+                          str(d.get("unanswered", 0)),
                           _num(d["max_abs_difference"], "{:.3g}"), _num(d.get("identical"))]
-                         for t, d in out["recheck"].items()], (1, 2, 3)))
+                         for t, d in out["recheck"].items()], (1, 2, 3, 4)))
     else:
         p.append("<p class='muted'>The bag holds no outputs of the node to re-check.</p>")
     if out["latency"]:

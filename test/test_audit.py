@@ -47,11 +47,12 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
              invalid: dict[int, str] | None = None, out_of_order: int | None = None,
              trajectories: list | None = None, description_topic: bool = False,
              perturb: int | None = None, single_file: bool = False, measured: bool = False,
-             output_burst: int = 1) -> Path:
+             output_burst: int = 1, outputs_from: int = 0) -> Path:
     """A Panda bag: 1 kHz joint_states (+ optional node outputs made with the node's Monitor).
 
     ``measured``: finite efforts on the model joints (else NaN: not measured); ``output_burst``:
-    the outputs are written after every that many inputs (as a recorder that fell behind)."""
+    the outputs are written after every that many inputs (as a recorder that fell behind);
+    ``outputs_from``: no outputs for the inputs before that one (as a node without a model yet)."""
     from dyn_node.monitor import Monitor
     from dyn_node.settings import settings_from_mapping
     from std_msgs.msg import String
@@ -95,7 +96,7 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
         if outputs:
             r = mon.process(msg.name, msg.position, msg.velocity, msg.effort,
                             msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, (T0 + i * MS) * 1e-9)
-            if r.accepted:
+            if r.accepted and i >= outputs_from:
                 g, tau = r.gravity.copy(), r.tau.copy()
                 if perturb is not None and i == perturb:
                     tau[2] += 1e-9
@@ -282,6 +283,14 @@ def test_recheck_of_node_outputs_is_exactly_zero_and_a_perturbation_is_found(tmp
     d = rc2["/dyn_node/inverse_dynamics"]
     assert d["identical"] is False and d["max_abs_difference"] == pytest.approx(1e-9, rel=1e-3)
     assert d["worst"]["time_s"] == pytest.approx(0.123 + 250e-6, abs=1e-9)
+
+    # inputs the node never answered (no model yet) are "unanswered", not a discrepancy
+    bag3 = make_bag(tmp_path / "bag3", n=300, outputs=True, outputs_from=40)
+    run_audit(AuditOptions(bag=str(bag3), out=str(tmp_path / "out3"), report=False))
+    rc3 = validated(tmp_path / "out3")["outputs"]["recheck"]
+    for topic in ("/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics"):
+        assert (rc3[topic]["matched"], rc3[topic]["unmatched"], rc3[topic]["unanswered"]) == (260, 0, 40)
+        assert rc3[topic]["identical"] is True
 
 
 def test_bag_recorded_elsewhere_needs_a_model(tmp_path, capsys):
