@@ -219,6 +219,7 @@ class LiveStats:
         self.peak_util = np.full(nv, -np.inf)
         self.peak_t = np.zeros(nv, dtype=np.int64)
         self.peak_tau = np.zeros(nv)
+        self.peak_meas = np.full(nv, np.nan)  # measured effort at the peak (NaN: not measured)
         self.peak_limit = np.full(nv, np.inf)
         self.rows: list[tuple] = []
         self._nan = np.full(nv, np.nan)
@@ -263,6 +264,7 @@ class LiveStats:
             self.peak_util[better] = best[better]
             self.peak_t[better] = T[k[better]]
             self.peak_tau[better] = TAU[k[better], cols[better]]
+            self.peak_meas[better] = MEAS[k[better], cols[better]]
             self.peak_limit[better] = LIM[k[better], cols[better]]
         over_e = UTIL > 1.0
         over_p = (Q < self.lo) | (Q > self.hi)
@@ -842,6 +844,7 @@ class Audit:
         live.finish()
         series, episodes = live.series, live.episodes
         peak_util, peak_t, peak_tau, peak_limit = live.peak_util, live.peak_t, live.peak_tau, live.peak_limit
+        peak_meas = live.peak_meas
         if ctrl_last is not None and prev_log is not None:
             ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (prev_log - ctrl_last[1]) * 1e-9
 
@@ -898,6 +901,12 @@ class Audit:
         per_joint = [{"joint": n, "peak_utilisation": float(peak_util[j]) if peak_util[j] > -np.inf else None,
                       "peak_time_s": rel(int(peak_t[j])) if peak_util[j] > -np.inf else None,
                       "peak_torque_nm": float(peak_tau[j]) if peak_util[j] > -np.inf else None,
+                      "peak_measured_nm": (float(peak_meas[j]) if peak_util[j] > -np.inf
+                                           and np.isfinite(peak_meas[j]) else None),
+                      # utilisation is the larger of |model| and |measured| over the limit
+                      "peak_source": (None if not peak_util[j] > -np.inf else "measured"
+                                      if np.isfinite(peak_meas[j])
+                                      and abs(peak_meas[j]) > abs(peak_tau[j]) else "model"),
                       "effort_limit_nm": float(peak_limit[j]) if peak_util[j] > -np.inf
                       else float(lim.effort[j])}
                      for j, n in enumerate(names)]

@@ -213,6 +213,13 @@ def test_effort_violation_found_with_exact_times(tmp_path):
     assert v["peak_time_s"] == pytest.approx(1.099, abs=1e-9)
     assert v["peak_value"] == pytest.approx(90.0 + 99 * 0.1, rel=1e-12) and v["limit"] == 87.0
     assert v["peak_ratio"] == pytest.approx(99.9 / 87.0, rel=1e-12)
+    # the per-joint peak says it came from the measured effort, and gives both torques then
+    pj = {r["joint"]: r for r in rec["outputs"]["effort"]["per_joint"]}["panda_joint2"]
+    assert pj["peak_source"] == "measured" and pj["peak_measured_nm"] == pytest.approx(99.9, rel=1e-12)
+    assert pj["peak_utilisation"] == pytest.approx(99.9 / 87.0, rel=1e-12)
+    assert abs(pj["peak_torque_nm"]) < 87.0
+    j1 = {r["joint"]: r for r in rec["outputs"]["effort"]["per_joint"]}["panda_joint1"]
+    assert j1["peak_source"] == "model" and j1["peak_measured_nm"] is None  # NaN efforts elsewhere
     assert "control error" in rec["failure_labels"] and rec["verdict"]["result"] == "violations"
     assert rec["outputs"]["controller_states"]["states_seen"] == ["idle", "saturated"]
 
