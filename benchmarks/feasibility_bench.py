@@ -43,7 +43,6 @@ def trajectory(model):
     """11 waypoints 1 s apart (positions, velocities, accelerations: quintic), inside limits."""
     from dyn_node.trajectory import validate_trajectory
 
-    rng = np.random.default_rng(4)
     lim = model.limits
     lo = np.where(np.isfinite(lim.position_lower), lim.position_lower, -np.pi)
     hi = np.where(np.isfinite(lim.position_upper), lim.position_upper, np.pi)

@@ -97,6 +97,36 @@ class Collected:
         return True
 
 
+class Spinner:
+    """Spins an executor over ``nodes`` on a thread until :meth:`stop`.
+
+    Stopping ends the spin loop and joins the thread *before* the executor is shut down:
+    ``Executor.shutdown`` while another thread is inside ``spin_once`` can destroy the guard
+    condition that thread is about to trigger (an ``InvalidHandle`` raised in the spin thread)."""
+
+    def __init__(self, ctx: Any, nodes: Iterable[Any]):
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.ex = SingleThreadedExecutor(context=ctx)
+        for n in nodes:
+            self.ex.add_node(n)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set() and self.ex.context.ok():
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def add_node(self, node: Any) -> None:
+        self.ex.add_node(node)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.thread.join(timeout=10.0)
+        self.ex.shutdown(timeout_sec=5.0)
+
+
 def child_env(**extra: str) -> dict[str, str]:
     env = dict(os.environ)
     env.update(ROS_DOMAIN_ID=str(TEST_DOMAIN), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",

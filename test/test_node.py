@@ -7,7 +7,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import threading
 import time
 from typing import Callable
 
@@ -26,7 +25,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from conftest import REPO, Collected, child_env, python_cmd
+from conftest import REPO, Collected, Spinner, child_env, python_cmd
 from dyn_node.dynamics import Dynamics
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR
 from dyn_node.model import Payload, builtin_urdf, load_model
@@ -87,11 +86,7 @@ class Harness(Collected):
         sub(JointTrajectory, "dyn_node/trajectory_effort", self.collector("teff"), 10)
         self.params = AsyncParameterClient(self.probe, f"{namespace}/dyn_node")
         self.self_test = self.probe.create_client(SelfTest, "dyn_node/self_test")
-        self.ex = SingleThreadedExecutor(context=ctx)
-        self.ex.add_node(self.node)
-        self.ex.add_node(self.probe)
-        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(ctx, (self.node, self.probe))
         assert self.wait(lambda: self.js_pub.get_subscription_count() >= 1
                          and self.probe.count_publishers(f"{namespace}/dyn_node/inverse_dynamics") >= 1
                          and self.probe.count_publishers("/diagnostics") >= 1), "discovery"
@@ -131,8 +126,7 @@ class Harness(Collected):
         return fut.result().results if not atomically else [fut.result().result]
 
     def close(self) -> None:
-        self.ex.shutdown(timeout_sec=5.0)
-        self.thread.join(timeout=5.0)
+        self.spinner.stop()
         self.node.destroy_node()
         self.probe.destroy_node()
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import threading
 import time
 
 import numpy as np
@@ -12,7 +11,6 @@ import rclpy
 from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -25,7 +23,7 @@ from dyn_node.model import load_model
 from dyn_node.node import DynNode
 from dyn_node.status import ERROR, OK, WARN
 from dyn_node.trajectory import interpolate, validate_trajectory
-from conftest import Collected  # noqa: E402
+from conftest import Collected, Spinner  # noqa: E402
 
 MODEL = load_model(builtin="planar_2link")
 NAMES = list(MODEL.joint_names)
@@ -84,11 +82,7 @@ class Harness(Collected):
         sub(DiagnosticArray, "dyn_node/feasibility", self.collector("feas"), LATCHED)
         sub(JointTrajectory, "dyn_node/trajectory_effort", self.collector("teff"), 10)
         sub(JointState, "dyn_node/gravity_torque", self.collector("gravity"), RELIABLE)
-        self.ex = SingleThreadedExecutor(context=ctx)
-        self.ex.add_node(self.node)
-        self.ex.add_node(self.probe)
-        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(ctx, (self.node, self.probe))
         assert self.wait(lambda: self.traj_pub.get_subscription_count() >= 1
                          and self.js_pub.get_subscription_count() >= 1
                          and self.probe.count_publishers(f"{namespace}/dyn_node/feasibility") >= 1
@@ -105,8 +99,7 @@ class Harness(Collected):
         return hit[0]
 
     def close(self) -> None:
-        self.ex.shutdown(timeout_sec=5.0)
-        self.thread.join(timeout=5.0)
+        self.spinner.stop()
         self.node.destroy_node()
         self.probe.destroy_node()
 

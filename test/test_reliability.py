@@ -25,7 +25,6 @@ import yaml
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -34,7 +33,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
-from conftest import Collected, python_cmd
+from conftest import Collected, Spinner, python_cmd
 from dyn_node.dynamics import Dynamics, DynamicsOptions
 from dyn_node.model import builtin_urdf, load_model
 from dyn_node.node import DynNode
@@ -81,12 +80,7 @@ class Probe(Collected):
     def __init__(self, ctx: Context, name: str, nodes: tuple = ()):
         super().__init__()
         self.node = rclpy.create_node(name, context=ctx)
-        self.ex = SingleThreadedExecutor(context=ctx)
-        self.ex.add_node(self.node)
-        for n in nodes:
-            self.ex.add_node(n)
-        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(ctx, (self.node, *nodes))
 
     def sub(self, key: str, msg_type, topic: str, qos, stamp_receipt: bool = False) -> None:
         self.got[key] = []
@@ -104,8 +98,7 @@ class Probe(Collected):
         return out
 
     def close(self, *nodes) -> None:
-        self.ex.shutdown(timeout_sec=5.0)
-        self.thread.join(timeout=5.0)
+        self.spinner.stop()
         for n in nodes:
             n.destroy_node()
         self.node.destroy_node()
@@ -401,7 +394,7 @@ def test_late_join_latched_description_and_both_qos(ctx):
         node = DynNode(namespace=ns, context=ctx, parameter_overrides=[
             Parameter("locked_joints", value="panda_finger_joint1,panda_finger_joint2"),
             Parameter("diagnostics_period", value=0.1)])
-        p.ex.add_node(node)
+        p.spinner.add_node(node)
         assert p.wait(lambda: node.model is not None, 20), "latched robot_description not received"
         assert node.model.joint_names == PANDA.joint_names
         rel = p.node.create_publisher(JointState, f"{ns}/joint_states", RELIABLE)
