@@ -653,6 +653,10 @@ class Audit:
             if prev_log is not None and t_ns - prev_log > gap_ns:
                 g = {"start_ns": prev_log, "end_ns": t_ns}
                 n_gaps += 1
+                # nothing is known about the limits during a gap: a violation episode ends at
+                # its last sample before it, and one after it is a new episode
+                live.flush()
+                live.episodes.finish()
                 if len(gaps) < MAX_EXAMPLES:
                     gaps.append(g)
                 if t_ns - prev_log > settings.stale_timeout * 1e9:

@@ -224,6 +224,17 @@ def test_effort_violation_found_with_exact_times(tmp_path):
     assert rec["outputs"]["controller_states"]["states_seen"] == ["idle", "saturated"]
 
 
+def test_a_gap_ends_a_violation_episode(tmp_path):
+    """Over the limit before and after 200 ms without joint_states: two episodes, neither
+    counting the gap as time over the limit."""
+    bag = make_bag(tmp_path / "bag", effort_spike=(1000, 1500), drop=range(1100, 1300))
+    run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "out"), report=False))
+    v = [x for x in validated(tmp_path / "out")["outputs"]["violations"] if x["kind"] == "effort"]
+    assert [(x["messages"], round(x["start_s"], 6), round(x["end_s"], 6)) for x in v] == \
+        [(100, 1.0, 1.099), (200, 1.3, 1.499)]
+    assert v[0]["duration_s"] == pytest.approx(0.099, abs=1e-9)
+
+
 def test_input_quality_gaps_stale_invalid_out_of_order(tmp_path):
     bag = make_bag(tmp_path / "bag", n=2500, drop=range(300, 400),
                    invalid={50: "nan", 60: "missing", 61: "missing"}, out_of_order=900)
