@@ -256,7 +256,8 @@ class _Window:
         if ok.any():
             # cumsum adds row by row, in message order: the same rounding as ``res_sq += r²``
             # message by message (adding +0.0 for an unmeasured joint changes nothing).
-            sq = np.where(ok, R * R, 0.0)
+            with np.errstate(over="ignore"):  # a residual beyond 1e154 N·m: its RMS is inf
+                sq = np.where(ok, R * R, 0.0)
             self.res_sq = np.cumsum(np.vstack([self.res_sq, sq]), axis=0)[-1]
             self.res_n += ok.sum(axis=0)
 
@@ -708,7 +709,7 @@ class Monitor:
         if ratio[j] > s.residual_warn_ratio:
             vals["failure_label"] = CONTROL_ERROR
             return Status(RESIDUAL, WARN,
-                          f"{self._names[j]} effort residual {rms[j]:.3g} N·m RMS ({ratio[j] * 100:.0f}% of its "
+                          f"{self._names[j]} effort residual {rms[j]:.3g} N·m RMS ({float(ratio[j]) * 100:.0f}% of its "
                           f"{self._effort[j]:.4g} N·m limit): check payload, friction and the model",
                           hid, vals)
         return Status(RESIDUAL, OK, f"largest RMS residual {vals['worst_residual_rms_nm']:.3g} N·m "
