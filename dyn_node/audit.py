@@ -902,18 +902,20 @@ class Audit:
             "bag_dyn_node_version": self.bag_metadata_version,
             "gap_threshold_s": opts.gap_threshold_s,
         }
-        per_joint = [{"joint": n, "peak_utilisation": float(peak_util[j]) if peak_util[j] > -np.inf else None,
-                      "peak_time_s": rel(int(peak_t[j])) if peak_util[j] > -np.inf else None,
-                      "peak_torque_nm": float(peak_tau[j]) if peak_util[j] > -np.inf else None,
-                      "peak_measured_nm": (float(peak_meas[j]) if peak_util[j] > -np.inf
-                                           and np.isfinite(peak_meas[j]) else None),
-                      # utilisation is the larger of |model| and |measured| over the limit
-                      "peak_source": (None if not peak_util[j] > -np.inf else "measured"
-                                      if np.isfinite(peak_meas[j])
-                                      and abs(peak_meas[j]) > abs(peak_tau[j]) else "model"),
-                      "effort_limit_nm": float(peak_limit[j]) if peak_util[j] > -np.inf
-                      else float(lim.effort[j])}
-                     for j, n in enumerate(names)]
+        def joint_peak(j: int, n: str) -> dict:
+            if not peak_util[j] > -np.inf:  # no accepted message
+                return {"joint": n, "peak_utilisation": None, "peak_time_s": None,
+                        "peak_torque_nm": None, "peak_measured_nm": None, "peak_source": None,
+                        "effort_limit_nm": float(lim.effort[j])}
+            meas = float(peak_meas[j]) if np.isfinite(peak_meas[j]) else None
+            # utilisation is the larger of |model| and |measured| over the limit: say which
+            source = "measured" if meas is not None and abs(meas) > abs(peak_tau[j]) else "model"
+            return {"joint": n, "peak_utilisation": float(peak_util[j]),
+                    "peak_time_s": rel(int(peak_t[j])), "peak_torque_nm": float(peak_tau[j]),
+                    "peak_measured_nm": meas, "peak_source": source,
+                    "effort_limit_nm": float(peak_limit[j])}
+
+        per_joint = [joint_peak(j, n) for j, n in enumerate(names)]
         violations = [{"joint": names[e["j"]], "kind": e["kind"], "start_s": rel(e["start"]),
                        "end_s": rel(e["end"]), "peak_time_s": rel(e["peak_t"]),
                        "peak_value": e["peak"], "limit": e["limit"],
