@@ -655,8 +655,7 @@ class Audit:
                 n_gaps += 1
                 # nothing is known about the limits during a gap: a violation episode ends at
                 # its last sample before it, and one after it is a new episode
-                live.flush()
-                live.episodes.finish()
+                live.finish()
                 if len(gaps) < MAX_EXAMPLES:
                     gaps.append(g)
                 if t_ns - prev_log > settings.stale_timeout * 1e9:

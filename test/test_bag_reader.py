@@ -226,6 +226,7 @@ def test_batch_decoder_equals_the_message_decoder_and_declines_irregular_runs():
     big_endian = bytearray(base)
     big_endian[1] = 0
     assert decode_joint_state_batch([bytes(big_endian)] * 2) is None
+    assert decode_joint_state_batch([]) is None
 
 
 def test_batch_decoder_ignores_what_alignment_padding_holds():
@@ -245,21 +246,20 @@ def test_batch_decoder_ignores_what_alignment_padding_holds():
     spans, pads = _array_spans(datas[0])
     assert pads and sum(n for _, n in pads) >= 6
     padded = []
-    for k, d in enumerate(datas):
+    for d in datas:
         b = bytearray(d)
         for off, n in pads:
             b[off:off + n] = rng.integers(1, 256, n, dtype=np.uint8).tobytes()
         padded.append(bytes(b))
     got = decode_joint_state_batch(padded)
     assert got is not None and got.names == tuple(names)
-    for field, (off, count) in zip(("position", "velocity", "effort"), spans):
+    for field, (_off, count) in zip(("position", "velocity", "effort"), spans):
         assert count == 3
         np.testing.assert_array_equal(getattr(got, field),
                                       np.array([getattr(decode_joint_state(d), field) for d in padded]))
     not_padding = bytearray(padded[5])
-    not_padding[pads[0][0] - 1] ^= 0x20  # the last letter of the frame id: a real difference
+    not_padding[pads[0][0] - 2] ^= 0x20  # the frame id's last letter ("base"): a real difference
     assert decode_joint_state_batch(padded[:5] + [bytes(not_padding)]) is None
-    assert decode_joint_state_batch([]) is None
 
 
 def test_reads_rosbag2_dir_single_file_and_agrees_with_mcap_reader(tmp_path):
