@@ -167,6 +167,10 @@ class DynNode(Node):
         self._ctrl_timer = self.create_timer(s.controller_status_period, self._on_controller_timer)
         self._jobs: queue.Queue = queue.Queue(maxsize=64)
         self._worker_dyn: dict[tuple[int, bool], Dynamics] = {}
+        # The worker may still be checking when the node is destroyed (destroy_node waits only
+        # briefly for it): it publishes under this lock, and not at all once closed is set.
+        self._worker_pub_lock = threading.Lock()
+        self._worker_closed = False
         self._worker = threading.Thread(target=self._feasibility_loop, name="dyn_node_feasibility", daemon=True)
         self._worker.start()
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -278,6 +282,13 @@ class DynNode(Node):
             rec.record(pub, data)
         else:
             pub.publish(msg)
+
+    def _publish_verdict(self, pub: Any, msg: Any) -> None:
+        """:meth:`_publish` from the feasibility worker: dropped once the node is being destroyed
+        (its publishers are about to go, and a verdict nobody can receive is no loss)."""
+        with self._worker_pub_lock:
+            if not self._worker_closed:
+                self._publish(pub, msg)
 
     # --- joint_states (hot path) -----------------------------------------------------------
     def _subscribe_joint_states(self, qos: QoSProfile):
@@ -626,17 +637,17 @@ class DynNode(Node):
             try:
                 result = feasibility.check_trajectory(self._worker_dynamics(core), traj, options)
             except TrajectoryError as exc:  # e.g. motion so large the torques overflow
-                self._publish(self._pub_feasibility, diagnostic_array(
+                self._publish_verdict(self._pub_feasibility, diagnostic_array(
                     feasibility.rejected_statuses(exc, hid, len(times), duration), stamp))
                 return
             statuses = result.statuses(hid)
             if raw is not None:
                 order = [model.joint_names.index(n) for n in names]
-                self._publish(self._pub_traj_effort, encode_joint_trajectory_cdr(raw, result.waypoint_effort[:, order]))
+                self._publish_verdict(self._pub_traj_effort, encode_joint_trajectory_cdr(raw, result.waypoint_effort[:, order]))
             else:
-                self._publish(self._pub_traj_effort, fill_trajectory_effort(msg, result.waypoint_effort,
+                self._publish_verdict(self._pub_traj_effort, fill_trajectory_effort(msg, result.waypoint_effort,
                                                                      model.joint_names))
-        self._publish(self._pub_feasibility, diagnostic_array(statuses, stamp))
+        self._publish_verdict(self._pub_feasibility, diagnostic_array(statuses, stamp))
 
     def destroy_node(self) -> None:
         if hasattr(self, "_io_thread"):
@@ -651,6 +662,8 @@ class DynNode(Node):
             pass
         if self._worker.is_alive() and self._worker is not threading.current_thread():
             self._worker.join(timeout=0.5)  # a check in progress is abandoned (daemon thread)
+        with self._worker_pub_lock:
+            self._worker_closed = True
         super().destroy_node()
 
 

@@ -266,3 +266,36 @@ def test_hundred_thousand_points_checked_while_joint_states_answered(harness):
     assert arr.status[0].level[0] in (OK, WARN, ERROR)
     print(f"answered {answered_before_verdict} joint_states during the check; compute_time_s {values['compute_time_s']}")
     assert answered_before_verdict >= 3, answered_before_verdict
+
+
+def test_destroy_during_a_check_publishes_nothing_and_raises_nothing(ros_context, monkeypatch):
+    """destroy_node waits only briefly for a check in progress; when that check ends after the
+    publishers are gone, its verdict is dropped, not published into a destroyed handle (seen in
+    CI as an InvalidHandle traceback during the SIGINT shutdown races)."""
+    import threading
+
+    from rclpy.serialization import serialize_message
+
+    import dyn_node.feasibility as feasibility
+
+    entered, release = threading.Event(), threading.Event()
+    real_check = feasibility.check_trajectory
+
+    def held_check(*args, **kwargs):
+        entered.set()
+        release.wait(10.0)
+        return real_check(*args, **kwargs)
+
+    monkeypatch.setattr(feasibility, "check_trajectory", held_check)
+    node = DynNode(namespace="/destroy_race", context=ros_context,
+                   parameter_overrides=[Parameter("robot_model", value="planar_2link")])
+    times, P, V, A = rest_to_rest(4.0)
+    node._jobs.put((serialize_message(trajectory(NAMES, times, P, V, A)), 0.0, node._core))
+    assert entered.wait(10.0), "the worker never started the check"
+    worker = node._worker
+    node.destroy_node()          # the worker is inside the check: joined for 0.5 s, then left
+    assert worker.is_alive()
+    release.set()
+    worker.join(10.0)
+    assert not worker.is_alive()
+    assert node._callback_errors == 0
