@@ -16,6 +16,8 @@ $(STAMP): requirements.txt setup.py package.xml
 	@echo "installing pinned dependencies into $(VENV) (first run only)"
 	$(PIP) install -r requirements.txt
 	$(PIP) install --no-deps --no-build-isolation -e .
+	@echo "compiling the feasibility kernels (first run only, ~15 s; cached in dyn_node/__pycache__)"
+	$(PY) -c "import dyn_node.kernels"
 	@touch $@
 
 demo: $(STAMP)

@@ -56,6 +56,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from . import kernels
 from .dynamics import Dynamics
 from .errors import PLANNING_ERROR, TrajectoryError
 from .limits import LIMIT_KINDS, JointLimits
@@ -277,232 +278,6 @@ def _units(dynamics: Dynamics) -> dict[str, list[str]]:
     return {k: [(lin if p else rot)[k] for p in prismatic] for k in LIMIT_KINDS}
 
 
-def _quadratic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Real roots of a·x² + b·x + c (NaN where none), stable formula; a = 0 gives the linear root."""
-    with np.errstate(all="ignore"):
-        disc = b * b - 4 * a * c
-        sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
-        q = -0.5 * (b + np.where(b >= 0, sq, -sq))
-        r1 = np.where(a != 0, q / a, np.nan)
-        r2 = np.where(q != 0, c / q, np.where((a == 0) & (b != 0), -c / b, np.nan))
-    return r1, r2
-
-
-def _cubic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
-    """Real roots of a·x³ + b·x² + c·x + d (d ≠ 0), NaN where none; degree drops where a = 0.
-
-    The largest-magnitude real root comes from Cardano / the trigonometric form; it is deflated
-    out and the remaining quadratic solved stably; every root is then polished by Newton steps.
-    """
-    with np.errstate(all="ignore"):
-        cub = a != 0
-        aa = np.where(cub, a, 1.0)
-        B, C, D = b / aa, c / aa, d / aa
-        p = C - B * B / 3
-        q = 2 * B ** 3 / 27 - B * C / 3 + D
-        disc = (q / 2) ** 2 + (p / 3) ** 3
-        # one real root: avoid cancellation by adding magnitudes
-        w = -q / 2 - np.where(q >= 0, 1.0, -1.0) * np.sqrt(np.maximum(disc, 0))
-        t = np.cbrt(w)
-        y1 = np.where(t != 0, t - p / (3 * np.where(t != 0, t, 1.0)), 0.0)
-        # three real roots
-        r = 2 * np.sqrt(np.maximum(-p / 3, 0))
-        arg = np.clip(np.where(p < 0, 3 * q / (p * np.where(r != 0, r, 1.0)), 0.0), -1, 1)
-        phi = np.arccos(arg) / 3
-        ys = [r * np.cos(phi - 2 * np.pi * k / 3) for k in range(3)]
-        xs3 = [y - B / 3 for y in ys]
-        big3 = np.select([np.abs(xs3[0]) >= np.maximum(np.abs(xs3[1]), np.abs(xs3[2])),
-                          np.abs(xs3[1]) >= np.abs(xs3[2])], [xs3[0], xs3[1]], xs3[2])
-        big = np.where(disc > 0, y1 - B / 3, big3)
-        # backward deflation by the large root
-        safe = np.where(big != 0, big, np.nan)
-        qc = -d / safe
-        qb = (qc - c) / safe
-        qa = (qb - b) / safe
-        r2, r3 = _quadratic_roots(qa, qb, qc)
-        roots = [np.where(cub, big, np.nan), np.where(cub, r2, np.nan), np.where(cub, r3, np.nan)]
-        l2, l3 = _quadratic_roots(b, c, d)
-        roots[1] = np.where(cub, roots[1], l2)
-        roots[2] = np.where(cub, roots[2], l3)
-        for i in range(3):
-            x = roots[i]
-            for _ in range(2):
-                f = ((a * x + b) * x + c) * x + d
-                fp = (3 * a * x + 2 * b) * x + c
-                step = np.where(fp != 0, f / np.where(fp != 0, fp, 1.0), 0.0)
-                x = np.where(np.isfinite(step), x - step, x)
-            roots[i] = x
-    return roots
-
-
-def _first_exit(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, c3: np.ndarray,
-                limit: np.ndarray) -> np.ndarray:
-    """Smallest x > 0 where |c0 + c1·x + c2·x² + c3·x³| reaches ``limit``; inf if none."""
-    # both signs of the band in one elementwise batch (axis 0), then the least valid root
-    c0, c1, c2, c3, limit = np.broadcast_arrays(c0, c1, c2, c3, limit)
-    roots = _cubic_roots(*(np.stack([c, -c]) for c in (c3, c2, c1)),
-                         np.stack([c0, -c0]) - limit)
-    return _least_positive(roots)
-
-
-def _least_positive(roots: list[np.ndarray]) -> np.ndarray:
-    """Elementwise over the roots (each 2×shape: the two signs) the smallest finite x > 0."""
-    best = np.full(roots[0].shape[1:], np.inf)
-    with np.errstate(invalid="ignore"):
-        for x in roots:
-            for half in x:
-                ok = (half > 0) & (half < best)     # x < best ≤ inf: also finite
-                np.copyto(best, half, where=ok)
-    return best
-
-
-def _odd_exit(c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """Per column, the smallest first exit x over samples of |c1·x + c2·x² + c3·x³| ≤ L
-    (samples M×m; returns m), i.e. 1/(largest k): exact roots are solved only where a cheap
-    bound on a sample's k exceeds the best exact k found so far.
-
-    In k = 1/x the bound |c1|x + |c2|x² + |c3|x³ ≤ L reads p(k) = L·k³ − |c1|k² − |c2|k − |c3|
-    ≥ 0; p has one positive root k_sum (one sign change), which bounds the sample's exact k
-    from above, and k_sum > k_best exactly when p(k_best) < 0: one Horner pass, no roots. The
-    first k_best is the exact k at the samples with the largest |c1|, |c2| and |c3|.
-    """
-    m = c1.shape[1]
-    A, B, C = np.abs(c1), np.abs(c2), np.abs(c3)
-    cols = np.arange(m)
-    rows = np.concatenate([np.argmax(A, axis=0), np.argmax(B, axis=0), np.argmax(C, axis=0)])
-    rc = np.tile(cols, 3)
-    x0 = _first_exit(np.zeros(len(rc)), c1[rows, rc], c2[rows, rc], c3[rows, rc], L[rc])
-    best = x0.reshape(3, m).min(axis=0)
-    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-        kb = np.where(np.isinf(best), 0.0, 1.0 / best) / (1 + 1e-9)
-        p = L * kb - A
-        p *= kb
-        p -= B
-        p *= kb
-        p -= C
-        cand = p < 0
-    none = kb == 0     # no exit found yet: any sample with motion may have one
-    if np.any(none):
-        cand[:, none] = (A[:, none] + B[:, none] + C[:, none]) > 0
-    n, j = np.nonzero(cand)
-    if len(n):
-        xs = _first_exit(np.zeros(len(n)), c1[n, j], c2[n, j], c3[n, j], L[j])
-        np.minimum.at(best, j, xs)
-    return best
-
-
-def _first_exit_quadratic(c0, c1, c2, limit) -> np.ndarray:
-    """Smallest x > 0 where |c0 + c1·x + c2·x²| reaches ``limit``; inf if none."""
-    c0, c1, c2, limit = np.broadcast_arrays(c0, c1, c2, limit)
-    roots = _quadratic_roots(np.stack([c2, -c2]), np.stack([c1, -c1]),
-                             np.stack([c0, -c0]) - limit)
-    return _least_positive(list(roots))
-
-
-def _effort_exit(s: np.ndarray, w: np.ndarray, i: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """Per column, the smallest first exit x over samples (M×m; returns m) of
-    |s + w·x + i·x²| ≤ L, i.e. 1/(largest k); 0 where |s| > L somewhere (outside the band
-    already at k = ∞).
-
-    |s| + |w|x + |i|x² bounds the torque from above, so a sample can only exit before the best
-    exact exit x_b found so far if that bound exceeds L at x_b: one pass, no roots. The first
-    x_b is the exact exit at the samples with the largest |s|, |w| and |i|.
-    """
-    m = s.shape[1]
-    aS, aW, aI = np.abs(s), np.abs(w), np.abs(i)
-    cols = np.arange(m)
-    rows = np.concatenate([np.argmax(aS, axis=0), np.argmax(aW, axis=0), np.argmax(aI, axis=0)])
-    rc = np.tile(cols, 3)
-    x0 = _first_exit_quadratic(s[rows, rc], w[rows, rc], i[rows, rc], L[rc])
-    best = x0.reshape(3, m).min(axis=0)
-    with np.errstate(over="ignore", invalid="ignore"):
-        xb = best * (1 + 1e-9)
-        fin = np.isfinite(xb)
-        xb = np.where(fin, xb, 0.0)
-        q = aI * xb
-        q += aW
-        q *= xb
-        q += aS
-        cand = q >= L
-    if not np.all(fin):  # no exit found yet: any sample with motion may have one
-        nf = ~fin
-        cand[:, nf] |= (aW[:, nf] + aI[:, nf]) > 0
-    n, j = np.nonzero(cand)
-    if len(n):
-        np.minimum.at(best, j, _first_exit_quadratic(s[n, j], w[n, j], i[n, j], L[j]))
-    best[_colany(aS > L)] = 0.0
-    return best
-
-
-def _band_exit_bound(s: np.ndarray, w: np.ndarray, i: np.ndarray, L) -> np.ndarray:
-    """Elementwise lower bound on the first exit x of |s + w·x + i·x²| ≤ L: the root of
-    |s| + |w|·x + |i|·x² = L (0 where |s| ≥ L already, inf where nothing grows)."""
-    s, w, i, L = np.broadcast_arrays(s, w, i, L)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        room = np.abs(s)
-        np.subtract(L, room, out=room)             # L − |s|
-        aw = np.abs(w)
-        d = np.multiply(room, 4)
-        t = np.abs(i)
-        d *= t                                     # |i|·4·room
-        np.multiply(aw, aw, out=t)
-        d += t
-        np.sqrt(d, out=d)
-        d += aw
-        x = np.multiply(room, 2, out=t)
-        x /= d                                     # 2·room / (|w| + √(w² + 4|i|·room))
-    x[~(room > 0)] = 0.0
-    return x
-
-
-def _envelope_floor(curve: np.ndarray, speed: np.ndarray) -> np.ndarray:
-    """min of the envelope (piecewise linear, held constant outside its points) over the speeds
-    [0, speed], elementwise."""
-    sp, ef = curve[:, 0], curve[:, 1]
-    at = np.interp(speed, sp, ef)
-    if np.all(ef[1:] <= ef[:-1]):     # the usual falling curve: its floor is itself
-        return at
-    prefix = np.minimum.accumulate(ef)
-    k = np.searchsorted(sp, speed, side="right") - 1
-    return np.where(k >= 0, np.minimum(prefix[np.maximum(k, 0)], at), ef[0])
-
-
-def _envelope_exit(s, w, i, speed, curve: np.ndarray) -> np.ndarray:
-    """First x where |s + w·x + i·x²| reaches the envelope E(|speed|·x) (piecewise linear, held
-    constant outside its points): one quadratic per curve piece. ``curve`` is one P×2 curve or
-    one per element (n×P×2)."""
-    n = len(s)
-    sp = np.broadcast_to(curve[..., 0], (n, curve.shape[-2]))
-    ef = np.broadcast_to(curve[..., 1], (n, curve.shape[-2]))
-    v = np.abs(speed)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bounds = np.where(v[:, None] > 0, sp / v[:, None], np.where(sp > 0, np.inf, 0.0))
-    best = np.full(s.shape, np.inf)
-    # piece before the first point and after the last: constant envelope
-    pieces = [(np.zeros_like(s), bounds[:, 0], ef[:, 0], 0.0, 0.0)]
-    for m in range(sp.shape[1] - 1):
-        slope = (ef[:, m + 1] - ef[:, m]) / (sp[:, m + 1] - sp[:, m])
-        pieces.append((bounds[:, m], bounds[:, m + 1], ef[:, m], slope, sp[:, m]))
-    pieces.append((bounds[:, -1], np.full_like(s, np.inf), ef[:, -1], 0.0, 0.0))
-    # every piece and both signs in one elementwise batch: ±(s + w x + i x²) −
-    # (e0 + slope·(v·x − s0)) = 0, a root counting only inside its piece's speed range
-    qa, qb, qc, qlo, qhi = [], [], [], [], []
-    for lo, hi, e0, slope, s0 in pieces:
-        for sign in (1.0, -1.0):
-            qa.append(np.broadcast_to(sign * i, s.shape))
-            qb.append(np.broadcast_to(sign * w - slope * v, s.shape))
-            qc.append(np.broadcast_to(sign * s - e0 + slope * s0, s.shape))
-            qlo.append(np.broadcast_to(lo, s.shape))
-            qhi.append(np.broadcast_to(hi, s.shape))
-    lo, hi = np.stack(qlo), np.stack(qhi)
-    for x in _quadratic_roots(np.stack(qa), np.stack(qb), np.stack(qc)):
-        with np.errstate(invalid="ignore"):
-            ok = (x >= lo) & (x <= hi) & (x > 0) & (x < np.inf)
-        if ok.any():
-            np.minimum(best, np.where(ok, x, np.inf).min(axis=0), out=best)
-    return best
-
-
 def _segment_derivative(F: np.ndarray, first: np.ndarray, last: np.ndarray,
                         h: np.ndarray) -> np.ndarray:
     """d/dt of samples F (M×c) inside each segment: central differences in the interior,
@@ -589,19 +364,6 @@ def _cumtrapz_rows(tt: np.ndarray, fT: np.ndarray) -> np.ndarray:
     np.add(fT[..., 1:], fT[..., :-1], out=out[..., 1:])
     out[..., 1:] *= 0.5 * np.diff(tt)
     np.cumsum(out[..., 1:], axis=-1, out=out[..., 1:])
-    return out
-
-
-def _windowed(tt: np.ndarray, cum: np.ndarray, window: np.ndarray,
-              hold: np.ndarray) -> np.ndarray:
-    """Integrals over the trailing window ending at each sample (r×M) from cumulative
-    integrals ``cum`` (r×M rows over times tt), window lengths ``window`` (r, s) and values
-    ``hold`` (r) integrated before the start: cum(t) − cum(t − window) + hold·(time before tt[0])."""
-    out = np.empty_like(cum)
-    for r in range(len(cum)):
-        start = tt - window[r]
-        out[r] = cum[r] - np.interp(start, tt, cum[r])
-        out[r] += np.maximum(tt[0] - start, 0.0) * hold[r]
     return out
 
 
@@ -778,11 +540,11 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
             # RMS limit every k is feasible: a bracket end (the exact peak-torque exit where
             # gravity alone just reaches the limit and that bound is useless)
             sg, wg, ig = _take(S, gc), _take(W, gc), _take(I, gc)
-            x_up = _band_exit_bound(_colmax(np.abs(sg)), _colmax(np.abs(wg)),
-                                    _colmax(np.abs(ig)), R[good])
+            x_up = np.array([kernels.band_exit_bound(*b) for b in zip(
+                _colmax(np.abs(sg)), _colmax(np.abs(wg)), _colmax(np.abs(ig)), R[good])])
             tight = ~(x_up > 0)
             if np.any(tight):
-                x_up[tight] = _effort_exit(sg[:, tight], wg[:, tight], ig[:, tight],
+                x_up[tight] = kernels.band_exit(sg[:, tight], wg[:, tight], ig[:, tight],
                                            R[good][tight])
             with np.errstate(divide="ignore"):
                 k_up = np.where(np.isinf(x_up), 0.0, 1.0 / x_up)
@@ -808,7 +570,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         values["effort"] = (cols, np.abs(_take(tau, cols)),
                             np.broadcast_to(L, (len(tt), len(cols))))
         s, w, i = _take(S, cols), _take(W, cols), _take(I, cols)
-        xstar["effort"] = _effort_exit(s, w, i, L)
+        xstar["effort"] = kernels.band_exit(s, w, i, L)
         over = np.abs(s) / L
         if np.any(over > 1):
             n, c = np.unravel_index(int(np.argmax(over)), over.shape)   # the worst pose
@@ -818,46 +580,14 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     if len(ecols):
         env = np.asfortranarray(lim.effort_envelope(V)[:, ecols])
         values["effort_speed"] = (ecols, np.abs(_take(tau, ecols)), env)
-        # Exact envelope exits only where a cheap bound cannot rule a sample out: below the
-        # best exact exit x_ref found so far the envelope is at least its minimum over speeds
-        # [0, |v|·x_ref], and the band |τ| ≤ that floor is left no later than the envelope.
-        # Columns whose curves have the same number of points are solved in one batch.
         curves = [lim.effort_speed_curve[j] for j in ecols]
-        Se, We, Ie, Ve = _take(S, ecols), _take(W, ecols), _take(I, ecols), _take(V, ecols)
-        groups: dict[int, list[int]] = {}
+        npts = np.array([len(cv) for cv in curves])
+        sp = np.zeros((len(ecols), npts.max()))
+        ef = np.zeros_like(sp)
         for c, cv in enumerate(curves):
-            groups.setdefault(len(cv), []).append(c)
-
-        def exact(n: np.ndarray, c: np.ndarray) -> np.ndarray:
-            """Exact envelope exits of samples n of columns c (flat), batched by curve size."""
-            x = np.empty(len(n))
-            for cs in groups.values():
-                cs = np.array(cs)
-                sel = np.flatnonzero(np.isin(c, cs))
-                if len(sel):
-                    nn, cc = n[sel], c[sel]
-                    stack = np.stack([curves[k] for k in cs])[np.searchsorted(cs, cc)]
-                    x[sel] = _envelope_exit(Se[nn, cc], We[nn, cc], Ie[nn, cc], Ve[nn, cc], stack)
-            return x
-
-        # a first best exit: each column's sample most likely to leave first, by the bound
-        # with the envelope's minimum (valid at any speed)
-        e_min = np.array([max(cv[:, 1].min(), 1e-300) for cv in curves])
-        c0 = np.arange(len(ecols))
-        xs = exact(np.argmin(_band_exit_bound(Se, We, Ie, e_min), axis=0), c0)
-        floor = np.empty_like(Ve)
-        av = np.abs(Ve)
-        for c, cv in enumerate(curves):
-            with np.errstate(invalid="ignore"):
-                floor[:, c] = _envelope_floor(cv, np.where(av[:, c] > 0, av[:, c] * xs[c], 0.0))
-        n, c = np.nonzero(_band_exit_bound(Se, We, Ie, floor) < xs)
-        # the exact exit from the floor band is a tighter bound (two quadratics, not one per
-        # envelope piece) for samples that start inside it
-        sn, fl = Se[n, c], floor[n, c]
-        keep = (np.abs(sn) >= fl) | (_first_exit_quadratic(sn, We[n, c], Ie[n, c], fl) < xs[c])
-        n, c = n[keep], c[keep]
-        if len(n):
-            np.minimum.at(xs, c, exact(n, c))
+            sp[c, :len(cv)], ef[c, :len(cv)] = cv[:, 0], cv[:, 1]
+        xs = kernels.envelope_exit_min(_take(S, ecols), _take(W, ecols), _take(I, ecols),
+                                       _take(V, ecols), sp, ef, npts)
         for c, j in enumerate(ecols):
             e0 = float(np.interp(0.0, curves[c][:, 0], curves[c][:, 1]))
             sj = S[:, j]
@@ -871,7 +601,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         L = lim.power[cols]
         v = _take(V, cols)
         values["power"] = (cols, np.abs(_take(tau, cols) * v), np.broadcast_to(L, v.shape))
-        xstar["power"] = _odd_exit(_take(S, cols) * v, _take(W, cols) * v, _take(I, cols) * v, L)
+        xstar["power"] = kernels.odd_exit(_take(S, cols) * v, _take(W, cols) * v, _take(I, cols) * v, L)
 
     rate_cols = limited(lim.effort_rate)
     need_step = mode == "cubic"
@@ -882,7 +612,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         dI = _segment_derivative(_take(I, rate_cols), smp.first, smp.last, smp.h)
         rate = dG + dW + dI
         values["effort_rate"] = (rate_cols, np.abs(rate), np.broadcast_to(L, rate.shape))
-        xstar["effort_rate"] = _odd_exit(dG, dW, dI, L)
+        xstar["effort_rate"] = kernels.odd_exit(dG, dW, dI, L)
     effort_step = {}
     if len(traj.times) > 2:
         steps = np.abs(tau[smp.first[1:]] - tau[smp.last[:-1]])  # (N-2)×nv
@@ -902,7 +632,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     if len(rms_cols):
         # windowed ∫τ² (the payload margin's RMS part reuses it)
         f = _take(tau, rms_cols).T ** 2
-        rms_win = _windowed(tt, _cumtrapz_rows(tt, np.ascontiguousarray(f)), Wn, h2)
+        rms_win = kernels.windowed(tt, _cumtrapz_rows(tt, np.ascontiguousarray(f)), Wn, h2)
         del f
         vals = np.sqrt(np.maximum(rms_win, 0.0) / Wn[:, None]).T
         values["rms_effort"] = (rms_cols, vals, np.broadcast_to(R, vals.shape))
@@ -1091,10 +821,8 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
     Each trial k is decided exactly but cheaply. With x = 1/k, τ² = Σₚ xᵖ·Pₚ (P₀ = s²,
     P₁ = 2sw, P₂ = w² + 2si, P₃ = 2wi, P₄ = i²), so the five cumulative integrals of Pₚ are
     computed once and E(t), the integral of τ² up to t (with the hold torque before the start),
-    costs a few gathers at any k. The windowed integral is E(tₙ) − E(tₙ − window·x); it is
-    evaluated exactly at a sparse grid of window ends, and since E never decreases, a window
-    ending between grid points a < b integrates at most E(t_b) − E(t_a − window·x). Only the
-    gaps where that bound exceeds the limit are evaluated sample by sample.
+    costs a few multiply-adds at any k. The windowed integral is E(tₙ) − E(tₙ − window·x),
+    evaluated at every window end in one compiled pass per trial (:func:`kernels.rms_worst`).
     """
     moving = k_up > 0
     if not np.all(moving):   # k_up = 0: no speed-dependent torque at all, nothing to search
@@ -1104,103 +832,19 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
                                           hold2[moving], window[moving], R[moving],
                                           k_up[moving], rtol)
         return out
-    M, m = s.shape
-    # cum[c, p]: cumulative trapezoid integral of Pₚ of column c at every sample; built one
-    # column at a time (sums along contiguous memory, small temporaries)
-    # Pₚ for all columns at once, rows contiguous (m×5×M), then the trapezoid sums in place
-    sT, wT, iT = (np.ascontiguousarray(x.T) for x in (s, w, i))   # one row per column
-    P = np.empty((m, 5, M))
-    np.multiply(sT, sT, out=P[:, 0])
-    np.multiply(sT, wT, out=P[:, 1])
-    P[:, 1] *= 2
-    np.multiply(sT, iT, out=P[:, 2])
-    P[:, 2] *= 2
-    np.multiply(wT, wT, out=P[:, 4])       # scratch: w² (row 4 is written last)
-    P[:, 2] += P[:, 4]
-    np.multiply(wT, iT, out=P[:, 3])
-    P[:, 3] *= 2
-    np.multiply(iT, iT, out=P[:, 4])
-    del sT, wT, iT
-    cum = np.empty_like(P)
-    cum[:, :, 0] = 0.0
-    np.add(P[:, :, 1:], P[:, :, :-1], out=cum[:, :, 1:])
-    del P
-    cum[:, :, 1:] *= 0.5 * np.diff(tt)
-    np.cumsum(cum[:, :, 1:], axis=-1, out=cum[:, :, 1:])
-    span = np.diff(tt)
+    m = s.shape[1]
+    cum = kernels.rms_cumulative(tt, s, w, i)
     R2W = R * R * window
-    powers = np.arange(5)
-    stride = max(1, M // 256)
-    grid = np.unique(np.concatenate([np.arange(0, M, stride), [M - 1]]))
-    ng = len(grid)
-    gc = np.repeat(np.arange(m), ng)
-    gn = np.tile(grid, m)
-    gap_len = np.diff(grid) - 1
-
-    cum_grid = cum[gc, :, gn]         # the grid's window ends never move
-    t_grid = tt[gn]
-
-    def E_pair(k: np.ndarray, c: np.ndarray, n: np.ndarray | None, cg=None, tg=None
-               ) -> tuple[np.ndarray, np.ndarray]:
-        """(E(tₙ), E(tₙ − window·x)) for flat column / sample indices c, n (None: grid rows
-        whose integrals and times are cg, tg)."""
-        xk = 1.0 / k
-        x = xk[c]
-        xp = (xk[:, None] ** powers)[c]   # x depends on the column only
-        if n is None:
-            end = np.einsum("lp,lp->l", cg, xp)
-            start = tg - window[c] * x
-        else:
-            end = np.einsum("lp,lp->l", cum[c, :, n], xp)
-            start = tt[n] - window[c] * x
-        j = np.searchsorted(tt, start, side="right")
-        j -= 1
-        np.clip(j, 0, M - 2, out=j)
-        h = span[j]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            f = np.clip(np.where(h > 0, (start - tt[j]) / h, 0.0), 0.0, 1.0)
-        lo = np.einsum("lp,lp->l", cum[c, :, j], xp)
-        hi = np.einsum("lp,lp->l", cum[c, :, j + 1], xp)
-        return end, lo + f * (hi - lo) - np.maximum(tt[0] - start, 0.0) * hold2[c]
+    every = np.ones(m, dtype=np.bool_)
 
     def g(k: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
         """log of the largest windowed-mean-square / R² per column (≤ 0: feasible at k), for
         the columns ``sel`` (boolean; None: all) and NaN for the others. Columns are
         independent, so evaluating fewer changes nothing in the ones evaluated."""
-        if sel is None:
-            cols, mc, gcs, cg, tg = None, m, gc, cum_grid, t_grid
-        else:
-            cols = np.flatnonzero(sel)
-            mc = len(cols)
-            if not mc:
-                return np.full(m, np.nan)
-            rows = (cols[:, None] * ng + np.arange(ng)).ravel()
-            gcs, cg, tg = gc[rows], cum_grid[rows], t_grid[rows]
-        end, st = E_pair(k, gcs, None, cg, tg)
-        scale = (k / R2W)[:, None] if cols is None else (k[cols] / R2W[cols])[:, None]
-        end = end.reshape(mc, ng)
-        st = st.reshape(mc, ng)
-        worst = (scale[:, 0] * (end - st).max(axis=1)) if ng else np.zeros(mc)
-        ub = scale * (end[:, 1:] - st[:, :-1])
-        # the true maximum is on the grid or in a gap whose bound exceeds the grid maximum
-        # (which, when the grid is feasible, covers every gap whose bound exceeds the limit)
-        doubt = (ub > worst[:, None] * (1.0 - 1e-12)) & (gap_len > 0)
-        cc, gg = np.nonzero(doubt)
-        if len(cc):
-            ln = gap_len[gg]
-            tot = int(ln.sum())
-            first = np.repeat(grid[gg] + 1 - (np.cumsum(ln) - ln), ln)
-            n = first + np.arange(tot)
-            c_local = np.repeat(cc, ln)
-            c = c_local if cols is None else cols[c_local]
-            e, s_ = E_pair(k, c, n)
-            np.maximum.at(worst, c_local, (k / R2W)[c] * (e - s_))
-        res = np.log(np.maximum(worst, 1e-300))
-        if cols is None:
-            return res
-        out = np.full(m, np.nan)
-        out[cols] = res
-        return out
+        with np.errstate(divide="ignore", invalid="ignore"):
+            worst = kernels.rms_worst(tt, cum, 1.0 / k, window, hold2,
+                                      every if sel is None else sel)
+            return np.log(np.maximum(k / R2W * worst, 1e-300))
 
     ltol = math.log1p(rtol)
     g1 = g(np.ones(m))
@@ -1272,29 +916,13 @@ def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold, rms_win,
 def _payload_margin_from(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms_win) -> float:
     """:func:`_payload_margin` given τ1 (see :func:`_payload_torque`)."""
     heavy = _unit_payload_dynamics(dynamics)
-    lo, hi = -math.inf, math.inf
+    bands: list[tuple[float, float]] = []
 
-    def linear(a: np.ndarray, b: np.ndarray, L: np.ndarray) -> None:
-        # |a + m·b| ≤ L  →  m ∈ [(−L − a·sgn b)/|b|, (L − a·sgn b)/|b|]; b = 0 gives ±inf
-        # (NaN where 0/0, which the NaN-ignoring reductions skip)
-        nonlocal lo, hi
-        if not a.size:
-            return
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ab = np.abs(b)
-            a_s = np.sign(b)
-            a_s *= a
-            t = np.subtract(L, a_s)
-            t /= ab
-            hi = min(hi, float(np.fmin.reduce(t, axis=None)))
-            np.subtract(-L, a_s, out=t)
-            t /= ab
-            lo = max(lo, float(np.fmax.reduce(t, axis=None)))
-        zero = ab == 0
-        if zero.any():
-            Lb = np.broadcast_to(L, a.shape)
-            if np.any(np.abs(a[zero]) > Lb[zero]):
-                lo, hi = math.inf, -math.inf
+    def linear(a: np.ndarray, b: np.ndarray, L: np.ndarray, scale: np.ndarray | None = None):
+        # |(a + m·b)·scale| ≤ L at every sample: an interval of m
+        if a.size:
+            one = np.broadcast_to(1.0, a.shape) if scale is None else scale
+            bands.append(kernels.affine_band(a, b, one, np.broadcast_to(L, a.shape)))
 
     if ("effort" in values and "effort_speed" in values
             and np.array_equal(values["effort"][0], values["effort_speed"][0])):
@@ -1308,8 +936,7 @@ def _payload_margin_from(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms
                 linear(_take(tau0, cols), _take(tau1, cols), L)
     if "power" in values:
         cols, _, L = values["power"]
-        v = _take(V, cols)
-        linear(_take(tau0, cols) * v, _take(tau1, cols) * v, L)
+        linear(_take(tau0, cols), _take(tau1, cols), L, _take(V, cols))
     if "effort_rate" in values:
         cols, _, L = values["effort_rate"]
         coul = np.asarray(dynamics.model.pin_model.friction, dtype=float)[cols] \
@@ -1325,48 +952,19 @@ def _payload_margin_from(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms
         Wn, R = lim.rms_window[cols], lim.rms_effort[cols]
         tt = smp.t
         a0, a1 = _take(tau0, cols), _take(tau1, cols)
-        # windowed integrals of a0·a1 and a1² (hold torques before the start); a0² is given
+        # windowed integrals of a0·a1 and a1² (hold torques before the start); a0² is given:
+        # the windowed ∫(a0 + m·a1)² = A·m² + 2B·m + C must stay within R²·window
         f = np.empty((2 * len(cols), len(tt)))
         np.multiply(a0.T, a1.T, out=f[:len(cols)])
         np.multiply(a1.T, a1.T, out=f[len(cols):])
-        cum = _cumtrapz_rows(tt, f)
+        win = kernels.windowed(tt, _cumtrapz_rows(tt, f), np.concatenate([Wn, Wn]),
+                               np.concatenate([h0 * heavy_hold, heavy_hold * heavy_hold]))
         del f
-        win = _windowed(tt, cum, np.concatenate([Wn, Wn]),
-                        np.concatenate([h0 * heavy_hold, heavy_hold * heavy_hold]))
         m_ = len(cols)
-        C, B, Aq = rms_win, win[:m_], win[m_:]
-        # A m² + 2B m + C ≤ R² W
-        c = C - (R * R * Wn)[:, None]
-        # the roots of Aq·m² + b·m + c, b = 2B, exactly as _quadratic_roots computes them
-        # (stable form), with fewer temporaries
-        with np.errstate(all="ignore"):
-            b = 2 * B
-            sq = b * b
-            t = 4 * Aq
-            t *= c
-            sq -= t                                  # discriminant
-            np.sqrt(sq, out=sq)                      # NaN where negative
-            np.negative(sq, out=sq, where=~(b >= 0))
-            q = np.add(b, sq, out=sq)
-            q *= -0.5
-            r1 = np.divide(q, Aq, out=t)
-            a_zero = Aq == 0
-            if a_zero.any():
-                r1[a_zero] = np.nan
-            r2 = c / q
-            q_zero = q == 0
-            if q_zero.any():
-                bz, cz = b[q_zero], c[q_zero]
-                r2[q_zero] = np.where(a_zero[q_zero] & (bz != 0), -cz / bz, np.nan)
-            if np.any(np.isnan(r1) & (c > 0)):
-                return -math.inf
-            pos = Aq > 0
-            up = np.fmax(r1, r2)
-            up[~pos] = np.inf
-            hi = min(hi, float(np.fmin.reduce(up, axis=None)))
-            np.fmin(r1, r2, out=up)
-            up[~pos] = -np.inf
-            lo = max(lo, float(np.fmax.reduce(up, axis=None)))
+        bands.append(kernels.quadratic_band(win[m_:], win[:m_],
+                                            rms_win - (R * R * Wn)[:, None]))
+    lo = max((b[0] for b in bands), default=-math.inf)
+    hi = min((b[1] for b in bands), default=math.inf)
     if lo > hi:
         return -math.inf
     return hi

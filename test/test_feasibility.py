@@ -456,23 +456,23 @@ def _random_terms(rng: np.random.Generator, M: int, m: int):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_exit_shortcuts_match_per_sample_exact_roots(seed):
-    from dyn_node import feasibility as F
+    from dyn_node import kernels as K
 
     rng = np.random.default_rng(100 + seed)
     M, m = 2000, 4
     _, S, W, I = _random_terms(rng, M, m)
     L = np.abs(S).max(axis=0) * rng.uniform(0.7, 1.6, m)   # some columns statically infeasible
-    got = F._effort_exit(S, W, I, L)
+    got = K.band_exit(S, W, I, L)
     for c in range(m):
         # every sample solved exactly (elementwise; no bounds, no pruning)
-        ref = float(F._first_exit_quadratic(S[:, c], W[:, c], I[:, c], L[c]).min())
+        ref = float(K.quadratic_exits(S[:, c], W[:, c], I[:, c], np.full(M, L[c])).min())
         if np.any(np.abs(S[:, c]) > L[c]):
             ref = 0.0
         assert got[c] == ref
     Lp = rng.uniform(5.0, 50.0, m)
-    got = F._odd_exit(S, W, I, Lp)
+    got = K.odd_exit(S, W, I, Lp)
     for c in range(m):
-        ref = float(F._first_exit(np.zeros(M), S[:, c], W[:, c], I[:, c], Lp[c]).min())
+        ref = float(K.cubic_exits(S[:, c], W[:, c], I[:, c], np.full(M, Lp[c])).min())
         assert got[c] == ref
 
 
@@ -490,6 +490,7 @@ def _rms_ok(t, s, w, i, hold2, window, R, k) -> bool:
 @pytest.mark.parametrize("seed", range(8))
 def test_rms_time_scale_meets_its_contract_on_random_torques(seed):
     from dyn_node import feasibility as F
+    from dyn_node import kernels as K
 
     rng = np.random.default_rng(200 + seed)
     M, m = 1500, 3
@@ -499,7 +500,7 @@ def test_rms_time_scale_meets_its_contract_on_random_torques(seed):
     peak = np.abs(S + W + I).max(axis=0)
     s_max = np.maximum(np.abs(S).max(axis=0), np.sqrt(hold2))
     R = s_max + rng.uniform(0.02, 1.5, m) * (peak - s_max).clip(0.1)
-    k_up = 1.0 / F._effort_exit(S, W, I, R)
+    k_up = 1.0 / K.band_exit(S, W, I, R)
     k = F._rms_time_scale(t, S, W, I, hold2, window, R, k_up)
     for c in range(m):
         args = (t, S[:, c], W[:, c], I[:, c], hold2[c], window[c], R[c])
@@ -515,6 +516,7 @@ def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
     alone needs, so samples start outside parts of the envelope) against every sample solved
     exactly with no bounds."""
     from dyn_node import feasibility as F
+    from dyn_node import kernels as K
 
     rng = np.random.default_rng(300 + seed)
     model = base_model("panda")
@@ -534,7 +536,7 @@ def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
     pp = interpolate(traj, traj.natural_interpolation)
     Q, V, A = F._evaluate(pp.coeffs, pp.breaks, smp, 3)
     terms = dyn.terms_batch(Q, V, A)
-    x = min(float(F._envelope_exit(terms.static[:, j], terms.viscous[:, j], terms.inertial[:, j],
+    x = min(float(K.envelope_exits(terms.static[:, j], terms.viscous[:, j], terms.inertial[:, j],
                                    V[:, j], m.limits.effort_speed_curve[j]).min())
             for j in range(m.nv))
     curves = m.limits.effort_speed_curve

@@ -1,0 +1,75 @@
+"""The compiled kernels against references we did not write: numpy.roots for the polynomial
+roots, a direct trapezoid windowed integral for the RMS pass."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dyn_node import kernels as K
+
+
+def _real_roots(coeffs) -> list[float]:
+    r = np.roots(coeffs)
+    return sorted(float(x.real) for x in r if abs(x.imag) <= 1e-9 * max(1.0, abs(x)))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_cubic_roots_agree_with_numpy_roots(seed):
+    rng = np.random.default_rng(seed)
+    checked = 0
+    for _ in range(400):
+        # spread magnitudes, and some with three real roots close together
+        a, b, c, d = rng.normal(size=4) * 10.0 ** rng.uniform(-3, 3, 4)
+        if rng.random() < 0.3:
+            r = rng.normal(size=3)
+            a, b, c, d = np.poly(r) * rng.uniform(0.1, 10)
+        got = sorted(x for x in K.cubic_roots(a, b, c, d) if not math.isnan(x))
+        ref = _real_roots([a, b, c, d])
+        if len(ref) != len(got):   # a double root at the edge of real: both are defensible
+            continue
+        scale = max(1.0, max(abs(x) for x in ref))
+        assert np.allclose(got, ref, rtol=1e-7, atol=1e-7 * scale), (a, b, c, d, got, ref)
+        checked += 1
+    assert checked > 380
+
+
+def test_degenerate_polynomials():
+    assert K.cubic_roots(0.0, 1.0, -3.0, 2.0)[1:] in ((2.0, 1.0), (1.0, 2.0))  # quadratic
+    assert math.isnan(K.cubic_roots(0.0, 1.0, -3.0, 2.0)[0])
+    assert K.quadratic_roots(0.0, 2.0, -4.0) == (pytest.approx(np.nan, nan_ok=True), 2.0)
+    assert all(math.isnan(x) for x in K.quadratic_roots(1.0, 0.0, 1.0))   # no real root
+
+
+def test_first_exits_are_the_least_positive_crossing():
+    # |2 + x + x²| = 8 at x = 2; |−x³| = 27 at x = 3
+    assert K.quadratic_exit(2.0, 1.0, 1.0, 8.0) == pytest.approx(2.0, rel=1e-15)
+    assert K.cubic_exit(0.0, 0.0, -1.0, 27.0) == pytest.approx(3.0, rel=1e-15)
+    assert K.quadratic_exit(1.0, 0.0, 0.0, 8.0) == math.inf        # never grows
+    # a column starting outside its band exits at 0
+    s = np.asfortranarray([[1.0], [9.0]])
+    assert K.band_exit(s, s * 0, s * 0 + 1, np.array([8.0]))[0] == 0.0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rms_worst_matches_a_direct_windowed_integral(seed):
+    rng = np.random.default_rng(50 + seed)
+    M, m = 800, 3
+    t = np.sort(rng.uniform(0.0, 2.0, M))
+    t[0] = 0.0
+    t[300] = t[299]                         # a waypoint twice, as the sampler makes it
+    s, w, i = (np.asfortranarray(rng.normal(size=(M, m))) for _ in range(3))
+    cum = K.rms_cumulative(t, s, w, i)
+    x = rng.uniform(0.3, 2.0, m)
+    window = rng.uniform(0.05, 0.8, m)
+    hold2 = rng.uniform(0.0, 2.0, m)
+    got = K.rms_worst(t, cum, x, window, hold2, np.ones(m, dtype=bool))
+    for c in range(m):
+        f = (s[:, c] + w[:, c] * x[c] + i[:, c] * x[c] ** 2) ** 2
+        E = np.concatenate(([0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(t))))
+        start = t - window[c] * x[c]
+        inside = E - np.interp(start, t, E) + np.maximum(t[0] - start, 0.0) * hold2[c]
+        assert got[c] == pytest.approx(inside.max(), rel=1e-10)
+    only = K.rms_worst(t, cum, x, window, hold2, np.array([False, True, False]))
+    assert math.isnan(only[0]) and math.isnan(only[2]) and only[1] == got[1]
