@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from . import kernels
 from .model import RobotModel
 
 
@@ -38,6 +39,7 @@ class TorqueTerms:
     static: np.ndarray
     viscous: np.ndarray
     inertial: np.ndarray
+    full: np.ndarray     # static + viscous + inertial: the torque at k = 1
 
     def total(self, k: float = 1.0) -> np.ndarray:
         return self.static + self.viscous / k + self.inertial / (k * k)
@@ -108,21 +110,26 @@ class Dynamics:
         n = self._threads if threads is None else int(threads)
         return max(1, min(n, os.cpu_count() or 1))
 
-    def _rnea_rigid_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
-                          threads: int | None = None) -> np.ndarray:
-        Q, V, A = (np.ascontiguousarray(x, dtype=float) for x in (Q, V, A))
+    def _rigid_columns(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
+                       threads: int | None = None) -> np.ndarray:
+        """Rigid-body RNEA of N row-major states, as nv×N (one state per column)."""
         n = len(Q)
+        out = np.empty((self.nv, n), order="F")
         if n == 0:
-            return np.zeros((0, self.nv))
+            return out
         nt = self.batch_threads(threads)
         if self._pool is None or self._pool.size() < nt:
             self._pool = pin.ModelPool(self._pm, nt)
-        out = np.empty((self.nv, n), order="F")
         # Pinocchio's batch wants one state per column; the row-major N×nv arrays transposed are
         # exactly that memory, so no copy is made on the way in or out. Each state is computed
         # by the same sequential RNEA whatever the thread count, so results do not depend on it.
         pin.rneaInParallel(nt, self._pool, Q.T, V.T, A.T, out)
-        return out.T
+        return out
+
+    def _rnea_rigid_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
+                          threads: int | None = None) -> np.ndarray:
+        Q, V, A = (np.ascontiguousarray(x, dtype=float) for x in (Q, V, A))
+        return self._rigid_columns(Q, V, A, threads).T
 
     def rnea_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
                    threads: int | None = None) -> np.ndarray:
@@ -140,8 +147,11 @@ class Dynamics:
 
     def terms_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
                     threads: int | None = None) -> TorqueTerms:
-        """RNEA split into static, viscous and inertial parts (see :class:`TorqueTerms`)."""
-        g = self.gravity_batch(Q, threads)
-        inertial = self._rnea_rigid_batch(Q, V, A, threads) - g
-        return TorqueTerms(static=g + self._coulomb * np.sign(V), viscous=self._damping * V,
-                           inertial=inertial)
+        """RNEA split into static, viscous and inertial parts (see :class:`TorqueTerms`), each
+        N×nv and column-major (every joint's samples contiguous, for per-joint reductions)."""
+        Q, V, A = (np.ascontiguousarray(x, dtype=float) for x in (Q, V, A))
+        Z = np.zeros_like(Q)
+        G = self._rigid_columns(Q, Z, Z, threads)
+        F = self._rigid_columns(Q, V, A, threads)
+        S, W, I, full = kernels.split_terms(G, F, V, self._damping, self._coulomb)
+        return TorqueTerms(static=S, viscous=W, inertial=I, full=full)

@@ -352,11 +352,6 @@ def _evaluate(coeffs: np.ndarray, breaks: np.ndarray, smp: _Samples,
     return out
 
 
-def _cumtrapz(tt: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Cumulative trapezoid integral of f (M or M×m) over times tt, starting at 0."""
-    return _cumtrapz_rows(tt, np.ascontiguousarray(f.T)).T   # sums along contiguous memory
-
-
 def _cumtrapz_rows(tt: np.ndarray, fT: np.ndarray) -> np.ndarray:
     """Cumulative trapezoid integral of each row of fT (r×M, C-contiguous) over times tt."""
     out = np.empty_like(fT)
@@ -475,8 +470,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     J = rest[0] if jerk_limited else np.zeros((0, nv))
     terms = dynamics.terms_batch(Q, V, A, options.threads)
     parallel = _batch_threads(dynamics, options.threads) > 1
-    S, W, I = terms.static, terms.viscous, terms.inertial
-    tau = S + W + I
+    S, W, I, tau = terms.static, terms.viscous, terms.inertial, terms.full
     with np.errstate(invalid="ignore"):
         # |X|.max() < _HUGE without forming |X| (NaN fails either comparison, as it should)
         huge = not all(X.size == 0 or (X.max() < _HUGE and X.min() > -_HUGE)
@@ -492,19 +486,13 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
                           or any(c is not None for c in lim.effort_speed_curve))
     tau1 = _payload_torque(dynamics, Q, V, A, tau, options.threads) \
         if options.compute_payload_margin and effort_limited else None
-    # From here on the per-sample arrays are column-major (each joint's samples contiguous):
-    # the same numbers, but per-joint reductions and per-joint limits then run along
-    # contiguous memory. Q stays row-major (single states go to Pinocchio).
+    # From here on the per-sample arrays are column-major (each joint's samples contiguous,
+    # as the torque terms already are): per-joint reductions and per-joint limits then run
+    # along contiguous memory. Q stays row-major (single states go to Pinocchio).
     del terms, rest      # no second copy of the row-major arrays stays alive
-    S = np.asfortranarray(S)     # one at a time: each row-major original goes at once
-    W = np.asfortranarray(W)
-    I = np.asfortranarray(I)
-    tau = np.asfortranarray(tau)
-    V = np.asfortranarray(V)
+    V = np.asfortranarray(V)     # one at a time: each row-major original goes at once
     A = np.asfortranarray(A)
     J = np.asfortranarray(J)
-    if tau1 is not None:
-        tau1 = np.asfortranarray(tau1)
     coulomb = np.asarray(model.pin_model.friction, dtype=float) if dynamics.options.include_friction \
         else np.zeros(nv)
     G = S - coulomb * np.sign(V) if np.any(coulomb) else S
@@ -630,10 +618,10 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         warnings.append("Coulomb friction steps at velocity reversals are not counted as effort rate")
 
     if len(rms_cols):
-        # windowed ∫τ² (the payload margin's RMS part reuses it)
-        f = _take(tau, rms_cols).T ** 2
-        rms_win = kernels.windowed(tt, _cumtrapz_rows(tt, np.ascontiguousarray(f)), Wn, h2)
-        del f
+        # windowed ∫τ² at k = 1, by the kernel the time-scale search uses, so both agree on
+        # whether k = 1 is feasible (the payload margin's RMS part reuses it)
+        rms_win = kernels.rms_windowed(tt, _take(S, rms_cols), _take(W, rms_cols),
+                                       _take(I, rms_cols), np.ones(len(rms_cols)), Wn, h2)
         vals = np.sqrt(np.maximum(rms_win, 0.0) / Wn[:, None]).T
         values["rms_effort"] = (rms_cols, vals, np.broadcast_to(R, vals.shape))
 
@@ -818,11 +806,9 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
     direct check) and ``k_up``; the result is the feasible end of a bracket of relative width
     ≤ ``rtol``, found by the secant method on log k (safeguarded by bisection).
 
-    Each trial k is decided exactly but cheaply. With x = 1/k, τ² = Σₚ xᵖ·Pₚ (P₀ = s²,
-    P₁ = 2sw, P₂ = w² + 2si, P₃ = 2wi, P₄ = i²), so the five cumulative integrals of Pₚ are
-    computed once and E(t), the integral of τ² up to t (with the hold torque before the start),
-    costs a few multiply-adds at any k. The windowed integral is E(tₙ) − E(tₙ − window·x),
-    evaluated at every window end in one compiled pass per trial (:func:`kernels.rms_worst`).
+    Each trial k is decided exactly, in one compiled pass per column
+    (:func:`kernels.rms_worst`): the integral of τ² = (s + w·x + i·x²)², x = 1/k, from the
+    start, and its largest trailing-window difference (with the hold torque before the start).
     """
     moving = k_up > 0
     if not np.all(moving):   # k_up = 0: no speed-dependent torque at all, nothing to search
@@ -833,7 +819,6 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
                                           k_up[moving], rtol)
         return out
     m = s.shape[1]
-    cum = kernels.rms_cumulative(tt, s, w, i)
     R2W = R * R * window
     every = np.ones(m, dtype=np.bool_)
 
@@ -842,7 +827,7 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
         the columns ``sel`` (boolean; None: all) and NaN for the others. Columns are
         independent, so evaluating fewer changes nothing in the ones evaluated."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            worst = kernels.rms_worst(tt, cum, 1.0 / k, window, hold2,
+            worst = kernels.rms_worst(tt, s, w, i, 1.0 / k, window, hold2,
                                       every if sel is None else sel)
             return np.log(np.maximum(k / R2W * worst, 1e-300))
 
@@ -899,9 +884,8 @@ def _rms_time_scale(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray,
 def _payload_torque(dynamics: Dynamics, Q, V, A, tau0, threads: int | None = None) -> np.ndarray:
     """τ1 (M×nv, N·m per kg): the torque of 1 kg more at the payload point, as the difference
     of a batched RNEA with that mass and the trajectory's own torque τ0."""
-    tau1 = _unit_payload_dynamics(dynamics).rnea_batch(Q, V, A, threads)
-    tau1 -= tau0
-    return tau1
+    heavy = _unit_payload_dynamics(dynamics).rnea_batch(Q, V, A, threads)
+    return np.subtract(heavy, tau0, out=np.empty_like(tau0))    # in τ0's memory order
 
 
 def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold, rms_win,

@@ -34,30 +34,19 @@ _I = types.Array(_i8, 1, "A", readonly=True)
 _pair = types.UniTuple(_f8, 2)
 
 
-@njit([types.Array(_f8, 3, "C")(_V, _M, _M, _M)], **_JIT)
-def rms_cumulative(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray) -> np.ndarray:
-    """Cumulative trapezoid integrals over times ``tt`` (M) of the five coefficients of
-    τ(x)² = Σₚ xᵖ·Pₚ, τ = s + w·x + i·x² (P₀ = s², P₁ = 2sw, P₂ = w² + 2si, P₃ = 2wi,
-    P₄ = i²), for each column of s, w, i (M×m). Returns m×M×5 (units of torque²·s)."""
-    M, m = s.shape
-    cum = np.empty((m, M, 5))
-    for c in range(m):
-        for p in range(5):
-            cum[c, 0, p] = 0.0
-        s0, w0, i0 = s[0, c], w[0, c], i[0, c]
-        q0, q1, q2, q3, q4 = s0 * s0, 2 * s0 * w0, w0 * w0 + 2 * s0 * i0, 2 * w0 * i0, i0 * i0
-        for n in range(1, M):
-            sn, wn, in_ = s[n, c], w[n, c], i[n, c]
-            p0, p1, p2, p3, p4 = (sn * sn, 2 * sn * wn, wn * wn + 2 * sn * in_, 2 * wn * in_,
-                                  in_ * in_)
-            h = 0.5 * (tt[n] - tt[n - 1])
-            cum[c, n, 0] = cum[c, n - 1, 0] + (p0 + q0) * h
-            cum[c, n, 1] = cum[c, n - 1, 1] + (p1 + q1) * h
-            cum[c, n, 2] = cum[c, n - 1, 2] + (p2 + q2) * h
-            cum[c, n, 3] = cum[c, n - 1, 3] + (p3 + q3) * h
-            cum[c, n, 4] = cum[c, n - 1, 4] + (p4 + q4) * h
-            q0, q1, q2, q3, q4 = p0, p1, p2, p3, p4
-    return cum
+@njit(**_JIT)
+def _tau2_cumulative(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray, c: int,
+                     x: float, E: np.ndarray) -> None:
+    """E[n] = trapezoid integral over tt[:n + 1] of τ² for τ = s + w·x + i·x² in column c
+    (torque²·s); non-decreasing, since every term added is ≥ 0."""
+    t = s[0, c] + x * (w[0, c] + x * i[0, c])
+    prev = t * t
+    E[0] = 0.0
+    for n in range(1, len(tt)):
+        t = s[n, c] + x * (w[n, c] + x * i[n, c])
+        t2 = t * t
+        E[n] = E[n - 1] + (t2 + prev) * (0.5 * (tt[n] - tt[n - 1]))
+        prev = t2
 
 
 @njit(**_JIT)
@@ -95,20 +84,36 @@ def windowed(tt: np.ndarray, cum: np.ndarray, window: np.ndarray,
     return out
 
 
-@njit([types.Array(_f8, 1, "C")(_V, _T3, _V, _V, _V, _B)], **_JIT)
-def rms_worst(tt: np.ndarray, cum: np.ndarray, x: np.ndarray, window: np.ndarray,
-              hold2: np.ndarray, sel: np.ndarray) -> np.ndarray:
-    """Per column c with ``sel[c]``, the largest integral of τ(x)² over a trailing window of
-    ``window[c]·x[c]`` (original time, s) ending at any sample, from ``cum`` (see
-    :func:`rms_cumulative`); before ``tt[0]`` the integrand is ``hold2[c]``. NaN for columns
-    not selected.
+@njit([types.Array(_f8, 2, "C")(_V, _M, _M, _M, _V, _V, _V)], **_JIT)
+def rms_windowed(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray, x: np.ndarray,
+                 window: np.ndarray, hold2: np.ndarray) -> np.ndarray:
+    """Per column c (m×M out), the integral of τ² (τ = s + w·x + i·x², samples M×m) over the
+    trailing window of ``window[c]·x[c]`` (original time, s) ending at each sample; before
+    ``tt[0]`` the integrand is ``hold2[c]``. At x = 1: the trajectory's own windowed ∫τ²."""
+    M, m = s.shape
+    out = np.empty((m, M))
+    E = np.empty(M)
+    for c in range(m):
+        _tau2_cumulative(tt, s, w, i, c, x[c], E)
+        j = 0
+        for n in range(M):
+            out[c, n], j = _window_at(tt, E, n, j, window[c] * x[c], hold2[c])
+    return out
+
+
+@njit([types.Array(_f8, 1, "C")(_V, _M, _M, _M, _V, _V, _V, _B)], **_JIT)
+def rms_worst(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray, x: np.ndarray,
+              window: np.ndarray, hold2: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """The largest value of :func:`rms_windowed` per column c with ``sel[c]`` (NaN for the
+    others).
 
     Exact, without visiting every window end: the windows ending on a sparse grid are
-    integrated first; since E never decreases, the windows ending between grid points a < b
-    integrate at most E(t_b) − E(t_a − span) (+ the hold part of a's window), and only the gaps
-    where that bound reaches the grid's maximum are integrated end by end.
+    integrated first; since E (the integral of τ² from the start) never decreases, the windows
+    ending between grid points a < b integrate at most E(t_b) − E(t_a − span) (+ the hold part
+    of a's window), and only the gaps where that bound reaches the grid's maximum are
+    integrated end by end.
     """
-    m, M, _ = cum.shape
+    M, m = s.shape
     out = np.full(m, np.nan)
     E = np.empty(M)
     stride = max(1, M // 256)
@@ -118,28 +123,17 @@ def rms_worst(tt: np.ndarray, cum: np.ndarray, x: np.ndarray, window: np.ndarray
     for c in range(m):
         if not sel[c]:
             continue
-        x1 = x[c]
-        x2 = x1 * x1
-        x3 = x2 * x1
-        x4 = x2 * x2
-        for n in range(M):
-            E[n] = (cum[c, n, 0] + x1 * cum[c, n, 1] + x2 * cum[c, n, 2] + x3 * cum[c, n, 3]
-                    + x4 * cum[c, n, 4])
-        span, hold = window[c] * x1, hold2[c]
+        _tau2_cumulative(tt, s, w, i, c, x[c], E)
+        span, hold = window[c] * x[c], hold2[c]
         worst = -np.inf
         j = 0
         for g in range(len(grid)):
             start_grid[g] = j
             at_grid[g], j = _window_at(tt, E, grid[g], j, span, hold)
             worst = max(worst, at_grid[g])
-        # E is monotone up to rounding: a gap is skipped only when its bound is clearly below
-        slack = 1e-12 * abs(worst)
         for g in range(len(grid) - 1):
             a, b = grid[g], grid[g + 1]
-            if b - a < 2:
-                continue
-            bound = at_grid[g] + (E[b] - E[a])
-            if bound < worst - slack:
+            if b - a < 2 or at_grid[g] + (E[b] - E[a]) < worst:
                 continue
             j = start_grid[g]
             for n in range(a + 1, b):
@@ -536,3 +530,38 @@ def quadratic_band(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[float, 
             if dn > lo:
                 lo = dn
     return lo, hi
+
+
+# --- torque terms --------------------------------------------------------------------------------
+
+@njit(**_JIT)
+def _sign(v: float) -> float:
+    # numpy.sign: 0 at 0, NaN at NaN
+    return 1.0 if v > 0 else (-1.0 if v < 0 else (0.0 if v == 0 else v))
+
+
+_F2 = types.Array(_f8, 2, "F")
+
+
+@njit([types.UniTuple(_F2, 4)(_M, _M, _M, _V, _V)], **_JIT)
+def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, damping: np.ndarray,
+                coulomb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """From rigid-body gravity G and full RNEA F (nv×N, one state per column, as Pinocchio's
+    batch writes them) and velocities V (N×nv): static = G + coulomb·sign(v), viscous =
+    damping·v, inertial = F − G and their sum (N·m), each N×nv column-major (every joint's
+    samples contiguous)."""
+    nv, N = G.shape
+    S = np.empty((nv, N)).T
+    W = np.empty((nv, N)).T
+    I = np.empty((nv, N)).T
+    tau = np.empty((nv, N)).T
+    for j in range(nv):
+        d, cf = damping[j], coulomb[j]
+        for n in range(N):
+            v = V[n, j]
+            s = G[j, n] + cf * _sign(v)
+            w = d * v
+            i = F[j, n] - G[j, n]
+            S[n, j], W[n, j], I[n, j] = s, w, i
+            tau[n, j] = s + w + i
+    return S, W, I, tau

@@ -133,6 +133,7 @@ def test_batches_equal_single_state(arm):
     np.testing.assert_allclose(dyn.gravity_batch(Q), grav, rtol=0, atol=TOL)
     terms = dyn.terms_batch(Q, V, A)
     np.testing.assert_allclose(terms.total(), single, rtol=0, atol=TOL)
+    np.testing.assert_array_equal(terms.full, terms.total())
     for k in (0.5, 1.7, 3.0):
         scaled = np.array([dyn.rnea(q, v / k, a / k**2) for q, v, a in zip(Q, V, A)])
         np.testing.assert_allclose(terms.total(k), scaled, rtol=0, atol=TOL)

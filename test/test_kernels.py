@@ -53,23 +53,25 @@ def test_first_exits_are_the_least_positive_crossing():
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_rms_worst_matches_a_direct_windowed_integral(seed):
+def test_rms_windows_match_a_direct_windowed_integral(seed):
     rng = np.random.default_rng(50 + seed)
     M, m = 800, 3
     t = np.sort(rng.uniform(0.0, 2.0, M))
     t[0] = 0.0
     t[300] = t[299]                         # a waypoint twice, as the sampler makes it
     s, w, i = (np.asfortranarray(rng.normal(size=(M, m))) for _ in range(3))
-    cum = K.rms_cumulative(t, s, w, i)
     x = rng.uniform(0.3, 2.0, m)
     window = rng.uniform(0.05, 0.8, m)
     hold2 = rng.uniform(0.0, 2.0, m)
-    got = K.rms_worst(t, cum, x, window, hold2, np.ones(m, dtype=bool))
+    every = K.rms_windowed(t, s, w, i, x, window, hold2)
+    got = K.rms_worst(t, s, w, i, x, window, hold2, np.ones(m, dtype=bool))
     for c in range(m):
         f = (s[:, c] + w[:, c] * x[c] + i[:, c] * x[c] ** 2) ** 2
         E = np.concatenate(([0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(t))))
         start = t - window[c] * x[c]
         inside = E - np.interp(start, t, E) + np.maximum(t[0] - start, 0.0) * hold2[c]
+        np.testing.assert_allclose(every[c], inside, rtol=1e-10, atol=1e-12 * inside.max())
         assert got[c] == pytest.approx(inside.max(), rel=1e-10)
-    only = K.rms_worst(t, cum, x, window, hold2, np.array([False, True, False]))
+        assert got[c] == every[c].max()       # the pruned search finds the very maximum
+    only = K.rms_worst(t, s, w, i, x, window, hold2, np.array([False, True, False]))
     assert math.isnan(only[0]) and math.isnan(only[2]) and only[1] == got[1]
