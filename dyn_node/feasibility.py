@@ -278,25 +278,6 @@ def _units(dynamics: Dynamics) -> dict[str, list[str]]:
     return {k: [(lin if p else rot)[k] for p in prismatic] for k in LIMIT_KINDS}
 
 
-def _segment_derivative(F: np.ndarray, first: np.ndarray, last: np.ndarray,
-                        h: np.ndarray) -> np.ndarray:
-    """d/dt of samples F (M×c) inside each segment: central differences in the interior,
-    second-order one-sided at segment ends (first order for one-step segments)."""
-    D = np.empty_like(F)
-    hh = h[:, None]
-    D[1:-1] = (F[2:] - F[:-2]) / (2 * hh[1:-1])
-    long = last - first >= 2
-    f, l_ = first[long], last[long]
-    hf = h[f][:, None]
-    D[f] = (-3 * F[f] + 4 * F[f + 1] - F[f + 2]) / (2 * hf)
-    D[l_] = (3 * F[l_] - 4 * F[l_ - 1] + F[l_ - 2]) / (2 * hf)
-    f, l_ = first[~long], last[~long]
-    d1 = (F[l_] - F[f]) / h[f][:, None]
-    D[f] = d1
-    D[l_] = d1
-    return D
-
-
 @dataclass
 class _Samples:
     t: np.ndarray        # M sample times (s)
@@ -334,22 +315,17 @@ def _evaluate(coeffs: np.ndarray, breaks: np.ndarray, smp: _Samples,
               n_derivatives: int = 4) -> list[np.ndarray]:
     """q, q̇, q̈, q⃛ (M×nv; the first ``n_derivatives`` of them) of the piecewise polynomial at
     the samples, each on its own segment."""
-    s = (smp.t - breaks[smp.seg])[:, None]
-    s[smp.last, 0] = (breaks[1:] - breaks[:-1])
-    out = []
+    s = smp.t - breaks[smp.seg]
+    s[smp.last] = breaks[1:] - breaks[:-1]
+    # every derivative's coefficients in one zero-padded table (a zero leading coefficient
+    # leaves Horner's result unchanged)
+    K, P, nv = coeffs.shape
+    tables = np.zeros((n_derivatives, K, max(P, 1), nv))
     c = coeffs
-    for _ in range(n_derivatives):
-        if c.shape[1] == 0:
-            out.append(np.zeros((len(smp.t), coeffs.shape[2])))
-            continue
-        # Horner on this derivative's coefficients, gathered per sample from the segment table
-        acc = np.take(c[:, -1, :], smp.seg, axis=0)
-        for k in range(c.shape[1] - 2, -1, -1):
-            acc *= s
-            acc += np.take(c[:, k, :], smp.seg, axis=0)
-        out.append(acc)
+    for d in range(n_derivatives):
+        tables[d, :, :c.shape[1]] = c
         c = c[:, 1:, :] * np.arange(1, c.shape[1], dtype=float)[None, :, None]
-    return out
+    return [kernels.piecewise_eval(tables, smp.seg, s, d) for d in range(n_derivatives)]
 
 
 def _cumtrapz_rows(tt: np.ndarray, fT: np.ndarray) -> np.ndarray:
@@ -519,7 +495,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         R = lim.rms_effort[rms_cols]
         Wn = lim.rms_window[rms_cols]
         h2 = hold[rms_cols] ** 2
-        s_max = np.maximum(_colmax(np.abs(_take(S, rms_cols))), np.abs(hold[rms_cols]))
+        s_max = np.maximum(kernels.abs_peak(_take(S, rms_cols))[1], np.abs(hold[rms_cols]))
         static_bad = s_max > R
         good = ~static_bad
         if np.any(good):
@@ -529,7 +505,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
             # gravity alone just reaches the limit and that bound is useless)
             sg, wg, ig = _take(S, gc), _take(W, gc), _take(I, gc)
             x_up = np.array([kernels.band_exit_bound(*b) for b in zip(
-                _colmax(np.abs(sg)), _colmax(np.abs(wg)), _colmax(np.abs(ig)), R[good])])
+                kernels.abs_peak(sg)[1], kernels.abs_peak(wg)[1], kernels.abs_peak(ig)[1], R[good])])
             tight = ~(x_up > 0)
             if np.any(tight):
                 x_up[tight] = kernels.band_exit(sg[:, tight], wg[:, tight], ig[:, tight],
@@ -559,10 +535,10 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
                             np.broadcast_to(L, (len(tt), len(cols))))
         s, w, i = _take(S, cols), _take(W, cols), _take(I, cols)
         xstar["effort"] = kernels.band_exit(s, w, i, L)
-        over = np.abs(s) / L
-        if np.any(over > 1):
-            n, c = np.unravel_index(int(np.argmax(over)), over.shape)   # the worst pose
-            infinite_reason.append(("effort", names[cols[c]], int(n), float(abs(s[n, c])), float(L[c])))
+        at, peak = kernels.abs_peak(s)
+        if np.any(peak > L):
+            c = int(np.argmax(peak / L))      # the worst pose
+            infinite_reason.append(("effort", names[cols[c]], int(at[c]), float(peak[c]), float(L[c])))
 
     ecols = np.array([j for j in range(nv) if lim.effort_speed_curve[j] is not None], dtype=int)
     if len(ecols):
@@ -589,25 +565,25 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         L = lim.power[cols]
         v = _take(V, cols)
         values["power"] = (cols, np.abs(_take(tau, cols) * v), np.broadcast_to(L, v.shape))
-        xstar["power"] = kernels.odd_exit(_take(S, cols) * v, _take(W, cols) * v, _take(I, cols) * v, L)
+        xstar["power"] = kernels.odd_exit(_take(S, cols), _take(W, cols), _take(I, cols), v, L)
 
     rate_cols = limited(lim.effort_rate)
     need_step = mode == "cubic"
     if len(rate_cols):
         L = lim.effort_rate[rate_cols]
-        dG = _segment_derivative(_take(G, rate_cols), smp.first, smp.last, smp.h)
-        dW = _segment_derivative(_take(W, rate_cols), smp.first, smp.last, smp.h)
-        dI = _segment_derivative(_take(I, rate_cols), smp.first, smp.last, smp.h)
+        dG = kernels.segment_derivative(_take(G, rate_cols), smp.first, smp.last, smp.h)
+        dW = kernels.segment_derivative(_take(W, rate_cols), smp.first, smp.last, smp.h)
+        dI = kernels.segment_derivative(_take(I, rate_cols), smp.first, smp.last, smp.h)
         rate = dG + dW + dI
         values["effort_rate"] = (rate_cols, np.abs(rate), np.broadcast_to(L, rate.shape))
-        xstar["effort_rate"] = kernels.odd_exit(dG, dW, dI, L)
+        xstar["effort_rate"] = kernels.odd_exit(dG, dW, dI, np.broadcast_to(1.0, dG.shape), L)
     effort_step = {}
     if len(traj.times) > 2:
         steps = np.abs(tau[smp.first[1:]] - tau[smp.last[:-1]])  # (N-2)×nv
         peak = _colmax(steps)
         for j in range(nv):
             effort_step[names[j]] = float(peak[j])
-        scale = np.maximum(_colmax(np.abs(tau)), 1e-9)
+        scale = np.maximum(kernels.abs_peak(tau)[1], 1e-9)
         if need_step and np.any(peak > 1e-6 * scale):
             j = int(np.argmax(peak / scale))
             w_ = int(np.argmax(steps[:, j])) + 1
@@ -679,23 +655,12 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         if kind not in values:
             continue
         cols, val, L = values[kind]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            if L.strides[0] == 0 and np.all(L[0] > 0):    # one positive limit per column
-                ratio = val / L[0]
-                anyo = _colmax(val) > L[0]
-            else:
-                ratio = np.where(L > 0, val / L, np.where(val > 0, np.inf, 0.0))
-                anyo = _colany(val > L)
-        peak = np.argmax(ratio, axis=0)
-        if anyo.any():
-            over = val > L
-            firsts = np.argmax(over, axis=0)
-            dur = smp.weight @ np.ascontiguousarray(over)   # the same summation path
+        peak, ratio, firsts, dur = kernels.limit_peaks(val, L, smp.weight)
         for c, j in enumerate(cols):
             n = int(peak[c])
-            per_joint[names[j]][kind] = {"ratio": float(ratio[n, c]), "time_s": float(tt[n]),
+            per_joint[names[j]][kind] = {"ratio": float(ratio[c]), "time_s": float(tt[n]),
                                          "value": float(val[n, c]), "limit": float(L[n, c])}
-            if anyo[c]:
+            if firsts[c] >= 0:
                 violations.append(Violation(names[j], kind, float(tt[firsts[c]]), float(tt[n]),
                                             float(val[n, c]), float(L[n, c]), float(dur[c]),
                                             units[kind][j]))
@@ -926,8 +891,8 @@ def _payload_margin_from(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms
         coul = np.asarray(dynamics.model.pin_model.friction, dtype=float)[cols] \
             if dynamics.options.include_friction else 0.0
         smooth0 = _take(tau0, cols) - coul * np.sign(_take(V, cols))
-        d0 = _segment_derivative(smooth0, smp.first, smp.last, smp.h)
-        d1 = _segment_derivative(_take(tau1, cols), smp.first, smp.last, smp.h)
+        d0 = kernels.segment_derivative(smooth0, smp.first, smp.last, smp.h)
+        d1 = kernels.segment_derivative(_take(tau1, cols), smp.first, smp.last, smp.h)
         linear(d0, d1, L)
     if "rms_effort" in values:
         cols = values["rms_effort"][0]

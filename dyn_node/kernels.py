@@ -317,10 +317,12 @@ def band_exit(s: np.ndarray, w: np.ndarray, i: np.ndarray, L: np.ndarray) -> np.
     return out
 
 
-@njit([types.Array(_f8, 1, "C")(_M, _M, _M, _V)], **_JIT)
-def odd_exit(c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, L: np.ndarray) -> np.ndarray:
+@njit([types.Array(_f8, 1, "C")(_M, _M, _M, _M, _V)], **_JIT)
+def odd_exit(c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, scale: np.ndarray,
+             L: np.ndarray) -> np.ndarray:
     """Per column c, the smallest first exit x > 0 over samples (M×m) of
-    |c1·x + c2·x² + c3·x³| ≤ L[c] (L > 0); inf where no sample ever leaves.
+    |(c1·x + c2·x² + c3·x³)·scale| ≤ L[c] (L > 0); inf where no sample ever leaves. ``scale``
+    (M×m, may be a broadcast view): e.g. the joint speed, for power.
 
     In k = 1/x the bound |c1|x + |c2|x² + |c3|x³ ≤ L reads p(k) = L·k³ − |c1|k² − |c2|k − |c3|
     ≥ 0; p has one positive root, which bounds the sample's exact k from above and exceeds the
@@ -331,21 +333,50 @@ def odd_exit(c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, L: np.ndarray) -> n
     for c in range(m):
         Lc = L[c]
         best = np.inf
-        for n in (_argmax_abs(c1, c), _argmax_abs(c2, c), _argmax_abs(c3, c)):
-            best = min(best, cubic_exit(c1[n, c], c2[n, c], c3[n, c], Lc))
+        big = np.zeros(3)
+        seeds = np.zeros(3, dtype=np.int64)
         for n in range(M):
-            A, B, C = abs(c1[n, c]), abs(c2[n, c]), abs(c3[n, c])
+            f = abs(scale[n, c])
+            for q, X in enumerate((c1, c2, c3)):
+                a = abs(X[n, c]) * f
+                if a > big[q]:
+                    big[q], seeds[q] = a, n
+        for n in seeds:
+            f = scale[n, c]
+            best = min(best, cubic_exit(c1[n, c] * f, c2[n, c] * f, c3[n, c] * f, Lc))
+        for n in range(M):
+            f = scale[n, c]
+            a1, a2, a3 = c1[n, c] * f, c2[n, c] * f, c3[n, c] * f
+            A, B, C = abs(a1), abs(a2), abs(a3)
             if best < np.inf:
                 kb = 1.0 / best / (1 + 1e-9)
                 if ((Lc * kb - A) * kb - B) * kb - C >= 0:
                     continue
             elif A + B + C == 0:
                 continue
-            x = cubic_exit(c1[n, c], c2[n, c], c3[n, c], Lc)
+            x = cubic_exit(a1, a2, a3, Lc)
             if x < best:
                 best = x
         out[c] = best
     return out
+
+
+@njit([types.Tuple((types.Array(_i8, 1, "C"), types.Array(_f8, 1, "C")))(_M)], **_JIT)
+def abs_peak(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column of X (M×m): the first sample of the largest |X| and that value; (0, 0) for
+    an empty column; NaN propagates as in numpy.max."""
+    M, m = X.shape
+    at = np.zeros(m, dtype=np.int64)
+    peak = np.zeros(m)
+    for c in range(m):
+        best, where = -1.0, 0
+        for n in range(M):
+            a = abs(X[n, c])
+            if a > best or (a != a and best == best):
+                best, where = a, n
+        if M:
+            at[c], peak[c] = where, best
+    return at, peak
 
 
 # --- torque-speed envelope -----------------------------------------------------------------------
@@ -565,3 +596,83 @@ def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, damping: np.ndarray
             S[n, j], W[n, j], I[n, j] = s, w, i
             tau[n, j] = s + w + i
     return S, W, I, tau
+
+
+# --- sampling and per-column peaks -----------------------------------------------------------------
+
+_C2 = types.Array(_f8, 2, "C")
+
+
+_T4 = types.Array(_f8, 4, "A", readonly=True)
+
+
+@njit([_C2(_T4, _I, _V, _i8)], **_JIT)
+def piecewise_eval(tables: np.ndarray, seg: np.ndarray, s: np.ndarray, d: int) -> np.ndarray:
+    """Derivative d of a piecewise polynomial at M samples (row-major M×nv): ``tables[d, k, p,
+    j]`` is derivative d's coefficient of sᵖ on segment k for column j, ``seg`` each sample's
+    segment and ``s`` its time from the segment's start. Horner per sample."""
+    _, _, P, nv = tables.shape
+    out = np.empty((len(s), nv))
+    for n in range(len(s)):
+        k, x = seg[n], s[n]
+        # the columns side by side: independent chains, so the multiply-adds overlap
+        for j in range(nv):
+            out[n, j] = tables[d, k, P - 1, j]
+        for p in range(P - 2, -1, -1):
+            for j in range(nv):
+                out[n, j] = out[n, j] * x + tables[d, k, p, j]
+    return out
+
+
+_IC = types.Array(_i8, 1, "C")
+_FC = types.Array(_f8, 1, "C")
+
+
+@njit([types.Tuple((_IC, _FC, _IC, _FC))(_M, _M, _V)], **_JIT)
+def limit_peaks(val: np.ndarray, L: np.ndarray, weight: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per column of values ``val`` against limits ``L`` (M×m; L may be a broadcast view) with
+    sample weights (M, s): the first sample of the largest ratio val/L (a zero limit: inf if
+    val > 0, else 0) and that ratio; the first sample above its limit (−1: none) and the time
+    spent above it (Σ weight)."""
+    M, m = val.shape
+    peak_at = np.zeros(m, dtype=np.int64)
+    peak = np.zeros(m)
+    first = np.full(m, -1, dtype=np.int64)
+    above = np.zeros(m)
+    for c in range(m):
+        best, where = -np.inf, 0
+        for n in range(M):
+            v, lim = val[n, c], L[n, c]
+            r = v / lim if lim > 0 else (np.inf if v > 0 else 0.0)
+            if r > best:
+                best, where = r, n
+            if v > lim:
+                if first[c] < 0:
+                    first[c] = n
+                above[c] += weight[n]
+        peak_at[c], peak[c] = where, best
+    return peak_at, peak, first, above
+
+
+@njit([_F2(_M, _I, _I, _V)], **_JIT)
+def segment_derivative(F: np.ndarray, first: np.ndarray, last: np.ndarray,
+                       h: np.ndarray) -> np.ndarray:
+    """d/dt of samples F (M×m, per second) inside each segment (samples first[k]..last[k], step
+    h): central differences in the interior, second-order one-sided at segment ends (first
+    order for one-step segments). Column-major M×m."""
+    M, m = F.shape
+    D = np.empty((m, M)).T
+    for c in range(m):
+        for k in range(len(first)):
+            f, l_ = first[k], last[k]
+            if l_ - f >= 2:
+                for n in range(f + 1, l_):
+                    D[n, c] = (F[n + 1, c] - F[n - 1, c]) / (2 * h[n])
+                D[f, c] = (-3 * F[f, c] + 4 * F[f + 1, c] - F[f + 2, c]) / (2 * h[f])
+                D[l_, c] = (3 * F[l_, c] - 4 * F[l_ - 1, c] + F[l_ - 2, c]) / (2 * h[f])
+            else:
+                d1 = (F[l_, c] - F[f, c]) / h[f]
+                D[f, c] = d1
+                D[l_, c] = d1
+    return D

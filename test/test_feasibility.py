@@ -470,10 +470,15 @@ def test_exit_shortcuts_match_per_sample_exact_roots(seed):
             ref = 0.0
         assert got[c] == ref
     Lp = rng.uniform(5.0, 50.0, m)
-    got = K.odd_exit(S, W, I, Lp)
+    got = K.odd_exit(S, W, I, np.ones_like(S), Lp)
+    speed = rng.normal(size=S.shape)           # as power scales torque by joint speed
+    got_scaled = K.odd_exit(S, W, I, speed, Lp)
     for c in range(m):
         ref = float(K.cubic_exits(S[:, c], W[:, c], I[:, c], np.full(M, Lp[c])).min())
         assert got[c] == ref
+        v = speed[:, c]
+        ref = float(K.cubic_exits(S[:, c] * v, W[:, c] * v, I[:, c] * v, np.full(M, Lp[c])).min())
+        assert got_scaled[c] == ref
 
 
 def _rms_ok(t, s, w, i, hold2, window, R, k) -> bool:

@@ -52,6 +52,18 @@ def test_first_exits_are_the_least_positive_crossing():
     assert K.band_exit(s, s * 0, s * 0 + 1, np.array([8.0]))[0] == 0.0
 
 
+def test_abs_peak_is_numpy_argmax_of_abs():
+    X = np.asfortranarray(np.random.default_rng(3).normal(size=(500, 4)))
+    X[7, 1] = X[9, 1] = 50.0                      # a tie: the first one, as numpy.argmax
+    at, peak = K.abs_peak(X)
+    np.testing.assert_array_equal(at, np.argmax(np.abs(X), axis=0))
+    np.testing.assert_array_equal(peak, np.abs(X).max(axis=0))
+    X[3, 2] = np.nan
+    at, peak = K.abs_peak(X)
+    assert at[2] == 3 and np.isnan(peak[2])
+    assert K.abs_peak(np.zeros((0, 2)))[1].tolist() == [0.0, 0.0]
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_rms_windows_match_a_direct_windowed_integral(seed):
     rng = np.random.default_rng(50 + seed)
@@ -75,3 +87,18 @@ def test_rms_windows_match_a_direct_windowed_integral(seed):
         assert got[c] == every[c].max()       # the pruned search finds the very maximum
     only = K.rms_worst(t, s, w, i, x, window, hold2, np.array([False, True, False]))
     assert math.isnan(only[0]) and math.isnan(only[2]) and only[1] == got[1]
+
+
+def test_segment_derivative_is_exact_for_quadratics_and_stays_inside_segments():
+    from dyn_node.feasibility import _sample
+    smp = _sample(np.array([0.0, 0.5, 0.53, 1.2]), 0.05, 10_000)   # one segment of one step
+    t = smp.t
+    # a different quadratic per segment, so a difference across a boundary would show
+    F = np.stack([(1 + smp.seg) * t ** 2 + 3 * t, -2 * t ** 2 + smp.seg * t], axis=1)
+    D = K.segment_derivative(F, smp.first, smp.last, smp.h)
+    exact = np.stack([2 * (1 + smp.seg) * t + 3, -4 * t + smp.seg], axis=1)
+    one_step = np.isin(smp.seg, np.flatnonzero(smp.last - smp.first == 1))
+    np.testing.assert_allclose(D[~one_step], exact[~one_step], rtol=1e-9, atol=1e-9)
+    # a one-step segment gets the chord slope at both ends
+    f, l_ = smp.first[1], smp.last[1]
+    np.testing.assert_allclose(D[[f, l_]], np.repeat((F[l_] - F[f])[None] / smp.h[f], 2, 0))
