@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from . import kernels
 from .model import RobotModel
 
 
@@ -149,6 +148,8 @@ class Dynamics:
                     threads: int | None = None) -> TorqueTerms:
         """RNEA split into static, viscous and inertial parts (see :class:`TorqueTerms`), each
         N×nv and column-major (every joint's samples contiguous, for per-joint reductions)."""
+        from . import kernels   # here, not at import: Numba is only for batched checks
+
         Q, V, A = (np.ascontiguousarray(x, dtype=float) for x in (Q, V, A))
         Z = np.zeros_like(Q)
         G = self._rigid_columns(Q, Z, Z, threads)

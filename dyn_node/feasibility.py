@@ -12,20 +12,21 @@ Time scaling. Stretching the trajectory's duration by k (x = 1/k) gives q̇ ÷ k
 and torque τ(x) = s + w·x + i·x² with s = gravity + Coulomb friction, w = viscous friction,
 i = inertial + Coriolis + armature (:class:`~dyn_node.dynamics.TorqueTerms`). Each constraint at
 each sample is a polynomial of degree ≤ 3 in x (the torque-speed envelope piecewise so), so its
-first exit from the allowed band is found in closed form, vectorised over samples; cheap
-elementwise bounds (|s| + |w|·x + |i|·x² ≥ |τ(x)|) decide which samples could hold the largest
-factor, and only those are solved exactly. The RMS (thermal) constraint, whose window covers a
+first exit from the allowed band is found in closed form, in one compiled loop over the samples
+per constraint (:mod:`dyn_node.kernels`); cheap bounds (|s| + |w|·x + |i|·x² ≥ |τ(x)|) decide
+which samples could hold the largest factor, and only those are solved exactly. The RMS (thermal) constraint, whose window covers a
 k-dependent stretch of samples, is solved on k for that constraint alone (secant on log k, each
 trial decided exactly on a sparse grid of windows plus the gaps a bound cannot clear; see
 ``_rms_time_scale``). ``time_scale`` is the largest of these per-sample factors: the smallest k
 such that every k' ≥ k is feasible.
 
 Cost: three batched RNEA passes (gravity, full, and the 1 kg payload for the margin; two without
-the margin) are the largest part; everything else is a fixed number of vectorised passes over the
-samples, the RMS time-scale search being the largest of them. With ``FeasibilityOptions.threads``
-above one, the RNEA passes use that many OpenMP threads and the RMS search and the payload margin
-run on a background thread beside the other checks; every number is computed by the same
-operations either way, so the result is identical.
+the margin) are the largest part; everything else is a fixed number of passes over the samples,
+the per-sample ones compiled and run without the GIL (the node's joint_states path keeps running
+beside a check). With ``FeasibilityOptions.threads`` above one, the RNEA passes use that many
+OpenMP threads and the RMS search and the payload margin run on a background thread beside the
+other checks; every number is computed by the same operations either way, so the result is
+identical.
 
 Effort rate is dτ/dt, by finite differences inside each segment (where the interpolated motion is
 a polynomial and τ is smooth). Where a waypoint joins segments whose accelerations differ (cubic
