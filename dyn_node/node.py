@@ -42,6 +42,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
+# at start, not at the first trajectory: loading the compiled kernels holds the GIL for about
+# 0.7 s, which then stalled joint_states handling by up to 170 ms (seen in make demo)
+from . import feasibility
 from .dynamics import Dynamics, DynamicsOptions
 from .errors import DynNodeError, STATE_ERROR, TrajectoryError
 from .model import RobotModel
@@ -625,8 +628,6 @@ class DynNode(Node):
                 validate_trajectory(model.joint_names, names, times, P, V, A, min_points=2)
         except TrajectoryError as exc:
             error = exc
-        from . import feasibility  # lazily: the node runs (and tracks) without loading it first
-
         hid = model.name
         duration = float(times[-1]) if times and all(map(math.isfinite, times)) else 0.0
         if error is not None:
