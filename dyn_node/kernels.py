@@ -247,33 +247,15 @@ def cubic_exit(c1: float, c2: float, c3: float, limit: float) -> float:
     return best
 
 
-@njit([types.Array(_f8, 1, "C")(_V, _V, _V, _V)], **_JIT)
-def quadratic_exits(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray,
-                    limit: np.ndarray) -> np.ndarray:
-    """:func:`quadratic_exit` elementwise over 1-D arrays (every element solved, no bounds)."""
-    out = np.empty(len(c0))
-    for n in range(len(c0)):
-        out[n] = quadratic_exit(c0[n], c1[n], c2[n], limit[n])
-    return out
-
-
-@njit([types.Array(_f8, 1, "C")(_V, _V, _V, _V)], **_JIT)
-def cubic_exits(c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, limit: np.ndarray) -> np.ndarray:
-    """:func:`cubic_exit` elementwise over 1-D arrays (every element solved, no bounds)."""
-    out = np.empty(len(c1))
-    for n in range(len(c1)):
-        out[n] = cubic_exit(c1[n], c2[n], c3[n], limit[n])
-    return out
-
-
 # --- per-column first exits (time scale x = 1/k) ------------------------------------------------
 
 @njit(**_JIT)
 def _argmax_abs(X: np.ndarray, c: int) -> int:
+    # numpy.argmax(|X[:, c]|): the first largest, or the first NaN
     best, at = -1.0, 0
     for n in range(X.shape[0]):
         a = abs(X[n, c])
-        if a > best:
+        if a > best or (a != a and best == best):
             best, at = a, n
     return at
 
@@ -369,14 +351,10 @@ def abs_peak(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     M, m = X.shape
     at = np.zeros(m, dtype=np.int64)
     peak = np.zeros(m)
-    for c in range(m):
-        best, where = -1.0, 0
-        for n in range(M):
-            a = abs(X[n, c])
-            if a > best or (a != a and best == best):
-                best, where = a, n
-        if M:
-            at[c], peak[c] = where, best
+    if M:
+        for c in range(m):
+            at[c] = _argmax_abs(X, c)
+            peak[c] = abs(X[at[c], c])
     return at, peak
 
 
@@ -440,18 +418,6 @@ def envelope_exit(s: float, w: float, i: float, speed: float, sp: np.ndarray, ef
                 if x >= lo and x <= hi and x > 0 and x < best:
                     best = x
     return best
-
-
-@njit([types.Array(_f8, 1, "C")(_V, _V, _V, _V, _M)], **_JIT)
-def envelope_exits(s: np.ndarray, w: np.ndarray, i: np.ndarray, speed: np.ndarray,
-                   curve: np.ndarray) -> np.ndarray:
-    """:func:`envelope_exit` elementwise over 1-D arrays for one P×2 curve (every element
-    solved, no bounds)."""
-    sp, ef = np.ascontiguousarray(curve[:, 0]), np.ascontiguousarray(curve[:, 1])
-    out = np.empty(len(s))
-    for n in range(len(s)):
-        out[n] = envelope_exit(s[n], w[n], i[n], speed[n], sp, ef, len(sp))
-    return out
 
 
 @njit(**_JIT)

@@ -454,6 +454,23 @@ def _random_terms(rng: np.random.Generator, M: int, m: int):
     return t, S, W, I
 
 
+# references: every sample solved by the scalar kernels, no bounds, no pruning
+def quadratic_exits(c0, c1, c2, limit):
+    from dyn_node import kernels as K
+    return np.array([K.quadratic_exit(*e, limit) for e in zip(c0, c1, c2)])
+
+
+def cubic_exits(c1, c2, c3, limit):
+    from dyn_node import kernels as K
+    return np.array([K.cubic_exit(*e, limit) for e in zip(c1, c2, c3)])
+
+
+def envelope_exits(s, w, i, speed, curve):
+    from dyn_node import kernels as K
+    sp, ef = np.ascontiguousarray(curve[:, 0]), np.ascontiguousarray(curve[:, 1])
+    return np.array([K.envelope_exit(*e, sp, ef, len(sp)) for e in zip(s, w, i, speed)])
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_exit_shortcuts_match_per_sample_exact_roots(seed):
     from dyn_node import kernels as K
@@ -465,7 +482,7 @@ def test_exit_shortcuts_match_per_sample_exact_roots(seed):
     got = K.band_exit(S, W, I, L)
     for c in range(m):
         # every sample solved exactly (elementwise; no bounds, no pruning)
-        ref = float(K.quadratic_exits(S[:, c], W[:, c], I[:, c], np.full(M, L[c])).min())
+        ref = float(quadratic_exits(S[:, c], W[:, c], I[:, c], L[c]).min())
         if np.any(np.abs(S[:, c]) > L[c]):
             ref = 0.0
         assert got[c] == ref
@@ -474,10 +491,10 @@ def test_exit_shortcuts_match_per_sample_exact_roots(seed):
     speed = rng.normal(size=S.shape)           # as power scales torque by joint speed
     got_scaled = K.odd_exit(S, W, I, speed, Lp)
     for c in range(m):
-        ref = float(K.cubic_exits(S[:, c], W[:, c], I[:, c], np.full(M, Lp[c])).min())
+        ref = float(cubic_exits(S[:, c], W[:, c], I[:, c], Lp[c]).min())
         assert got[c] == ref
         v = speed[:, c]
-        ref = float(K.cubic_exits(S[:, c] * v, W[:, c] * v, I[:, c] * v, np.full(M, Lp[c])).min())
+        ref = float(cubic_exits(S[:, c] * v, W[:, c] * v, I[:, c] * v, Lp[c]).min())
         assert got_scaled[c] == ref
 
 
@@ -521,7 +538,6 @@ def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
     alone needs, so samples start outside parts of the envelope) against every sample solved
     exactly with no bounds."""
     from dyn_node import feasibility as F
-    from dyn_node import kernels as K
 
     rng = np.random.default_rng(300 + seed)
     model = base_model("panda")
@@ -541,8 +557,8 @@ def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
     pp = interpolate(traj, traj.natural_interpolation)
     Q, V, A = F._evaluate(pp.coeffs, pp.breaks, smp, 3)
     terms = dyn.terms_batch(Q, V, A)
-    x = min(float(K.envelope_exits(terms.static[:, j], terms.viscous[:, j], terms.inertial[:, j],
-                                   V[:, j], m.limits.effort_speed_curve[j]).min())
+    x = min(float(envelope_exits(terms.static[:, j], terms.viscous[:, j], terms.inertial[:, j],
+                                 V[:, j], m.limits.effort_speed_curve[j]).min())
             for j in range(m.nv))
     curves = m.limits.effort_speed_curve
     if any(np.any(np.abs(terms.static[:, j]) > curves[j][0, 1]) for j in range(m.nv)):
