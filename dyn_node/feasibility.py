@@ -604,7 +604,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
 
     # payload margin: every effort-type value is in place; beside the rest when parallel
     margin_job = None if tau1 is None else _Job(
-        _payload_margin_from, (dynamics, Q, V, tau, tau1, values, smp, lim, hold,
+        _payload_margin, (dynamics, Q, V, tau, tau1, values, smp, lim, hold,
                                rms_win if "rms_effort" in values else None), background=parallel)
 
     if len(rms_cols):
@@ -854,17 +854,11 @@ def _payload_torque(dynamics: Dynamics, Q, V, A, tau0, threads: int | None = Non
     return np.subtract(heavy, tau0, out=np.empty_like(tau0))    # in τ0's memory order
 
 
-def _payload_margin(dynamics, Q, V, A, tau0, values, smp, lim, hold, rms_win,
-                    threads: int | None = None) -> float:
+def _payload_margin(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms_win) -> float:
     """Largest extra mass m (kg) at the payload point keeping every effort-type limit at the
-    trajectory's own timing: τ = τ0 + m·τ1 is affine in m, so each sample gives an interval.
-    ``rms_win``: the windowed ∫τ0² of the RMS-limited joints (m×M), already computed."""
-    tau1 = _payload_torque(dynamics, Q, V, A, tau0, threads)
-    return _payload_margin_from(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms_win)
-
-
-def _payload_margin_from(dynamics, Q, V, tau0, tau1, values, smp, lim, hold, rms_win) -> float:
-    """:func:`_payload_margin` given τ1 (see :func:`_payload_torque`)."""
+    trajectory's own timing: τ = τ0 + m·τ1 is affine in m (τ1 from :func:`_payload_torque`), so
+    each sample gives an interval. ``rms_win``: the windowed ∫τ0² of the RMS-limited joints
+    (m×M), already computed."""
     heavy = _unit_payload_dynamics(dynamics)
     bands: list[tuple[float, float]] = []
 

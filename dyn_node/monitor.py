@@ -318,8 +318,7 @@ class Monitor:
         dt = t - prev_t
         if dt == 0.0:
             return self._a, False
-        with np.errstate(over="ignore"):   # inf is the answer; the torque check flags it
-            raw = (v - prev_v) / dt
+        raw = (v - prev_v) / dt
         if self._fc > 0.0 and self._filtered:
             alpha = 1.0 - math.exp(-2.0 * math.pi * self._fc * dt)
             self._a = self._a + alpha * (raw - self._a)
