@@ -8,15 +8,23 @@ The headline row runs the check on one thread, as the live node does; the next r
 the payload margin (the issues' targets name every limit kind and the time scale, not the
 margin); a third runs its batched RNEA passes on every core (same result), and the last times
 those passes alone: the floor under every other row.
+
+Those rows run with freed memory kept mapped (dyn_node.allocator.retain_freed_memory, which the
+dyn_node and dyn-audit entry points call): a check's sample arrays then reuse the previous
+check's pages. One more row, measured first because the setting cannot be undone, runs the check
+under glibc's defaults, where every check faults its arrays in afresh; each row records the
+minor page faults per check.
 """
 from __future__ import annotations
 
 import os
+import resource
 import statistics
 
 import numpy as np
 import pinocchio as pin
 
+from dyn_node.allocator import retain_freed_memory
 from dyn_node.dynamics import Dynamics
 from dyn_node.model import load_model
 
@@ -56,6 +64,23 @@ def trajectory(model):
     vel[0] = vel[-1] = 0.0
     acc[0] = acc[-1] = 0.0
     return validate_trajectory(model.joint_names, model.joint_names, times, pos, vel, acc)
+
+
+def _rounds(subjects: dict, repeats: int) -> tuple[dict[str, list[float]], dict[str, list[int]]]:
+    """Interleaved rounds (each subject once per round, after one warm-up call each): the
+    machine is shared, so each figure is a median and each ratio compares figures taken side
+    by side. Also the minor page faults of every call."""
+    times: dict[str, list[float]] = {k: [] for k in subjects}
+    faults: dict[str, list[int]] = {k: [] for k in subjects}
+    for fn in subjects.values():
+        fn()
+    for _ in range(repeats):
+        for key, fn in subjects.items():
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            t, _ = median_time(fn, 1, warmup=0)
+            faults[key].append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+            times[key].append(t)
+    return times, faults
 
 
 def run(quick: bool = False, smoke: bool = False) -> dict:
@@ -102,8 +127,6 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
                 F._unit_payload_dynamics(dyn).rnea_batch(Q, V, A, threads)
         return f
 
-    # interleaved rounds (check, check on all cores, loop, passes): the machine is shared, so
-    # each figure is a median and each ratio compares figures taken side by side
     progress("feasibility", f"baseline: Python loop of pinocchio.rnea over {len(Q)} samples; "
                             f"check with 1 and {cores} threads")
     subjects = {"check": lambda: F.check_trajectory(dyn, traj, options),
@@ -111,26 +134,38 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
                 "check_mt": lambda: F.check_trajectory(dyn, traj, options_mt),
                 "loop": loop, "passes": rnea_passes(1), "passes_mt": rnea_passes(cores),
                 "passes_nm": rnea_passes(1, payload=False)}
-    times: dict[str, list[float]] = {k: [] for k in subjects}
-    for fn in subjects.values():
-        fn()
-    for _ in range(repeats):
-        for key, fn in subjects.items():
-            t, _ = median_time(fn, 1, warmup=0)
-            times[key].append(t)
+    # first with glibc's default heap settings, then as the node runs (dyn_node.allocator:
+    # freed memory kept mapped); the setting is process-wide and cannot be undone, so in order
+    progress("feasibility", "the check without the margin under glibc's default heap settings")
+    default = {"check_nm": subjects["check_nm"], "loop": loop}
+    times_default, faults_default = _rounds(default, repeats)
+    applied = retain_freed_memory()
+    progress("feasibility", "the same rounds with freed memory kept mapped, as the node runs"
+                            if applied else "heap setting not available here (not glibc)")
+    times, faults = _rounds(subjects, repeats)
     med = {k: statistics.median(v) for k, v in times.items()}
+    med_default = {k: statistics.median(v) for k, v in times_default.items()}
     return dict(n_samples=int(len(Q)), nv=model.nv, duration_s=DURATION_S, repeats=repeats,
                 check_s=med["check"], rnea_loop_s=med["loop"], ratio=med["check"] / med["loop"],
                 threads=1, cores=cores,
                 check_no_margin_s=med["check_nm"], ratio_no_margin=med["check_nm"] / med["loop"],
+                heap_retained=bool(applied),
+                page_faults_per_check=int(statistics.median(faults["check_nm"])),
+                check_no_margin_default_heap_s=med_default["check_nm"],
+                rnea_loop_default_heap_s=med_default["loop"],
+                ratio_no_margin_default_heap=med_default["check_nm"] / med_default["loop"],
+                page_faults_per_check_default_heap=int(statistics.median(faults_default["check_nm"])),
+                what_default_heap="the check without the margin under glibc's default heap "
+                                  "settings (each check faults its arrays in afresh), rounds "
+                                  "before the rows above, against the loop in the same rounds",
                 rnea_passes_no_margin_s=med["passes_nm"],
                 check_all_cores_s=med["check_mt"], ratio_all_cores=med["check_mt"] / med["loop"],
                 rnea_passes_s=med["passes"], rnea_passes_all_cores_s=med["passes_mt"],
                 feasible=bool(result.feasible), time_scale=float(result.time_scale),
                 interpolation=str(result.interpolation), n_points=int(result.n_points),
                 what="check_trajectory on one thread (as the node runs it: all limit kinds, "
-                     "time scale, payload margin) vs a Python loop of pinocchio.rnea on the "
-                     "same samples",
+                     "time scale, payload margin; freed memory kept mapped) vs a Python loop of "
+                     "pinocchio.rnea on the same samples",
                 what_no_margin="the same check without the payload margin "
                                "(FeasibilityOptions(compute_payload_margin=False)): every limit "
                                "kind and the time scale, what the targets name",

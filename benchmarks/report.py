@@ -172,6 +172,11 @@ def _feasibility_rows(d: dict) -> list[list[str]]:
                      f"{d['rnea_passes_s'] / loop:.2f}× / {d['rnea_passes_all_cores_s'] / loop:.2f}×", ""])
     if "rnea_passes_no_margin_s" in d:
         rows.append(row(d["what_rnea_passes_no_margin"], d["rnea_passes_no_margin_s"]))
+    if "check_no_margin_default_heap_s" in d:
+        t, base = d["check_no_margin_default_heap_s"], d["rnea_loop_default_heap_s"]
+        rows.append([f"{d['what_default_heap']}; {d['page_faults_per_check_default_heap']:,} "
+                     f"page faults per check, against {d['page_faults_per_check']:,} above",
+                     _f(t * 1e3), _f(base * 1e3), f"{t / base:.2f}×", ""])
     return rows
 
 

@@ -32,6 +32,7 @@ import numpy as np
 import yaml
 
 from . import __version__
+from .allocator import retain_freed_memory
 from .bag_reader import (BagError, BagMessage, BagReader, MessageDecoder, decode_joint_state,
                          decode_joint_state_batch)
 from .errors import (CONTROL_ERROR, EVALUATION_ERROR, PLANNING_ERROR, STATE_ERROR, DynNodeError,
@@ -1233,6 +1234,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    retain_freed_memory()     # each trajectory re-checked reuses the last one's pages
     opts = AuditOptions(bag=args.bag, robot_description=args.robot_description,
                         robot_model=args.robot_model, limits=args.limits, out=args.out,
                         topics=tuple(args.topics), gap_threshold_s=args.gap_threshold,

@@ -262,11 +262,6 @@ def _colmax(X: np.ndarray) -> np.ndarray:
     return X[np.argmax(X, axis=0), np.arange(X.shape[1])]
 
 
-def _colany(B: np.ndarray) -> np.ndarray:
-    """B.any(axis=0) for a boolean M×m array (see :func:`_colmax`)."""
-    return _colmax(B)
-
-
 def _units(dynamics: Dynamics) -> dict[str, list[str]]:
     pm = dynamics.model.pin_model
     prismatic = [pm.joints[i].shortname().startswith("JointModelP") for i in range(1, pm.njoints)]
@@ -326,7 +321,7 @@ def _evaluate(coeffs: np.ndarray, breaks: np.ndarray, smp: _Samples,
     for d in range(n_derivatives):
         tables[d, :, :c.shape[1]] = c
         c = c[:, 1:, :] * np.arange(1, c.shape[1], dtype=float)[None, :, None]
-    return [kernels.piecewise_eval(tables, smp.seg, s, d) for d in range(n_derivatives)]
+    return list(kernels.piecewise_eval(tables, smp.seg, s))
 
 
 def _cumtrapz_rows(tt: np.ndarray, fT: np.ndarray) -> np.ndarray:
@@ -480,7 +475,8 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     waypoint_effort = tau[wp_idx].copy()
 
     # --- values at k = 1, limits, and first-exit x = 1/k per kind -----------------------------
-    values: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # kind -> (cols, value, limit)
+    # kind -> (cols, value, limit): M×len(cols) values, signed (their magnitude is checked)
+    values: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     xstar: dict[str, np.ndarray] = {}   # kind -> per limited column, smallest first-exit x
     infinite_reason: list[tuple[str, str, int, float, float]] = []
 
@@ -521,19 +517,18 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
                                       ("jerk", J, 3, lim.jerk)):
         cols = limited(lim_arr)
         if len(cols):
-            val = np.abs(_take(arr, cols))
+            val = _take(arr, cols)
             L = lim_arr[cols]
             values[kind] = (cols, val, np.broadcast_to(L, val.shape))
             # the smallest (L/|value|)^(1/power) is at the largest |value|
             with np.errstate(divide="ignore"):
-                xstar[kind] = (L / _colmax(val)) ** (1.0 / power)
+                xstar[kind] = (L / kernels.abs_peak(val)[1]) ** (1.0 / power)
     del J  # the largest temporaries go as soon as they are used: long trajectories are big
 
     cols = limited(lim.effort)
     if len(cols):
         L = lim.effort[cols]
-        values["effort"] = (cols, np.abs(_take(tau, cols)),
-                            np.broadcast_to(L, (len(tt), len(cols))))
+        values["effort"] = (cols, _take(tau, cols), np.broadcast_to(L, (len(tt), len(cols))))
         s, w, i = _take(S, cols), _take(W, cols), _take(I, cols)
         xstar["effort"] = kernels.band_exit(s, w, i, L)
         at, peak = kernels.abs_peak(s)
@@ -543,8 +538,8 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
 
     ecols = np.array([j for j in range(nv) if lim.effort_speed_curve[j] is not None], dtype=int)
     if len(ecols):
-        env = np.asfortranarray(lim.effort_envelope(V)[:, ecols])
-        values["effort_speed"] = (ecols, np.abs(_take(tau, ecols)), env)
+        env = _take(lim.effort_envelope(V), ecols)
+        values["effort_speed"] = (ecols, _take(tau, ecols), env)
         curves = [lim.effort_speed_curve[j] for j in ecols]
         npts = np.array([len(cv) for cv in curves])
         sp = np.zeros((len(ecols), npts.max()))
@@ -565,7 +560,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     if len(cols):
         L = lim.power[cols]
         v = _take(V, cols)
-        values["power"] = (cols, np.abs(_take(tau, cols) * v), np.broadcast_to(L, v.shape))
+        values["power"] = (cols, _take(tau, cols) * v, np.broadcast_to(L, v.shape))
         xstar["power"] = kernels.odd_exit(_take(S, cols), _take(W, cols), _take(I, cols), v, L)
 
     rate_cols = limited(lim.effort_rate)
@@ -576,7 +571,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         dW = kernels.segment_derivative(_take(W, rate_cols), smp.first, smp.last, smp.h)
         dI = kernels.segment_derivative(_take(I, rate_cols), smp.first, smp.last, smp.h)
         rate = dG + dW + dI
-        values["effort_rate"] = (rate_cols, np.abs(rate), np.broadcast_to(L, rate.shape))
+        values["effort_rate"] = (rate_cols, rate, np.broadcast_to(L, rate.shape))
         xstar["effort_rate"] = kernels.odd_exit(dG, dW, dI, np.broadcast_to(1.0, dG.shape), L)
     effort_step = {}
     if len(traj.times) > 2:
@@ -617,40 +612,47 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
             kr[good] = rms_search.result()
         xstar["rms_effort"] = np.where(kr > 0, 1.0 / np.where(kr > 0, kr, 1.0), np.inf)
 
-    # position: hard limits (violations, independent of k), soft limits (warnings)
-    pos_cols = np.flatnonzero(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper))
-    pos_viol = []
-    for j in pos_cols:
-        lo_, hi_ = lim.position_lower[j], lim.position_upper[j]
-        q = Q[:, j]
-        over = np.maximum(q - hi_, lo_ - q)
-        for bound, side in ((lim.soft_lower[j], -1), (lim.soft_upper[j], 1)):
-            if math.isfinite(bound) and np.any(side * (q - bound) > 0):
-                n = int(np.argmax(side * (q - bound)))
-                warnings.append(f"{names[j]} enters its soft-limit zone: q = {_fmt(q[n])} "
-                                f"{units['position'][j]} beyond {_fmt(bound)} at t = {tt[n]:.2f} s")
-        bad = over > 0
-        if np.any(bad):
-            n = int(np.argmax(over))
-            pos_viol.append(Violation(
-                names[j], "position", float(tt[np.argmax(bad)]), float(tt[n]), float(q[n]),
-                float(hi_ if q[n] > hi_ else lo_), float(smp.weight[bad].sum()),
-                units["position"][j]))
-
     # --- per-joint peaks and violations at k = 1 -----------------------------------------------
     per_joint: dict[str, dict[str, dict[str, Any]]] = {
         n: {k: {"ratio": None, "time_s": None, "value": None, "limit": None} for k in LIMIT_KINDS}
         for n in names}
-    for j in pos_cols:
-        lo_, hi_ = lim.position_lower[j], lim.position_upper[j]
-        q = Q[:, j]
-        if math.isfinite(lo_) and math.isfinite(hi_) and hi_ > lo_:
-            mid, half = 0.5 * (lo_ + hi_), 0.5 * (hi_ - lo_)
-            r = np.abs(q - mid) / half
-            n = int(np.argmax(r))
-            per_joint[names[j]]["position"] = {"ratio": float(r[n]), "time_s": float(tt[n]),
-                                               "value": float(q[n]),
-                                               "limit": float(hi_ if q[n] >= mid else lo_)}
+    # position: hard limits (violations, independent of k), soft limits (warnings); whole
+    # columns at once, each joint's samples contiguous
+    pos_cols = np.flatnonzero(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper))
+    pos_viol = []
+    if len(pos_cols):
+        Qp = np.asfortranarray(Q[:, pos_cols])
+        lo, hi = lim.position_lower[pos_cols], lim.position_upper[pos_cols]
+        over = np.maximum(Qp - hi, lo - Qp)              # > 0: beyond a hard limit
+        at_over = np.argmax(over, axis=0)
+        # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
+        soft = [(side, b, side * (Qp - b))
+                for side, b in ((-1, lim.soft_lower[pos_cols]), (1, lim.soft_upper[pos_cols]))]
+        at_soft = [np.argmax(x, axis=0) for _, _, x in soft]
+        ranged = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
+        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        at_mid = np.argmax(np.abs(Qp - mid), axis=0)
+        for c, j in enumerate(pos_cols):
+            for (_, bound, beyond), at in zip(soft, at_soft):
+                n = at[c]
+                if beyond[n, c] > 0:
+                    warnings.append(f"{names[j]} enters its soft-limit zone: q = {_fmt(Qp[n, c])} "
+                                    f"{units['position'][j]} beyond {_fmt(bound[c])} at "
+                                    f"t = {tt[n]:.2f} s")
+            n = at_over[c]
+            if over[n, c] > 0:
+                bad = over[:, c] > 0
+                q = float(Qp[n, c])
+                pos_viol.append(Violation(
+                    names[j], "position", float(tt[np.argmax(bad)]), float(tt[n]), q,
+                    float(hi[c] if q > hi[c] else lo[c]), float(smp.weight[bad].sum()),
+                    units["position"][j]))
+            if ranged[c]:
+                n = at_mid[c]
+                q = float(Qp[n, c])
+                per_joint[names[j]]["position"] = {
+                    "ratio": float(abs(Qp[n, c] - mid[c]) / half[c]), "time_s": float(tt[n]),
+                    "value": q, "limit": float(hi[c] if q >= mid[c] else lo[c])}
     violations: list[Violation] = list(pos_viol)
     for kind in LIMIT_KINDS:
         if kind not in values:
@@ -659,11 +661,12 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         peak, ratio, firsts, dur = kernels.limit_peaks(val, L, smp.weight)
         for c, j in enumerate(cols):
             n = int(peak[c])
+            value = abs(float(val[n, c]))
             per_joint[names[j]][kind] = {"ratio": float(ratio[c]), "time_s": float(tt[n]),
-                                         "value": float(val[n, c]), "limit": float(L[n, c])}
+                                         "value": value, "limit": float(L[n, c])}
             if firsts[c] >= 0:
                 violations.append(Violation(names[j], kind, float(tt[firsts[c]]), float(tt[n]),
-                                            float(val[n, c]), float(L[n, c]), float(dur[c]),
+                                            value, float(L[n, c]), float(dur[c]),
                                             units[kind][j]))
     feasible = not violations
 

@@ -41,10 +41,12 @@ def _tau2_cumulative(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray
     t = s[0, c] + x * (w[0, c] + x * i[0, c])
     prev = t * t
     E[0] = 0.0
+    acc = 0.0   # the running sum in a register: reading E[n − 1] back would wait on the store
     for n in range(1, len(tt)):
         t = s[n, c] + x * (w[n, c] + x * i[n, c])
         t2 = t * t
-        E[n] = E[n - 1] + (t2 + prev) * (0.5 * (tt[n] - tt[n - 1]))
+        acc += (t2 + prev) * (0.5 * (tt[n] - tt[n - 1]))
+        E[n] = acc
         prev = t2
 
 
@@ -440,8 +442,8 @@ def envelope_exit_min(s: np.ndarray, w: np.ndarray, i: np.ndarray, v: np.ndarray
     Below the best exit x_b found so far the envelope is at least its minimum over speeds
     [0, |v|·x_b], so a sample that stays inside the band |τ| ≤ that floor until x_b (checked by
     a bound, then by the band's exact exit) cannot leave the envelope earlier: only the others
-    are solved piece by piece. The first x_b is the sample that the bound with the envelope's
-    overall minimum ranks first.
+    are solved piece by piece. The first x_b is the least exit of the samples with the largest
+    |s|, |w| and |i|.
     """
     M, m = s.shape
     out = np.empty(m)
@@ -454,17 +456,15 @@ def envelope_exit_min(s: np.ndarray, w: np.ndarray, i: np.ndarray, v: np.ndarray
         for k in range(1, P):
             prefix[k] = min(prefix[k - 1], efc[k])
         e_min = max(prefix[P - 1], 1e-300)
-        seed, seed_x = 0, np.inf
-        for n in range(M):
-            x = band_exit_bound(s[n, c], w[n, c], i[n, c], e_min)
-            if x < seed_x:
-                seed, seed_x = n, x
-        best = envelope_exit(s[seed, c], w[seed, c], i[seed, c], v[seed, c], spc, efc, P)
+        best = np.inf
+        for n in (_argmax_abs(s, c), _argmax_abs(w, c), _argmax_abs(i, c)):
+            best = min(best, envelope_exit(s[n, c], w[n, c], i[n, c], v[n, c], spc, efc, P))
         for n in range(M):
             sn, wn, inn, av = s[n, c], w[n, c], i[n, c], abs(v[n, c])
             limit = best * slack
-            # the envelope never falls below its overall minimum: most samples stop here
-            if not band_exit_bound(sn, wn, inn, e_min) < limit:
+            # the envelope never falls below its overall minimum: most samples stop here, where
+            # the bound |s| + |w|·x + |i|·x² is still below it at x = limit
+            if limit < np.inf and (abs(inn) * limit + abs(wn)) * limit + abs(sn) < e_min:
                 continue
             fl = _floor(av * best if av > 0 else 0.0, spc, efc, prefix, P)
             if not band_exit_bound(sn, wn, inn, fl) < limit:
@@ -570,24 +570,29 @@ def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, damping: np.ndarray
 _C2 = types.Array(_f8, 2, "C")
 
 
-_T4 = types.Array(_f8, 4, "A", readonly=True)
+_T4 = types.Array(_f8, 4, "C", readonly=True)
+_C3 = types.Array(_f8, 3, "C")
 
 
-@njit([_C2(_T4, _I, _V, _i8)], **_JIT)
-def piecewise_eval(tables: np.ndarray, seg: np.ndarray, s: np.ndarray, d: int) -> np.ndarray:
-    """Derivative d of a piecewise polynomial at M samples (row-major M×nv): ``tables[d, k, p,
-    j]`` is derivative d's coefficient of sᵖ on segment k for column j, ``seg`` each sample's
-    segment and ``s`` its time from the segment's start. Horner per sample."""
-    _, _, P, nv = tables.shape
-    out = np.empty((len(s), nv))
+@njit([_C3(_T4, _I, _V)], **_JIT)
+def piecewise_eval(tables: np.ndarray, seg: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Every tabulated derivative of a piecewise polynomial at M samples, as D×M×nv (each
+    derivative row-major M×nv): ``tables[d, k, p, j]`` is derivative d's coefficient of sᵖ on
+    segment k for column j, ``seg`` each sample's segment and ``s`` its time from the segment's
+    start. Horner per sample, all derivatives in one pass over the samples."""
+    D, _, P, nv = tables.shape
+    out = np.empty((D, len(s), nv))
     for n in range(len(s)):
         k, x = seg[n], s[n]
-        # the columns side by side: independent chains, so the multiply-adds overlap
-        for j in range(nv):
-            out[n, j] = tables[d, k, P - 1, j]
-        for p in range(P - 2, -1, -1):
+        for d in range(D):
+            row = out[d, n]
+            c = tables[d, k]
+            # the columns side by side: independent chains, so the multiply-adds overlap
             for j in range(nv):
-                out[n, j] = out[n, j] * x + tables[d, k, p, j]
+                row[j] = c[P - 1, j]
+            for p in range(P - 2, -1, -1):
+                for j in range(nv):
+                    row[j] = row[j] * x + c[p, j]
     return out
 
 
@@ -598,26 +603,40 @@ _FC = types.Array(_f8, 1, "C")
 @njit([types.Tuple((_IC, _FC, _IC, _FC))(_M, _M, _V)], **_JIT)
 def limit_peaks(val: np.ndarray, L: np.ndarray, weight: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per column of values ``val`` against limits ``L`` (M×m; L may be a broadcast view) with
-    sample weights (M, s): the first sample of the largest ratio val/L (a zero limit: inf if
-    val > 0, else 0) and that ratio; the first sample above its limit (−1: none) and the time
-    spent above it (Σ weight)."""
+    """Per column of values ``val`` (signed: their magnitude is compared) against limits ``L``
+    (M×m; L may be a broadcast view) with sample weights (M, s): the first sample of the
+    largest ratio |val|/L (a zero limit: inf if |val| > 0, else 0) and that ratio; the first
+    sample above its limit (−1: none) and the time spent above it (Σ weight)."""
     M, m = val.shape
     peak_at = np.zeros(m, dtype=np.int64)
     peak = np.zeros(m)
     first = np.full(m, -1, dtype=np.int64)
     above = np.zeros(m)
+    constant = L.strides[0] == 0     # a broadcast row: one limit per column
     for c in range(m):
         best, where = -np.inf, 0
-        for n in range(M):
-            v, lim = val[n, c], L[n, c]
-            r = v / lim if lim > 0 else (np.inf if v > 0 else 0.0)
-            if r > best:
-                best, where = r, n
-            if v > lim:
-                if first[c] < 0:
-                    first[c] = n
-                above[c] += weight[n]
+        if constant and M and L[0, c] > 0:
+            # the largest ratio is at the largest magnitude: no division per sample
+            lim = L[0, c]
+            for n in range(M):
+                v = abs(val[n, c])
+                if v > best:
+                    best, where = v, n
+                if v > lim:
+                    if first[c] < 0:
+                        first[c] = n
+                    above[c] += weight[n]
+            best = best / lim
+        else:
+            for n in range(M):
+                v, lim = abs(val[n, c]), L[n, c]
+                r = v / lim if lim > 0 else (np.inf if v > 0 else 0.0)
+                if r > best:
+                    best, where = r, n
+                if v > lim:
+                    if first[c] < 0:
+                        first[c] = n
+                    above[c] += weight[n]
         peak_at[c], peak[c] = where, best
     return peak_at, peak, first, above
 

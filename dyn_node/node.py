@@ -45,6 +45,7 @@ from trajectory_msgs.msg import JointTrajectory
 # at start, not at the first trajectory: loading the compiled kernels holds the GIL for about
 # 0.7 s, which then stalled joint_states handling by up to 170 ms (seen in make demo)
 from . import feasibility
+from .allocator import retain_freed_memory
 from .dynamics import Dynamics, DynamicsOptions
 from .errors import DynNodeError, STATE_ERROR, TrajectoryError
 from .model import RobotModel
@@ -685,6 +686,7 @@ def main(args: list[str] | None = None) -> None:
     used at start-up (rclpy refuses its type or range, or the settings reject it) ends the process
     with exit code 2 and a one-line error instead of a traceback.
     """
+    retain_freed_memory()     # each trajectory check then reuses the last one's pages
     code = spin_until_signalled(DynNode, args, "dyn_node", fatal=(
         InvalidParameterValueException, InvalidParameterTypeException, SettingsError))
     if code:

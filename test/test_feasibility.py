@@ -621,9 +621,6 @@ def test_column_reductions_equal_numpy(seed):
     X[rng.integers(0, 500, 3), rng.integers(0, 5, 3)] = np.nan
     X[:, 2] = 7.0                                           # ties: the same value
     assert np.array_equal(F._colmax(X), X.max(axis=0), equal_nan=True)
-    B = X > 1.5
-    B[:, 3] = False
-    assert np.array_equal(F._colany(B), B.any(axis=0))
     cols = np.arange(5)
     assert F._take(X, cols) is X
     np.testing.assert_array_equal(F._take(X, np.array([0, 2, 4])), X[:, [0, 2, 4]])
