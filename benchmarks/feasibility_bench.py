@@ -11,15 +11,19 @@ those passes alone: the floor under every other row.
 
 Those rows run with freed memory kept mapped (dyn_node.allocator.retain_freed_memory, which the
 dyn_node and dyn-audit entry points call): a check's sample arrays then reuse the previous
-check's pages. One more row, measured first because the setting cannot be undone, runs the check
-under glibc's defaults, where every check faults its arrays in afresh; each row records the
-minor page faults per check.
+check's pages. Every figure comes from fresh child processes (the loop's speed varies by up to a
+third between processes here): the median over PROCESSES of them, and one more process under
+glibc's defaults shows what the heap setting is worth, with the minor page faults per check.
 """
 from __future__ import annotations
 
+import json
 import os
 import resource
 import statistics
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
@@ -32,6 +36,8 @@ from .common import NotAvailable, median_time, module_available, progress
 
 DURATION_S = 10.0
 SAMPLE_PERIOD_S = 0.001
+#: fresh processes the figures are taken over (see run())
+PROCESSES = 3
 
 
 def every_limit_kind(model) -> dict:
@@ -83,33 +89,24 @@ def _rounds(subjects: dict, repeats: int) -> tuple[dict[str, list[float]], dict[
     return times, faults
 
 
-def run(quick: bool = False, smoke: bool = False) -> dict:
-    why = module_available("feasibility")
-    if why:
-        raise NotAvailable(why)
+def _setup():
+    """The subject and the baseline: (feasibility module, dynamics, trajectory, options by
+    name, the loop over the check's own states, those states)."""
     from dyn_node import feasibility as F
 
-    repeats = 1 if smoke else 5 if quick else 9
     model = load_model(builtin="panda").with_limits(None)
     model = model.with_limits(every_limit_kind(model))
     dyn = Dynamics(model)
     traj = trajectory(model)
     cores = os.cpu_count() or 1
-    options = F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=1)
-    options_mt = F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=cores)
-    options_nm = F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=1,
-                                      compute_payload_margin=False)
-    progress("feasibility", "check_trajectory on a 10 s 7-DoF trajectory at 1 ms")
-    result = F.check_trajectory(dyn, traj, options)
-    result_mt = F.check_trajectory(dyn, traj, options_mt)
-    if result_mt.to_dict() | {"compute_time_s": 0} != result.to_dict() | {"compute_time_s": 0}:
-        raise RuntimeError("check_trajectory gave different results with 1 and "
-                           f"{cores} threads")
-
+    options = {"check": F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=1),
+               "check_mt": F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=cores),
+               "check_nm": F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=1,
+                                                compute_payload_margin=False)}
     # the very states the check evaluates (its sampler and interpolation: every segment's
     # ends included, so an interior waypoint appears twice)
-    pp = F.interpolate(traj, result.interpolation)
-    smp = F._sample(traj.times, SAMPLE_PERIOD_S, options.max_samples)
+    pp = F.interpolate(traj, traj.natural_interpolation)
+    smp = F._sample(traj.times, SAMPLE_PERIOD_S, options["check"].max_samples)
     Q, V, A = F._evaluate(pp.coeffs, pp.breaks, smp, 3)
     pm = model.pin_model
     data = pm.createData()
@@ -117,6 +114,18 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
     def loop():
         for i in range(len(Q)):
             pin.rnea(pm, data, Q[i], V[i], A[i])
+
+    return F, dyn, traj, options, loop, (Q, V, A)
+
+
+def _measure(mode: str, repeats: int) -> dict:
+    """In a fresh process (argv: ``measure <mode> <repeats>``): every subject in interleaved
+    rounds, with freed memory kept mapped (``retain``, as the node runs) or under glibc's
+    defaults (``default``). Per subject: the median time (s) and minor page faults per call;
+    per check: its median ratio to the loop over the rounds."""
+    applied = retain_freed_memory() if mode == "retain" else False
+    F, dyn, traj, options, loop, (Q, V, A) = _setup()
+    cores = os.cpu_count() or 1
 
     def rnea_passes(threads: int, payload: bool = True):
         # the batched RNEA work inside the check: gravity and full (the time scale needs both),
@@ -127,40 +136,86 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
                 F._unit_payload_dynamics(dyn).rnea_batch(Q, V, A, threads)
         return f
 
-    progress("feasibility", f"baseline: Python loop of pinocchio.rnea over {len(Q)} samples; "
-                            f"check with 1 and {cores} threads")
-    subjects = {"check": lambda: F.check_trajectory(dyn, traj, options),
-                "check_nm": lambda: F.check_trajectory(dyn, traj, options_nm),
-                "check_mt": lambda: F.check_trajectory(dyn, traj, options_mt),
+    subjects = {"check": lambda: F.check_trajectory(dyn, traj, options["check"]),
+                "check_nm": lambda: F.check_trajectory(dyn, traj, options["check_nm"]),
+                "check_mt": lambda: F.check_trajectory(dyn, traj, options["check_mt"]),
                 "loop": loop, "passes": rnea_passes(1), "passes_mt": rnea_passes(cores),
                 "passes_nm": rnea_passes(1, payload=False)}
-    # first with glibc's default heap settings, then as the node runs (dyn_node.allocator:
-    # freed memory kept mapped); the setting is process-wide and cannot be undone, so in order
-    progress("feasibility", "the check without the margin under glibc's default heap settings")
-    default = {"check_nm": subjects["check_nm"], "loop": loop}
-    times_default, faults_default = _rounds(default, repeats)
-    applied = retain_freed_memory()
-    progress("feasibility", "the same rounds with freed memory kept mapped, as the node runs"
-                            if applied else "heap setting not available here (not glibc)")
     times, faults = _rounds(subjects, repeats)
-    med = {k: statistics.median(v) for k, v in times.items()}
-    med_default = {k: statistics.median(v) for k, v in times_default.items()}
-    return dict(n_samples=int(len(Q)), nv=model.nv, duration_s=DURATION_S, repeats=repeats,
-                check_s=med["check"], rnea_loop_s=med["loop"], ratio=med["check"] / med["loop"],
+    return dict(mode=mode, applied=bool(applied),
+                median_s={k: statistics.median(v) for k, v in times.items()},
+                faults={k: int(statistics.median(v)) for k, v in faults.items()},
+                ratio={k: statistics.median(t / base for t, base in zip(v, times["loop"]))
+                       for k, v in times.items() if k != "loop"})
+
+
+def _measure_in_child(mode: str, repeats: int) -> dict:
+    out = subprocess.run([sys.executable, "-m", "benchmarks.feasibility_bench", "measure", mode,
+                          str(repeats)], capture_output=True, text=True, timeout=600,
+                         cwd=Path(__file__).resolve().parents[1])
+    if out.returncode:
+        raise RuntimeError(f"measuring child ({mode}) failed: {out.stderr.strip()[-500:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run(quick: bool = False, smoke: bool = False) -> dict:
+    why = module_available("feasibility")
+    if why:
+        raise NotAvailable(why)
+
+    repeats = 1 if smoke else 5 if quick else 9
+    processes = 1 if smoke else PROCESSES
+    F, dyn, traj, options, loop, (Q, V, A) = _setup()
+    cores = os.cpu_count() or 1
+    progress("feasibility", "check_trajectory on a 10 s 7-DoF trajectory at 1 ms")
+    result = F.check_trajectory(dyn, traj, options["check"])
+    result_mt = F.check_trajectory(dyn, traj, options["check_mt"])
+    if result_mt.to_dict() | {"compute_time_s": 0} != result.to_dict() | {"compute_time_s": 0}:
+        raise RuntimeError("check_trajectory gave different results with 1 and "
+                           f"{cores} threads")
+    # The loop's speed differs by up to a third from one process to the next on this machine
+    # (the check's far less), so one process can flatter or wrong either side: every figure is
+    # the median over several fresh processes of that process's medians, and each ratio the
+    # median over processes of the per-round ratios. One more process runs under glibc's
+    # default heap settings (the setting is process-wide and cannot be undone).
+    runs = []
+    for n in range(processes):
+        progress("feasibility", f"process {n + 1}/{processes}: {repeats} interleaved rounds of "
+                                f"the checks, the loop over {len(Q)} samples and the RNEA passes")
+        runs.append(_measure_in_child("retain", repeats))
+    progress("feasibility", "one more process under glibc's default heap settings")
+    default = _measure_in_child("default", repeats)
+
+    def med(key: str) -> float:
+        return statistics.median(r["median_s"][key] for r in runs)
+
+    def ratio(key: str) -> float:
+        return statistics.median(r["ratio"][key] for r in runs)
+
+    return dict(n_samples=int(len(Q)), nv=dyn.nv, duration_s=DURATION_S, repeats=repeats,
+                processes=processes,
+                check_s=med("check"), rnea_loop_s=med("loop"), ratio=ratio("check"),
                 threads=1, cores=cores,
-                check_no_margin_s=med["check_nm"], ratio_no_margin=med["check_nm"] / med["loop"],
-                heap_retained=bool(applied),
-                page_faults_per_check=int(statistics.median(faults["check_nm"])),
-                check_no_margin_default_heap_s=med_default["check_nm"],
-                rnea_loop_default_heap_s=med_default["loop"],
-                ratio_no_margin_default_heap=med_default["check_nm"] / med_default["loop"],
-                page_faults_per_check_default_heap=int(statistics.median(faults_default["check_nm"])),
-                what_default_heap="the check without the margin under glibc's default heap "
-                                  "settings (each check faults its arrays in afresh), rounds "
-                                  "before the rows above, against the loop in the same rounds",
-                rnea_passes_no_margin_s=med["passes_nm"],
-                check_all_cores_s=med["check_mt"], ratio_all_cores=med["check_mt"] / med["loop"],
-                rnea_passes_s=med["passes"], rnea_passes_all_cores_s=med["passes_mt"],
+                check_no_margin_s=med("check_nm"), ratio_no_margin=ratio("check_nm"),
+                ratio_no_margin_by_process=[r["ratio"]["check_nm"] for r in runs],
+                rnea_loop_by_process_s=[r["median_s"]["loop"] for r in runs],
+                heap_retained=all(r["applied"] for r in runs),
+                page_faults_per_check=int(statistics.median(r["faults"]["check_nm"] for r in runs)),
+                heap={"default": dict(check_s=default["median_s"]["check_nm"],
+                                      loop_s=default["median_s"]["loop"],
+                                      ratio=default["ratio"]["check_nm"],
+                                      faults=default["faults"]["check_nm"]),
+                      "retain": dict(check_s=runs[0]["median_s"]["check_nm"],
+                                     loop_s=runs[0]["median_s"]["loop"],
+                                     ratio=runs[0]["ratio"]["check_nm"],
+                                     faults=runs[0]["faults"]["check_nm"])},
+                what_heap="the check without the margin in one fresh process, against the loop "
+                          "in the same process: glibc's default heap settings, then (the first "
+                          "of the processes above) freed memory kept mapped",
+                rnea_passes_no_margin_s=med("passes_nm"), ratio_passes_no_margin=ratio("passes_nm"),
+                check_all_cores_s=med("check_mt"), ratio_all_cores=ratio("check_mt"),
+                rnea_passes_s=med("passes"), rnea_passes_all_cores_s=med("passes_mt"),
+                ratio_passes=ratio("passes"), ratio_passes_all_cores=ratio("passes_mt"),
                 feasible=bool(result.feasible), time_scale=float(result.time_scale),
                 interpolation=str(result.interpolation), n_points=int(result.n_points),
                 what="check_trajectory on one thread (as the node runs it: all limit kinds, "
@@ -179,3 +234,11 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
                 what_rnea_passes_no_margin="the two batched RNEA passes alone (gravity, full) "
                                            "that the time scale needs, on 1 thread: the floor "
                                            "of the check without the margin")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "measure":
+        print(json.dumps(_measure(sys.argv[2], int(sys.argv[3]))))
+    else:
+        raise SystemExit("usage: python -m benchmarks.feasibility_bench measure retain|default "
+                         "REPEATS")

@@ -538,14 +538,14 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
 
     ecols = np.array([j for j in range(nv) if lim.effort_speed_curve[j] is not None], dtype=int)
     if len(ecols):
-        env = _take(lim.effort_envelope(V), ecols)
-        values["effort_speed"] = (ecols, _take(tau, ecols), env)
         curves = [lim.effort_speed_curve[j] for j in ecols]
         npts = np.array([len(cv) for cv in curves])
         sp = np.zeros((len(ecols), npts.max()))
         ef = np.zeros_like(sp)
         for c, cv in enumerate(curves):
             sp[c, :len(cv)], ef[c, :len(cv)] = cv[:, 0], cv[:, 1]
+        env = kernels.envelope_values(_take(V, ecols), sp, ef, npts)
+        values["effort_speed"] = (ecols, _take(tau, ecols), env)
         xs = kernels.envelope_exit_min(_take(S, ecols), _take(W, ecols), _take(I, ecols),
                                        _take(V, ecols), sp, ef, npts)
         for c, j in enumerate(ecols):

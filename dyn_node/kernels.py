@@ -422,6 +422,19 @@ def envelope_exit(s: float, w: float, i: float, speed: float, sp: np.ndarray, ef
     return best
 
 
+@njit([types.Array(_f8, 2, "F")(_M, _M, _M, _I)], **_JIT)
+def envelope_values(v: np.ndarray, sp: np.ndarray, ef: np.ndarray, npts: np.ndarray) -> np.ndarray:
+    """The torque-speed envelope of column c (points sp[c, :npts[c]], ef[c, :npts[c]], as
+    numpy.interp: held constant outside them) at each sample's speed |v| (M×m, column-major)."""
+    M, m = v.shape
+    out = np.empty((m, M)).T
+    for c in range(m):
+        P, spc, efc = npts[c], sp[c], ef[c]
+        for n in range(M):
+            out[n, c] = _interp(abs(v[n, c]), spc, efc, P)
+    return out
+
+
 @njit(**_JIT)
 def _floor(speed: float, sp: np.ndarray, ef: np.ndarray, prefix: np.ndarray, P: int) -> float:
     # the envelope's minimum over speeds [0, speed]

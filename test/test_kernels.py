@@ -64,6 +64,26 @@ def test_abs_peak_is_numpy_argmax_of_abs():
     assert K.abs_peak(np.zeros((0, 2)))[1].tolist() == [0.0, 0.0]
 
 
+def test_envelope_values_are_numpy_interp_of_the_speed():
+    rng = np.random.default_rng(11)
+    v = np.asfortranarray(rng.normal(scale=3.0, size=(400, 3)))
+    v[0] = 0.0
+    v[1] = [1.0, -2.5, 4.0]                       # exactly on curve points
+    curves = [np.array([[0.0, 80.0], [3.0, 40.0]]),
+              np.array([[0.5, 10.0], [1.0, 9.0], [2.5, 2.0], [6.0, 1.0]]),
+              np.array([[1.0, 5.0], [4.0, 5.0], [5.0, 0.5]])]
+    npts = np.array([len(c) for c in curves])
+    sp = np.zeros((3, npts.max()))
+    ef = np.zeros_like(sp)
+    for c, cv in enumerate(curves):
+        sp[c, :len(cv)], ef[c, :len(cv)] = cv[:, 0], cv[:, 1]
+    got = K.envelope_values(v, sp, ef, npts)
+    want = np.stack([np.interp(np.abs(v[:, c]), cv[:, 0], cv[:, 1])
+                     for c, cv in enumerate(curves)], axis=1)
+    np.testing.assert_array_equal(got, want)      # the same arithmetic, to the last bit
+    assert got.flags.f_contiguous
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_rms_windows_match_a_direct_windowed_integral(seed):
     rng = np.random.default_rng(50 + seed)
