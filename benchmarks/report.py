@@ -128,10 +128,13 @@ def live_md(sec: dict) -> str:
     if "p99_minimal_over_bare_1k" in c:
         lines.append(f"- minimal node p99 ÷ bare republisher p99 at 1 kHz: {c['p99_minimal_over_bare_1k']:.2f}")
     if "recording_cpu_overhead_1k" in c:
+        by_pair = c.get("recording_cpu_overhead_1k_by_pair", [])
+        how = (f", median of {len(by_pair)} runs of (c) and (d) one after the other: "
+               + ", ".join(_pct(x) for x in by_pair)) if len(by_pair) > 1 else ""
         lines.append(f"- CPU added by recording at 1 kHz ((d) ÷ (c) − 1): "
                      f"**{_pct(c['recording_cpu_overhead_1k'])}** of process CPU, "
                      f"{_pct(c.get('recording_cpu_per_output_overhead_1k'))} per output answered "
-                     "(target ≤ 10%)")
+                     f"(target ≤ 10%{how})")
     else:
         lines.append("- recording CPU overhead: not measured (row (c) or (d) not available)")
     text.append("\n".join(lines))

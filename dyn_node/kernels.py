@@ -628,29 +628,19 @@ def limit_peaks(val: np.ndarray, L: np.ndarray, weight: np.ndarray
     constant = L.strides[0] == 0     # a broadcast row: one limit per column
     for c in range(m):
         best, where = -np.inf, 0
-        if constant and M and L[0, c] > 0:
-            # the largest ratio is at the largest magnitude: no division per sample
-            lim = L[0, c]
-            for n in range(M):
-                v = abs(val[n, c])
-                if v > best:
-                    best, where = v, n
-                if v > lim:
-                    if first[c] < 0:
-                        first[c] = n
-                    above[c] += weight[n]
-            best = best / lim
-        else:
-            for n in range(M):
-                v, lim = abs(val[n, c]), L[n, c]
-                r = v / lim if lim > 0 else (np.inf if v > 0 else 0.0)
-                if r > best:
-                    best, where = r, n
-                if v > lim:
-                    if first[c] < 0:
-                        first[c] = n
-                    above[c] += weight[n]
-        peak_at[c], peak[c] = where, best
+        # one positive limit for the column: the largest ratio is at the largest magnitude, so
+        # no division per sample (the test is loop-invariant: the compiler hoists it)
+        scaled = constant and M > 0 and L[0, c] > 0
+        for n in range(M):
+            v, lim = abs(val[n, c]), L[n, c]
+            r = v if scaled else (v / lim if lim > 0 else (np.inf if v > 0 else 0.0))
+            if r > best:
+                best, where = r, n
+            if v > lim:
+                if first[c] < 0:
+                    first[c] = n
+                above[c] += weight[n]
+        peak_at[c], peak[c] = where, (best / L[0, c] if scaled else best)
     return peak_at, peak, first, above
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -146,15 +147,16 @@ def test_readme_markers_replaced_only_between_them(tmp_path) -> None:
 
 @pytest.mark.timeout(120)
 def test_bench_harness_smoke(tmp_path, ros_domain: int) -> None:
-    """`python -m benchmarks.run --smoke` over dynamics and live (bare republisher only) writes
-    bench.json, the docs page and the README section; every dynamics peer agreed with dyn_node."""
+    """`python -m benchmarks.run --smoke` over dynamics, live (bare republisher only) and
+    feasibility (one measuring process each way) writes bench.json, the docs page and the README
+    section; every dynamics peer agreed with dyn_node."""
     readme = tmp_path / "README.md"
     readme.write_text(f"# x\n{report.BEGIN}\n{report.END}\n")
     env = dict(os.environ, DYN_BENCH_DOMAIN=str(ros_domain))
-    p = subprocess.run([sys.executable, "-m", "benchmarks.run", "--smoke", "--only", "dynamics,live",
+    p = subprocess.run([sys.executable, "-m", "benchmarks.run", "--smoke", "--only", "dynamics,live,feasibility",
                         "--out", str(tmp_path / "out"), "--docs", str(tmp_path / "BENCH.md"),
                         "--readme", str(readme)], cwd=REPO, env=env, capture_output=True, text=True,
-                       timeout=110)
+                       timeout=170)
     assert p.returncode == 0, p.stderr[-2000:]
     doc = json.loads((tmp_path / "out" / "bench.json").read_text())
     assert set(doc["machine"]["versions"]) >= {"python", "pinocchio", "numpy", "mujoco", "rclpy"}
@@ -173,6 +175,13 @@ def test_bench_harness_smoke(tmp_path, ros_domain: int) -> None:
     assert bare["status"] == "ok", bare
     w = bare["windows"][0]
     assert w["sent"] > 0 and 0 <= w["received"] <= w["sent"] and w["p50_us"] > 0
+    feas = doc["sections"]["feasibility"]
+    assert feas["status"] == "ok", feas
+    f = feas["result"]
+    assert f["processes"] == 1 and f["check_no_margin_s"] > 0 and f["rnea_loop_s"] > 0
+    assert f["heap_retained"] == (platform.libc_ver()[0] == "glibc")   # mallopt is glibc's
+    assert f["page_faults_per_check"] >= 0
+    assert set(f["heap"]) == {"default", "retain"} and f["heap"]["default"]["check_s"] > 0
     text = (tmp_path / "BENCH.md").read_text()
     assert "## Dynamics" in text and "pinocchio.rnea Python loop" in text and "SMOKE" in text
     readme_text = readme.read_text()
