@@ -214,6 +214,6 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
         per_output = [d["cpu_us_per_output_1k"] / c["cpu_us_per_output_1k"] - 1.0 for c, d in pairs]
         cmp["recording_cpu_overhead_1k"] = _median(share)
         cmp["recording_cpu_per_output_overhead_1k"] = _median(per_output)
-        cmp["recording_cpu_overhead_1k_by_pair"] = share
+        out["recording_cpu_overhead_1k_by_pair"] = share
     out["comparisons"] = cmp
     return out

@@ -128,7 +128,7 @@ def live_md(sec: dict) -> str:
     if "p99_minimal_over_bare_1k" in c:
         lines.append(f"- minimal node p99 ÷ bare republisher p99 at 1 kHz: {c['p99_minimal_over_bare_1k']:.2f}")
     if "recording_cpu_overhead_1k" in c:
-        by_pair = c.get("recording_cpu_overhead_1k_by_pair", [])
+        by_pair = d.get("recording_cpu_overhead_1k_by_pair", [])
         how = (f", median of {len(by_pair)} runs of (c) and (d) one after the other: "
                + ", ".join(_pct(x) for x in by_pair)) if len(by_pair) > 1 else ""
         lines.append(f"- CPU added by recording at 1 kHz ((d) ÷ (c) − 1): "

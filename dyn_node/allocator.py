@@ -4,8 +4,8 @@ A feasibility check builds a few dozen sample arrays of N×nv doubles (560 KB ea
 samples of 7 joints) and frees them at the end. With glibc's defaults, memory freed at the top
 of the heap beyond a small threshold goes back to the kernel, so the next check takes every page
 again as a fresh page fault. On the virtual machines this project runs on, a minor fault costs
-2-8 µs, and a 10,000-sample check made about 3,300 of them: about 12 ms on a 54 ms check
-(``make bench``, each way in a fresh process).
+1-8 µs, and a 10,000-sample check made about 3,300 of them: 3-14 ms on a 42-54 ms check
+(three ``make bench`` runs, each way in a fresh process).
 
 :func:`retain_freed_memory` asks glibc to keep up to ``keep_bytes`` of freed memory mapped, and
 to serve blocks up to ``heap_block_bytes`` from the heap rather than from their own mmap. That
