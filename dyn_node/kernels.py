@@ -41,12 +41,10 @@ def _tau2_cumulative(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray
     t = s[0, c] + x * (w[0, c] + x * i[0, c])
     prev = t * t
     E[0] = 0.0
-    acc = 0.0   # the running sum in a register: reading E[n − 1] back would wait on the store
     for n in range(1, len(tt)):
         t = s[n, c] + x * (w[n, c] + x * i[n, c])
         t2 = t * t
-        acc += (t2 + prev) * (0.5 * (tt[n] - tt[n - 1]))
-        E[n] = acc
+        E[n] = E[n - 1] + (t2 + prev) * (0.5 * (tt[n] - tt[n - 1]))
         prev = t2
 
 

@@ -81,7 +81,7 @@ class JointLimits:
         Joints without a curve get ``inf``. Broadcasts over leading dimensions.
         """
         speed = np.abs(np.asarray(speed, dtype=float))
-        out = np.full_like(speed, np.inf)    # in speed's memory order: columns stay contiguous
+        out = np.full(speed.shape, np.inf)
         for j, curve in enumerate(self.effort_speed_curve):
             if curve is not None:
                 out[..., j] = np.interp(speed[..., j], curve[:, 0], curve[:, 1])

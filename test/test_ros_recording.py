@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import pytest
 
@@ -374,11 +375,15 @@ class ChildOutput:
                 self.lines.append((time.time_ns(), line.strip()))
                 self._cond.notify_all()
 
-    def wait_for(self, prefix: str, timeout: float) -> str | None:
+    def wait_for(self, prefix: str, timeout: float,
+                 match: Callable[[str], bool] = lambda _line: True) -> str | None:
+        """The first line starting with ``prefix`` (and passing ``match``), waiting for it."""
+        def found() -> str | None:
+            return next((x for _t, x in self.lines if x.startswith(prefix) and match(x)), None)
+
         with self._cond:
-            self._cond.wait_for(lambda: any(x.startswith(prefix) for _t, x in self.lines),
-                                timeout)
-            return next((x for _t, x in self.lines if x.startswith(prefix)), None)
+            self._cond.wait_for(lambda: found() is not None, timeout)
+            return found()
 
     def join(self, timeout: float) -> None:
         self._thread.join(timeout)
@@ -394,7 +399,12 @@ def test_sigkill_then_recover_contiguous_prefix(spawn, tmp_path):
     output = ChildOutput(child.proc)
     line = output.wait_for("PUBLISHING", 40.0)
     assert line, child.stop(signal.SIGKILL)
-    threading.Event().wait(random.uniform(1.0, 2.5))  # a random moment of the recording
+    # the kill comes at a random moment at least a second after the recorder had something, so
+    # that there is always a report for the check below to hold it to (on a loaded machine the
+    # first messages can arrive well after PUBLISHING)
+    assert output.wait_for("RECEIVED", 20.0, match=lambda x: int(x.split()[1]) > 0), \
+        child.stop(signal.SIGKILL)
+    threading.Event().wait(random.uniform(1.1, 2.5))
     kill_ns = time.time_ns()
     child.signal(signal.SIGKILL)
     child.proc.wait(10)
