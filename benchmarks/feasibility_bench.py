@@ -102,7 +102,9 @@ def _setup():
     options = {"check": F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=1),
                "check_mt": F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=cores),
                "check_nm": F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=1,
-                                                compute_payload_margin=False)}
+                                                compute_payload_margin=False),
+               "check_nm_mt": F.FeasibilityOptions(sample_period=SAMPLE_PERIOD_S, threads=cores,
+                                                   compute_payload_margin=False)}
     # the very states the check evaluates (its sampler and interpolation: every segment's
     # ends included, so an interior waypoint appears twice)
     pp = F.interpolate(traj, traj.natural_interpolation)
@@ -139,6 +141,7 @@ def _measure(mode: str, repeats: int) -> dict:
     subjects = {"check": lambda: F.check_trajectory(dyn, traj, options["check"]),
                 "check_nm": lambda: F.check_trajectory(dyn, traj, options["check_nm"]),
                 "check_mt": lambda: F.check_trajectory(dyn, traj, options["check_mt"]),
+                "check_nm_mt": lambda: F.check_trajectory(dyn, traj, options["check_nm_mt"]),
                 "loop": loop, "passes": rnea_passes(1), "passes_mt": rnea_passes(cores),
                 "passes_nm": rnea_passes(1, payload=False)}
     times, faults = _rounds(subjects, repeats)
@@ -214,6 +217,12 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
                           "of the processes above) freed memory kept mapped",
                 rnea_passes_no_margin_s=med("passes_nm"), ratio_passes_no_margin=ratio("passes_nm"),
                 check_all_cores_s=med("check_mt"), ratio_all_cores=ratio("check_mt"),
+                check_no_margin_all_cores_s=med("check_nm_mt"),
+                ratio_no_margin_all_cores=ratio("check_nm_mt"),
+                what_no_margin_all_cores=f"the check without the margin with "
+                                         f"FeasibilityOptions(threads={cores}) (what dyn-audit "
+                                         "could use offline; the node keeps one thread so that "
+                                         "joint_states keep a core) vs the same one-thread loop",
                 rnea_passes_s=med("passes"), rnea_passes_all_cores_s=med("passes_mt"),
                 ratio_passes=ratio("passes"), ratio_passes_all_cores=ratio("passes_mt"),
                 feasible=bool(result.feasible), time_scale=float(result.time_scale),

@@ -179,6 +179,9 @@ def _feasibility_rows(d: dict) -> list[list[str]]:
                         True))
     if "check_all_cores_s" in d:
         rows.append(row(d["what_all_cores"], d["check_all_cores_s"], d["ratio_all_cores"]))
+        if "check_no_margin_all_cores_s" in d:
+            rows.append(row(d["what_no_margin_all_cores"], d["check_no_margin_all_cores_s"],
+                            d["ratio_no_margin_all_cores"]))
         r1 = d.get("ratio_passes", d["rnea_passes_s"] / loop)
         r2 = d.get("ratio_passes_all_cores", d["rnea_passes_all_cores_s"] / loop)
         rows.append([d["what_rnea_passes"],
