@@ -168,7 +168,7 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
 
     repeats = 1 if smoke else 5 if quick else 9
     processes = 1 if smoke else PROCESSES
-    F, dyn, traj, options, loop, (Q, V, A) = _setup()
+    F, dyn, traj, options, _, (Q, _, _) = _setup()
     cores = os.cpu_count() or 1
     progress("feasibility", "check_trajectory on a 10 s 7-DoF trajectory at 1 ms")
     result = F.check_trajectory(dyn, traj, options["check"])
