@@ -293,7 +293,8 @@ def summary_md(doc: dict) -> str:
                          f"{_f(r['cpu_share_1k'], 2)} cores, {held}"
                          if r.get("status") == "ok" else r["status"]])
         for k, v in live.get("comparisons", {}).items():
-            rows.append([_COMPARISON_LABELS.get(k, k), _ratio(v)])
+            # the recording overheads are fractions of the process CPU: shown as percentages
+            rows.append([_COMPARISON_LABELS.get(k, k), _pct(v) if "overhead" in k else _ratio(v)])
     feas = doc["sections"].get("feasibility", {})
     if feas.get("result"):
         f = feas["result"]
