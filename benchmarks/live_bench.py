@@ -179,7 +179,8 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
                      rows=[])
     pairs: list[tuple[dict, dict]] = []
     with tempfile.TemporaryDirectory(prefix="dyn_bench_rec_") as rec:
-        for s in subjects(rec)[:1 if smoke else None]:
+        every = subjects(rec)
+        for s in every[:1 if smoke else None]:
             progress("live", f"{s['name']} (rates {rates} Hz, {window} s each)")
             row = run_subject(s, rates, window, ready_timeout=30.0, repeat_first=repeat_first)
             progress("live", f"{s['name']}: {row['status']}")
@@ -190,7 +191,7 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
             # Recording's cost is a few percent of a process CPU share that itself drifts by more
             # than that between runs minutes apart, so (c) and (d) run again, alternately, at
             # 1 kHz only, and the overhead is the median over the pairs.
-            subj = {s["key"]: s for s in subjects(rec)}
+            subj = {s["key"]: s for s in every}
             for n in range(1, 1 if quick or smoke else RECORDING_PAIRS):
                 progress("live", f"recording overhead: pair {n + 1}/{RECORDING_PAIRS} of (c) and (d) "
                                  "at 1 kHz")

@@ -544,10 +544,11 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         ef = np.zeros_like(sp)
         for c, cv in enumerate(curves):
             sp[c, :len(cv)], ef[c, :len(cv)] = cv[:, 0], cv[:, 1]
-        env = kernels.envelope_values(_take(V, ecols), sp, ef, npts)
+        ve = _take(V, ecols)
+        env = kernels.envelope_values(ve, sp, ef, npts)
         values["effort_speed"] = (ecols, _take(tau, ecols), env)
-        xs = kernels.envelope_exit_min(_take(S, ecols), _take(W, ecols), _take(I, ecols),
-                                       _take(V, ecols), sp, ef, npts)
+        xs = kernels.envelope_exit_min(_take(S, ecols), _take(W, ecols), _take(I, ecols), ve,
+                                       sp, ef, npts)
         for c, j in enumerate(ecols):
             e0 = float(np.interp(0.0, curves[c][:, 0], curves[c][:, 1]))
             sj = S[:, j]
@@ -621,19 +622,19 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     pos_cols = np.flatnonzero(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper))
     pos_viol = []
     if len(pos_cols):
-        Qp = np.asfortranarray(Q[:, pos_cols])
+        Qp = np.asfortranarray(_take(Q, pos_cols))
         lo, hi = lim.position_lower[pos_cols], lim.position_upper[pos_cols]
         over = np.maximum(Qp - hi, lo - Qp)              # > 0: beyond a hard limit
         at_over = np.argmax(over, axis=0)
         # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
-        soft = [(side, b, side * (Qp - b))
+        soft = [(b, side * (Qp - b))
                 for side, b in ((-1, lim.soft_lower[pos_cols]), (1, lim.soft_upper[pos_cols]))]
-        at_soft = [np.argmax(x, axis=0) for _, _, x in soft]
+        at_soft = [np.argmax(x, axis=0) for _, x in soft]
         ranged = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         at_mid = np.argmax(np.abs(Qp - mid), axis=0)
         for c, j in enumerate(pos_cols):
-            for (_, bound, beyond), at in zip(soft, at_soft):
+            for (bound, beyond), at in zip(soft, at_soft):
                 n = at[c]
                 if beyond[n, c] > 0:
                     warnings.append(f"{names[j]} enters its soft-limit zone: q = {_fmt(Qp[n, c])} "
