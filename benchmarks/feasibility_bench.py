@@ -6,8 +6,9 @@ costs when written by hand: a Python loop calling pinocchio.rnea on the same sam
 check_trajectory itself evaluates, from its own sampler and interpolation). Ratio = check / loop.
 The headline row runs the check on one thread, as the live node does; the next runs it without
 the payload margin (the issues' targets name every limit kind and the time scale, not the
-margin); a third runs its batched RNEA passes on every core (same result), and the last times
-those passes alone: the floor under every other row.
+margin); a third runs its batched RNEA passes on every core (same result), the next times its
+torque passes alone (the compiled gravity pass and Pinocchio's batched RNEA): the floor under
+every other row, and the last two time gravity alone, by the kernel and by Pinocchio's RNEA.
 
 Those rows run with freed memory kept mapped (dyn_node.allocator.retain_freed_memory, which the
 dyn_node and dyn-audit entry points call): a check's sample arrays then reuse the previous
@@ -29,7 +30,8 @@ import numpy as np
 import pinocchio as pin
 
 from dyn_node.allocator import retain_freed_memory
-from dyn_node.dynamics import Dynamics
+from dyn_node import kernels
+from dyn_node.dynamics import Dynamics, gravity_tables
 from dyn_node.model import load_model
 
 from .common import NotAvailable, median_time, module_available, progress
@@ -138,12 +140,23 @@ def _measure(mode: str, repeats: int) -> dict:
                 F._unit_payload_dynamics(dyn).rnea_batch(Q, V, A, threads)
         return f
 
+    tables, G = gravity_tables(dyn._pm), np.empty((dyn.nv, len(Q)), order="F")
+    pool, Z = pin.ModelPool(dyn._pm, 1), np.zeros_like(Q)
+
+    def gravity_kernel():
+        kernels.gravity_rows(Q, *tables, G.T)
+
+    def gravity_rnea():
+        # what the check used before the kernel: Pinocchio's RNEA at v = a = 0
+        pin.rneaInParallel(1, pool, Q.T, Z.T, Z.T, G)
+
     subjects = {"check": lambda: F.check_trajectory(dyn, traj, options["check"]),
                 "check_nm": lambda: F.check_trajectory(dyn, traj, options["check_nm"]),
                 "check_mt": lambda: F.check_trajectory(dyn, traj, options["check_mt"]),
                 "check_nm_mt": lambda: F.check_trajectory(dyn, traj, options["check_nm_mt"]),
                 "loop": loop, "passes": rnea_passes(1), "passes_mt": rnea_passes(cores),
-                "passes_nm": rnea_passes(1, payload=False)}
+                "passes_nm": rnea_passes(1, payload=False),
+                "gravity_kernel": gravity_kernel, "gravity_rnea": gravity_rnea}
     times, faults = _rounds(subjects, repeats)
     return dict(mode=mode, applied=bool(applied),
                 median_s={k: statistics.median(v) for k, v in times.items()},
@@ -237,12 +250,20 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
                                f"its batched RNEA passes on {cores} OpenMP threads and the RMS "
                                "time-scale search and payload margin on a second Python thread "
                                "(identical result, checked) vs the same one-thread Python loop",
-                what_rnea_passes="the three batched RNEA passes alone (gravity, full, 1 kg "
-                                 "payload) that the check makes, on 1 thread and on all cores: "
-                                 "the floor of the check with the margin",
-                what_rnea_passes_no_margin="the two batched RNEA passes alone (gravity, full) "
-                                           "that the time scale needs, on 1 thread: the floor "
-                                           "of the check without the margin")
+                what_rnea_passes="the torque passes alone that the check makes (the compiled "
+                                 "gravity pass, Pinocchio's batched RNEA of the full torque and "
+                                 "of 1 kg more payload), on 1 thread and on all cores: the "
+                                 "floor of the check with the margin",
+                what_rnea_passes_no_margin="the torque passes alone that the time scale needs "
+                                           "(the compiled gravity pass and Pinocchio's batched "
+                                           "RNEA, split into terms), on 1 thread: the floor of "
+                                           "the check without the margin",
+                gravity_kernel_s=med("gravity_kernel"), gravity_rnea_s=med("gravity_rnea"),
+                ratio_gravity_kernel=ratio("gravity_kernel"),
+                ratio_gravity_rnea=ratio("gravity_rnea"),
+                what_gravity="g(q) on the same states, 1 thread: the compiled kernel the check "
+                             "uses (kernels.gravity_rows) and Pinocchio's batched RNEA at "
+                             "v = a = 0 (what it used before)")
 
 
 if __name__ == "__main__":

@@ -190,6 +190,11 @@ def _feasibility_rows(d: dict) -> list[list[str]]:
     if "rnea_passes_no_margin_s" in d:
         rows.append(row(d["what_rnea_passes_no_margin"], d["rnea_passes_no_margin_s"],
                         d.get("ratio_passes_no_margin")))
+    if "gravity_kernel_s" in d:
+        rows.append(row(d["what_gravity"] + ": **kernel**", d["gravity_kernel_s"],
+                        d["ratio_gravity_kernel"]))
+        rows.append(row(d["what_gravity"] + ": **Pinocchio RNEA**", d["gravity_rnea_s"],
+                        d["ratio_gravity_rnea"]))
     for mode, label in (("default", "glibc's defaults"), ("retain", "freed memory kept mapped")):
         h = d.get("heap", {}).get(mode)
         if h:
@@ -302,7 +307,7 @@ def summary_md(doc: dict) -> str:
         if "check_no_margin_s" in f:
             rows.append(["feasibility, 10,000 samples, every limit kind + time scale (targets ≤ 1.0× / ≤ 1.5×)",
                          f"{_f(f['check_no_margin_s'] * 1e3)} ms = {f['ratio_no_margin']:.2f}× the loop; "
-                         f"its two RNEA passes alone "
+                         f"its torque passes alone "
                          f"{f.get('ratio_passes_no_margin', f['rnea_passes_no_margin_s'] / f['rnea_loop_s']):.2f}×"])
     elif feas:
         rows.append(["feasibility", feas.get("status", "")])

@@ -44,6 +44,38 @@ class TorqueTerms:
         return self.static + self.viscous / k + self.inertial / (k * k)
 
 
+_AXES = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
+
+
+def gravity_tables(pm: pin.Model) -> tuple[np.ndarray, ...] | None:
+    """The arrays :func:`dyn_node.kernels.gravity_rows` takes after Q, from a Pinocchio model's
+    joint placements, axes, body inertias and gravity; None when a joint is not a one-DoF
+    revolute or prismatic one (Pinocchio's own pass is used then)."""
+    n = pm.njoints
+    parent = np.array(pm.parents, dtype=np.int64)
+    kind = np.zeros(n, dtype=np.int64)
+    index = np.zeros(n, dtype=np.int64)
+    placement = np.zeros((n, 12))
+    axis = np.zeros((n, 3))
+    body = np.zeros((n, 4))
+    for i in range(1, n):
+        joint = pm.joints[i]
+        name = joint.shortname()
+        if name in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
+            axis[i] = joint.extract().axis
+        elif name[:-1] in ("JointModelR", "JointModelP") and name[-1] in _AXES:
+            axis[i] = _AXES[name[-1]]
+        else:
+            return None
+        kind[i] = 0 if name.startswith("JointModelR") else 1     # kernels.REVOLUTE, PRISMATIC
+        index[i] = joint.idx_v
+        placement[i, :9] = pm.jointPlacements[i].rotation.reshape(9)
+        placement[i, 9:] = pm.jointPlacements[i].translation
+        body[i, 0] = pm.inertias[i].mass
+        body[i, 1:] = pm.inertias[i].lever
+    return parent, kind, index, placement, axis, body, np.array(pm.gravity.linear, dtype=float)
+
+
 class Dynamics:
     """Gravity, inverse dynamics, mass matrix and bias for one model and one set of options."""
 
@@ -62,8 +94,10 @@ class Dynamics:
         self._zero = np.zeros(pm.nv)
         # One thread by default: Pinocchio's C++ batch is already ~2x the Python loop on one core,
         # and a second OpenMP thread is erratic when the other core is busy (seen in make bench).
-        self._threads = max(1, min(int(threads), os.cpu_count() or 1))
+        self._cores = os.cpu_count() or 1
+        self._threads = max(1, min(int(threads), self._cores))
         self._pool: pin.ModelPool | None = None
+        self._gravity_tables = gravity_tables(pm)
 
     @property
     def nv(self) -> int:
@@ -107,7 +141,7 @@ class Dynamics:
         """Threads a batched call will use: ``threads`` (None: the constructor's setting),
         clamped to [1, cpu_count]."""
         n = self._threads if threads is None else int(threads)
-        return max(1, min(n, os.cpu_count() or 1))
+        return max(1, min(n, self._cores))
 
     def _rigid_columns(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
                        threads: int | None = None) -> np.ndarray:
@@ -147,12 +181,23 @@ class Dynamics:
     def terms_batch(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray,
                     threads: int | None = None) -> TorqueTerms:
         """RNEA split into static, viscous and inertial parts (see :class:`TorqueTerms`), each
-        N×nv and column-major (every joint's samples contiguous, for per-joint reductions)."""
+        N×nv and column-major (every joint's samples contiguous, for per-joint reductions).
+
+        The full torque is Pinocchio's batched RNEA; gravity, which the split needs apart, comes
+        from :func:`dyn_node.kernels.gravity_rows` on this model's tables (single-threaded,
+        whatever ``threads``), or from Pinocchio's RNEA at v = a = 0 when the model has a joint
+        the kernel does not handle."""
         from . import kernels   # here, not at import: Numba is only for batched checks
 
         Q, V, A = (np.ascontiguousarray(x, dtype=float) for x in (Q, V, A))
-        Z = np.zeros_like(Q)
-        G = self._rigid_columns(Q, Z, Z, threads)
+        if self._gravity_tables is None:
+            Z = np.zeros_like(Q)
+            G = self._rigid_columns(Q, Z, Z, threads)
+        else:
+            # a quarter of the time of Pinocchio's RNEA at v = a = 0 here; equal to
+            # computeGeneralizedGravity to ~1e-13 N·m (test_dynamics)
+            G = np.empty((self.nv, len(Q)), order="F")
+            kernels.gravity_rows(Q, *self._gravity_tables, G.T)
         F = self._rigid_columns(Q, V, A, threads)
         S, W, I, full = kernels.split_terms(G, F, V, self._damping, self._coulomb)
         return TorqueTerms(static=S, viscous=W, inertial=I, full=full)

@@ -20,8 +20,9 @@ trial decided exactly on a sparse grid of windows plus the gaps a bound cannot c
 ``_rms_time_scale``). ``time_scale`` is the largest of these per-sample factors: the smallest k
 such that every k' ≥ k is feasible.
 
-Cost: three batched RNEA passes (gravity, full, and the 1 kg payload for the margin; two without
-the margin) are the largest part; everything else is a fixed number of passes over the samples,
+Cost: the batched RNEA passes (the full torque, and the 1 kg payload for the margin) are the
+largest part, then the compiled gravity pass the time scale needs (a quarter of an RNEA pass;
+see :meth:`Dynamics.terms_batch`); everything else is a fixed number of passes over the samples,
 the per-sample ones compiled and run without the GIL (the node's joint_states path keeps running
 beside a check). With ``FeasibilityOptions.threads`` above one, the RNEA passes use that many
 OpenMP threads and the RMS search and the payload margin run on a background thread beside the

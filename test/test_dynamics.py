@@ -255,3 +255,31 @@ def test_variants_keep_each_other():
     assert a.limits.armature[2] == 0.2 and a.urdf_hash == model.urdf_hash
     assert model.payload.mass == 0.0 and np.all(model.pin_model.armature == 0)
     np.testing.assert_array_equal(model.gravity, [0, 0, -9.81])  # the original is untouched
+
+
+def test_terms_batch_gravity_kernel_matches_pinocchio_pass(arm):
+    """terms_batch takes gravity from the compiled kernel; Pinocchio's RNEA at v = a = 0 (what
+    it falls back to for a joint the kernel does not know) gives the same split to 1e-12."""
+    from dyn_node.dynamics import gravity_tables
+
+    Q, V, A = random_states(arm, 300, 13)
+    dyn = Dynamics(arm)
+    fast = dyn.terms_batch(Q, V, A)
+    dyn._gravity_tables = None
+    slow = dyn.terms_batch(Q, V, A)
+    for a, b in ((fast.static, slow.static), (fast.inertial, slow.inertial),
+                 (fast.viscous, slow.viscous), (fast.full, slow.full)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast.static - dyn._coulomb * np.sign(V), dyn.gravity_batch(Q),
+                               rtol=0, atol=1e-12)
+    # a joint with more than one degree of freedom: no tables, so Pinocchio's pass is used
+    pm = pin.Model()
+    pm.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
+    assert gravity_tables(pm) is None
+
+
+def test_two_link_gravity_split_is_the_closed_form(two_link):
+    Q, V, A = random_states(two_link.model, 50, 14)
+    terms = two_link.terms_batch(Q, V, A)
+    np.testing.assert_allclose(terms.static, [closed_form(q, v, a)[2] for q, v, a in zip(Q, V, A)],
+                               rtol=0, atol=TOL)
