@@ -29,6 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .drops import SEQUENCE_NUMBERS
 from .dynamics import Dynamics, DynamicsOptions
 from .errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, InputError
 from .model import Payload, RobotModel, load_model
@@ -295,6 +296,7 @@ class Monitor:
         self._stale = settings.stale_timeout
         self._gravity_and_rnea = self.dynamics.gravity_and_rnea
         self.counts = counts if counts is not None else Counts()
+        self.drop_counting = SEQUENCE_NUMBERS
         self.last_receipt_s: float | None = None
         self.last_error: InputError | None = None
         self.last_result: SampleResult | None = None
@@ -575,8 +577,10 @@ class Monitor:
         self.last_error = exc
         return SampleResult(False, exc)
 
-    def note_dropped(self, total: int) -> None:
-        """The transport's running count of messages lost before they reached the node."""
+    def note_dropped(self, total: int, method: str = SEQUENCE_NUMBERS) -> None:
+        """The transport's running count of messages lost before they reached the node, and
+        how it is counted now (:mod:`dyn_node.drops`)."""
+        self.drop_counting = method
         if total > self.counts.dropped:
             self._w.dropped += total - self.counts.dropped
             self.counts.dropped = total
@@ -605,7 +609,8 @@ class Monitor:
         vals = {"rate_hz": w.received / span if span > 0 else 0.0, "age_s": age,
                 "received_messages": c.received, "accepted_messages": c.accepted,
                 "invalid_messages": c.invalid, "out_of_order_messages": c.out_of_order,
-                "dropped_messages": c.dropped, "zero_stamp_messages": c.zero_stamp,
+                "dropped_messages": c.dropped, "drop_counting": self.drop_counting,
+                "zero_stamp_messages": c.zero_stamp,
                 "ignored_joint_values": c.ignored_joint_values}
         for code, n in sorted(c.invalid_by_reason.items()):
             vals[f"invalid_{code}"] = n

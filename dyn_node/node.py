@@ -46,6 +46,7 @@ from trajectory_msgs.msg import JointTrajectory
 # 0.7 s, which then stalled joint_states handling by up to 170 ms (seen in make demo)
 from . import feasibility
 from .allocator import retain_freed_memory
+from .drops import DropCounter
 from .dynamics import Dynamics, DynamicsOptions
 from .errors import DynNodeError, STATE_ERROR, TrajectoryError
 from .model import RobotModel
@@ -108,13 +109,10 @@ class DynNode(Node):
         for spec in PARAMETERS:
             self.declare_parameter(spec.name, spec.default, _descriptor(spec))
         self._counts = Counts()
-        self._last_seq: int | None = None
-        self._seq_gaps = 0
-        self._lost_total = 0
-        # Assume one publisher until the subscription's matched event (or, on an rmw without it,
-        # the graph checked each diagnostics period) says otherwise, so gaps from the very first
-        # burst are counted.
-        self._single_publisher = True
+        # Assumes one publisher until the subscription's matched event (or, on an rmw without
+        # it, the graph checked each diagnostics period) says otherwise, so gaps from the very
+        # first burst are counted.
+        self._drops = DropCounter()
         self._matched_event = False
         self._topic_urdf = ""
         self._model_problem: Status | None = None
@@ -202,6 +200,7 @@ class DynNode(Node):
         tracker = ControllerTracker(model, settings)
         core = _Core(model, settings, Monitor(model, settings, self._counts), tracker,
                      JointStateOut(model.joint_names), JointStateOut(model.joint_names))
+        core.monitor.drop_counting = self._drops.method
         old = self._core
         if old is not None and old.model.joint_names == model.joint_names and old.tracker._plan is not None:
             tracker._plan = old.tracker._plan
@@ -387,7 +386,7 @@ class DynNode(Node):
 
     def _on_message_lost(self, info: Any) -> None:
         with self._io_lock:
-            self._lost_total = int(info.total_count)
+            self._drops.lost(int(info.total_count))
             self._report_dropped()
 
     def _on_matched(self, info: Any) -> None:
@@ -395,31 +394,13 @@ class DynNode(Node):
         # second publisher's samples must never be counted as a drop.
         with self._io_lock:
             self._matched_event = True
-            self._single_publisher = int(info.current_count) == 1
+            self._drops.publishers(int(info.current_count))
+            self._report_dropped()
 
     def _report_dropped(self) -> None:
-        # Sequence gaps are exact and include what the middleware's lost event reports, so the
-        # event's count is used only while no sequence numbers are seen (never both: no double count).
         core = self._core
         if core is not None:
-            core.monitor.note_dropped(self._seq_gaps if self._last_seq is not None else self._lost_total)
-
-    def _count_sequence(self, info: dict | None) -> None:
-        """Count messages lost between the publisher and this node from sequence-number gaps.
-
-        Fast DDS numbers each publisher's samples; a gap is a sample the middleware discarded
-        (best-effort loss or a full history). rclpy does not say which publisher a sample came
-        from, so gaps are counted only while exactly one publisher is matched (checked on the
-        diagnostics timer); with several, the middleware's message-lost event is all there is.
-        """
-        seq = info.get("publication_sequence_number") if info else None
-        if not seq:
-            return
-        last = self._last_seq
-        self._last_seq = seq
-        if last is not None and seq > last + 1 and self._single_publisher:
-            self._seq_gaps += seq - last - 1
-            self._report_dropped()
+            core.monitor.note_dropped(self._drops.total, self._drops.method)
 
     def _on_joint_state(self, data: bytes, info: dict) -> None:
         # Two required arguments: rclpy binds a callback that accepts one argument as
@@ -434,12 +415,16 @@ class DynNode(Node):
         for _ in range(_DRAIN):
             more = self._take_pending()
             if more is None:
+                with self._io_lock:
+                    if self._drops.idle():
+                        self._report_dropped()
                 break
             self._take_joint_state(more[0], more[1])
 
     def _take_joint_state(self, data: bytes, info: dict | None) -> None:
         with self._io_lock:
-            self._count_sequence(info)
+            if self._drops.sequence(info.get("publication_sequence_number") if info else None):
+                self._report_dropped()
             clock = self._clock_handle
             with clock:
                 receipt_ns = clock.get_now().nanoseconds  # one clock read: receipt and log time
@@ -522,7 +507,9 @@ class DynNode(Node):
     def _on_diagnostics(self) -> None:
         try:
             if not self._matched_event:
-                self._single_publisher = self.count_publishers(self._sub_js.topic_name) == 1
+                with self._io_lock:
+                    self._drops.publishers(self.count_publishers(self._sub_js.topic_name))
+                    self._report_dropped()
             now = self.get_clock().now()
             self._publish(self._pub_diag, diagnostic_array(self.current_statuses(now.nanoseconds * 1e-9),
                                                     now.to_msg()))

@@ -402,6 +402,52 @@ def test_flood_10khz_for_5s(panda, spawn):
 
 
 @pytest.mark.timeout(90)
+def test_drop_count_with_two_publishers(ros_context):
+    """Two publishers number their samples independently. While both are matched, the node
+    counts the middleware's lost events and says so. When one goes, it resumes sequence
+    counting without a gap between the last sample of the departed publisher and the next of
+    the remaining one. A 50-sample batch from A, then 10 from A and 10 from B (B's last), then
+    B leaves and 60 more come from A: nothing is lost, so nothing may be counted."""
+    h = Harness(ros_context, [Parameter("robot_model", value="panda"), *FAST_DIAG], "/twopub")
+    sent = [0]
+
+    def publish(pub, n: int) -> None:
+        for _ in range(n):
+            pub.publish(js(NAMES, Q0, V0, stamp=next_stamp()))
+        sent[0] += n
+        # batches well inside the node's history, each taken before the next is sent
+        h.status("dyn_node: joint_states",
+                 lambda st: int(values(st)["received_messages"]) >= sent[0])
+
+    def counting(method: str) -> dict[str, str]:
+        return values(h.status("dyn_node: joint_states",
+                               lambda st: values(st).get("drop_counting") == method))
+
+    try:
+        publish(h.js_pub, 50)
+        counting("sequence_numbers")
+        second = h.probe.create_publisher(JointState, "joint_states", RELIABLE)
+        counting("middleware_lost_events")
+        publish(h.js_pub, 10)
+        publish(second, 10)
+        h.probe.destroy_publisher(second)
+        publish(h.js_pub, 50)
+        # back to sequence numbers once the node has seen B leave and then an empty queue
+        # (one more sample if B's departure was noticed after the batch)
+        for _ in range(20):
+            if h.node._drops.method == "sequence_numbers":
+                break
+            publish(h.js_pub, 1)
+        counting("sequence_numbers")
+        publish(h.js_pub, 10)
+        v = values(h.status("dyn_node: joint_states",
+                            lambda st: int(values(st)["received_messages"]) == sent[0]))
+        assert int(v["dropped_messages"]) == 0 and v["drop_counting"] == "sequence_numbers", v
+    finally:
+        h.close()
+
+
+@pytest.mark.timeout(90)
 def test_model_from_topic_and_invalid_description(ros_context):
     h = Harness(ros_context, FAST_DIAG, "/from_topic")
     try:

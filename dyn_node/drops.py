@@ -1,0 +1,99 @@
+"""Counting the joint_states samples lost between the publishers and the node (no rclpy).
+
+Two sources, never added for the same loss:
+
+- **Sequence numbers.** Fast DDS numbers every sample a publisher writes, and the node reads
+  that number from each sample it takes. A gap is a sample the middleware discarded: a
+  best-effort loss, or a full reader history (``qos_depth``). This is exact, but rclpy does not
+  say which publisher a sample came from. So it is used only while at most one publisher is
+  matched.
+- **The middleware's message-lost event.** Its running total is used while several publishers
+  are matched, or before the rmw has shown any sequence number. It may not include reader
+  history overwrites, so the counting method is reported with the count.
+
+Each change of method starts a new period from a fresh baseline. What earlier periods counted
+stays counted, and no gap is taken across the change: the sample before it may have come from a
+different publisher than the one after. When the count drops back to one publisher, the samples
+the departed one sent may still be queued in the reader, so sequence counting resumes only after
+the node has found the queue empty once (:meth:`DropCounter.idle`). Until then the lost events
+count.
+"""
+from __future__ import annotations
+
+SEQUENCE_NUMBERS = "sequence_numbers"
+LOST_EVENTS = "middleware_lost_events"
+
+
+class DropCounter:
+    """Running count of lost samples; feed it every taken sample's sequence number, the
+    matched-publisher count and the lost event's running total, in any order."""
+
+    def __init__(self) -> None:
+        self._before = 0            # counted in earlier periods
+        self._gaps = 0              # sequence gaps in this period
+        self._last_seq: int | None = None
+        self._lost_total = 0        # the lost event's running total
+        self._lost_base = 0         # ... when this period began
+        self._single = True         # at most one publisher matched (assumed until told)
+        self._settled = True        # ... and no sample of a departed publisher can be queued
+        self._numbered = False      # the rmw gives sequence numbers
+
+    @property
+    def method(self) -> str:
+        """How the current period counts: SEQUENCE_NUMBERS or LOST_EVENTS."""
+        return SEQUENCE_NUMBERS if self._single and self._settled and self._numbered \
+            else LOST_EVENTS
+
+    @property
+    def total(self) -> int:
+        """Samples lost since the node started, by both methods' periods together."""
+        if self.method == SEQUENCE_NUMBERS:
+            return self._before + self._gaps
+        return self._before + max(0, self._lost_total - self._lost_base)
+
+    def _new_period(self) -> None:
+        self._before = self.total
+        self._gaps = 0
+        self._last_seq = None
+        self._lost_base = self._lost_total
+
+    def publishers(self, matched: int) -> bool:
+        """The number of matched publishers changed to ``matched``; True if the method did."""
+        single = matched <= 1
+        if single == self._single:
+            return False
+        self._new_period()
+        self._single = single
+        # from one publisher to several, the method changes at once; back to one, at idle()
+        self._settled = not single
+        return True
+
+    def idle(self) -> bool:
+        """The reader's queue was found empty; True if the method changed (sequence counting
+        resumes after a publisher left)."""
+        if self._settled:
+            return False
+        self._new_period()
+        self._settled = True
+        return True
+
+    def lost(self, running_total: int) -> None:
+        """The middleware's message-lost event: its running total for the subscription."""
+        self._lost_total = max(self._lost_total, int(running_total))
+
+    def sequence(self, seq: int | None) -> bool:
+        """A taken sample's publication sequence number (None or 0: the rmw gave none); True
+        if the total or the method changed (a gap, or the first numbered sample)."""
+        if not seq:
+            return False
+        if not self._numbered:
+            self._new_period()
+            self._numbered = True
+            self._last_seq = seq
+            return True
+        last, self._last_seq = self._last_seq, seq
+        # a lower number is a restarted publisher (or another one): a new baseline, no gap
+        if last is not None and seq > last + 1 and self.method == SEQUENCE_NUMBERS:
+            self._gaps += seq - last - 1
+            return True
+        return False
