@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-_AXES = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
+from dyn_node.dynamics import joint_axis
 
 
 @dataclass(frozen=True)
@@ -31,15 +31,11 @@ class _Joint:
 
 
 def _axis_of(joint_model) -> tuple[bool, np.ndarray]:
-    name = joint_model.shortname()  # e.g. JointModelRZ, JointModelRevoluteUnaligned, JointModelPX
-    if name.startswith("JointModelR") and name[-1] in _AXES and len(name) == len("JointModelRZ"):
-        return True, np.array(_AXES[name[-1]])
-    if name.startswith("JointModelP") and name[-1] in _AXES and len(name) == len("JointModelPZ"):
-        return False, np.array(_AXES[name[-1]])
-    if name in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
-        axis = np.asarray(joint_model.extract().axis, dtype=float)
-        return name.startswith("JointModelR"), axis / np.linalg.norm(axis)
-    raise ValueError(f"NumPy RNEA supports 1-DoF revolute/prismatic joints, not {name}")
+    found = joint_axis(joint_model)
+    if found is None:
+        raise ValueError("NumPy RNEA supports 1-DoF revolute/prismatic joints, not "
+                         f"{joint_model.shortname()}")
+    return found
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

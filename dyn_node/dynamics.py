@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -47,6 +48,18 @@ class TorqueTerms:
 _AXES = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
 
 
+def joint_axis(joint_model: Any) -> tuple[bool, np.ndarray] | None:
+    """(revolute, unit axis in the joint frame) of a one-DoF revolute or prismatic Pinocchio
+    joint model (JointModelRZ, JointModelPrismaticUnaligned, ...); None for any other kind."""
+    name = joint_model.shortname()
+    if name in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
+        axis = np.asarray(joint_model.extract().axis, dtype=float)
+        return name.startswith("JointModelR"), axis / np.linalg.norm(axis)
+    if name[:-1] in ("JointModelR", "JointModelP") and name[-1] in _AXES:
+        return name.startswith("JointModelR"), np.array(_AXES[name[-1]])
+    return None
+
+
 def gravity_tables(pm: pin.Model) -> tuple[np.ndarray, ...] | None:
     """The arrays :func:`dyn_node.kernels.gravity_rows` takes after Q, from a Pinocchio model's
     joint placements, axes, body inertias and gravity; None when a joint is not a one-DoF
@@ -59,16 +72,12 @@ def gravity_tables(pm: pin.Model) -> tuple[np.ndarray, ...] | None:
     axis = np.zeros((n, 3))
     body = np.zeros((n, 4))
     for i in range(1, n):
-        joint = pm.joints[i]
-        name = joint.shortname()
-        if name in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
-            axis[i] = joint.extract().axis
-        elif name[:-1] in ("JointModelR", "JointModelP") and name[-1] in _AXES:
-            axis[i] = _AXES[name[-1]]
-        else:
+        found = joint_axis(pm.joints[i])
+        if found is None:
             return None
-        kind[i] = 0 if name.startswith("JointModelR") else 1     # kernels.REVOLUTE, PRISMATIC
-        index[i] = joint.idx_v
+        kind[i] = 0 if found[0] else 1     # kernels.REVOLUTE, PRISMATIC
+        axis[i] = found[1]
+        index[i] = pm.joints[i].idx_v
         placement[i, :9] = pm.jointPlacements[i].rotation.reshape(9)
         placement[i, 9:] = pm.jointPlacements[i].translation
         body[i, 0] = pm.inertias[i].mass

@@ -23,31 +23,11 @@ from benchmarks.dynamics_bench import random_states
 from benchmarks.mujoco_ref import MujocoInverse
 from benchmarks.numpy_rnea import NumpyRNEA
 from dyn_node.model import load_model
+from robots import BRANCHED_URDF
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOTS = ("panda", "ur5", "planar_2link")
 
-# A branched tree exercising every joint kind the NumPy RNEA handles: prismatic, revolute about a
-# non-principal axis, rotated joint origins, inertial frames rotated and offset from the link.
-BRANCHED_URDF = """<robot name="branched">
-  <link name="base"/>
-  <link name="a"><inertial><origin xyz="0.1 0.02 -0.03" rpy="0.3 -0.2 0.5"/><mass value="2.0"/>
-    <inertia ixx="0.05" iyy="0.04" izz="0.03" ixy="0.002" ixz="-0.001" iyz="0.003"/></inertial></link>
-  <link name="b"><inertial><origin xyz="0.0 0.2 0.1" rpy="0 0.4 0"/><mass value="1.2"/>
-    <inertia ixx="0.02" iyy="0.03" izz="0.01" ixy="0" ixz="0.001" iyz="0"/></inertial></link>
-  <link name="c"><inertial><origin xyz="0.05 0 0.02"/><mass value="0.7"/>
-    <inertia ixx="0.004" iyy="0.005" izz="0.006" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="d"><inertial><origin xyz="0 0 0.1"/><mass value="0.4"/>
-    <inertia ixx="0.001" iyy="0.001" izz="0.002" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="a"/>
-    <origin xyz="0 0 0.3" rpy="0.1 0.2 0.3"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="100" velocity="3"/></joint>
-  <joint name="j2" type="prismatic"><parent link="a"/><child link="b"/>
-    <origin xyz="0.2 0 0" rpy="0 0.5 0"/><axis xyz="0.6 0 0.8"/><limit lower="-0.5" upper="0.5" effort="100" velocity="1"/></joint>
-  <joint name="j3" type="revolute"><parent link="b"/><child link="c"/>
-    <origin xyz="0 0.3 0" rpy="-0.4 0 0.2"/><axis xyz="0.267261 0.534522 0.801784"/><limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
-  <joint name="j4" type="revolute"><parent link="a"/><child link="d"/>
-    <origin xyz="0 -0.2 0.1"/><axis xyz="1 0 0"/><limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
-</robot>"""
 
 
 def _pin_loop(pm, Q, V, A) -> np.ndarray:
@@ -67,10 +47,10 @@ def test_numpy_rnea_matches_pinocchio(robot: str) -> None:
 
 
 def test_numpy_rnea_branched_tree_prismatic_unaligned_armature() -> None:
-    pm = pin.buildModelFromXML(BRANCHED_URDF)
+    pm = load_model(urdf=BRANCHED_URDF).pin_model.copy()
     kinds = {pm.joints[i].shortname() for i in range(1, pm.njoints)}
-    assert {"JointModelPrismaticUnaligned", "JointModelRevoluteUnaligned"} <= kinds
-    pm.armature = np.array([0.1, 0.2, 0.05, 0.3])
+    assert {"JointModelPrismaticUnaligned", "JointModelRevoluteUnaligned", "JointModelPX"} <= kinds
+    pm.armature = np.array([0.1, 0.2, 0.05, 0.3, 0.02, 0.01])
     pm.gravity.linear = np.array([1.0, -2.0, -9.0])
     rng = np.random.default_rng(3)
     Q, V, A = (rng.uniform(-1, 1, (200, pm.nv)) for _ in range(3))

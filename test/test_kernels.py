@@ -145,37 +145,6 @@ def test_segment_derivative_is_exact_for_quadratics_and_stays_inside_segments():
     np.testing.assert_allclose(D[[f, l_]], np.repeat((F[l_] - F[f])[None] / smp.h[f], 2, 0))
 
 
-_TREE_URDF = """<robot name="tree">
-  <link name="base"/>
-  <link name="a"><inertial><origin xyz="0.1 0.02 0.3" rpy="0 0 0"/><mass value="2.0"/>
-    <inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="b"><inertial><origin xyz="0.2 -0.1 0.05" rpy="0 0 0"/><mass value="1.2"/>
-    <inertia ixx="0.05" iyy="0.05" izz="0.05" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="b_tool"><inertial><origin xyz="0 0 0.1" rpy="0 0 0"/><mass value="0.4"/>
-    <inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="c"><inertial><origin xyz="-0.05 0.1 0.0" rpy="0 0 0"/><mass value="0.9"/>
-    <inertia ixx="0.02" iyy="0.02" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="d"><inertial><origin xyz="0.03 0.0 0.2" rpy="0 0 0"/><mass value="0.7"/>
-    <inertia ixx="0.02" iyy="0.02" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="e"><inertial><origin xyz="0.0 0.05 0.05" rpy="0 0 0"/><mass value="0.5"/>
-    <inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="j_a" type="revolute"><parent link="base"/><child link="a"/>
-    <origin xyz="0 0 0.1" rpy="0.1 -0.2 0.3"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="100" velocity="2"/></joint>
-  <joint name="j_b" type="revolute"><parent link="a"/><child link="b"/>
-    <origin xyz="0.3 0 0.2" rpy="1.2 0.4 -0.7"/><axis xyz="0 0.6 0.8"/>
-    <limit lower="-3" upper="3" effort="100" velocity="2"/></joint>
-  <joint name="j_b_tool" type="fixed"><parent link="b"/><child link="b_tool"/>
-    <origin xyz="0.1 0.1 0.1" rpy="0.5 0 0"/></joint>
-  <joint name="j_c" type="prismatic"><parent link="a"/><child link="c"/>
-    <origin xyz="-0.2 0.1 0" rpy="0 0.3 0"/><axis xyz="1 0 0"/>
-    <limit lower="-0.5" upper="0.5" effort="100" velocity="1"/></joint>
-  <joint name="j_d" type="prismatic"><parent link="c"/><child link="d"/>
-    <origin xyz="0 0 0.1" rpy="-0.4 0 0.9"/><axis xyz="0.48 0.6 0.64"/>
-    <limit lower="-0.5" upper="0.5" effort="100" velocity="1"/></joint>
-  <joint name="j_e" type="continuous"><parent link="d"/><child link="e"/>
-    <origin xyz="0 0.1 0.1" rpy="0 0 0"/><axis xyz="0 1 0"/><limit effort="10" velocity="2"/></joint>
-</robot>"""
 
 
 @pytest.mark.parametrize("name", ["panda", "ur5", "planar_2link", "tree"])
@@ -184,14 +153,18 @@ def test_gravity_rows_agree_with_pinocchio(name):
     built-in arms, and a branching tree with aligned and unaligned revolute and prismatic axes, a
     fixed joint merged into its parent and a continuous joint, carrying a payload under a tilted
     gravity vector."""
+    from robots import BRANCHED_URDF
     import pinocchio as pin
 
     from dyn_node.dynamics import gravity_tables
     from dyn_node.model import Payload, load_model
 
     if name == "tree":
-        model = load_model(urdf=_TREE_URDF, payload=Payload(1.5, (0.02, -0.03, 0.05), "e"),
+        model = load_model(urdf=BRANCHED_URDF, payload=Payload(1.5, (0.02, -0.03, 0.05), "f"),
                            gravity=(1.1, -2.3, -9.5))
+        kinds = {model.pin_model.joints[i].shortname() for i in range(1, model.pin_model.njoints)}
+        assert kinds == {"JointModelRZ", "JointModelRX", "JointModelRY", "JointModelPX",
+                         "JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"}
     else:
         model = load_model(builtin=name)
     pm = model.pin_model
