@@ -14,9 +14,10 @@ Two sources, never added for the same loss:
 Each change of method starts a new period from a fresh baseline. What earlier periods counted
 stays counted, and no gap is taken across the change: the sample before it may have come from a
 different publisher than the one after. When the count drops back to one publisher, the samples
-the departed one sent may still be queued in the reader, so sequence counting resumes only after
-the node has found the queue empty once (:meth:`DropCounter.idle`). Until then the lost events
-count.
+the departed one sent may still be queued in the reader. So sequence counting resumes at the
+first sample the middleware received after the node learned of the departure (its
+``received_timestamp``, system clock): that one can only have come from a publisher still
+matched, and it is the new baseline. Until then the lost events count.
 """
 from __future__ import annotations
 
@@ -36,6 +37,7 @@ class DropCounter:
         self._lost_base = 0         # ... when this period began
         self._single = True         # at most one publisher matched (assumed until told)
         self._settled = True        # ... and no sample of a departed publisher can be queued
+        self._departed_ns = 0       # system time the count last dropped back to one
         self._numbered = False      # the rmw gives sequence numbers
 
     @property
@@ -57,38 +59,34 @@ class DropCounter:
         self._last_seq = None
         self._lost_base = self._lost_total
 
-    def publishers(self, matched: int) -> bool:
-        """The number of matched publishers changed to ``matched``; True if the method did."""
+    def publishers(self, matched: int, now_ns: int) -> bool:
+        """The number of matched publishers is ``matched``, as learned at system time
+        ``now_ns``; True if the method changed."""
         single = matched <= 1
         if single == self._single:
             return False
         self._new_period()
         self._single = single
-        # from one publisher to several, the method changes at once; back to one, at idle()
+        # from one publisher to several, the method changes at once; back to one, at the first
+        # sample received after now
         self._settled = not single
-        return True
-
-    def idle(self) -> bool:
-        """The reader's queue was found empty; True if the method changed (sequence counting
-        resumes after a publisher left)."""
-        if self._settled:
-            return False
-        self._new_period()
-        self._settled = True
+        self._departed_ns = now_ns
         return True
 
     def lost(self, running_total: int) -> None:
         """The middleware's message-lost event: its running total for the subscription."""
         self._lost_total = max(self._lost_total, int(running_total))
 
-    def sequence(self, seq: int | None) -> bool:
-        """A taken sample's publication sequence number (None or 0: the rmw gave none); True
-        if the total or the method changed (a gap, or the first numbered sample)."""
+    def sequence(self, seq: int | None, received_ns: int | None = None) -> bool:
+        """A taken sample's publication sequence number (None or 0: the rmw gave none) and the
+        system time the middleware received it (None or 0: not given, taken as recent); True if
+        the total or the method changed (a gap, or a new baseline)."""
         if not seq:
             return False
-        if not self._numbered:
+        if not self._numbered or (self._single and not self._settled
+                                  and (not received_ns or received_ns > self._departed_ns)):
             self._new_period()
-            self._numbered = True
+            self._numbered = self._settled = True
             self._last_seq = seq
             return True
         last, self._last_seq = self._last_seq, seq

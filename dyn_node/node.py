@@ -23,6 +23,7 @@ import math
 import queue
 import struct
 import threading
+import time
 import traceback
 from dataclasses import dataclass, replace
 from typing import Any, Callable
@@ -394,7 +395,7 @@ class DynNode(Node):
         # second publisher's samples must never be counted as a drop.
         with self._io_lock:
             self._matched_event = True
-            self._drops.publishers(int(info.current_count))
+            self._drops.publishers(int(info.current_count), time.time_ns())
             self._report_dropped()
 
     def _report_dropped(self) -> None:
@@ -415,15 +416,13 @@ class DynNode(Node):
         for _ in range(_DRAIN):
             more = self._take_pending()
             if more is None:
-                with self._io_lock:
-                    if self._drops.idle():
-                        self._report_dropped()
                 break
             self._take_joint_state(more[0], more[1])
 
     def _take_joint_state(self, data: bytes, info: dict | None) -> None:
         with self._io_lock:
-            if self._drops.sequence(info.get("publication_sequence_number") if info else None):
+            if info and self._drops.sequence(info.get("publication_sequence_number"),
+                                             info.get("received_timestamp")):
                 self._report_dropped()
             clock = self._clock_handle
             with clock:
@@ -508,7 +507,8 @@ class DynNode(Node):
         try:
             if not self._matched_event:
                 with self._io_lock:
-                    self._drops.publishers(self.count_publishers(self._sub_js.topic_name))
+                    self._drops.publishers(self.count_publishers(self._sub_js.topic_name),
+                                           time.time_ns())
                     self._report_dropped()
             now = self.get_clock().now()
             self._publish(self._pub_diag, diagnostic_array(self.current_statuses(now.nanoseconds * 1e-9),

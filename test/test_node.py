@@ -432,8 +432,8 @@ def test_drop_count_with_two_publishers(ros_context):
         publish(second, 10)
         h.probe.destroy_publisher(second)
         publish(h.js_pub, 50)
-        # back to sequence numbers once the node has seen B leave and then an empty queue
-        # (one more sample if B's departure was noticed after the batch)
+        # back to sequence numbers at the first sample received after the node saw B leave
+        # (one more if it noticed after the batch)
         for _ in range(20):
             if h.node._drops.method == "sequence_numbers":
                 break

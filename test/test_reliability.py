@@ -280,6 +280,93 @@ def test_overload_5khz_bursts_during_100k_point_check(ctx, spawn):
         assert "Traceback" not in err, err
 
 
+@pytest.mark.timeout(120)
+def test_two_publisher_flood_counts_a_lower_bound_then_exact_again(ctx, spawn):
+    """Two publishers flood joint_states into a 10-deep history: the node counts the middleware's
+    lost events, which never over-count (on Fast DDS they miss history overwrites, so the count
+    is a lower bound). One publisher leaves; after a few samples the node is back on sequence
+    numbers, and the next flood from the remaining publisher is accounted exactly."""
+    ns = "/two"
+    node = spawn(python_cmd("dyn_node.node", "--ros-args", "-r", f"__ns:={ns}", "-p", "robot_model:=panda",
+                            "-p", "acceleration_source:=zero", "-p", "diagnostics_period:=0.1",
+                            "-p", "qos_depth:=10"))
+    p = Probe(ctx, "two_probe")
+    try:
+        p.sub("diag", DiagnosticArray, "/diagnostics", 1000)
+        pubs = [p.node.create_publisher(JointState, f"{ns}/joint_states", RELIABLE) for _ in range(2)]
+        msg = JointState(name=NAMES, position=list(Q0), velocity=list(V0))
+        sent = [0]
+
+        def publish(pub) -> None:
+            sent[0] += 1
+            msg.header.stamp.sec, msg.header.stamp.nanosec = 1000 + sent[0] // 1000, (sent[0] % 1000) * 10**6
+            pub.publish(msg)
+
+        def counts() -> dict[str, str] | None:
+            sts = p.statuses("diag", "dyn_node: joint_states", "panda")
+            return kv(sts[-1]) if sts else None
+
+        def taken() -> tuple[int, int]:
+            c = counts()
+            return (int(c["received_messages"]), int(c["dropped_messages"])) if c else (-1, -1)
+
+        def settled() -> tuple[int, int]:
+            # the counts once three diagnostics periods after now agree
+            n_diag = len(p.got["diag"])
+
+            def agree() -> bool:
+                sts = p.statuses("diag", "dyn_node: joint_states", "panda")[-3:]
+                c = {(kv(st)["received_messages"], kv(st)["dropped_messages"]) for st in sts}
+                return len(p.got["diag"]) > n_diag + 3 and len(c) == 1
+            assert p.wait(agree, 30), counts()
+            return taken()
+
+        def one_by_one(pub, until) -> None:
+            # single samples, each taken before the next, until the node's status says so
+            for _ in range(100):
+                before = taken()[0]
+                publish(pub)
+                assert p.wait(lambda: taken()[0] > before, 10), counts()
+                if until():
+                    return
+            raise AssertionError(f"not reached: {counts()}")
+
+        assert p.wait(lambda: all(x.get_subscription_count() >= 1 for x in pubs) and counts() is not None, 60), \
+            node.stop()[2]
+        publish(pubs[0])
+        assert p.wait(lambda: taken()[0] >= 1, 10)
+        one_by_one(pubs[1], lambda: counts()["drop_counting"] == "middleware_lost_events")
+        r0, d0 = settled()
+        base = sent[0]
+        for k in range(10_000):
+            publish(pubs[k % 2])
+        r1, d1 = settled()
+        flood = sent[0] - base
+        print(f"two publishers: sent {flood}, taken {r1 - r0}, counted dropped {d1 - d0}")
+        assert counts()["drop_counting"] == "middleware_lost_events"
+        assert 0 < r1 - r0 and (r1 - r0) + (d1 - d0) <= flood      # never an over-count
+
+        p.node.destroy_publisher(pubs[1])
+        one_by_one(pubs[0], lambda: counts()["drop_counting"] == "sequence_numbers")
+        r2, d2 = settled()
+        base = sent[0]
+        for _ in range(10_000):
+            publish(pubs[0])
+        for _ in range(20):      # a slow tail, so a loss at the very end is followed by a sample
+            n = sent[0]
+            publish(pubs[0])
+            p.wait(lambda: sum(taken()) - r2 - d2 >= n + 1 - base, 1)
+        assert p.wait(lambda: sum(taken()) - r2 - d2 >= sent[0] - base, 30), \
+            ({k: v for k, v in counts().items() if "messages" in k}, r2, d2, sent[0] - base)
+        r3, d3 = settled()
+        print(f"one publisher again: sent {sent[0] - base}, taken {r3 - r2}, dropped {d3 - d2}")
+        assert (r3 - r2) + (d3 - d2) == sent[0] - base
+    finally:
+        p.close()
+        rc, _, err = node.stop(signal.SIGINT)
+        assert "Traceback" not in err, err
+
+
 # --- clock trouble ----------------------------------------------------------------------------
 @pytest.mark.timeout(90)
 def test_clock_backwards_zero_stamps_and_sim_time_jump(ctx, tmp_path):
