@@ -203,8 +203,8 @@ class Dynamics:
             Z = np.zeros_like(Q)
             G = self._rigid_columns(Q, Z, Z, threads)
         else:
-            # a quarter of the time of Pinocchio's RNEA at v = a = 0 here; equal to
-            # computeGeneralizedGravity to ~1e-13 N·m (test_dynamics)
+            # about 0.3 of the time of Pinocchio's RNEA at v = a = 0 here (make bench); equal to
+            # computeGeneralizedGravity to 1e-11 N·m (test_kernels)
             G = np.empty((self.nv, len(Q)), order="F")
             kernels.gravity_rows(Q, *self._gravity_tables, G.T)
         F = self._rigid_columns(Q, V, A, threads)

@@ -21,7 +21,7 @@ trial decided exactly on a sparse grid of windows plus the gaps a bound cannot c
 such that every k' ≥ k is feasible.
 
 Cost: the batched RNEA passes (the full torque, and the 1 kg payload for the margin) are the
-largest part, then the compiled gravity pass the time scale needs (a quarter of an RNEA pass;
+largest part, then the compiled gravity pass the time scale needs (0.3 of an RNEA pass;
 see :meth:`Dynamics.terms_batch`); everything else is a fixed number of passes over the samples,
 the per-sample ones compiled and run without the GIL (the node's joint_states path keeps running
 beside a check). With ``FeasibilityOptions.threads`` above one, the RNEA passes use that many

@@ -29,7 +29,6 @@ from typing import Sequence
 
 import numpy as np
 
-from .drops import SEQUENCE_NUMBERS
 from .dynamics import Dynamics, DynamicsOptions
 from .errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, InputError
 from .model import Payload, RobotModel, load_model
@@ -296,7 +295,8 @@ class Monitor:
         self._stale = settings.stale_timeout
         self._gravity_and_rnea = self.dynamics.gravity_and_rnea
         self.counts = counts if counts is not None else Counts()
-        self.drop_counting = SEQUENCE_NUMBERS
+        # how the node counts dropped_messages (dyn_node.drops); None offline: no key
+        self.drop_counting: str | None = None
         self.last_receipt_s: float | None = None
         self.last_error: InputError | None = None
         self.last_result: SampleResult | None = None
@@ -577,7 +577,7 @@ class Monitor:
         self.last_error = exc
         return SampleResult(False, exc)
 
-    def note_dropped(self, total: int, method: str = SEQUENCE_NUMBERS) -> None:
+    def note_dropped(self, total: int, method: str) -> None:
         """The transport's running count of messages lost before they reached the node, and
         how it is counted now (:mod:`dyn_node.drops`)."""
         self.drop_counting = method
@@ -609,9 +609,10 @@ class Monitor:
         vals = {"rate_hz": w.received / span if span > 0 else 0.0, "age_s": age,
                 "received_messages": c.received, "accepted_messages": c.accepted,
                 "invalid_messages": c.invalid, "out_of_order_messages": c.out_of_order,
-                "dropped_messages": c.dropped, "drop_counting": self.drop_counting,
-                "zero_stamp_messages": c.zero_stamp,
+                "dropped_messages": c.dropped, "zero_stamp_messages": c.zero_stamp,
                 "ignored_joint_values": c.ignored_joint_values}
+        if self.drop_counting is not None:
+            vals["drop_counting"] = self.drop_counting
         for code, n in sorted(c.invalid_by_reason.items()):
             vals[f"invalid_{code}"] = n
         stale = self.settings.stale_timeout

@@ -395,8 +395,8 @@ class DynNode(Node):
         # second publisher's samples must never be counted as a drop.
         with self._io_lock:
             self._matched_event = True
-            self._drops.publishers(int(info.current_count), time.time_ns())
-            self._report_dropped()
+            if self._drops.publishers(int(info.current_count), time.time_ns()):
+                self._report_dropped()
 
     def _report_dropped(self) -> None:
         core = self._core
@@ -507,9 +507,9 @@ class DynNode(Node):
         try:
             if not self._matched_event:
                 with self._io_lock:
-                    self._drops.publishers(self.count_publishers(self._sub_js.topic_name),
-                                           time.time_ns())
-                    self._report_dropped()
+                    if self._drops.publishers(self.count_publishers(self._sub_js.topic_name),
+                                              time.time_ns()):
+                        self._report_dropped()
             now = self.get_clock().now()
             self._publish(self._pub_diag, diagnostic_array(self.current_statuses(now.nanoseconds * 1e-9),
                                                     now.to_msg()))

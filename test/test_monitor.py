@@ -211,9 +211,13 @@ def test_staleness_and_rate():
 def test_dropped_messages_counted():
     mon = Monitor(PANDA, Settings())
     mon.process(NAMES, Q0, [], [], 1.0, 1.0)
-    mon.note_dropped(7)
+    assert "drop_counting" not in by_name(mon.statuses(1.05, "panda"), "joint_states").values
+    mon.process(NAMES, Q0, [], [], 1.06, 1.06)
+    mon.note_dropped(7, "sequence_numbers")
+    mon.note_dropped(5, "middleware_lost_events")    # a running total: a smaller one adds nothing
     st = by_name(mon.statuses(1.1, "panda"), "joint_states")
     assert st.level == WARN and st.values["dropped_messages"] == 7 and "7 dropped" in st.message
+    assert st.values["drop_counting"] == "middleware_lost_events"
 
 
 def test_deterministic_replay():
