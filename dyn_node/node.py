@@ -26,7 +26,7 @@ import threading
 import time
 import traceback
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from diagnostic_msgs.srv import SelfTest
@@ -53,7 +53,7 @@ from .errors import DynNodeError, STATE_ERROR, TrajectoryError
 from .model import RobotModel
 from .monitor import (ControllerTracker, Counts, Monitor, build_model, model_error_status, model_status,
                       waiting_model_status, JOINT_STATES)
-from .ros_main import spin_until_signalled
+from .ros_main import end_process, spin_until_signalled
 from .ros_convert import (JointStateOut, RawTrajectory, diagnostic_array, encode_joint_trajectory_cdr,
                           fill_trajectory_effort, parse_joint_state_cdr, parse_joint_trajectory_cdr,
                           s_to_stamp, status_to_msg, stamp_to_s, trajectory_arrays)
@@ -666,18 +666,17 @@ def _run_coroutine(coro: Any) -> None:
         coro.close()
 
 
-def main(args: list[str] | None = None) -> None:
-    """Entry point of ``ros2 run dyn_node dyn_node``: spin until SIGINT/SIGTERM, then clean up.
+def main(args: list[str] | None = None) -> NoReturn:
+    """Entry point of ``ros2 run dyn_node dyn_node``: spin until SIGINT/SIGTERM, then clean up
+    and exit (without the interpreter's finalization: :func:`dyn_node.ros_main.end_process`).
 
     The bag is finalised in ``destroy_node`` before the context goes. A parameter that cannot be
     used at start-up (rclpy refuses its type or range, or the settings reject it) ends the process
     with exit code 2 and a one-line error instead of a traceback.
     """
     retain_freed_memory()     # each trajectory check then reuses the last one's pages
-    code = spin_until_signalled(DynNode, args, "dyn_node", fatal=(
-        InvalidParameterValueException, InvalidParameterTypeException, SettingsError))
-    if code:
-        raise SystemExit(code)
+    end_process(spin_until_signalled(DynNode, args, "dyn_node", fatal=(
+        InvalidParameterValueException, InvalidParameterTypeException, SettingsError)))
 
 
 if __name__ == "__main__":

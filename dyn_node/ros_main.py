@@ -8,10 +8,12 @@ of at most one spin timeout (0.1 s) of reaction time.
 """
 from __future__ import annotations
 
+import ctypes
+import os
 import signal
 import sys
 import threading
-from typing import Callable
+from typing import Callable, NoReturn
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -50,3 +52,24 @@ def spin_until_signalled(make_node: Callable[[], Node], args: list[str] | None, 
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def end_process(code: int) -> NoReturn:
+    """Exit with ``code`` without the interpreter's finalization, once
+    :func:`spin_until_signalled` has returned: the node is destroyed (its bag finalised), rclpy
+    is shut down (its log files flushed), so nothing is left that needs it.
+
+    Finalization cost 0.6–0.9 s here, 0.4 s of it Numba's compiled kernels alone, and longer on
+    a busy machine; and it would tear C++ runtimes down under a feasibility check that
+    destroy_node abandoned (a daemon thread in compiled code).
+    """
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:  # a closed or broken pipe: nothing more can be said on it
+            pass
+    try:
+        ctypes.CDLL(None).fflush(None)   # C stdio too (rcutils logs through it)
+    except Exception:
+        pass
+    os._exit(code)
