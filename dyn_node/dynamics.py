@@ -66,7 +66,7 @@ def gravity_tables(pm: pin.Model) -> tuple[np.ndarray, ...] | None:
     revolute or prismatic one (Pinocchio's own pass is used then)."""
     n = pm.njoints
     parent = np.array(pm.parents, dtype=np.int64)
-    kind = np.zeros(n, dtype=np.int64)
+    revolute = np.zeros(n, dtype=bool)
     index = np.zeros(n, dtype=np.int64)
     placement = np.zeros((n, 12))
     axis = np.zeros((n, 3))
@@ -75,14 +75,13 @@ def gravity_tables(pm: pin.Model) -> tuple[np.ndarray, ...] | None:
         found = joint_axis(pm.joints[i])
         if found is None:
             return None
-        kind[i] = 0 if found[0] else 1     # kernels.REVOLUTE, PRISMATIC
-        axis[i] = found[1]
+        revolute[i], axis[i] = found
         index[i] = pm.joints[i].idx_v
         placement[i, :9] = pm.jointPlacements[i].rotation.reshape(9)
         placement[i, 9:] = pm.jointPlacements[i].translation
         body[i, 0] = pm.inertias[i].mass
         body[i, 1:] = pm.inertias[i].lever
-    return parent, kind, index, placement, axis, body, np.array(pm.gravity.linear, dtype=float)
+    return parent, revolute, index, placement, axis, body, np.array(pm.gravity.linear, dtype=float)
 
 
 class Dynamics:

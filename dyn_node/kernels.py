@@ -576,18 +576,14 @@ def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, damping: np.ndarray
     return S, W, I, tau
 
 
-#: joint kinds in :func:`gravity_rows` tables
-REVOLUTE, PRISMATIC = 0, 1
-
-
-@njit([types.void(_M, _I, _I, _I, _M, _M, _M, _V, types.Array(_f8, 2, "C"))], **_JIT)
-def gravity_rows(Q: np.ndarray, parent: np.ndarray, kind: np.ndarray, index: np.ndarray,
+@njit([types.void(_M, _I, _B, _I, _M, _M, _M, _V, types.Array(_f8, 2, "C"))], **_JIT)
+def gravity_rows(Q: np.ndarray, parent: np.ndarray, revolute: np.ndarray, index: np.ndarray,
                  placement: np.ndarray, axis: np.ndarray, body: np.ndarray, g: np.ndarray,
                  out: np.ndarray) -> None:
     """Generalized gravity g(q) (N·m, or N for prismatic joints) of N states Q (N×nv) into
     ``out`` (N×nv), for a tree of single-DoF joints 1..n−1 (row 0 is the world):
-    ``parent[i] < i``, ``kind[i]`` REVOLUTE or PRISMATIC about/along unit ``axis[i]`` (joint
-    frame), ``index[i]`` its column in Q, ``placement[i]`` the joint frame in its parent's at
+    ``parent[i] < i``, revolute about (``revolute[i]``) or prismatic along unit ``axis[i]``
+    (joint frame), ``index[i]`` its column in Q, ``placement[i]`` the joint frame in its parent's at
     q = 0 (row-major rotation, then translation: 12 values), ``body[i]`` the mass (kg) and centre
     of mass (joint frame, m) of everything rigidly attached to joint i, ``g`` gravity (world,
     m/s²).
@@ -629,7 +625,7 @@ def gravity_rows(Q: np.ndarray, parent: np.ndarray, kind: np.ndarray, index: np.
             z[i, 0], z[i, 1], z[i, 2] = zx, zy, zz
             q = Q[k, index[i]]
             R = Rw[i]
-            if kind[i] == REVOLUTE:
+            if revolute[i]:
                 # R = B · Rot(axis, q), Rodrigues' formula
                 sn, cs = math.sin(q), math.cos(q)
                 cc = 1.0 - cs
@@ -659,7 +655,7 @@ def gravity_rows(Q: np.ndarray, parent: np.ndarray, kind: np.ndarray, index: np.
         # children have larger indices than their parent: by the time joint i is reached, its
         # subtree's mass and first moment are complete
         for i in range(n - 1, 0, -1):
-            if kind[i] == REVOLUTE:
+            if revolute[i]:
                 rx = S[i, 0] - Ms[i] * pw[i, 0]
                 ry = S[i, 1] - Ms[i] * pw[i, 1]
                 rz = S[i, 2] - Ms[i] * pw[i, 2]

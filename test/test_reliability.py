@@ -73,6 +73,33 @@ def kv(status) -> dict[str, str]:
     return {k.key: k.value for k in status.values}
 
 
+def js_values(p: "Probe") -> dict[str, str] | None:
+    """The values of the panda node's last ``dyn_node: joint_states`` status on the probe's
+    "diag" subscription (None before the first)."""
+    sts = p.statuses("diag", "dyn_node: joint_states", "panda")
+    return kv(sts[-1][1] if isinstance(sts[-1], tuple) else sts[-1]) if sts else None
+
+
+def js_taken(p: "Probe") -> tuple[int, int]:
+    """(received_messages, dropped_messages) of the last status; (-1, -1) before the first."""
+    v = js_values(p)
+    return (int(v["received_messages"]), int(v["dropped_messages"])) if v else (-1, -1)
+
+
+def js_settled(p: "Probe", timeout: float = 30.0) -> tuple[int, int]:
+    """:func:`js_taken` once the three statuses after more than three new diagnostics arrays
+    agree on it."""
+    n_diag = len(p.got["diag"])
+
+    def agree() -> bool:
+        sts = p.statuses("diag", "dyn_node: joint_states", "panda")[-3:]
+        c = {(kv(st)["received_messages"], kv(st)["dropped_messages"])
+             for st in (x[1] if isinstance(x, tuple) else x for x in sts)}
+        return len(p.got["diag"]) > n_diag + 3 and len(sts) == 3 and len(c) == 1
+    assert p.wait(agree, timeout), js_values(p)
+    return js_taken(p)
+
+
 class Probe(Collected):
     """A node that collects what it is told to subscribe to; its executor spins in a thread
     (together with any in-process node under test)."""
@@ -198,10 +225,9 @@ def test_overload_5khz_bursts_during_100k_point_check(ctx, spawn):
         assert pub.proc.stdout.readline().strip() == "READY", pub.stop()[2]
 
         def counts():
-            sts = p.statuses("diag", "dyn_node: joint_states", "panda")
-            if not sts:
+            v = js_values(p)
+            if v is None:
                 return None
-            v = kv(sts[-1][1])
             return (int(v["received_messages"]), int(v["dropped_messages"]), int(v["invalid_messages"]),
                     int(v["out_of_order_messages"]))
 
@@ -217,14 +243,7 @@ def test_overload_5khz_bursts_during_100k_point_check(ctx, spawn):
         assert line and line[0] == "PRIMED", pub.stop()[2]
         primed = int(line[1])
 
-        def settled():  # the priming counts, once three diagnostics periods agree
-            sts = p.statuses("diag", "dyn_node: joint_states", "panda")[-3:]
-            c = [(kv(s)["received_messages"], kv(s)["dropped_messages"]) for _, s in sts]
-            return len(c) == 3 and len(set(c)) == 1
-
-        n_diag = len(p.got["diag"])
-        assert p.wait(lambda: len(p.got["diag"]) > n_diag + 3 and settled(), 30)
-        r0, d0, _, _ = counts()
+        r0, d0 = js_settled(p)   # the priming counts
         # Samples published before the node's reader matched the publisher (the publisher's own
         # match can come first; on a loaded machine by several priming periods) are invisible:
         # no sequence gap precedes the first one taken. They are exactly the samples before the
@@ -305,63 +324,44 @@ def test_two_publisher_flood_counts_a_lower_bound_then_exact_again(ctx, spawn):
             msg.header.stamp.sec, msg.header.stamp.nanosec = 1000 + sent[0] // 1000, (sent[0] % 1000) * 10**6
             pub.publish(msg)
 
-        def counts() -> dict[str, str] | None:
-            sts = p.statuses("diag", "dyn_node: joint_states", "panda")
-            return kv(sts[-1]) if sts else None
-
-        def taken() -> tuple[int, int]:
-            c = counts()
-            return (int(c["received_messages"]), int(c["dropped_messages"])) if c else (-1, -1)
-
-        def settled() -> tuple[int, int]:
-            # the counts once three diagnostics periods after now agree
-            n_diag = len(p.got["diag"])
-
-            def agree() -> bool:
-                sts = p.statuses("diag", "dyn_node: joint_states", "panda")[-3:]
-                c = {(kv(st)["received_messages"], kv(st)["dropped_messages"]) for st in sts}
-                return len(p.got["diag"]) > n_diag + 3 and len(c) == 1
-            assert p.wait(agree, 30), counts()
-            return taken()
-
         def one_by_one(pub, until) -> None:
             # single samples, each taken before the next, until the node's status says so
             for _ in range(100):
-                before = taken()[0]
+                before = js_taken(p)[0]
                 publish(pub)
-                assert p.wait(lambda: taken()[0] > before, 10), counts()
+                assert p.wait(lambda: js_taken(p)[0] > before, 10), js_values(p)
                 if until():
                     return
-            raise AssertionError(f"not reached: {counts()}")
+            raise AssertionError(f"not reached: {js_values(p)}")
 
-        assert p.wait(lambda: all(x.get_subscription_count() >= 1 for x in pubs) and counts() is not None, 60), \
+        assert p.wait(lambda: all(x.get_subscription_count() >= 1 for x in pubs) and js_values(p) is not None, 60), \
             node.stop()[2]
         publish(pubs[0])
-        assert p.wait(lambda: taken()[0] >= 1, 10)
-        one_by_one(pubs[1], lambda: counts()["drop_counting"] == "middleware_lost_events")
-        r0, d0 = settled()
+        assert p.wait(lambda: js_taken(p)[0] >= 1, 10)
+        one_by_one(pubs[1], lambda: js_values(p)["drop_counting"] == "middleware_lost_events")
+        r0, d0 = js_settled(p)
         base = sent[0]
         for k in range(10_000):
             publish(pubs[k % 2])
-        r1, d1 = settled()
+        r1, d1 = js_settled(p)
         flood = sent[0] - base
         print(f"two publishers: sent {flood}, taken {r1 - r0}, counted dropped {d1 - d0}")
-        assert counts()["drop_counting"] == "middleware_lost_events"
+        assert js_values(p)["drop_counting"] == "middleware_lost_events"
         assert 0 < r1 - r0 and (r1 - r0) + (d1 - d0) <= flood      # never an over-count
 
         p.node.destroy_publisher(pubs[1])
-        one_by_one(pubs[0], lambda: counts()["drop_counting"] == "sequence_numbers")
-        r2, d2 = settled()
+        one_by_one(pubs[0], lambda: js_values(p)["drop_counting"] == "sequence_numbers")
+        r2, d2 = js_settled(p)
         base = sent[0]
         for _ in range(10_000):
             publish(pubs[0])
         for _ in range(20):      # a slow tail, so a loss at the very end is followed by a sample
             n = sent[0]
             publish(pubs[0])
-            p.wait(lambda: sum(taken()) - r2 - d2 >= n + 1 - base, 1)
-        assert p.wait(lambda: sum(taken()) - r2 - d2 >= sent[0] - base, 30), \
-            ({k: v for k, v in counts().items() if "messages" in k}, r2, d2, sent[0] - base)
-        r3, d3 = settled()
+            p.wait(lambda: sum(js_taken(p)) - r2 - d2 >= n + 1 - base, 1)
+        assert p.wait(lambda: sum(js_taken(p)) - r2 - d2 >= sent[0] - base, 30), \
+            ({k: v for k, v in js_values(p).items() if "messages" in k}, r2, d2, sent[0] - base)
+        r3, d3 = js_settled(p)
         print(f"one publisher again: sent {sent[0] - base}, taken {r3 - r2}, dropped {d3 - d2}")
         assert (r3 - r2) + (d3 - d2) == sent[0] - base
     finally:
