@@ -16,6 +16,9 @@ $(STAMP): requirements.txt setup.py package.xml
 	@echo "installing pinned dependencies into $(VENV) (first run only)"
 	$(PIP) install -r requirements.txt
 	$(PIP) install --no-deps --no-build-isolation -e .
+	@# setup.cfg installs the commands in $(VENV)/lib/dyn_node (the ament layout `ros2 run` needs);
+	@# linked into $(VENV)/bin too, so `source $(VENV)/bin/activate` puts them on PATH
+	@for s in $(VENV)/lib/dyn_node/*; do ln -sf "../lib/dyn_node/$${s##*/}" "$(VENV)/bin/$${s##*/}"; done
 	@echo "compiling the feasibility kernels (first run only, ~15 s; cached in dyn_node/__pycache__)"
 	$(PY) -c "import dyn_node.kernels"
 	@touch $@

@@ -28,6 +28,8 @@ setup(
             "dyn_sim = dyn_node.sim_node:main",
             "dyn-audit = dyn_node.audit:main",
             "dyn-bag-recover = dyn_node.bag_recover:main",
+            "dyn-check = dyn_node.check_cli:main",
+            "dyn-fleet = dyn_node.fleet:main",
             "dyn_node_demo = dyn_node.demo:main",
         ],
     },

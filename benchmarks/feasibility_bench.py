@@ -34,6 +34,7 @@ from dyn_node import kernels
 from dyn_node.dynamics import Dynamics, gravity_tables
 from dyn_node.model import load_model
 
+from . import frames_bench
 from .common import NotAvailable, median_time, module_available, progress
 
 DURATION_S = 10.0
@@ -156,7 +157,8 @@ def _measure(mode: str, repeats: int) -> dict:
                 "check_nm_mt": lambda: F.check_trajectory(dyn, traj, options["check_nm_mt"]),
                 "loop": loop, "passes": rnea_passes(1), "passes_mt": rnea_passes(cores),
                 "passes_nm": rnea_passes(1, payload=False),
-                "gravity_kernel": gravity_kernel, "gravity_rnea": gravity_rnea}
+                "gravity_kernel": gravity_kernel, "gravity_rnea": gravity_rnea,
+                **frames_bench.subjects(dyn.model, Q, V, A)}
     times, faults = _rounds(subjects, repeats)
     return dict(mode=mode, applied=bool(applied),
                 median_s={k: statistics.median(v) for k, v in times.items()},
@@ -263,7 +265,11 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
                 ratio_gravity_rnea=ratio("gravity_rnea"),
                 what_gravity="g(q) on the same states, 1 thread: the compiled kernel the check "
                              "uses (kernels.gravity_rows) and Pinocchio's batched RNEA at "
-                             "v = a = 0 (what it used before)")
+                             "v = a = 0 (what it used before)",
+                frame_kernels_s=med("frame_kernels"), ratio_frame_kernels=ratio("frame_kernels"),
+                frame_kinematics_s=med("frame_kinematics"),
+                ratio_frame_kinematics=ratio("frame_kinematics"),
+                what_frame_kernels=frames_bench.WHAT)
 
 
 if __name__ == "__main__":

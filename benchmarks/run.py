@@ -21,7 +21,7 @@ from pathlib import Path
 from . import report
 from .common import REPO, NotAvailable, machine_info, progress
 
-SECTION_NAMES = ("dynamics", "live", "feasibility", "recording")
+SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet")
 ALIASES = {"audit": "recording", "memory": "live"}
 
 
@@ -32,6 +32,8 @@ def _section_runner(name: str):
         from . import live_bench as mod
     elif name == "feasibility":
         from . import feasibility_bench as mod
+    elif name == "fleet":
+        from . import fleet_bench as mod
     else:
         from . import recording_bench as mod
     return mod.run

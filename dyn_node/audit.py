@@ -15,7 +15,13 @@ which give exactly the numbers of message-by-message replay (tests compare the t
 records); any other message, and any run the batch path declines (an invalid message in it), is
 replayed message by message.
 
-Exit codes: 0 everything feasible, 1 violations found, 2 unusable input (one-line error).
+Configurations: every ``dyn_node`` metadata record of the bag is read first; each later one is
+replayed from its ``effective_log_time_ns`` (a new monitor and tracker, as the node rebuilds its
+core at a parameter change). A re-check under a configuration other than the node's (an
+override that gives another model or limits) is reported "not comparable: <what differs>".
+
+Exit codes (:func:`dyn_node.exit_codes.exit_code`): 0 everything feasible, 1 violations found,
+2 unusable input (one-line error), 3 partial (parts unreadable, no violations in the rest).
 """
 from __future__ import annotations
 
@@ -36,10 +42,10 @@ from .allocator import retain_freed_memory
 from .bag_reader import (BagError, BagMessage, BagReader, MessageDecoder, decode_joint_state,
                          decode_joint_state_batch)
 from .errors import (CONTROL_ERROR, EVALUATION_ERROR, PLANNING_ERROR, STATE_ERROR, DynNodeError,
-                     TrajectoryError)
-from .evidence import EvidenceRecord, utc_now
+                     InputError, TrajectoryError)
+from .evidence import EvidenceRecord, jsonable, utc_now
 
-EXIT_OK, EXIT_VIOLATIONS, EXIT_UNUSABLE = 0, 1, 2
+from .exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code  # noqa: F401
 MAX_BINS = 1024          # time bins kept for plots (adaptive width: memory flat in bag length)
 MAX_EPISODES = 1000      # violation episodes listed (the rest are counted)
 MAX_EXAMPLES = 50        # invalid / out-of-order examples and gaps listed
@@ -50,6 +56,8 @@ MAX_RUN = 2048           # joint_states replayed per batch (bounds memory)
 RECHECK_EXCLUDED_KEYS = ("compute_time",)  # wall-clock figures cannot be reproduced
 
 ROLE_JOINT_STATES, ROLE_TRAJECTORY = "joint_states", "joint_trajectory"
+ROLE_CHECK = "check_trajectory"  # ~/check_trajectory: checked like joint_trajectory, never tracked
+ROLE_STATES = "inverse_dynamics_request"  # ~/inverse_dynamics_request: torques for given states
 ROLE_GRAVITY, ROLE_ID, ROLE_FEAS = "gravity_torque", "inverse_dynamics", "feasibility"
 ROLE_TRAJ_EFFORT, ROLE_CTRL, ROLE_DESC = "trajectory_effort", "controller_status", "robot_description"
 
@@ -121,7 +129,7 @@ def _role(topic: str, schema: str) -> str | None:
     if schema == "trajectory_msgs/msg/JointTrajectory":
         if last == ROLE_TRAJ_EFFORT:
             return ROLE_TRAJ_EFFORT
-        return ROLE_TRAJECTORY if last == ROLE_TRAJECTORY else None
+        return last if last in (ROLE_TRAJECTORY, ROLE_CHECK, ROLE_STATES) else None
     if schema == "diagnostic_msgs/msg/DiagnosticArray" and last == ROLE_FEAS:
         return ROLE_FEAS
     if schema == "diagnostic_msgs/msg/DiagnosticStatus" and last == ROLE_CTRL:
@@ -211,10 +219,13 @@ class LiveStats:
     update, including the order in which violation episodes close."""
 
     BATCH = 1024
-    KINDS = ("effort", "position", "velocity")
+    KINDS = ("effort", "position", "velocity", "deceleration")
 
-    def __init__(self, nv: int, lo: np.ndarray, hi: np.ndarray, vel: np.ndarray):
+    def __init__(self, nv: int, lo: np.ndarray, hi: np.ndarray, vel: np.ndarray,
+                 dec: np.ndarray | None = None):
+        # dec: deceleration limits, |q̈̂| where q̇·q̈̂ < 0 as the live monitor checks it
         self.nv, self.lo, self.hi, self.vel = nv, lo, hi, vel
+        self.dec = np.full(nv, np.inf) if dec is None else dec
         self.series: SeriesBins | None = None
         self.episodes = Episodes()
         self.peak_util = np.full(nv, -np.inf)
@@ -225,9 +236,9 @@ class LiveStats:
         self.rows: list[tuple] = []
         self._nan = np.full(nv, np.nan)
 
-    def add(self, t_ns: int, tau, util, limit, q, v, measured) -> None:
+    def add(self, t_ns: int, tau, util, limit, q, v, measured, a_hat=None) -> None:
         rows = self.rows
-        rows.append((t_ns, tau, util, limit, q, v, measured))
+        rows.append((t_ns, tau, util, limit, q, v, measured, a_hat))
         if len(rows) >= self.BATCH:
             self.flush()
 
@@ -245,15 +256,18 @@ class LiveStats:
         Q = np.array([r[4] for r in rows], dtype=float)
         V = np.array([r[5] for r in rows], dtype=float)
         MEAS = np.array([nan if r[6] is None else r[6] for r in rows], dtype=float)
-        self._rows(T, TAU, UTIL, LIM, Q, V, MEAS)
+        A = (np.array([np.zeros(self.nv) if r[7] is None else r[7] for r in rows], dtype=float)
+             if np.isfinite(self.dec).any() else None)   # only a deceleration limit reads it
+        self._rows(T, TAU, UTIL, LIM, Q, V, MEAS, A)
 
-    def add_arrays(self, T, TAU, UTIL, LIM, Q, V, MEAS) -> None:
+    def add_arrays(self, T, TAU, UTIL, LIM, Q, V, MEAS, A=None) -> None:
         """N rows of :meth:`add` at once ((N,) int64 log times ns, N×nv arrays; ``MEAS`` NaN
-        where not measured); the same result as N calls of :meth:`add`."""
+        where not measured; ``A`` the acceleration estimates, None: zero); the same result as
+        N calls of :meth:`add`."""
         self.flush()
-        self._rows(T, TAU, UTIL, np.ascontiguousarray(LIM), Q, V, MEAS)
+        self._rows(T, TAU, UTIL, np.ascontiguousarray(LIM), Q, V, MEAS, A)
 
-    def _rows(self, T, TAU, UTIL, LIM, Q, V, MEAS) -> None:
+    def _rows(self, T, TAU, UTIL, LIM, Q, V, MEAS, A) -> None:
         if self.series is None:
             self.series = SeriesBins(self.nv, int(T[0]))
         self.series.add_batch(T, TAU, UTIL, LIM, MEAS)
@@ -271,19 +285,33 @@ class LiveStats:
         over_p = (Q < self.lo) | (Q > self.hi)
         AV = np.abs(V)
         over_v = AV > self.vel
-        if self.episodes.open or over_e.any() or over_p.any() or over_v.any():
-            self._episodes(T, UTIL, LIM, Q, AV, (over_e, over_p, over_v))
+        # decelerating (|q̇| decreasing) beyond the limit, as Monitor's limits status counts it
+        if np.isfinite(self.dec).any() and A is not None:
+            self._decel = np.where(V * A < 0, np.abs(A), 0.0)
+            over_d = self._decel > self.dec
+        else:
+            self._decel, over_d = None, np.zeros(np.shape(Q), dtype=bool)
+        # the |effort| behind each ratio where a limit is ≤ 0 (elsewhere it is ratio·limit)
+        self._effort_value = np.fmax(np.abs(TAU), np.abs(MEAS)) if np.any(LIM <= 0) else None
+        if self.episodes.open or over_e.any() or over_p.any() or over_v.any() or over_d.any():
+            self._episodes(T, UTIL, LIM, Q, AV, (over_e, over_p, over_v, over_d))
 
     def _values(self, kind: int, r: int, j: int, UTIL, LIM, Q, AV) -> tuple[float, float, float]:
         """(value, limit, severity) of row r, joint j, as a message-by-message update has them."""
         lo, hi, vel = self.lo, self.hi, self.vel
         if kind == 0:
             u, lim = float(UTIL[r, j]), float(LIM[r, j])
+            if lim <= 0 and self._effort_value is not None:
+                # a zero (YAML) limit is a real one: u is inf, u·lim would be NaN
+                return float(self._effort_value[r, j]), lim, u
             return u * lim, lim, u
         if kind == 1:
             qj = float(Q[r, j])
             below = qj < lo[j]
             return qj, float(lo[j] if below else hi[j]), float(lo[j] - qj if below else qj - hi[j])
+        if kind == 3:
+            d = float(self._decel[r, j])
+            return d, float(self.dec[j]), d - float(self.dec[j])
         return float(AV[r, j]), float(vel[j]), float(AV[r, j] / vel[j])
 
     def _episodes(self, T, UTIL, LIM, Q, AV, overs) -> None:
@@ -295,7 +323,9 @@ class LiveStats:
         (row, joint, kind) order, and episodes still open keep that order for :meth:`finish`."""
         ep = self.episodes
         n = len(T)
-        sevs = (UTIL, np.where(Q < self.lo, self.lo - Q, Q - self.hi), AV / self.vel)
+        with np.errstate(divide="ignore", invalid="ignore"):   # a zero (YAML) velocity limit
+            sevs = (UTIL, np.where(Q < self.lo, self.lo - Q, Q - self.hi), AV / self.vel,
+                    None if self._decel is None else self._decel - self.dec)
         closing: list[tuple[int, int, int, tuple[int, str] | None, dict]] = []
         opening: list[tuple[int, int, int, tuple[int, str], dict]] = []
         for kind_i, kind in enumerate(self.KINDS):
@@ -484,6 +514,45 @@ class Recheck:
         return out
 
 
+@dataclass
+class _Config:
+    """One configuration of the recording node, as replayed: from ``since_ns`` (log time; None:
+    from the start) until the next one. ``not_comparable``: how it differs from the node's."""
+
+    settings: Any
+    model: Any
+    parameters: dict
+    since_ns: int | None
+    not_comparable: list[str]
+
+
+def model_differences(recorded: Any, used: Any) -> list[str]:
+    """What differs between the model the node used and the one the audit uses (empty: none)."""
+    out = []
+    rj, uj = list(recorded.joint_names), list(used.joint_names)
+    if rj != uj:
+        extra = [n for n in uj if n not in rj]
+        gone = [n for n in rj if n not in uj]
+        out.append(f"joints: {len(rj)} recorded, {len(uj)} here"
+                   + (f" (here only: {', '.join(extra)})" if extra else "")
+                   + (f" (recorded only: {', '.join(gone)})" if gone else ""))
+    if dict(recorded.locked_joints) != dict(used.locked_joints):
+        out.append(f"locked joints: recorded {', '.join(recorded.locked_joints) or 'none'}; "
+                   f"here {', '.join(used.locked_joints) or 'none'}")
+    if recorded.urdf_hash != used.urdf_hash:
+        out.append(f"URDF: recorded sha256 {recorded.urdf_hash[:12]}, here {used.urdf_hash[:12]}")
+    if rj == uj:  # limits are per joint: with other joints, every one differs
+        a, b = recorded.limits.to_dict(), used.limits.to_dict()
+        changed = sorted(k for k in set(a) | set(b) if jsonable(a.get(k)) != jsonable(b.get(k)))
+        if changed:
+            out.append("limits: " + ", ".join(changed))
+    if recorded.payload.mass != used.payload.mass:
+        out.append(f"payload mass: recorded {recorded.payload.mass:g} kg, here {used.payload.mass:g} kg")
+    if list(recorded.gravity) != list(used.gravity):
+        out.append("gravity")
+    return out
+
+
 # --- the audit ----------------------------------------------------------------------------
 class Audit:
     """One pass over a bag; :meth:`run` returns the EvidenceRecord dict and the plot series."""
@@ -492,41 +561,100 @@ class Audit:
         self.opts = opts
         self.findings: list[str] = []
         self.decoder = MessageDecoder()
+        # (model, log time ns, q, q̇) of the last accepted joint_states: a trajectory whose first
+        # point lies ahead starts from it, as in the node (feasibility.current_state)
+        self.last_state: tuple[Any, int, np.ndarray, np.ndarray] | None = None
 
     # configuration -------------------------------------------------------------------------
     def _configure(self, reader: BagReader) -> None:
-        from .monitor import build_model
-        from .settings import SPECS, Settings, SettingsError, settings_from_mapping
-
-        meta = reader.peek_metadata("dyn_node") or {}
+        """The configurations to replay: the first ``dyn_node`` metadata record's, then each
+        later one from the log time it took effect (``effective_log_time_ns``)."""
+        records = reader.metadata_records("dyn_node")
+        if not records:
+            # Every record damaged (reported as unreadable when streamed): its fields that still
+            # decode are the only trace of the node's parameters; a description that does not
+            # decode comes from the /robot_description copy instead.
+            for good, bad in reader.damaged_metadata_records("dyn_node")[:1]:
+                records = [good]
+                self.findings.append("the dyn_node metadata record is damaged (not UTF-8: "
+                                     + ", ".join(bad) + "): its other fields are used"
+                                     + (", the description from /robot_description"
+                                        if "robot_description" in bad else ""))
+        meta = records[0] if records else {}
         self.bag_metadata_version = meta.get("version")
-        params = parameters_from_yaml(meta.get("parameters", ""))
-        known = {k: v for k, v in params.items() if k in SPECS}
-        try:
-            settings = settings_from_mapping(known)
-        except SettingsError as exc:
-            self.findings.append(f"bag parameters rejected ({exc}); defaults used")
-            settings = Settings()
-        overrides: dict[str, Any] = {}
-        desc_in_bag = meta.get("robot_description", "")
         topic_desc = ""
-        if not desc_in_bag:
+        if not meta.get("robot_description", ""):
             m = self._peek_description(reader)
             if m is not None:
                 try:
                     topic_desc = self.decoder.decode(m.channel, m.data).data
                 except Exception:  # noqa: BLE001 - an undecodable description is simply absent
                     topic_desc = ""
+        first = self._resolve(meta, topic_desc, first=True)
+        self.settings, self.model, self.parameters = first.settings, first.model, first.parameters
+        self.configurations = [first] + self._changes(records[1:], meta, topic_desc, first)
+
+    def _changes(self, records: list[dict], first_meta: dict, topic_desc: str,
+                 first: "_Config") -> list["_Config"]:
+        """Later configurations in the order they took effect. Each new ``effective_log_time_ns``
+        is a core the node rebuilt (even for a value set to what it was: the monitor's state
+        starts afresh); the same time again (a split file's copy, or parameters the node does not
+        use) is the same core. A record without the time (older recorders) cannot be placed."""
+        first_since = _effective_ns(first_meta)
+        timed: dict[int, dict] = {}
+        untimed = 0
+        prev = first_meta
+        for meta in records:
+            changed = (meta.get("parameters"), meta.get("robot_description")) != (
+                prev.get("parameters"), prev.get("robot_description"))
+            prev = meta
+            since = _effective_ns(meta)
+            if since is None:
+                untimed += changed
+            elif since != first_since:
+                timed[since] = meta  # the last record for a moment is the complete snapshot
+        out: list[_Config] = []
+        for since in sorted(timed):
+            cfg = self._resolve(timed[since], topic_desc, first=False, since_ns=since)
+            if cfg.model.joint_names != first.model.joint_names:
+                first.not_comparable.append(f"the model's joints change at log time {since} ns "
+                                            "(not replayed: the first configuration is kept)")
+                self.findings.append(f"configuration at log time {since} ns changes the model's "
+                                     "joints: not replayed")
+                continue
+            out.append(cfg)
+        if untimed:
+            first.not_comparable.append(f"{untimed} configuration change(s) recorded without the "
+                                        "time they took effect (older recorder): not replayed")
+            self.findings.append(f"{untimed} configuration change(s) in the bag carry no "
+                                 "effective_log_time_ns: replayed with the first configuration")
+        return out
+
+    def _bag_settings(self, meta: dict, topic_desc: str, findings: list[str], *,
+                      overrides_on: bool) -> tuple[Any, dict[str, Any], str]:
+        """(settings, overrides applied, the bag's limits_file when it is not on this machine)
+        for one metadata record; ``overrides_on=False``: what the node itself used."""
         from dataclasses import replace
 
-        if self.opts.robot_description:
+        from .settings import SPECS, Settings, SettingsError, settings_from_mapping
+
+        params = parameters_from_yaml(meta.get("parameters", ""))
+        known = {k: v for k, v in params.items() if k in SPECS}
+        try:
+            settings = settings_from_mapping(known)
+        except SettingsError as exc:
+            findings.append(f"bag parameters rejected ({exc}); defaults used")
+            settings = Settings()
+        overrides: dict[str, Any] = {}
+        desc_in_bag = meta.get("robot_description", "")
+        if overrides_on and self.opts.robot_description:
             p = Path(self.opts.robot_description)
             if not p.is_file():
                 raise AuditError(f"robot description file {p} does not exist", code="no_model")
             settings = replace(settings, robot_description=p.read_text(), robot_description_file="",
                                robot_model="")
             overrides["robot_description"] = str(p)
-        elif self.opts.robot_model:
+        elif overrides_on and self.opts.robot_model:
             settings = replace(settings, robot_description="", robot_description_file="",
                                robot_model=self.opts.robot_model)
             overrides["robot_model"] = self.opts.robot_model
@@ -537,8 +665,8 @@ class Audit:
             name = settings.robot_model
             desc = desc_in_bag or topic_desc
             if name in BUILTIN_MODELS and desc and urdf_hash(builtin_urdf(name)) != urdf_hash(desc):
-                self.findings.append(f"built-in model '{name}' differs from the description in the "
-                                     "bag: the bag's description is used")
+                findings.append(f"built-in model '{name}' differs from the description in the "
+                                "bag: the bag's description is used")
                 locks = dict(BUILTIN_MODELS[name][1])
                 locks.update(dict(settings.locked_joints))
                 settings = replace(settings, robot_description=desc, robot_model="",
@@ -548,33 +676,61 @@ class Audit:
             # exist on this machine.
             settings = replace(settings, robot_description=desc_in_bag or topic_desc,
                                robot_description_file="", robot_model="")
-        if self.opts.limits:
+        missing = ""
+        if overrides_on and self.opts.limits:
             if not Path(self.opts.limits).is_file():
                 raise AuditError(f"limits file {self.opts.limits} does not exist", code="no_limits")
             settings = replace(settings, limits_file=self.opts.limits)
             overrides["limits"] = self.opts.limits
         elif settings.limits_file and not Path(settings.limits_file).is_file():
-            self.findings.append(f"the bag's limits_file {settings.limits_file} is not on this "
-                                 "machine: URDF limits used (pass --limits)")
+            findings.append(f"the bag's limits_file {settings.limits_file} is not on this "
+                            "machine: URDF limits used (pass --limits)")
+            missing = settings.limits_file
             settings = replace(settings, limits_file="")
+        return settings, overrides, missing
+
+    def _resolve(self, meta: dict, topic_desc: str, *, first: bool,
+                 since_ns: int | None = None) -> "_Config":
+        """The configuration of one metadata record, and how it differs from the node's."""
+        from .monitor import build_model
+
+        findings: list[str] = []
+        settings, overrides, missing = self._bag_settings(meta, topic_desc, findings, overrides_on=True)
         if not settings.has_model_source:
             raise AuditError("no robot model: the bag has no robot description (no dyn_node "
                              "metadata, no /robot_description); pass --robot-model or "
                              "--robot-description", code="no_model")
         try:
-            self.model = build_model(settings)
+            model = build_model(settings)
         except DynNodeError as exc:
             raise AuditError(f"robot model unusable: {exc}", code="no_model") from None
-        self.settings = settings
-        self.parameters = params
-        self.overrides = overrides
-        if "robot_description" in overrides or "robot_model" in overrides:
-            self.model_source = "override:" + ("robot_description" if "robot_description" in overrides
-                                               else "robot_model")
-        elif settings.robot_description and settings.robot_description in (desc_in_bag, topic_desc):
-            self.model_source = "bag:metadata" if settings.robot_description == desc_in_bag else "bag:topic"
-        else:
-            self.model_source = "bag:parameters"
+        differs: list[str] = []
+        if missing and not overrides.get("limits"):
+            differs.append(f"limits: the node read {missing}, which is not on this machine "
+                           "(URDF limits used here)")
+        if overrides:
+            node_settings, _, node_missing = self._bag_settings(meta, topic_desc, [], overrides_on=False)
+            if node_settings.has_model_source and not node_missing:
+                try:
+                    differs += model_differences(build_model(node_settings), model)
+                except DynNodeError as exc:
+                    differs.append(f"the recorded model cannot be rebuilt here ({exc})")
+        for f in findings:
+            if f not in self.findings:
+                self.findings.append(f)
+        cfg = _Config(settings, model, parameters_from_yaml(meta.get("parameters", "")), since_ns,
+                      differs)
+        if first:
+            self.overrides = overrides
+            desc_in_bag = meta.get("robot_description", "")
+            if "robot_description" in overrides or "robot_model" in overrides:
+                self.model_source = "override:" + ("robot_description" if "robot_description" in overrides
+                                                   else "robot_model")
+            elif settings.robot_description and settings.robot_description in (desc_in_bag, topic_desc):
+                self.model_source = "bag:metadata" if settings.robot_description == desc_in_bag else "bag:topic"
+            else:
+                self.model_source = "bag:parameters"
+        return cfg
 
     def _peek_description(self, reader: BagReader) -> BagMessage | None:
         for topic in ("/robot_description", "robot_description"):
@@ -612,7 +768,7 @@ class Audit:
 
         roles: dict[str, str | None] = {}
         wanted = set(opts.topics)
-        live = LiveStats(nv, lo, hi, vel_lim)
+        live = LiveStats(nv, lo, hi, vel_lim, lim.deceleration)
         gaps: list[dict] = []
         stale: list[dict] = []
         n_gaps = n_stale = 0
@@ -648,6 +804,23 @@ class Audit:
         # and any run the batch path declines, goes message by message. Both give the same numbers.
         run_topic, run_len, run_t, run_d = "", -1, [], []
 
+        changes = list(self.configurations[1:])
+
+        def switch(cfg: _Config) -> None:
+            """What the node does when a parameter is set: a new core (monitor, tracker) from
+            now on, the counts and the plan being tracked carried over."""
+            live.flush()
+            self.settings, self.model = cfg.settings, cfg.model
+            self.monitor = Monitor(cfg.model, cfg.settings, self.monitor.counts)
+            tracker = ControllerTracker(cfg.model, cfg.settings)
+            tracker._plan = self.tracker._plan
+            self.tracker = tracker
+            self.traj_dynamics = Dynamics(cfg.model, DynamicsOptions(
+                include_friction=cfg.settings.include_friction))
+            cl = cfg.model.limits
+            live.lo, live.hi, live.vel = cl.position_lower, cl.position_upper, cl.velocity
+            live.dec = cl.deceleration
+
         def gap_check(topic: str, t_ns: int) -> None:
             nonlocal prev_log, n_gaps, n_stale, ctrl_last
             js_topics.add(topic)
@@ -659,13 +832,13 @@ class Audit:
                 live.finish()
                 if len(gaps) < MAX_EXAMPLES:
                     gaps.append(g)
-                if t_ns - prev_log > settings.stale_timeout * 1e9:
+                if t_ns - prev_log > self.settings.stale_timeout * 1e9:
                     n_stale += 1
                     if len(stale) < MAX_EXAMPLES:
                         stale.append(g)
                     # The node's controller-status timer sees the silence: stale just after
                     # stale_timeout (its timer period is not replayed).
-                    stale_ns = prev_log + int(settings.stale_timeout * 1e9) + 1000
+                    stale_ns = prev_log + int(self.settings.stale_timeout * 1e9) + 1000
                     if self.tracker.tick(stale_ns * 1e-9):
                         if ctrl_last is not None:
                             ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (
@@ -688,15 +861,11 @@ class Audit:
             receipt_s = t_ns * 1e-9
             try:
                 js = decode_joint_state(data)
-            except ValueError as exc:
-                invalid_count += 1
-                invalid_by_reason["undecodable"] = invalid_by_reason.get("undecodable", 0) + 1
-                if len(invalid_examples) < MAX_EXAMPLES:
-                    invalid_examples.append({"t_ns": t_ns, "reason": str(exc), "code": "undecodable",
-                                             "topic": topic})
-                return
-            stamp_s = js.sec + js.nanosec * 1e-9
-            r = self.monitor.process(js.names, js.position, js.velocity, js.effort, stamp_s, receipt_s)
+            except ValueError as exc:  # counted and tracked as the node does (Monitor.reject_message)
+                r = self.monitor.reject_message(InputError(str(exc), code="undecodable"), receipt_s)
+            else:
+                stamp_s = js.sec + js.nanosec * 1e-9
+                r = self.monitor.process(js.names, js.position, js.velocity, js.effort, stamp_s, receipt_s)
             if self.tracker.update(r, receipt_s) or ctrl_last is None:
                 transition(self.tracker.state, t_ns)
             if not r.accepted:
@@ -707,9 +876,10 @@ class Audit:
                     invalid_examples.append({"t_ns": t_ns, "reason": str(r.error), "code": code,
                                              "topic": topic})
                 return
+            self.last_state = (self.model, t_ns, r.q, r.v)
             if r.out_of_order and len(ooo_examples) < MAX_EXAMPLES:
                 ooo_examples.append({"t_ns": t_ns, "stamp_ns": js.stamp_ns})
-            stamp_key = js.stamp_ns
+            stamp_key = output_stamp_ns(r.stamp_s) if r.zero_stamp else js.stamp_ns
             if want_out[ROLE_GRAVITY]:
                 pend[ROLE_GRAVITY].put(stamp_key, r.gravity)
                 input_log[stamp_key] = t_ns
@@ -719,7 +889,7 @@ class Audit:
                 pend[ROLE_ID].put(stamp_key, r.tau)
             tau = r.tau
             live.add(t_ns, tau, r.utilisation, r.effort_limit, r.q, r.v,
-                     None if r.residual is None else r.residual + tau)
+                     None if r.residual is None else r.residual + tau, r.a_hat)
 
         def js_batch(ts: list[int], datas: list[bytes]) -> bool:
             jb = decode_joint_state_batch(datas)
@@ -732,6 +902,7 @@ class Audit:
                                            receipt)
             if b is None:
                 return False
+            self.last_state = (self.model, ts[-1], b.q[-1], b.v[-1])  # every row was accepted
             before = self.tracker.state
             changes = self.tracker.update_batch(b, receipt)
             if ctrl_last is None and (not changes or changes[0][0] != 0):
@@ -742,7 +913,10 @@ class Audit:
                 for k in np.flatnonzero(b.out_of_order)[:MAX_EXAMPLES - len(ooo_examples)].tolist():
                     ooo_examples.append({"t_ns": ts[k], "stamp_ns": int(jb.stamp_ns[k])})
             if want_out[ROLE_GRAVITY] or want_out[ROLE_ID]:
-                for k, key in enumerate(jb.stamp_ns.tolist()):
+                keys = jb.stamp_ns.tolist()
+                for k in np.flatnonzero(b.zero_stamp).tolist():
+                    keys[k] = output_stamp_ns(float(b.stamp_s[k]))
+                for k, key in enumerate(keys):
                     if want_out[ROLE_GRAVITY]:
                         pend[ROLE_GRAVITY].put(key, b.gravity[k])
                         input_log[key] = ts[k]
@@ -752,7 +926,7 @@ class Audit:
                         pend[ROLE_ID].put(key, b.tau[k])
             meas = (b.residual + b.tau if b.residual is not None
                     else np.full(b.tau.shape, np.nan))
-            live.add_arrays(T, b.tau, b.utilisation, b.effort_limit, b.q, b.v, meas)
+            live.add_arrays(T, b.tau, b.utilisation, b.effort_limit, b.q, b.v, meas, b.a_hat)
             return True
 
         def flush() -> None:
@@ -780,6 +954,11 @@ class Audit:
             if role is None:
                 continue
             t_ns = m.log_time_ns
+            if changes and t_ns >= changes[0].since_ns:
+                flush()  # the queued joint_states were taken under the configuration before
+                while changes and t_ns >= changes[0].since_ns:
+                    cfg = changes.pop(0)
+                switch(cfg)
             if role == ROLE_JOINT_STATES:
                 data = m.data
                 if (topic == run_topic and len(data) == run_len and run_d
@@ -792,22 +971,30 @@ class Audit:
                 run_topic, run_len, run_t, run_d = topic, len(data), [t_ns], [data]
                 continue
             flush()
-            if role == ROLE_TRAJECTORY:
+            if role in (ROLE_TRAJECTORY, ROLE_CHECK):
                 n_traj += 1
                 entry, ok_traj, res = self._trajectory(m, n_traj - 1)
-                if entry.get("failure_label"):
+                execute = role == ROLE_TRAJECTORY
+                entry["request"] = "execute" if execute else "check"
+                # a check-only request is a question: its "no" is listed, not a violation of the run
+                if entry.get("failure_label") and execute:
                     traj_failure_labels.add(entry["failure_label"])
-                if not entry["feasible"]:
+                if not entry["feasible"] and execute:
                     n_traj_bad += 1
                 if len(trajectories) < MAX_TRAJECTORIES:
                     trajectories.append(entry)
-                if ok_traj is not None:
+                if ok_traj is not None and execute:
                     start = entry["stamp_ns"] * 1e-9 if entry["stamp_ns"] else t_ns * 1e-9
                     self.tracker.set_trajectory(ok_traj, start)
+                # answers are matched by the whole header the node echoes (stamp and frame_id)
+                key = (entry["stamp_ns"], entry.get("frame_id", ""))
                 if want_out[ROLE_FEAS]:
-                    pend[ROLE_FEAS].put(entry["stamp_ns"], res if res is not None else entry)
+                    pend[ROLE_FEAS].put(key, res if res is not None else entry)
                 if res is not None and want_out[ROLE_TRAJ_EFFORT]:
-                    pend[ROLE_TRAJ_EFFORT].put(entry["stamp_ns"], res.waypoint_effort)
+                    pend[ROLE_TRAJ_EFFORT].put(key, res.waypoint_effort)
+            elif role == ROLE_STATES:
+                self._states_request(m, pend[ROLE_TRAJ_EFFORT] if want_out[ROLE_TRAJ_EFFORT] else None,
+                                     pend[ROLE_FEAS] if want_out[ROLE_FEAS] else None)
             elif role == ROLE_TRAJ_EFFORT:
                 recheck_topics[role] = topic
                 self._recheck_traj_effort(m, pend[ROLE_TRAJ_EFFORT], recheck[ROLE_TRAJ_EFFORT])
@@ -901,29 +1088,37 @@ class Audit:
             "overrides": self.overrides,
             "bag_dyn_node_version": self.bag_metadata_version,
             "gap_threshold_s": opts.gap_threshold_s,
+            "changes": [{"time_s": rel(c.since_ns), "effective_log_time_ns": c.since_ns,
+                         "parameters": _changed(prev.parameters, c.parameters),
+                         "payload_mass_kg": c.model.payload.mass}
+                        for prev, c in zip(self.configurations, self.configurations[1:])],
         }
+        units = joint_units(model)  # each joint's own: N·m, or N for a prismatic joint
+
         def joint_peak(j: int, n: str) -> dict:
             if not peak_util[j] > -np.inf:  # no accepted message
-                return {"joint": n, "peak_utilisation": None, "peak_time_s": None,
-                        "peak_torque_nm": None, "peak_measured_nm": None, "peak_source": None,
-                        "effort_limit_nm": float(lim.effort[j])}
+                return {"joint": n, "unit": units["effort"][j], "peak_utilisation": None,
+                        "peak_time_s": None, "peak_effort": None, "peak_measured_effort": None,
+                        "peak_source": None, "effort_limit": float(lim.effort[j])}
             meas = float(peak_meas[j]) if np.isfinite(peak_meas[j]) else None
             # utilisation is the larger of |model| and |measured| over the limit: say which
             source = "measured" if meas is not None and abs(meas) > abs(peak_tau[j]) else "model"
-            return {"joint": n, "peak_utilisation": float(peak_util[j]),
-                    "peak_time_s": rel(int(peak_t[j])), "peak_torque_nm": float(peak_tau[j]),
-                    "peak_measured_nm": meas, "peak_source": source,
-                    "effort_limit_nm": float(peak_limit[j])}
+            return {"joint": n, "unit": units["effort"][j], "peak_utilisation": float(peak_util[j]),
+                    "peak_time_s": rel(int(peak_t[j])), "peak_effort": float(peak_tau[j]),
+                    "peak_measured_effort": meas, "peak_source": source,
+                    "effort_limit": float(peak_limit[j])}
 
         per_joint = [joint_peak(j, n) for j, n in enumerate(names)]
         violations = [{"joint": names[e["j"]], "kind": e["kind"], "start_s": rel(e["start"]),
                        "end_s": rel(e["end"]), "peak_time_s": rel(e["peak_t"]),
                        "peak_value": e["peak"], "limit": e["limit"],
+                       "unit": units[e["kind"]][e["j"]],
                        "peak_ratio": (abs(e["peak"]) / e["limit"] if e["kind"] != "position"
                                       and e["limit"] not in (0.0, math.inf) else None),
                        "duration_s": (e["end"] - e["start"]) * 1e-9, "messages": e["n"],
                        "failure_label": CONTROL_ERROR}
                       for e in sorted(episodes.closed, key=lambda e: (e["start"], e["j"], e["kind"]))]
+        not_comparable = list(dict.fromkeys(x for c in self.configurations for x in c.not_comparable))
         rc = {}
         for role, chk in recheck.items():
             if chk.matched or chk.unmatched:
@@ -932,6 +1127,10 @@ class Audit:
                 if chk.worst and "t_ns" in chk.worst:
                     d["worst"] = {"stamp_ns": chk.worst.get("stamp_ns"), "time_s": rel(chk.worst["t_ns"]),
                                   **{k: v for k, v in chk.worst.items() if k not in ("t_ns", "stamp_ns")}}
+                if not_comparable:  # a difference would only measure the other configuration
+                    d.update(comparable=False, identical=False, max_abs_difference=None,
+                             not_comparable="not comparable: " + "; ".join(not_comparable))
+                    d.pop("worst", None)
                 rc[recheck_topics.get(role, role)] = d
         latency = {}
         if lat_stamp.n:
@@ -978,6 +1177,8 @@ class Audit:
             "unreadable_ranges": unreadable,
             "data_crc": stats.data_crc, "chunks_damaged": stats.chunks_bad,
             "chunks_crc_checked": stats.crc_checked_chunks,
+            "undecodable_messages": stats.undecodable_messages,
+            "notes": list(stats.notes),
         }
         # --- verdict --------------------------------------------------------------------------
         if violations or episodes.total:
@@ -987,12 +1188,14 @@ class Audit:
                 rec.add_label(lbl)
         if invalid_count or n_stale or unreadable:
             rec.add_label(STATE_ERROR)
-        mism = [t for t, d in rc.items() if d["matched"] and not d["identical"]]
+        if rc and not_comparable:
+            self.findings.append("re-check not comparable: " + "; ".join(not_comparable))
+        mism = [t for t, d in rc.items() if d["matched"] and not d["identical"] and d.get("comparable", True)]
         if mism:
             rec.add_label(EVALUATION_ERROR)
             self.findings.append("re-check differs from the recorded outputs on " + ", ".join(mism))
         bad = bool(episodes.total or n_traj_bad)
-        exit_code = EXIT_VIOLATIONS if bad else EXIT_OK
+        code = exit_code(violations=bad, partial=bool(unreadable))
         parts = []
         if episodes.total:
             rated = [v for v in violations if isinstance(v["peak_ratio"], float)]
@@ -1018,13 +1221,13 @@ class Audit:
                                  + (f", {n_stale} longer than stale_timeout" if n_stale else ""))
         if self.monitor.counts.out_of_order:
             self.findings.append(f"{self.monitor.counts.out_of_order} out-of-order joint_states stamps")
-        rec.verdict = {"result": "violations" if bad else "feasible", "exit_code": exit_code,
+        rec.verdict = {"result": "violations" if bad else "feasible", "exit_code": code,
                        "summary": "; ".join(parts), "partial": bool(unreadable),
                        "findings": self.findings}
         rec.duration_s = time.perf_counter() - wall0
         rec.finished_utc = utc_now()
         self.n_msgs = n_msgs
-        return rec.to_dict(), exit_code, series
+        return rec.to_dict(), code, series
 
     def _settings_dict(self) -> dict:
         d = self.settings.to_parameters()
@@ -1033,7 +1236,7 @@ class Audit:
         return d
 
     def _trajectory(self, m: BagMessage, index: int):
-        from .feasibility import FeasibilityOptions, check_trajectory
+        from .feasibility import NO_CURRENT_STATE, FeasibilityOptions, check_trajectory, current_state
         from .trajectory import validate_trajectory
 
         entry: dict[str, Any] = {"index": index, "topic": m.topic, "time_s": 0.0, "t_ns": m.log_time_ns,
@@ -1044,6 +1247,7 @@ class Audit:
             msg = self.decoder.decode(m.channel, m.data)
             st = msg.header.stamp
             entry["stamp_ns"] = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+            entry["frame_id"] = msg.header.frame_id
             pts = msg.points
             n_points = len(pts)
             # as the node does (ros_convert.trajectory_arrays, DynNode._check_trajectory): a
@@ -1063,14 +1267,24 @@ class Audit:
             entry.update(level="ERROR", message=f"undecodable trajectory message: {exc}",
                          error_code="undecodable", failure_label=STATE_ERROR)
             return entry, None, None
-        res = check_trajectory(self.traj_dynamics, traj,
-                               FeasibilityOptions(sample_period=self.settings.sample_period,
-                                                  effort_warn_ratio=self.settings.effort_warn_ratio))
+        last, start = self.last_state, None
+        if last is not None and last[0].joint_names == self.model.joint_names:
+            start = current_state(last[1:], m.log_time_ns, self.settings.stale_timeout)
+        try:
+            res = check_trajectory(self.traj_dynamics, traj,
+                                   FeasibilityOptions(sample_period=self.settings.sample_period,
+                                                      effort_warn_ratio=self.settings.effort_warn_ratio),
+                                   start=start, start_unknown=NO_CURRENT_STATE)
+        except TrajectoryError as exc:  # e.g. torques that overflow: the node publishes "rejected"
+            entry.update(level="ERROR", message=f"rejected: {exc}", error_code=exc.code,
+                         failure_label=PLANNING_ERROR, n_points=n_points,
+                         duration_s=float(times[-1]))
+            return entry, traj, None
         d = res.to_dict()
         entry.update(accepted=True, feasible=bool(res.feasible), error_code=None)
         for k in ("level", "message", "failure_label", "time_scale", "payload_margin_kg", "worst_joint",
                   "worst_constraint", "worst_ratio", "first_violation_time_s", "n_points", "duration_s",
-                  "interpolation"):
+                  "interpolation", "start_segment", "start_state_age_s"):
             if k in d:
                 entry[k] = d[k]
         entry["failure_label"] = entry.get("failure_label") or None  # "" (feasible) → null
@@ -1083,6 +1297,31 @@ class Audit:
             entry["level"] = LEVEL_NAMES.get(entry.get("level"), str(entry.get("level")))
         return entry, traj, res
 
+    def _states_request(self, m: BagMessage, efforts: _Pending | None, verdicts: _Pending | None) -> None:
+        """Recompute the node's answer to an ~/inverse_dynamics_request (torques, or the rejected
+        verdict), keyed by the request's header like the node's answer."""
+        from . import on_demand
+
+        try:
+            msg = self.decoder.decode(m.channel, m.data)
+        except Exception:  # noqa: BLE001 - undecodable: the node could not answer it either
+            return
+        st = msg.header.stamp
+        key = (int(st.sec) * 1_000_000_000 + int(st.nanosec), msg.header.frame_id)
+        pts = msg.points
+        try:
+            Q, V, A = on_demand.states(self.model.joint_names, list(msg.joint_names),
+                                       [p.positions for p in pts], [p.velocities for p in pts],
+                                       [p.accelerations for p in pts])
+            tau = on_demand.inverse_dynamics(self.traj_dynamics, Q, V, A)
+        except TrajectoryError as exc:
+            if verdicts is not None:
+                verdicts.put(key, {"message": f"rejected: {exc}", "error_code": exc.code,
+                                   "n_points": len(pts), "duration_s": math.nan})
+            return
+        if efforts is not None:
+            efforts.put(key, tau)
+
     def _recorded_and_recomputed(self, m: BagMessage, pending: _Pending,
                                  chk: Recheck) -> tuple[Any, int, Any] | None:
         """(recorded output, its header stamp in ns, the value recomputed for that stamp), or None
@@ -1093,7 +1332,7 @@ class Audit:
             chk.unmatched += 1
             return None
         key = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-        want = pending.take(key)
+        want = pending.take((key, msg.header.frame_id))
         if want is None:
             chk.unmatched += 1
             return None
@@ -1106,6 +1345,8 @@ class Audit:
         if found is None:
             return
         arr, key, res = found
+        if any(st.message.startswith(("rejected: busy", "rejected: no robot model yet")) for st in arr.status):
+            return  # a request the node could not take (queue full, no model yet): nothing to compare
         if isinstance(res, dict):  # rejected: the node published rejected_statuses
             from .feasibility import rejected_statuses
 
@@ -1151,6 +1392,29 @@ class Audit:
         except (ValueError, IndexError):
             d = math.inf
         chk.diff(d, {"stamp_ns": key, "t_ns": m.log_time_ns})
+
+
+def output_stamp_ns(t_s: float) -> int:
+    """The header stamp (ns) the node gives an output whose input had a zero stamp: the receipt
+    time in seconds, split into sec/nanosec exactly as ``ros_convert.s_to_stamp`` does."""
+    sec = int(t_s // 1)
+    nanosec = int(round((t_s - sec) * 1e9))
+    if nanosec >= 1_000_000_000:
+        sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    return sec * 1_000_000_000 + nanosec
+
+
+def _effective_ns(meta: dict) -> int | None:
+    """The log time from which a ``dyn_node`` metadata record applies (None: not recorded)."""
+    try:
+        return int(meta["effective_log_time_ns"])
+    except (KeyError, ValueError, TypeError):
+        return None
+
+
+def _changed(before: dict, after: dict) -> dict:
+    """The parameters whose value differs, with their new value (None: no longer set)."""
+    return {k: after.get(k) for k in sorted(set(before) | set(after)) if before.get(k) != after.get(k)}
 
 
 def _fmt_s(x: float | None) -> str:
@@ -1213,7 +1477,8 @@ def run_audit(opts: AuditOptions) -> AuditResult:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="dyn-audit", description="Replay a bag through dyn_node's core; write evidence.json and "
-        "report.html. Exit 0: all feasible, 1: violations found, 2: unusable input.")
+        "report.html. Exit 0: all feasible, 1: violations found, 2: unusable input, "
+        "3: partial (parts of the bag unreadable, no violations in the rest).")
     p.add_argument("bag", help="bag directory (rosbag2 layout), or a single .mcap file")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--robot-description", metavar="FILE", default="",

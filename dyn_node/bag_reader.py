@@ -25,6 +25,7 @@ from .errors import STATE_ERROR, DynNodeError
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 OP_METADATA, OP_METADATA_INDEX, OP_DATA_END = 0x0C, 0x0D, 0x0F
+OP_MESSAGE_INDEX = 0x07
 
 _U8_U64 = struct.Struct("<BQ")
 _MSG_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
@@ -83,13 +84,19 @@ class BagStats:
     chunks: int = 0
     chunks_bad: int = 0
     crc_checked_chunks: int = 0
-    data_crc: dict[str, str] = field(default_factory=dict)  # file -> ok | mismatch | absent | unchecked
+    undecodable_messages: int = 0  # on a channel whose schema could not be read (not yielded)
+    notes: list[str] = field(default_factory=list)  # damage that lost nothing (rebuilt indexes)
+    data_crc: dict[str, str] = field(default_factory=dict)  # file -> ok | mismatch | index_only | absent | unchecked
 
 
 def _str(buf: memoryview, off: int) -> tuple[str, int]:
     (n,) = _U32.unpack_from(buf, off)
     off += 4
-    return bytes(buf[off:off + n]).decode("utf-8", "replace"), off + n
+    if off + n > len(buf):
+        raise ValueError("string runs past the end of its record")
+    # Strict: a string that is not UTF-8 is damage (dyn-bag-recover skips such a record too),
+    # never a value with U+FFFD in it that a reader would take as what was written.
+    return bytes(buf[off:off + n]).decode("utf-8"), off + n
 
 
 def _map(buf: memoryview, off: int) -> tuple[dict[str, str], int]:
@@ -102,6 +109,30 @@ def _map(buf: memoryview, off: int) -> tuple[dict[str, str], int]:
         v, off = _str(buf, off)
         out[k] = v
     return out, end
+
+
+def _salvage_map(buf: memoryview, off: int) -> tuple[dict[str, str], list[str]]:
+    """The fields of a map whose framing holds but some strings are not UTF-8: (the pairs that
+    decode, the keys (or ``#i``) of those that do not). Never raises."""
+    good: dict[str, str] = {}
+    bad: list[str] = []
+    try:
+        (n,) = _U32.unpack_from(buf, off)
+        off += 4
+        end = min(off + n, len(buf))
+        while off < end:
+            raw = []
+            for _ in range(2):
+                (ln,) = _U32.unpack_from(buf, off)
+                raw.append(bytes(buf[off + 4:off + 4 + ln]))
+                off += 4 + ln
+            try:
+                good[raw[0].decode("utf-8")] = raw[1].decode("utf-8")
+            except UnicodeDecodeError:
+                bad.append(raw[0].decode("utf-8", "backslashreplace"))
+    except struct.error:
+        pass
+    return good, bad
 
 
 def _decompress(kind: str, data: bytes, size: int) -> bytes:
@@ -135,9 +166,37 @@ def bag_files(path: str | Path) -> tuple[list[Path], dict | None]:
         files = [p / f for f in info["relative_file_paths"] if (p / f).is_file()]
     if not files:
         files = sorted(p.glob("*.mcap"), key=lambda f: (len(f.name), f.name))
+        # dyn-bag-recover's outputs beside the inputs would read every message twice; a
+        # directory holding nothing else is a recovered bag, read as such.
+        inputs = [f for f in files if not is_own_output(f)]
+        files = inputs or files
     if not files:
         raise BagError(f"{p} holds no .mcap file", code="bag_empty")
     return files, info
+
+
+# dyn-bag-recover marks every file it writes: the Header's library field starts with
+# OWN_LIBRARY, and its default names end with OWN_SUFFIX.
+OWN_LIBRARY = "dyn-bag-recover"
+OWN_SUFFIX = ".recovered.mcap"
+
+
+def is_own_output(path: Path) -> bool:
+    """Whether ``path`` was written by dyn-bag-recover: its name ends ``.recovered.mcap``, or its
+    Header's library field starts with ``dyn-bag-recover`` (both, for every file it writes)."""
+    if path.name.endswith(OWN_SUFFIX):
+        return True
+    try:
+        with path.open("rb") as f:
+            head = f.read(len(MAGIC) + 9)
+            if len(head) < len(MAGIC) + 9 or head[:8] != MAGIC or head[8] != OP_HEADER:
+                return False
+            body = memoryview(f.read(min(_U64.unpack_from(head, 9)[0], 1 << 20)))
+        _profile, off = _str(body, 0)
+        library, _ = _str(body, off)
+    except (OSError, ValueError, struct.error):
+        return False
+    return library.startswith(OWN_LIBRARY)
 
 
 def metadata_span_ns(info: dict | None) -> tuple[int | None, int | None]:
@@ -181,6 +240,39 @@ class BagReader:
             if found is not None:
                 return found
         return None
+
+    def metadata_records(self, name: str) -> list[dict[str, str]]:
+        """Every MCAP metadata record ``name`` of every file, in file order (a recorder writes
+        one per configuration change). Via each file's summary, else by reading its records
+        without decompressing chunks (metadata records are never inside one). Never raises for
+        damage: what cannot be read is left out."""
+        out: list[dict[str, str]] = []
+        for f in self.files:
+            try:
+                found = _all_metadata_from_summary(f, name)
+            except (OSError, struct.error, ValueError):
+                found = None
+            if found is None:
+                fr = _FileReader(f, set(), BagStats())
+                fr.skip_chunks = True
+                for _ in fr.messages():
+                    pass
+                found = [v for k, v in fr.metadata_all if k == name]
+            out.extend(found)
+        return out
+
+    def damaged_metadata_records(self, name: str) -> list[tuple[dict[str, str], list[str]]]:
+        """The MCAP metadata records ``name`` that :meth:`metadata_records` leaves out because a
+        string in them is not UTF-8: (the fields that still decode, the keys that do not), in
+        file order. Reading them reports them in :attr:`unreadable` no more than streaming does."""
+        out: list[tuple[dict[str, str], list[str]]] = []
+        for f in self.files:
+            fr = _FileReader(f, set(), BagStats())
+            fr.skip_chunks = True
+            for _ in fr.messages():
+                pass
+            out.extend((good, bad) for k, good, bad in fr.metadata_damaged if k == name)
+        return out
 
     def peek_first(self, topic: str, limit_bytes: int = 64 << 20) -> BagMessage | None:
         """The first message on ``topic`` within the first ``limit_bytes`` of each file."""
@@ -249,8 +341,17 @@ class _FileReader:
         self.metadata: dict[str, dict[str, str]] = {}
         self.unreadable: list[UnreadableRange] = []
         self.readable = 0
+        # Channels whose (non-zero) schema id no readable Schema record defines: their messages
+        # cannot be decoded, so they are counted as lost, per channel [sid, count, first, last].
+        self.orphans: dict[int, ChannelInfo] = {}
+        self.orphan_lost: dict[int, list] = {}
         self.last_ns: int | None = None  # last log time read from this file
         self.stop_on_metadata: str | None = None
+        self.metadata_all: list[tuple[str, dict[str, str]]] = []  # every record, in file order
+        self.skip_chunks = False  # a metadata scan: chunks hold no metadata records
+        # Metadata records skipped as damaged (a string that is not UTF-8): (name, the fields
+        # that still decode, the keys that do not), for a reader that wants to say what was lost.
+        self.metadata_damaged: list[tuple[str, dict[str, str], list[str]]] = []
 
     def _lost(self, start: int | None, end: int | None, reason: str) -> None:
         self.unreadable.append(UnreadableRange(start, end, reason, self.path.name))
@@ -273,6 +374,10 @@ class _FileReader:
             pos = 8
             clean_end = False
             cut_start: int | None = None
+            # Records that cannot be parsed are skipped (their length is known), as
+            # dyn-bag-recover does; the lost range runs from the last message read before them
+            # to the first one read after them: [start, reason, records skipped].
+            skipped: list | None = None
             while True:
                 if self.limit is not None and pos > self.limit:
                     return
@@ -296,28 +401,56 @@ class _FileReader:
                 self.stats.bytes_read += 9 + length
                 if op == OP_DATA_END:
                     (want,) = _U32.unpack_from(body, 0) if length >= 4 else (0,)
-                    self.stats.data_crc[name] = ("absent" if want == 0 else
-                                                 "ok" if want == crc else "mismatch")
-                    # A mismatch with every chunk intact means damage outside the chunks
-                    # (message indexes): nothing is lost, so it is a finding, not a range.
+                    state = "absent" if want == 0 else "ok" if want == crc else "mismatch"
+                    if state == "mismatch" and not self.skip_chunks:
+                        # Damage only in Message Indexes (the reader never uses them) lost
+                        # nothing: a note, as dyn-bag-recover gives, not a lost range.
+                        damaged = damaged_message_indexes(self.path)
+                        if damaged:
+                            state = "index_only"
+                            self.stats.notes.append(index_damage_note(name, damaged))
+                        elif not self.unreadable and skipped is None:
+                            # Every chunk passed its CRC and every record parsed, so the damage
+                            # is in a record no CRC of its own covers: what was read from this
+                            # file cannot be vouched for (dyn-bag-recover: "some data lost").
+                            self._lost(None, self.last_ns, f"{name}: data section CRC mismatch "
+                                       "outside every chunk and message index (a record without "
+                                       "a CRC of its own, e.g. metadata or a message outside a "
+                                       "chunk, holds damaged bytes)")
+                    self.stats.data_crc[name] = state
                     clean_end = True
                     break
                 crc = zlib.crc32(body, zlib.crc32(head, crc))
+                at = pos
                 pos += 9 + length
                 view = memoryview(body)
+                if op == OP_CHUNK and self.skip_chunks:
+                    continue
                 if op == OP_CHUNK:
+                    if skipped is not None and length >= 8:
+                        self._lost_skipped(skipped, _U64.unpack_from(view, 0)[0])
+                        skipped = None
                     yield from self._chunk(view)
                 elif op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_METADATA):
                     try:
                         m = self._record(op, view)
-                    except (struct.error, UnicodeDecodeError, IndexError, ValueError):
-                        self._lost(self.last_ns, None, f"{name}: malformed record at byte {pos}")
-                        return
+                    except (struct.error, UnicodeDecodeError, IndexError, ValueError) as exc:
+                        if skipped is None:
+                            skipped = [self.last_ns, f"{name}: malformed record (opcode {op:#04x}) "
+                                       f"at byte {at} skipped ({exc})", 0]
+                        skipped[2] += 1
+                        continue
+                    if skipped is not None and op == OP_MESSAGE:
+                        self._lost_skipped(skipped, _U64.unpack_from(view, 6)[0])
+                        skipped = None
                     if m is not None:
                         yield m
                 elif op == OP_FOOTER:
                     clean_end = True
                     break
+            if skipped is not None:  # nothing readable came after it
+                self._lost_skipped(skipped, None)
+            self._lost_orphans()
             if not clean_end:
                 self.stats.data_crc.setdefault(name, "unchecked")
                 start = cut_start if cut_start is not None else self.last_ns
@@ -325,6 +458,30 @@ class _FileReader:
                            "(truncated; no data-end record): nothing after "
                            + ("the last readable message" if start is not None else "the header")
                            + " could be read")
+
+    def _orphan_message(self, cid: int, log_ns: int) -> None:
+        """A message on a channel without a readable schema is lost (counted, not yielded);
+        one on a channel nothing defines is a malformed record."""
+        if cid not in self.orphans:
+            raise ValueError(f"message on unknown channel {cid}")
+        lost = self.orphan_lost[cid]
+        lost[1] += 1
+        lost[2] = log_ns if lost[2] is None else min(lost[2], log_ns)
+        lost[3] = log_ns if lost[3] is None else max(lost[3], log_ns)
+        if self.last_ns is None or log_ns > self.last_ns:
+            self.last_ns = log_ns
+
+    def _lost_orphans(self) -> None:
+        for cid, (sid, n, first, last) in self.orphan_lost.items():
+            if n:
+                self._lost(first, last, f"{self.path.name}: {n} message(s) on "
+                           f"{self.orphans[cid].topic} undecodable: their schema (id {sid}) "
+                           "could not be read")
+        self.stats.undecodable_messages += sum(v[1] for v in self.orphan_lost.values())
+
+    def _lost_skipped(self, skipped: list, end_ns: int | None) -> None:
+        start, reason, n = skipped
+        self._lost(start, end_ns, reason + (f" and {n - 1} more record(s) after it" if n > 1 else ""))
 
     def _chunk(self, view: memoryview) -> Iterator[BagMessage]:
         stats = self.stats
@@ -383,7 +540,11 @@ class _FileReader:
                     cid, seq, log_ns, pub_ns = msg_head(buf, off)
                     ch = channels.get(cid)
                     if ch is None:
-                        raise ValueError(f"message on unknown channel {cid}")
+                        self._orphan_message(cid, log_ns)
+                        if flast is None or log_ns > flast:
+                            flast = log_ns
+                        off = end
+                        continue
                     topic = ch.topic
                     counts[topic] = counts.get(topic, 0) + 1
                     if first is None or log_ns < first:
@@ -408,7 +569,8 @@ class _FileReader:
             cid, seq, log_ns, pub_ns = _MSG_HEAD.unpack_from(body, 0)
             ch = self.channels.get(cid)
             if ch is None:
-                raise ValueError(f"message on unknown channel {cid}")
+                self._orphan_message(cid, log_ns)
+                return None
             st = self.stats
             topic = ch.topic
             st.message_counts[topic] = st.message_counts.get(topic, 0) + 1
@@ -432,11 +594,23 @@ class _FileReader:
             menc, off = _str(body, off)
             meta, off = _map(body, off)
             sname, senc, sdata = self.schemas.get(sid, ("", "", b""))
-            self.channels[cid] = ChannelInfo(topic, sname, senc, sdata, menc, meta)
+            info = ChannelInfo(topic, sname, senc, sdata, menc, meta)
+            if sid and sid not in self.schemas:
+                self.orphans[cid] = info
+                self.orphan_lost.setdefault(cid, [sid, 0, None, None])
+                self.channels.pop(cid, None)
+            else:
+                self.channels[cid] = info
+                self.orphans.pop(cid, None)
         elif op == OP_METADATA:
             mname, off = _str(body, 0)
-            meta, _ = _map(body, off)
+            try:
+                meta, _ = _map(body, off)
+            except UnicodeDecodeError:
+                self.metadata_damaged.append((mname, *_salvage_map(body, off)))
+                raise
             self.metadata.setdefault(mname, meta)
+            self.metadata_all.append((mname, meta))
         return None
 
 
@@ -480,6 +654,105 @@ def _metadata_from_summary(path: Path, name: str) -> dict[str, str] | None:
         _rname, o = _str(rec, 9)
         return _map(rec, o)[0]
     return None
+
+
+def _all_metadata_from_summary(path: Path, name: str) -> list[dict[str, str]] | None:
+    """Every metadata record ``name`` the summary's metadata indexes point to, in their order;
+    None when the file has no summary (or an index points at something else)."""
+    recs = _summary_records(path)
+    if recs is None:
+        return None
+    out = []
+    with open(path, "rb") as fh:
+        for op, body in recs:
+            if op != OP_METADATA_INDEX or _str(body, 16)[0] != name:
+                continue
+            moff, mlen = struct.unpack_from("<QQ", body, 0)
+            fh.seek(moff)
+            rec = memoryview(fh.read(mlen))
+            if len(rec) < 9 or rec[0] != OP_METADATA:
+                return None
+            _rname, o = _str(rec, 9)
+            out.append(_map(rec, o)[0])
+    return out
+
+
+def _canonical_indexes(records: bytes) -> bytes:
+    """The Message Index records of one decompressed chunk as both our recorder and mcap's
+    writer lay them out: one per channel, in the order each channel first appears, entries
+    (log time, record offset) in message order."""
+    index: dict[int, list[int]] = {}
+    off, n = 0, len(records)
+    while off + 9 <= n:
+        op, length = _U8_U64.unpack_from(records, off)
+        if op == OP_MESSAGE and length >= 22:
+            cid, _seq, log_ns = struct.unpack_from("<HIQ", records, off + 9)
+            index.setdefault(cid, []).extend((log_ns, off))
+        off += 9 + length
+    return b"".join(_U8_U64.pack(OP_MESSAGE_INDEX, 6 + 8 * len(e))
+                    + struct.pack(f"<HI{len(e)}Q", cid, 8 * len(e), *e) for cid, e in index.items())
+
+
+def damaged_message_indexes(path: Path) -> list[int] | None:
+    """For a file whose data-section CRC does not match: the byte offsets of the Message Index
+    records whose damage alone explains it, i.e. with each chunk's index records rebuilt from
+    the chunk the data-section CRC matches the one in Data End. Then every message, metadata
+    record and attachment is intact and nothing was lost (both tools rebuild indexes). None
+    when that is not so: the damage lies elsewhere, or cannot be placed."""
+    try:
+        with open(path, "rb") as fh:
+            return _damaged_message_indexes(fh, os.fstat(fh.fileno()).st_size)
+    except Exception:  # noqa: BLE001 - any decoder error on damaged bytes: cannot be placed
+        return None
+
+
+def _damaged_message_indexes(fh, size: int) -> list[int] | None:
+    if fh.read(8) != MAGIC:
+        return None
+    crc, pos = zlib.crc32(MAGIC), 8
+    canonical: bytes | None = None  # the index records the last chunk should be followed by
+    run: list[tuple[int, bytes]] = []  # (offset, bytes) of the index records that follow it
+    damaged: list[int] = []
+    while True:
+        head = fh.read(9)
+        if len(head) < 9:
+            return None
+        op, length = _U8_U64.unpack(head)
+        if length > size - pos - 9:
+            return None
+        body = fh.read(length)
+        if op == OP_MESSAGE_INDEX and canonical is not None:
+            run.append((pos, head + body))
+            pos += 9 + length
+            continue
+        if run:
+            actual = b"".join(r for _, r in run)
+            if actual != canonical:
+                damaged += [at for at, r in run if r not in canonical]
+            crc = zlib.crc32(canonical, crc)
+            run, canonical = [], None
+        if op == OP_DATA_END:
+            want = _U32.unpack_from(body, 0)[0] if length >= 4 else 0
+            return damaged if damaged and want == crc else None
+        crc = zlib.crc32(body, zlib.crc32(head, crc))
+        pos += 9 + length
+        canonical = None
+        if op == OP_CHUNK:
+            view = memoryview(body)
+            _start, _end, usize, ucrc = _CHUNK_HEAD.unpack_from(view, 0)
+            comp, off = _str(view, 28)
+            (rlen,) = _U64.unpack_from(view, off)
+            data = _decompress(comp, bytes(view[off + 8:off + 8 + rlen]), usize)
+            if not ucrc or zlib.crc32(data) != ucrc:
+                return None  # a chunk no CRC vouches for: the damage cannot be placed
+            canonical = _canonical_indexes(data)
+
+
+def index_damage_note(file: str, offsets: Sequence[int]) -> str:
+    """What both tools say of a data-section CRC mismatch that only Message Indexes explain."""
+    return (f"{file}: data section CRC mismatch, all of it in the message index record(s) at "
+            f"byte {', '.join(map(str, offsets))} (rebuilt from their chunks, the CRC then "
+            "matches): nothing lost")
 
 
 def _metadata_by_scan(path: Path, name: str) -> dict[str, str] | None:
@@ -542,7 +815,7 @@ def decode_joint_state(data: bytes) -> JointStateData:
         off = 12 + ln
         if off > n:
             raise ValueError("JointState CDR string runs past the end")
-        frame = bytes(buf[12:off - 1]).decode("utf-8", "replace") if ln else ""
+        frame = bytes(buf[12:off - 1]).decode("utf-8") if ln else ""
         off = (off + 3) & ~3
         start = off
         last_raw, last_names = _last_names
@@ -731,7 +1004,7 @@ def _parse_names(raw: bytes, u32) -> tuple[str, ...]:
         off = (off + 3) & ~3
         ln = u32(raw, off)[0]
         off += 4
-        out.append(raw[off:off + ln - 1 if ln else off].decode("utf-8", "replace"))
+        out.append(raw[off:off + ln - 1 if ln else off].decode("utf-8"))
         off += ln
     return tuple(out)
 

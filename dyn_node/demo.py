@@ -5,8 +5,10 @@
 2. The stack: ``dyn_sim`` (MuJoCo) and ``dyn_node`` (Pinocchio) as separate processes on a ROS
    domain of their own, localhost only; dyn_node takes the model from ``/robot_description`` and
    records a bag.
-3. Three trajectories on ``joint_trajectory``, each stamped to start a little in the future so
-   dyn_node's verdict on ``~/feasibility`` arrives before execution: a comfortable one, an
+3. Three trajectories, each first checked on ``~/check_trajectory`` (through
+   :class:`dyn_node.client.DynClient`), then sent on ``joint_trajectory`` stamped to start a
+   little in the future so dyn_node's verdict on ``~/feasibility`` arrives before execution
+   (the two verdicts must agree): a comfortable one, an
    aggressive one (a fast joint2/joint4 shake that saturates Panda), and the aggressive one slowed
    by the ``time_scale`` dyn_node reported (× a 1.05 safety factor).
 4. A summary table per trajectory (verdict, worst joint and ratio, time scale, controller states
@@ -268,6 +270,8 @@ class Outcome:
     residual_rms_nm: float = math.nan
     residual_max_nm: float = math.nan
     residual_samples: int = 0
+    check_verdict: str = "n/a"            # the answer on ~/check_trajectory, asked before sending
+    check_feasible: bool | None = None
 
 
 _LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
@@ -386,6 +390,9 @@ class Stack:
             lambda m: self.states.append((time.time(), next(
                 (kv.value for kv in m.values if kv.key == "state"), "?"))), 100)
         self.traj_pub = self.node.create_publisher(JointTrajectory, "joint_trajectory", 10)
+        from .client import DynClient
+
+        self.client = DynClient(self.node)  # each trajectory is checked on ~/check_trajectory first
 
     def spin_until(self, cond, timeout: float, progress=None) -> bool:
         deadline = time.monotonic() + timeout
@@ -403,7 +410,16 @@ class Stack:
     def now_ns(self) -> int:
         return time.time_ns()
 
+    def check(self, traj: DemoTrajectory, start_ns: int, timeout: float = 15.0) -> Any:
+        """dyn_node's verdict (client.Verdict) on ``traj`` from ~/check_trajectory, or None."""
+        fut = self.client.check_async(self.message(traj, start_ns), timeout=timeout)
+        self.spin_until(fut.done, timeout)
+        return fut.result() if fut.done() and fut.exception() is None else None
+
     def send(self, traj: DemoTrajectory, start_ns: int) -> None:
+        self.traj_pub.publish(self.message(traj, start_ns))
+
+    def message(self, traj: DemoTrajectory, start_ns: int) -> Any:
         from builtin_interfaces.msg import Duration, Time
         from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -415,7 +431,7 @@ class Stack:
             msg.points.append(JointTrajectoryPoint(
                 positions=list(p), velocities=zero, accelerations=zero,
                 time_from_start=Duration(sec=ns // 10**9, nanosec=ns % 10**9)))
-        self.traj_pub.publish(msg)
+        return msg
 
     def verdict_for(self, start_ns: int) -> tuple[float, dict[str, str], int, str] | None:
         for recv, arr in self.verdicts:
@@ -457,6 +473,13 @@ def run_trajectory(stack: Stack, traj: DemoTrajectory, say) -> Outcome:
     """Send ``traj`` to start LEAD_S from now, watch the verdict and the execution."""
     model = stack.model
     o = Outcome(traj.name, traj.description, traj.duration)
+    # asked first on ~/check_trajectory (checked exactly like joint_trajectory, never executed)
+    v = stack.check(traj, stack.now_ns() + int(LEAD_S * 1e9))
+    if v is not None:
+        o.check_verdict, o.check_feasible = _LEVELS.get(v.level, str(v.level)), v.feasible
+        say(f"  ~/check_trajectory: {o.check_verdict}: {v.message}")
+    else:
+        say("  stage unavailable: check-only request (no answer on ~/check_trajectory)")
     start_ns = stack.now_ns() + int(LEAD_S * 1e9)
     end_ns = start_ns + int(traj.duration * 1e9)
     states_from = len(stack.states)
@@ -684,7 +707,8 @@ def run_demo(args: argparse.Namespace) -> int:
             if rc in (0, 1) and report.exists():
                 for line in audit_recheck_lines(audit_dir / "evidence.json"):
                     say(line)
-                live = sum(o.verdict_source == "dyn_node" for o in outcomes)
+                live = sum(o.verdict_source == "dyn_node" for o in outcomes) + sum(
+                    o.check_feasible is not None for o in outcomes)  # check-only verdicts too
                 check = audit_check(audit_dir / "evidence.json", live)
                 checks.append(check)
                 say(f"  [{'PASS' if check[0] else 'FAIL'}] {check[1]}")
@@ -740,6 +764,14 @@ def acceptance(outcomes: Sequence[Outcome]) -> list[tuple[bool, str]]:
     """The issue's acceptance criteria, evaluated on what was observed."""
     by = {o.name: o for o in outcomes}
     checks: list[tuple[bool, str]] = []
+    asked = [o for o in outcomes if o.verdict_source == "dyn_node"]
+    if asked:
+        same = [o for o in asked if o.check_feasible is not None
+                and o.check_feasible == (o.verdict in ("OK", "WARN"))]
+        checks.append((len(same) == len(asked),
+                       f"every trajectory checked on ~/check_trajectory before it was sent, with "
+                       f"the verdict joint_trajectory then got ({len(same)} of {len(asked)}: "
+                       + ", ".join(f"{o.name} {o.check_verdict}" for o in asked) + ")"))
     if "comfortable" in by:
         o = by["comfortable"]
         checks.append((o.verdict in ("OK", "WARN") and o.tracking_error_rad <= TRACKING_TOLERANCE,

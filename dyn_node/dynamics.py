@@ -39,7 +39,7 @@ class TorqueTerms:
     static: np.ndarray
     viscous: np.ndarray
     inertial: np.ndarray
-    full: np.ndarray     # static + viscous + inertial: the torque at k = 1
+    full: np.ndarray     # the torque at k = 1: their sum, but Pinocchio's RNEA at a state at rest
 
     def total(self, k: float = 1.0) -> np.ndarray:
         return self.static + self.viscous / k + self.inertial / (k * k)
@@ -209,5 +209,5 @@ class Dynamics:
             G = np.empty((self.nv, len(Q)), order="F")
             kernels.gravity_rows(Q, *self._gravity_tables, G.T)
         F = self._rigid_columns(Q, V, A, threads)
-        S, W, I, full = kernels.split_terms(G, F, V, self._damping, self._coulomb)
+        S, W, I, full = kernels.split_terms(G, F, V, A, self._damping, self._coulomb)
         return TorqueTerms(static=S, viscous=W, inertial=I, full=full)

@@ -38,8 +38,9 @@ METRIC_DEFINITIONS: dict[str, dict[str, str]] = {
                        "is the monitor's acceleration estimate"},
     "effort_limit_nm": {"unit": "N·m", "description": "effort limit (URDF/limits file), min with the "
                         "torque-speed envelope"},
-    "violation.peak_value": {"unit": "N·m | rad | rad/s", "description": "effort: |torque|; position: "
-                             "q; velocity: |q̇|, at the peak"},
+    "violation.peak_value": {"unit": "N·m | rad | rad/s | rad/s²", "description": "effort: |torque|; "
+                             "position: q; velocity: |q̇|; deceleration: |q̈̂| (the acceleration "
+                             "estimate) where q̇·q̈̂ < 0, at the peak"},
     "violation.duration_s": {"unit": "s", "description": "time from the first to the last consecutive "
                              "message above the limit"},
     "time_scale": {"unit": "1", "description": "smallest factor k the trajectory's duration must be "

@@ -8,8 +8,10 @@ every segment are samples (an interior waypoint appears twice, once as the end o
 before it and once as the start of the one after it, so one-sided limits of discontinuous
 derivatives are checked exactly).
 
-Time scaling. Stretching the trajectory's duration by k (x = 1/k) gives q̇ ÷ k, q̈ ÷ k², q⃛ ÷ k³,
-and torque τ(x) = s + w·x + i·x² with s = gravity + Coulomb friction, w = viscous friction,
+Time scaling. Stretching the trajectory's duration by k (x = 1/k) gives q̇ ÷ k, q̈ ÷ k², q⃛ ÷ k³
+(the deceleration limit applies to |q̈| where q̇·q̈ < 0, a sign that k does not change, so its
+share is k = sqrt(|q̈| / max_deceleration) at the worst decelerating sample), and torque
+τ(x) = s + w·x + i·x² with s = gravity + Coulomb friction, w = viscous friction,
 i = inertial + Coriolis + armature (:class:`~dyn_node.dynamics.TorqueTerms`). Each constraint at
 each sample is a polynomial of degree ≤ 3 in x (the torque-speed envelope piecewise so), so its
 first exit from the allowed band is found in closed form, in one compiled loop over the samples
@@ -19,6 +21,13 @@ k-dependent stretch of samples, is solved on k for that constraint alone (secant
 trial decided exactly on a sparse grid of windows plus the gaps a bound cannot clear; see
 ``_rms_time_scale``). ``time_scale`` is the largest of these per-sample factors: the smallest k
 such that every k' ≥ k is feasible.
+
+Start segment. When the first point lies ahead (t0 > 0) the controller moves there from the
+robot's state; given that state (:class:`StartState`) the check prepends it
+(:func:`~dyn_node.trajectory.from_current_state`) and checks that segment like any other. Its
+start velocity is the robot's and does not scale with k, so when it is not zero the per-sample
+laws cover only the samples after it, and the segment's share is searched
+(:func:`_start_time_scale`: walk, then bisection, each trial checked directly).
 
 Cost: the batched RNEA passes (the full torque, and the 1 kg payload for the margin) are the
 largest part, then the compiled gravity pass the time scale needs (0.3 of an RNEA pass;
@@ -53,8 +62,8 @@ import math
 import threading
 import time
 import weakref
-from dataclasses import dataclass, field
-from typing import Any, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -64,7 +73,8 @@ from .errors import PLANNING_ERROR, TrajectoryError
 from .limits import LIMIT_KINDS, JointLimits
 from .model import Payload
 from .status import ERROR, NAME_PREFIX, OK, WARN, Status
-from .trajectory import Trajectory, interpolate
+from .trajectory import Trajectory, from_current_state, interpolate
+from .units import joint_units
 
 STATUS_NAME = NAME_PREFIX + "trajectory feasibility"
 #: Kinds whose value is a torque (or derived from one): these depend on payload and use
@@ -141,6 +151,12 @@ class FeasibilityResult:
     compute_time_s: float = 0.0
     warnings: tuple[str, ...] = ()
     effort_warn_ratio: float = 0.9
+    #: the segment from the robot's current state to the first point: START_CHECKED,
+    #: START_NONE, or "not_checked (<why>)"; the state's age (s, NaN without one); whether
+    #: that segment sets ``time_scale``
+    start_segment: str = "none (first point at t = 0)"
+    start_state_age_s: float = math.nan
+    time_scale_start_segment: bool = False
 
     def summary_values(self) -> dict[str, Any]:
         return {
@@ -154,6 +170,8 @@ class FeasibilityResult:
             "time_scale_constraint": self.time_scale_constraint,
             "violations": len(self.violations), "compute_time_s": self.compute_time_s,
             "warnings": "; ".join(self.warnings),
+            "start_segment": self.start_segment, "start_state_age_s": self.start_state_age_s,
+            "time_scale_start_segment": self.time_scale_start_segment,
         }
 
     def statuses(self, hardware_id: str = "") -> list[Status]:
@@ -197,6 +215,39 @@ class FeasibilityResult:
             "waypoint_effort": [[_json(float(x)) for x in row] for row in self.waypoint_effort],
             "warnings": list(self.warnings),
         }
+
+
+#: ``start_segment`` when the first point is at t = 0 (nothing runs before it)
+START_NONE = "none (first point at t = 0)"
+START_CHECKED = "checked"
+#: why the start segment was not checked, when the node or the audit had no usable state
+NO_CURRENT_STATE = "no current state within stale_timeout"
+
+
+@dataclass(frozen=True)
+class StartState:
+    """The robot's state when a trajectory arrived, in model order: q and q̇ of the last accepted
+    joint_states (q̇ = 0 when it carried no velocity; q̈ = 0 is assumed, as
+    joint_trajectory_controller does), and its age in s."""
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    age_s: float
+
+
+def current_state(last: tuple[int, np.ndarray, np.ndarray] | None, now_ns: int,
+                  stale_timeout: float) -> StartState | None:
+    """The state a trajectory received at ``now_ns`` starts from: ``last`` = (receipt time ns,
+    q, q̇) of the last accepted joint_states, when it is at most ``stale_timeout`` s old (None
+    otherwise: :data:`NO_CURRENT_STATE`). The node passes receipt times, the audit the log times
+    the node recorded with them, so a replay starts from the same state."""
+    if last is None:
+        return None
+    age = (now_ns - last[0]) * 1e-9
+    if not 0.0 <= age <= stale_timeout:
+        return None
+    return StartState(positions=np.asarray(last[1], dtype=float),
+                      velocities=np.asarray(last[2], dtype=float), age_s=age)
 
 
 def rejected_statuses(error: TrajectoryError, hardware_id: str = "", n_points: int = 0,
@@ -245,6 +296,15 @@ def _describe_violation(v: Violation) -> str:
             f"{_fmt(v.limit)} {v.unit} at t = {v.peak_time_s:.2f} s")
 
 
+def _power_exit(L: np.ndarray, peak: np.ndarray, power: int) -> np.ndarray:
+    """First exit x = 1/k of peak·x^power ≤ L per column: (L/peak)^(1/power); inf (never) when
+    the value is zero at every sample and L ≥ 0; 0 (every k fails) when L < 0. A YAML limit of 0
+    is a real limit: 0 for a moving joint, inf for one that does not move."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (L / peak) ** (1.0 / power)
+    return np.where(L < 0, 0.0, np.where(peak > 0, x, np.inf))
+
+
 def _take(X: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """X[:, cols] without the copy when cols is every column in order (the common case); the
     caller must not write into the result."""
@@ -261,18 +321,6 @@ def _colmax(X: np.ndarray) -> np.ndarray:
     if X.ndim != 2 or not X.shape[0]:
         return X.max(axis=0)
     return X[np.argmax(X, axis=0), np.arange(X.shape[1])]
-
-
-def _units(dynamics: Dynamics) -> dict[str, list[str]]:
-    pm = dynamics.model.pin_model
-    prismatic = [pm.joints[i].shortname().startswith("JointModelP") for i in range(1, pm.njoints)]
-    lin = {"position": "m", "velocity": "m/s", "acceleration": "m/s²", "jerk": "m/s³",
-           "effort": "N", "effort_rate": "N/s", "rms_effort": "N", "power": "W",
-           "effort_speed": "N"}
-    rot = {"position": "rad", "velocity": "rad/s", "acceleration": "rad/s²", "jerk": "rad/s³",
-           "effort": "N·m", "effort_rate": "N·m/s", "rms_effort": "N·m", "power": "W",
-           "effort_speed": "N·m"}
-    return {k: [(lin if p else rot)[k] for p in prismatic] for k in LIMIT_KINDS}
 
 
 @dataclass
@@ -393,15 +441,21 @@ def _batch_threads(dynamics: Dynamics, threads: int | None) -> int:
 # ----------------------------------------------------------------------------------------------
 
 def check_trajectory(dynamics: Dynamics, traj: Trajectory,
-                     options: FeasibilityOptions = FeasibilityOptions()) -> FeasibilityResult:
+                     options: FeasibilityOptions = FeasibilityOptions(), *,
+                     start: StartState | None = None,
+                     start_unknown: str = "no current state given") -> FeasibilityResult:
     """Check ``traj`` (model order) against every limit of ``dynamics.model``; see module doc.
+
+    When the first point's time is > 0 the controller first moves from the robot's state to it:
+    with ``start`` that segment is checked too (:func:`~dyn_node.trajectory.from_current_state`);
+    without, the verdict is at least WARN and says why (``start_unknown``).
 
     Raises only :class:`TrajectoryError` (so a caller can always publish a rejected status):
     a numerical failure deep inside (overflow, a Pinocchio error) becomes one with code
     ``evaluation_failed``.
     """
     try:
-        return _check(dynamics, traj, options)
+        return _check(dynamics, traj, options, start, start_unknown)
     except TrajectoryError:
         raise
     except (ArithmeticError, ValueError, RuntimeError, MemoryError) as exc:
@@ -414,7 +468,10 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
 _HUGE = 1e100
 
 
-def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) -> FeasibilityResult:
+def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
+           start: StartState | None = None,
+           start_unknown: str = "no current state given",
+           search_start: bool = True) -> FeasibilityResult:
     t_start = time.perf_counter()
     if traj.n_points < 2:
         raise TrajectoryError(f"trajectory has {traj.n_points} point(s); at least 2 are needed "
@@ -432,8 +489,22 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         warnings.append("positions only: assumed a C² cubic spline through the waypoints with zero "
                         "velocity at both ends (the controller would interpolate linearly, which "
                         "needs unbounded acceleration at every waypoint)")
-    pp = interpolate(traj, mode)
-    smp = _sample(traj.times, options.sample_period, options.max_samples)
+    # the segment from the robot's state to a first point ahead (t0 > 0) is executed too
+    work, start_segment, start_age = traj, START_NONE, math.nan
+    if traj.times[0] > 0 and start is None:
+        start_segment = f"not_checked ({start_unknown})"
+        warnings.insert(0, f"start segment not checked ({start_unknown}): the controller moves "
+                           f"from the robot's state to the first point in {traj.times[0]:.3g} s")
+    elif traj.times[0] > 0:
+        work, start_segment, start_age = from_current_state(
+            traj, start.positions, start.velocities), START_CHECKED, float(start.age_s)
+    # with a start velocity the start segment does not stretch like the rest (q̇0 stays):
+    # its share of the time scale is searched (_start_time_scale), the rest's rows from r0
+    fixed_start = work is not traj and bool(np.any(start.velocities != 0.0))
+    pp = interpolate(work, work.natural_interpolation)
+    smp = _sample(work.times, options.sample_period, options.max_samples)
+    r0 = int(smp.first[1]) if fixed_start else 0
+    rows = slice(r0, None)
     if smp.period > options.sample_period * (1 + 1e-9):
         warnings.append(f"sample period raised from {options.sample_period * 1e3:.3g} ms to "
                         f"{smp.period * 1e3:.3g} ms to bound memory")
@@ -469,10 +540,12 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     coulomb = np.asarray(model.pin_model.friction, dtype=float) if dynamics.options.include_friction \
         else np.zeros(nv)
     G = S - coulomb * np.sign(V) if np.any(coulomb) else S
-    units = _units(dynamics)
+    units = joint_units(dynamics.model)
 
     # waypoint torque: each waypoint as the start of its segment (the last as the end of the last)
     wp_idx = np.concatenate((smp.first, smp.last[-1:]))
+    if work is not traj:     # the prepended current state is not one of the message's points
+        wp_idx = wp_idx[1:]
     waypoint_effort = tau[wp_idx].copy()
 
     # --- values at k = 1, limits, and first-exit x = 1/k per kind -----------------------------
@@ -493,7 +566,8 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         R = lim.rms_effort[rms_cols]
         Wn = lim.rms_window[rms_cols]
         h2 = hold[rms_cols] ** 2
-        s_max = np.maximum(kernels.abs_peak(_take(S, rms_cols))[1], np.abs(hold[rms_cols]))
+        # (a moving start segment's path changes with k: its static torque is not static)
+        s_max = np.maximum(kernels.abs_peak(_take(S, rms_cols)[rows])[1], np.abs(hold[rms_cols]))
         static_bad = s_max > R
         good = ~static_bad
         if np.any(good):
@@ -515,15 +589,18 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
 
     for kind, arr, power, lim_arr in (("velocity", V, 1, lim.velocity),
                                       ("acceleration", A, 2, lim.acceleration),
+                                      ("deceleration", A, 2, lim.deceleration),
                                       ("jerk", J, 3, lim.jerk)):
         cols = limited(lim_arr)
         if len(cols):
             val = _take(arr, cols)
+            if kind == "deceleration":
+                # |q̈| counts only where |q̇| decreases (q̇·q̈ < 0); the sign of q̇·q̈ does not
+                # change with k, so the value scales as 1/k² like the acceleration
+                val = val * (_take(V, cols) * val < 0)
             L = lim_arr[cols]
             values[kind] = (cols, val, np.broadcast_to(L, val.shape))
-            # the smallest (L/|value|)^(1/power) is at the largest |value|
-            with np.errstate(divide="ignore"):
-                xstar[kind] = (L / kernels.abs_peak(val)[1]) ** (1.0 / power)
+            xstar[kind] = _power_exit(L, kernels.abs_peak(val[rows])[1], power)
     del J  # the largest temporaries go as soon as they are used: long trajectories are big
 
     cols = limited(lim.effort)
@@ -531,11 +608,13 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         L = lim.effort[cols]
         values["effort"] = (cols, _take(tau, cols), np.broadcast_to(L, (len(tt), len(cols))))
         s, w, i = _take(S, cols), _take(W, cols), _take(I, cols)
-        xstar["effort"] = kernels.band_exit(s, w, i, L)
-        at, peak = kernels.abs_peak(s)
+        xstar["effort"] = kernels.band_exit(s[rows], w[rows], i[rows], L)
+        at, peak = kernels.abs_peak(s[rows])
         if np.any(peak > L):
-            c = int(np.argmax(peak / L))      # the worst pose
-            infinite_reason.append(("effort", names[cols[c]], int(at[c]), float(peak[c]), float(L[c])))
+            with np.errstate(divide="ignore"):  # a zero (YAML) limit: inf, the worst
+                c = int(np.argmax(peak / L))      # the worst pose
+            infinite_reason.append(("effort", names[cols[c]], r0 + int(at[c]), float(peak[c]),
+                                    float(L[c])))
 
     ecols = np.array([j for j in range(nv) if lim.effort_speed_curve[j] is not None], dtype=int)
     if len(ecols):
@@ -548,13 +627,13 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         ve = _take(V, ecols)
         env = kernels.envelope_values(ve, sp, ef, npts)
         values["effort_speed"] = (ecols, _take(tau, ecols), env)
-        xs = kernels.envelope_exit_min(_take(S, ecols), _take(W, ecols), _take(I, ecols), ve,
-                                       sp, ef, npts)
+        xs = kernels.envelope_exit_min(_take(S, ecols)[rows], _take(W, ecols)[rows],
+                                       _take(I, ecols)[rows], ve[rows], sp, ef, npts)
         for c, j in enumerate(ecols):
             e0 = float(np.interp(0.0, curves[c][:, 0], curves[c][:, 1]))
-            sj = S[:, j]
+            sj = S[r0:, j]
             if np.any(np.abs(sj) > e0):
-                n = int(np.argmax(np.abs(sj)))   # the worst pose
+                n = r0 + int(np.argmax(np.abs(sj)))   # the worst pose
                 infinite_reason.append(("effort_speed", names[j], n, float(abs(sj[n])), e0))
         xstar["effort_speed"] = xs
 
@@ -563,10 +642,11 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         L = lim.power[cols]
         v = _take(V, cols)
         values["power"] = (cols, _take(tau, cols) * v, np.broadcast_to(L, v.shape))
-        xstar["power"] = kernels.odd_exit(_take(S, cols), _take(W, cols), _take(I, cols), v, L)
+        xstar["power"] = kernels.odd_exit(_take(S, cols)[rows], _take(W, cols)[rows],
+                                          _take(I, cols)[rows], v[rows], L)
 
     rate_cols = limited(lim.effort_rate)
-    need_step = mode == "cubic"
+    need_step = work.natural_interpolation == "cubic"  # C¹ only (a spline from a start state too)
     if len(rate_cols):
         L = lim.effort_rate[rate_cols]
         dG = kernels.segment_derivative(_take(G, rate_cols), smp.first, smp.last, smp.h)
@@ -574,9 +654,10 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         dI = kernels.segment_derivative(_take(I, rate_cols), smp.first, smp.last, smp.h)
         rate = dG + dW + dI
         values["effort_rate"] = (rate_cols, rate, np.broadcast_to(L, rate.shape))
-        xstar["effort_rate"] = kernels.odd_exit(dG, dW, dI, np.broadcast_to(1.0, dG.shape), L)
+        xstar["effort_rate"] = kernels.odd_exit(dG[rows], dW[rows], dI[rows],
+                                                np.broadcast_to(1.0, dG[rows].shape), L)
     effort_step = {}
-    if len(traj.times) > 2:
+    if len(work.times) > 2:
         steps = np.abs(tau[smp.first[1:]] - tau[smp.last[:-1]])  # (N-2)×nv
         peak = _colmax(steps)
         for j in range(nv):
@@ -587,7 +668,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
             w_ = int(np.argmax(steps[:, j])) + 1
             warnings.append(f"cubic interpolation: acceleration jumps at waypoints make the torque "
                             f"step by up to {_fmt(peak[j])} {units['effort'][j]} ({names[j]} at "
-                            f"t = {traj.times[w_]:.2f} s); effort rate is checked within segments")
+                            f"t = {work.times[w_]:.2f} s); effort rate is checked within segments")
     if np.any(coulomb) and np.any(np.diff(np.sign(V), axis=0) != 0) and len(rate_cols):
         warnings.append("Coulomb friction steps at velocity reversals are not counted as effort rate")
 
@@ -607,7 +688,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     if len(rms_cols):
         for c in np.flatnonzero(static_bad):
             j = rms_cols[c]
-            n = int(np.argmax(np.abs(S[:, j])))
+            n = r0 + int(np.argmax(np.abs(S[r0:, j])))
             infinite_reason.append(("rms_effort", names[j], n, float(s_max[c]), float(R[c])))
         kr = np.full(len(rms_cols), np.inf)
         if rms_search is not None:
@@ -622,10 +703,12 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     # columns at once, each joint's samples contiguous
     pos_cols = np.flatnonzero(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper))
     pos_viol = []
+    rest_pos_bad = False     # beyond a hard limit after the start segment: no k helps
     if len(pos_cols):
         Qp = np.asfortranarray(_take(Q, pos_cols))
         lo, hi = lim.position_lower[pos_cols], lim.position_upper[pos_cols]
         over = np.maximum(Qp - hi, lo - Qp)              # > 0: beyond a hard limit
+        rest_pos_bad = bool(np.any(over[r0:] > 0))
         at_over = np.argmax(over, axis=0)
         # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
         soft = [(b, side * (Qp - b))
@@ -675,6 +758,9 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
     # --- time scale ----------------------------------------------------------------------------
     by_kind: dict[str, float] = {}
     ts_joint, ts_kind, k = "", "", 0.0
+    # RMS windows reaching into a start segment that does not scale: the search decides RMS by
+    # checking the whole stretched trajectory (_start_time_scale), not by its per-sample share
+    rms_in_trials = fixed_start and "rms_effort" in xstar
     for kind, xs in xstar.items():
         cols = values[kind][0]
         with np.errstate(divide="ignore"):
@@ -682,10 +768,10 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         kk = np.where(np.isinf(xs), 0.0, kk)
         c = int(np.argmax(kk))
         by_kind[kind] = float(kk[c])
-        if kk[c] > k:
+        if kk[c] > k and not (kind == "rms_effort" and rms_in_trials):
             k, ts_joint, ts_kind = float(kk[c]), names[cols[c]], kind
     static_msg = ""
-    if pos_viol:
+    if rest_pos_bad:
         v0 = max(pos_viol, key=lambda v: abs(v.peak_value - v.limit))
         k, ts_joint, ts_kind = math.inf, v0.joint, "position"
         by_kind["position"] = math.inf
@@ -696,6 +782,26 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         qtxt = "[" + ", ".join(f"{x:.3g}" for x in Q[n]) + "]"
         static_msg = (f"gravity and friction alone need {_fmt(need)} {units['effort'][names.index(jn)]}"
                       f" of {_fmt(L)} at q = {qtxt} (t = {tt[n]:.2f} s); no slowdown helps")
+    ts_start = False
+    if fixed_start and search_start and not static_msg and math.isfinite(k):
+        if rms_in_trials:
+            plain = replace(options, compute_payload_margin=False)
+
+            def trial(kt: float) -> FeasibilityResult:
+                return _check(dynamics, _stretched(traj, kt), plain, start, start_unknown,
+                              search_start=False)
+        else:
+            # the segment alone, on the main check's own sample period (raised for very long
+            # trajectories)
+            seg_options = replace(options, sample_period=smp.period)
+
+            def trial(kt: float) -> FeasibilityResult:
+                return _start_segment_at(dynamics, work, seg_options, kt)
+        found = _start_time_scale(trial, k, feasible)
+        if found is not None:
+            k, ts_joint, ts_kind = found
+            ts_start = True
+            by_kind[ts_kind] = max(by_kind.get(ts_kind, 0.0), k)
     # The per-constraint roots and the direct check agree up to rounding; make the contract exact.
     if feasible and 1.0 < k < 1.0 + 1e-6:
         k = 1.0
@@ -731,8 +837,11 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
             tail = "; no speed-dependent limit binds"
         else:
             tail = "; no margin left"
+        if ts_start:
+            tail += " (the segment from the current state binds)"
         message = head + tail
-        if level == WARN and warnings and worst_ratio <= options.effort_warn_ratio:
+        if level == WARN and warnings and (worst_ratio <= options.effort_warn_ratio
+                                           or start_segment.startswith("not_checked")):
             message += f" ({warnings[0].split(':')[0]})"
         label = PLANNING_ERROR if level != OK else ""
     else:
@@ -741,15 +850,22 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         v0 = pos[0] if pos else max(violations, key=lambda v: abs(v.peak_value) / v.limit
                                      if v.limit > 0 else math.inf)
         head = f"infeasible: {v0.joint} {_kind_text(v0.kind)} {_describe_violation(v0)}"
-        if pos:
+        if pos and rest_pos_bad:
             tail = "; position limits do not depend on timing, no slowdown helps"
         elif static_msg:
             tail = "; " + static_msg
+        elif ts_start and not math.isfinite(k):
+            tail = (f"; no slowdown up to {_START_REACH:g}× makes the segment from the current "
+                    "state feasible")
         else:
             tail = f"; run {_fmt_factor(k)}× slower"
+            if ts_start:
+                tail += " (the segment from the current state binds)"
         message = head + tail
         if len(violations) > 1:
             message += f" ({len(violations)} violations)"
+        if start_segment.startswith("not_checked"):
+            message += f"; {warnings[0].split(':')[0]}"
     result = FeasibilityResult(
         feasible=feasible, level=level, message=message, failure_label=label,
         worst_joint=worst_joint, worst_constraint=worst_kind, worst_ratio=float(worst_ratio),
@@ -759,8 +875,103 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions) ->
         duration_s=traj.duration, interpolation=mode, violations=tuple(violations),
         per_joint=per_joint, effort_step=effort_step, waypoint_effort=waypoint_effort,
         compute_time_s=time.perf_counter() - t_start, warnings=tuple(warnings),
-        effort_warn_ratio=options.effort_warn_ratio)
+        effort_warn_ratio=options.effort_warn_ratio, start_segment=start_segment,
+        start_state_age_s=start_age, time_scale_start_segment=ts_start)
     return result
+
+
+#: The start segment's time-scale search: the walk's step factor from the given timing, the
+#: relative bracket width the bisection stops at, the smallest k walked down to, and how far
+#: above the first k tried the walk up looks before answering "no slowdown helps".
+_START_WALK, _START_RTOL, _START_FLOOR, _START_REACH = 2.0, 1e-6, 1e-6, 1e3
+
+
+def _start_segment_at(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
+                      k: float) -> FeasibilityResult:
+    """The start segment alone with the trajectory stretched by k, checked directly: from the
+    measured q, q̇ (q̇ does not scale: it is the robot's) and q̈ = 0 to the first point, whose
+    velocity and acceleration scale as 1/k and 1/k², in k·t0 s, on the same samples (the sample
+    period stretched by k too)."""
+    t0 = float(work.times[1])
+    v, a = work.velocities, work.accelerations
+    seg = Trajectory(times=np.array([0.0, k * t0]), positions=work.positions[:2],
+                     velocities=np.vstack([v[0], v[1] / k]),
+                     accelerations=None if a is None else np.vstack([a[0], a[1] / (k * k)]))
+    opts = replace(options, sample_period=options.sample_period * k, compute_payload_margin=False)
+    return _check(dynamics, seg, opts)
+
+
+def _stretched(traj: Trajectory, k: float) -> Trajectory:
+    """``traj`` run k times slower: times × k, velocities ÷ k, accelerations ÷ k²."""
+    return Trajectory(times=traj.times * k, positions=traj.positions,
+                      velocities=None if traj.velocities is None else traj.velocities / k,
+                      accelerations=None if traj.accelerations is None else traj.accelerations / (k * k))
+
+
+def _start_time_scale(trial: Callable[[float], FeasibilityResult], k_rest: float,
+                      feasible: bool) -> tuple[float, str, str] | None:
+    """The time scale when the start segment's share exceeds ``k_rest`` (the rest's, from the
+    per-sample laws: the rest is feasible exactly for k ≥ k_rest): (k, joint, kind that fails
+    just below k), or None when k_rest stands.
+
+    The start velocity is the robot's, so the segment does not stretch like the rest; it is
+    re-interpolated and checked directly at each trial k (``trial``: :func:`_start_segment_at`,
+    or the whole stretched trajectory when an RMS window can reach into the segment). From the
+    given timing (k = 1, whose verdict is ``feasible``) the search walks by factors of 2 towards
+    the boundary, down to k_rest when feasible, up (at most ``_START_REACH``×) when not, then
+    bisects the last step to a relative width of 1e-6 and answers its feasible end: the
+    smallest k such that every k′ from k to the given timing (when feasible) is, on the walk's
+    grid; a stretch narrower than a factor of 2 that the walk steps over is not seen.
+    """
+    trials: dict[float, FeasibilityResult | None] = {}
+
+    def ok(k: float) -> bool:
+        try:
+            trials[k] = trial(k)
+        except TrajectoryError:   # motion beyond any physical range at this k: not feasible
+            trials[k] = None
+            return False
+        return trials[k].feasible
+
+    if feasible:
+        hi, lo = 1.0, None
+        kt = hi / _START_WALK
+        while kt > max(k_rest, _START_FLOOR):
+            if not ok(kt):
+                lo = kt
+                break
+            hi, kt = kt, kt / _START_WALK
+        if lo is None:
+            if k_rest <= 0 or ok(k_rest):
+                return None          # the rest's bound (or none at all) stands
+            lo = k_rest
+    else:
+        base = max(1.0, k_rest)
+        if ok(base):
+            return None              # the rest binds at k_rest > 1 (or rounding at k = 1)
+        lo, hi = base, None
+        kt = base * _START_WALK
+        while kt <= base * _START_REACH:
+            if ok(kt):
+                hi = kt
+                break
+            lo, kt = kt, kt * _START_WALK
+        if hi is None:
+            return (math.inf, *_worst_violation(trials[lo]))
+    while hi / lo - 1.0 > _START_RTOL:
+        mid = math.sqrt(lo * hi)
+        if ok(mid):
+            hi = mid
+        else:
+            lo = mid
+    return (hi, *_worst_violation(trials[lo]))
+
+
+def _worst_violation(r: FeasibilityResult | None) -> tuple[str, str]:
+    if r is None or not r.violations:
+        return "", ""
+    v = max(r.violations, key=lambda v: abs(v.peak_value) / v.limit if v.limit > 0 else math.inf)
+    return v.joint, v.kind
 
 
 def _fmt_factor(f: float) -> str:

@@ -552,14 +552,24 @@ def _sign(v: float) -> float:
 _F2 = types.Array(_f8, 2, "F")
 
 
-@njit([types.UniTuple(_F2, 4)(_M, _M, _M, _V, _V)], **_JIT)
-def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, damping: np.ndarray,
-                coulomb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+@njit([types.UniTuple(_F2, 4)(_M, _M, _M, _M, _V, _V)], **_JIT)
+def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, A: np.ndarray,
+                damping: np.ndarray, coulomb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """From rigid-body gravity G and full RNEA F (nv×N, one state per column, as Pinocchio's
-    batch writes them) and velocities V (N×nv): static = G + coulomb·sign(v), viscous =
-    damping·v, inertial = F − G and their sum (N·m), each N×nv column-major (every joint's
-    samples contiguous)."""
+    batch writes them), velocities V and accelerations A (N×nv): static = G + coulomb·sign(v),
+    viscous = damping·v, inertial = F − G and the full torque F + friction (N·m), each N×nv
+    column-major (every joint's samples contiguous). A state at rest (v = a = 0) has no inertial
+    part: F − G there is only the rounding between two gravity routes, and read as an inertial
+    term it would give a held pose a spurious time scale."""
     nv, N = G.shape
+    still = np.empty(N, dtype=np.bool_)
+    for n in range(N):
+        rest = True
+        for j in range(nv):
+            if V[n, j] != 0.0 or A[n, j] != 0.0:
+                rest = False
+                break
+        still[n] = rest
     S = np.empty((nv, N)).T
     W = np.empty((nv, N)).T
     I = np.empty((nv, N)).T
@@ -571,7 +581,8 @@ def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, damping: np.ndarray
             s = G[j, n] + cf * _sign(v)
             w = d * v
             i = F[j, n] - G[j, n]
-            S[n, j], W[n, j], I[n, j] = s, w, i
+            S[n, j], W[n, j] = s, w
+            I[n, j] = 0.0 if still[n] else i
             tau[n, j] = s + w + i
     return S, W, I, tau
 

@@ -1,8 +1,15 @@
 """Joint limits: parsed from the URDF, merged with a ros2_control-style joint_limits YAML.
 
-A missing limit is represented by ``inf`` (unlimited), never by zero. Everything is in SI units
-and in the model's joint order: rad or m for positions, rad/s, rad/s², rad/s³, N·m (or N for
+A missing limit is represented by ``inf`` (unlimited), never by zero. One rule for what a zero
+means, applied alike by the feasibility check and the live monitor: a URDF ``velocity="0"`` /
+``effort="0"`` is URDF's way of writing "not given" (unlimited); a YAML ``max_X: 0`` is a real
+limit (only a value of exactly 0 satisfies it), reported as a model warning. Everything is in SI
+units and in the model's joint order: rad or m for positions, rad/s, rad/s², rad/s³, N·m (or N for
 prismatic joints), N·m/s, W, seconds for the RMS window.
+
+Every accepted YAML key is either applied or documented as not a limit: ``k_position`` and
+``k_velocity`` are gains of ros2_control's soft-limit controller (how hard it pushes back), not
+bounds, so dyn_node accepts and ignores them (``IGNORED_YAML_KEYS``).
 """
 from __future__ import annotations
 
@@ -38,15 +45,23 @@ _EXTENSION_KEYS = {
     "max_power": float, "effort_speed_curve": list, "armature": float,
 }
 LIMITS_YAML_KEYS: dict[str, type] = {**_ROS2_CONTROL_KEYS, **_EXTENSION_KEYS}
+#: Kinds that ros2_control switches with a ``has_<kind>_limits`` flag.
+_FLAGGED_KINDS = ("position", "velocity", "acceleration", "deceleration", "jerk", "effort")
+#: Accepted (standard files carry them) but not limits: soft-limit controller gains.
+IGNORED_YAML_KEYS = frozenset({"k_position", "k_velocity"})
 
-#: The limit kinds dyn_node checks, in report order.
-LIMIT_KINDS = ("position", "velocity", "acceleration", "jerk", "effort", "effort_rate",
-               "rms_effort", "power", "effort_speed")
+#: The limit kinds dyn_node checks, in report order. ``deceleration`` is |q̈| where |q̇| is
+#: decreasing (q̇·q̈ < 0), against ros2_control's ``max_deceleration``.
+LIMIT_KINDS = ("position", "velocity", "acceleration", "deceleration", "jerk", "effort",
+               "effort_rate", "rms_effort", "power", "effort_speed")
 
 
 @dataclass(frozen=True)
 class JointLimits:
     """Per-joint limits in model order; ``inf`` (or ``-inf`` for lower bounds) means unlimited.
+
+    ``continuous`` marks joints without any position limit: URDF ``continuous`` joints and joints
+    the YAML declares ``angle_wraps: true``.
 
     ``effort_speed_curve[i]`` is ``None`` or an (n, 2) array of (|speed| rad/s, max |effort| N·m)
     points with ascending speeds: the motor's torque-speed envelope, interpolated linearly and held
@@ -61,6 +76,7 @@ class JointLimits:
     continuous: np.ndarray
     velocity: np.ndarray
     acceleration: np.ndarray
+    deceleration: np.ndarray
     jerk: np.ndarray
     effort: np.ndarray
     effort_rate: np.ndarray
@@ -99,7 +115,8 @@ class JointLimits:
             "soft_lower": arr(self.soft_lower), "soft_upper": arr(self.soft_upper),
             "continuous": [bool(c) for c in self.continuous],
             "velocity": arr(self.velocity), "acceleration": arr(self.acceleration),
-            "jerk": arr(self.jerk), "effort": arr(self.effort), "effort_rate": arr(self.effort_rate),
+            "deceleration": arr(self.deceleration), "jerk": arr(self.jerk),
+            "effort": arr(self.effort), "effort_rate": arr(self.effort_rate),
             "rms_effort": arr(self.rms_effort), "rms_window": arr(self.rms_window),
             "power": arr(self.power), "armature": arr(self.armature),
             "effort_speed_curve": [None if c is None else c.tolist() for c in self.effort_speed_curve],
@@ -152,7 +169,8 @@ def limits_from_urdf(root: ET.Element, joint_names: Sequence[str]) -> JointLimit
     inf = np.full(n, np.inf)
     return JointLimits(
         names=tuple(joint_names), position_lower=lo, position_upper=hi, soft_lower=slo,
-        soft_upper=shi, continuous=cont, velocity=vel, acceleration=inf.copy(), jerk=inf.copy(),
+        soft_upper=shi, continuous=cont, velocity=vel, acceleration=inf.copy(),
+        deceleration=inf.copy(), jerk=inf.copy(),
         effort=eff, effort_rate=inf.copy(), rms_effort=inf.copy(),
         rms_window=np.full(n, DEFAULT_RMS_WINDOW_S), power=inf.copy(), armature=np.zeros(n),
         effort_speed_curve=(None,) * n)
@@ -238,8 +256,11 @@ def merge_limits(base: JointLimits, overrides: Mapping[str, Mapping[str, Any]],
                  where: str = "limits") -> JointLimits:
     """Apply parsed YAML overrides on top of URDF limits; YAML wins, ``has_*: false`` removes.
 
-    A ``max_*`` given without its ``has_*`` flag is applied (the flag is implied). Joints named in
-    the YAML that the model lacks raise :class:`ModelError`.
+    A ``max_*`` given without its ``has_*`` flag is applied (the flag is implied); every ``has_*:
+    false`` removes its limit, also one the URDF set (``has_soft_limits: false`` the URDF's soft
+    limits). ``angle_wraps: true`` makes the joint continuous: no hard or soft position limit (a
+    position limit given beside it is dropped, with a warning). Joints named in the YAML that the
+    model lacks raise :class:`ModelError`.
     """
     idx = {n: i for i, n in enumerate(base.names)}
     unknown = sorted(set(overrides) - set(idx))
@@ -248,9 +269,11 @@ def merge_limits(base: JointLimits, overrides: Mapping[str, Mapping[str, Any]],
                          f"{', '.join(unknown)} (model joints: {', '.join(base.names)})",
                          code="limits_unknown_joint")
     arrays = {k: getattr(base, k).copy() for k in (
-        "position_lower", "position_upper", "soft_lower", "soft_upper", "velocity", "acceleration",
-        "jerk", "effort", "effort_rate", "rms_effort", "rms_window", "power", "armature")}
+        "position_lower", "position_upper", "soft_lower", "soft_upper", "continuous", "velocity",
+        "acceleration", "deceleration", "jerk", "effort", "effort_rate", "rms_effort",
+        "rms_window", "power", "armature")}
     curves = list(base.effort_speed_curve)
+    notes: list[str] = []
 
     def flagged(entry: Mapping[str, Any], flag: str, key: str, target: str, i: int) -> None:
         if entry.get(flag) is False:
@@ -267,13 +290,27 @@ def merge_limits(base: JointLimits, overrides: Mapping[str, Mapping[str, Any]],
                 arrays["position_lower"][i] = e["min_position"]
             if "max_position" in e:
                 arrays["position_upper"][i] = e["max_position"]
-        if e.get("has_soft_limits") is not False:
+        if e.get("has_soft_limits") is False:
+            arrays["soft_lower"][i], arrays["soft_upper"][i] = -np.inf, np.inf
+        else:
             if "soft_lower_limit" in e:
                 arrays["soft_lower"][i] = e["soft_lower_limit"]
             if "soft_upper_limit" in e:
                 arrays["soft_upper"][i] = e["soft_upper_limit"]
+        if e.get("angle_wraps") is True:
+            given = [k for k in ("has_position_limits", "min_position", "max_position",
+                                 "soft_lower_limit", "soft_upper_limit")
+                     if k in e and e[k] is not False]
+            if given:
+                notes.append(f"{joint}: angle_wraps: true, so {', '.join(given)} "
+                             "not applied (a wrapping joint has no position limit)")
+            arrays["continuous"][i] = True
+            for k, v in (("position_lower", -np.inf), ("position_upper", np.inf),
+                         ("soft_lower", -np.inf), ("soft_upper", np.inf)):
+                arrays[k][i] = v
         flagged(e, "has_velocity_limits", "max_velocity", "velocity", i)
         flagged(e, "has_acceleration_limits", "max_acceleration", "acceleration", i)
+        flagged(e, "has_deceleration_limits", "max_deceleration", "deceleration", i)
         flagged(e, "has_jerk_limits", "max_jerk", "jerk", i)
         flagged(e, "has_effort_limits", "max_effort", "effort", i)
         for key, target in (("max_effort_rate", "effort_rate"), ("max_rms_effort", "rms_effort"),
@@ -283,7 +320,8 @@ def merge_limits(base: JointLimits, overrides: Mapping[str, Mapping[str, Any]],
                 arrays[target][i] = e[key]
         if "effort_speed_curve" in e:
             curves[i] = e["effort_speed_curve"]
-    return replace(base, effort_speed_curve=tuple(curves), **arrays)
+    return replace(base, effort_speed_curve=tuple(curves), warnings=base.warnings + tuple(notes),
+                   **arrays)
 
 
 def check_limits(limits: JointLimits, gravity_load: np.ndarray | None = None) -> tuple[str, ...]:
@@ -300,10 +338,16 @@ def check_limits(limits: JointLimits, gravity_load: np.ndarray | None = None) ->
         if limits.soft_lower[i] > limits.soft_upper[i]:
             out.append(f"{n}: soft lower limit {limits.soft_lower[i]:g} > soft upper "
                        f"{limits.soft_upper[i]:g}")
-        for kind in ("velocity", "acceleration", "jerk", "effort", "effort_rate", "rms_effort",
-                     "power", "rms_window"):
+        for kind in ("velocity", "acceleration", "deceleration", "jerk", "effort", "effort_rate",
+                     "rms_effort", "power", "rms_window"):
             value = getattr(limits, kind)[i]
-            if value <= 0:
+            if value == 0 and kind != "rms_window":
+                # only a YAML max_X can be 0 here (a URDF 0 is "not given"); it is applied as set
+                off = f" or set has_{kind}_limits: false" if kind in _FLAGGED_KINDS else ""
+                out.append(f"{n}: {kind} limit 0 is not positive: applied as a real limit (any "
+                           f"nonzero {kind.replace('_', ' ')} violates it); for no limit remove "
+                           f"the key{off}")
+            elif value <= 0:
                 out.append(f"{n}: {kind} limit {value:g} is not positive")
         if limits.armature[i] < 0:
             out.append(f"{n}: armature {limits.armature[i]:g} kg·m² is negative")

@@ -407,7 +407,8 @@ def _build_limits(root: ET.Element, joint_names: Sequence[str],
         limits = merge_limits(limits, load_limits_yaml(limits_yaml), where=where)
     m = model.copy()
     m.armature = np.zeros(m.nv)
-    return replace(limits, warnings=check_limits(limits, _gravity_load(m, limits)))
+    # merge notes (what the YAML asked for and was not applied) first, then suspicious values
+    return replace(limits, warnings=limits.warnings + check_limits(limits, _gravity_load(m, limits)))
 
 
 def load_model(*, urdf: str | None = None, urdf_file: str | Path | None = None,

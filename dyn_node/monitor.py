@@ -35,6 +35,7 @@ from .model import Payload, RobotModel, load_model
 from .settings import Settings, SettingsError
 from .status import ERROR, NAME_PREFIX, OK, STALE, WARN, Status
 from .trajectory import PiecewisePolynomial, Trajectory, interpolate
+from .units import joint_units, unit_key
 
 MODEL = NAME_PREFIX + "model"
 JOINT_STATES = NAME_PREFIX + "joint_states"
@@ -44,6 +45,20 @@ RESIDUAL = NAME_PREFIX + "residual"
 CONTROLLER = NAME_PREFIX + "controller"
 
 CONTROLLER_STATES = ("idle", "tracking", "deviating", "saturated", "stale", "fault")
+
+
+def _limit_ratio(x: np.ndarray, limit: np.ndarray) -> np.ndarray:
+    """|x| / limit where the limit is positive; where it is not, the feasibility check's rule
+    (|x| ≤ limit is allowed): 0 for x = 0 at a zero limit, inf otherwise; NaN x stays NaN (not
+    measured)."""
+    a = np.abs(x)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = a / limit
+    bad = limit <= 0
+    if bad.any():
+        r = np.where(bad, np.where(np.isnan(a), np.nan,
+                                   np.where((a == 0) & (limit == 0), 0.0, np.inf)), r)
+    return r
 
 
 # --- model --------------------------------------------------------------------------------
@@ -104,8 +119,9 @@ def model_error_status(error: Exception, hardware_id: str, running: RobotModel |
 class SampleResult:
     """What one joint_states message produced. When ``accepted`` is False only ``error`` is set.
 
-    Arrays are in model order: q (rad|m), v (rad/s|m/s), a_hat (rad/s²), gravity and tau (N·m),
-    residual = measured − tau (N·m, NaN where not measured; None when no effort at all),
+    Arrays are in model order, each joint in its own units (revolute|prismatic): q (rad|m),
+    v (rad/s|m/s), a_hat (rad/s²|m/s²), gravity and tau (N·m|N),
+    residual = measured − tau (N·m|N, NaN where not measured; None when no effort at all),
     utilisation = max(|tau|, |measured|) / effort limit at the current speed.
     ``stamp_s`` is the stamp used (receipt time for a zero stamp).
     """
@@ -123,7 +139,7 @@ class SampleResult:
     measured_ratio: float = float("nan")
     zero_stamp: bool = False
     out_of_order: bool = False
-    effort_limit: np.ndarray | None = None  # effort limit at the current speed (N·m; inf: none)
+    effort_limit: np.ndarray | None = None  # effort limit at the current speed (N·m|N; inf: none)
 
 
 _new = object.__new__
@@ -176,11 +192,14 @@ class BatchResult:
 
 @dataclass
 class Counts:
-    """Totals since the node started (they survive model and settings changes)."""
+    """Totals since the node started (they survive model and settings changes). Every message
+    taken lands in exactly one of accepted, invalid and before_model (taken while no model
+    existed), so received = accepted + invalid + before_model."""
 
     received: int = 0
     accepted: int = 0
     invalid: int = 0
+    before_model: int = 0
     invalid_by_reason: dict = field(default_factory=dict)
     out_of_order: int = 0
     zero_stamp: int = 0
@@ -210,9 +229,12 @@ class _Window:
         self.soft_value = np.zeros(nv)
         self.vel_excess = np.full(nv, -np.inf)
         self.vel_value = np.zeros(nv)
+        self.dec_excess = np.full(nv, -np.inf)
+        self.dec_value = np.zeros(nv)
         self.res_sq = np.zeros(nv)
         self.res_n = np.zeros(nv, dtype=np.int64)
-        # (q, v, model ratio |τ|/limit, limit, measured ratio | None, residual | None) per message
+        # (q, v, model ratio |τ|/limit, limit, measured ratio | None, residual | None, â) per
+        # message
         self.rows: list[tuple] = []
 
     @staticmethod
@@ -229,7 +251,8 @@ class _Window:
             for dst, src in targets:
                 dst[b] = src[k, cols][b]
 
-    def fold(self, lo, hi, slo, shi, soft: bool, vel, nan_row: np.ndarray) -> None:
+    def fold(self, lo, hi, slo, shi, soft: bool, vel, nan_row: np.ndarray, *,
+             dec: np.ndarray | None = None) -> None:
         rows = self.rows
         if not rows:
             return
@@ -240,11 +263,14 @@ class _Window:
         L = np.array([r[3] for r in rows])
         MR = np.array([nan_row if r[4] is None else r[4] for r in rows])
         R = np.array([nan_row if r[5] is None else r[5] for r in rows])
-        self.fold_arrays(lo, hi, slo, shi, soft, vel, Q, V, UM, L, MR, R)
+        A = np.array([r[6] for r in rows]) if dec is not None else None
+        self.fold_arrays(lo, hi, slo, shi, soft, vel, Q, V, UM, L, MR, R, dec=dec, A=A)
 
-    def fold_arrays(self, lo, hi, slo, shi, soft: bool, vel, Q, V, UM, L, MR, R) -> None:
+    def fold_arrays(self, lo, hi, slo, shi, soft: bool, vel, Q, V, UM, L, MR, R, *,
+                    dec: np.ndarray | None = None, A: np.ndarray | None = None) -> None:
         """Fold N rows given as N×nv arrays (queued rows must be folded first, to keep the
-        message order). ``MR`` and ``R`` are NaN where not measured."""
+        message order). ``MR`` and ``R`` are NaN where not measured. ``dec``: deceleration
+        limits (None: none), checked on the acceleration estimates ``A`` where q̇·q̈̂ < 0."""
         # utilisation as process computed it; NaN measured ratio: unmeasured, the model's ratio
         U = np.fmax(UM, MR)
         self._worst(U, self.util, (self.util_limit, L), (self.util_measured, MR > UM))
@@ -252,6 +278,10 @@ class _Window:
         if soft:
             self._worst(np.maximum(slo - Q, Q - shi), self.soft_excess, (self.soft_value, Q))
         self._worst(np.abs(V) - vel, self.vel_excess, (self.vel_value, V))
+        if dec is not None:
+            # excess −inf where |q̇| is not decreasing: only decelerations can exceed the limit
+            ex = np.where(V * A < 0, np.abs(A) - dec, -np.inf)
+            self._worst(ex, self.dec_excess, (self.dec_value, A))
         ok = ~np.isnan(R)
         if ok.any():
             # cumsum adds row by row, in message order: the same rounding as ``res_sq += r²``
@@ -276,12 +306,19 @@ class Monitor:
         lim = model.limits
         self._names = model.joint_names
         self._nv = model.nv
-        self._effort = np.where(lim.effort > 0, lim.effort, np.inf)
+        self._units = joint_units(model)  # each joint's own units in statuses (m and N if prismatic)
+        # the limits as the feasibility check applies them: a YAML 0 is a real limit (a URDF 0
+        # is already inf, "not given"); the ratio rule for limits ≤ 0 is _limit_ratio's
+        self._effort = np.array(lim.effort, dtype=float)
         self._effort.setflags(write=False)
         self._has_curve = any(c is not None for c in lim.effort_speed_curve)
+        self._nonpositive = bool(np.any(lim.effort <= 0) or any(
+            c is not None and c[:, 1].min() <= 0 for c in lim.effort_speed_curve))
         self._lo, self._hi = lim.position_lower, lim.position_upper
         self._slo, self._shi = lim.soft_lower, lim.soft_upper
         self._vel = lim.velocity
+        # deceleration: |q̈̂| where q̇·q̈̂ < 0 (None: no joint has the limit, nothing to fold)
+        self._dec = lim.deceleration if bool(np.any(np.isfinite(lim.deceleration))) else None
         self._soft_distinct = bool(np.any(lim.soft_lower != lim.position_lower)
                                    or np.any(lim.soft_upper != lim.position_upper))
         # name list → (index array or None when the names are exactly the model's, ignored count)
@@ -398,11 +435,11 @@ class Monitor:
         lim = self._effort
         if self._has_curve:
             lim = np.minimum(lim, self.model.limits.effort_envelope(v))
-        util = model_ratio = np.abs(tau) / lim
+        util = model_ratio = _limit_ratio(tau, lim) if self._nonpositive else np.abs(tau) / lim
         residual = mr = None
         measured_ratio = math.nan
         if e is not None:
-            mr = np.abs(e) / lim
+            mr = _limit_ratio(e, lim) if self._nonpositive else np.abs(e) / lim
             util = np.fmax(util, mr)
             residual = e - tau
             mrl = mr.tolist()
@@ -410,7 +447,7 @@ class Monitor:
                 measured_ratio = max(mrl)
             else:
                 measured_ratio = float(np.fmax.reduce(mr))  # NaN only when every joint is NaN
-        w.rows.append((q, v, model_ratio, lim, mr, residual))
+        w.rows.append((q, v, model_ratio, lim, mr, residual, a))
         if len(w.rows) >= w.FOLD_ROWS:
             self._fold()
         c.accepted += 1
@@ -482,10 +519,10 @@ class Monitor:
             lim = np.minimum(lim, self.model.limits.effort_envelope(Vd))
         else:
             lim = np.broadcast_to(lim, TAU.shape)
-        UM = np.abs(TAU) / lim
+        UM = _limit_ratio(TAU, lim) if self._nonpositive else np.abs(TAU) / lim
         util = UM
         if E is not None:
-            MR = np.abs(E) / lim
+            MR = _limit_ratio(E, lim) if self._nonpositive else np.abs(E) / lim
             util = np.fmax(UM, MR)
             RES = E - TAU
             mratio = np.fmax.reduce(MR, axis=1)  # nanmax, as in process (NaN: no effort at all)
@@ -504,7 +541,7 @@ class Monitor:
         self.last_receipt_s = float(receipt_s[-1])
         self._fold()
         w.fold_arrays(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel,
-                      Q, Vd, UM, lim, MRf, Rf)
+                      Q, Vd, UM, lim, MRf, Rf, dec=self._dec, A=A)
         c.accepted += n_msg
         w.accepted += n_msg
         c.ignored_joint_values += ignored * n_msg
@@ -567,7 +604,18 @@ class Monitor:
         return A, ooo, (float(T[-1]), last_v, a_state, filtered)
 
     def _fold(self) -> None:
-        self._w.fold(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel, self._nan)
+        self._w.fold(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel, self._nan,
+                     dec=self._dec)
+
+    def reject_message(self, exc: InputError, receipt_s: float) -> SampleResult:
+        """A message taken but unusable before :meth:`process` could read it (e.g. bytes that
+        are no JointState): received and invalid, counted by ``exc.code``, as process counts."""
+        self.counts.received += 1
+        self._w.received += 1
+        self.last_receipt_s = receipt_s
+        if self._w.start_s is None:
+            self._w.start_s = receipt_s
+        return self._reject(exc)
 
     def _reject(self, exc: InputError) -> SampleResult:
         c = self.counts
@@ -608,7 +656,8 @@ class Monitor:
         age = now_s - self.last_receipt_s if self.last_receipt_s is not None else math.inf
         vals = {"rate_hz": w.received / span if span > 0 else 0.0, "age_s": age,
                 "received_messages": c.received, "accepted_messages": c.accepted,
-                "invalid_messages": c.invalid, "out_of_order_messages": c.out_of_order,
+                "invalid_messages": c.invalid, "before_model_messages": c.before_model,
+                "out_of_order_messages": c.out_of_order,
                 "dropped_messages": c.dropped, "zero_stamp_messages": c.zero_stamp,
                 "ignored_joint_values": c.ignored_joint_values}
         if self.drop_counting is not None:
@@ -646,14 +695,15 @@ class Monitor:
         vals: dict = {}
         for i, n in enumerate(self._names):
             vals[f"{n}_utilisation"] = float(w.util[i])
+        eff_u = self._units["effort"]
         for i, n in enumerate(self._names):
-            vals[f"{n}_effort_limit_nm"] = float(w.util_limit[i])
+            vals[f"{n}_effort_limit_{unit_key(eff_u[i])}"] = float(w.util_limit[i])
         j = int(np.argmax(w.util))
         worst = float(w.util[j])
         vals.update(worst_joint=self._names[j], worst_utilisation=worst,
                     effort_warn_ratio=s.effort_warn_ratio)
         what = "measured effort" if w.util_measured[j] else "model torque"
-        text = (f"{self._names[j]} at {worst * 100:.0f}% of its {w.util_limit[j]:.4g} N·m effort limit "
+        text = (f"{self._names[j]} at {worst * 100:.0f}% of its {w.util_limit[j]:.4g} {eff_u[j]} effort limit "
                 f"({what})")
         if worst > 1.0:
             vals["failure_label"] = CONTROL_ERROR
@@ -669,26 +719,34 @@ class Monitor:
         pos = np.flatnonzero(w.pos_excess > 0)
         vel = np.flatnonzero(w.vel_excess > 0)
         soft = np.flatnonzero(w.soft_excess > 0)
+        dec = np.flatnonzero(w.dec_excess > 0)
         vals: dict = {"position_violations": len(pos), "velocity_violations": len(vel),
-                      "soft_limit_violations": len(soft)}
+                      "deceleration_violations": len(dec), "soft_limit_violations": len(soft)}
         lines = []
+        pos_u, vel_u = self._units["position"], self._units["velocity"]
         for i in pos:
-            n, q = self._names[i], float(w.pos_value[i])
-            vals[f"{n}_position_rad"] = q
+            n, q, u = self._names[i], float(w.pos_value[i]), pos_u[i]
+            vals[f"{n}_position_{unit_key(u)}"] = q
             if q < lim.position_lower[i]:
-                lines.append(f"{n} position {q:.4g} rad below its lower limit {lim.position_lower[i]:.4g} rad")
+                lines.append(f"{n} position {q:.4g} {u} below its lower limit {lim.position_lower[i]:.4g} {u}")
             else:
-                lines.append(f"{n} position {q:.4g} rad above its upper limit {lim.position_upper[i]:.4g} rad")
+                lines.append(f"{n} position {q:.4g} {u} above its upper limit {lim.position_upper[i]:.4g} {u}")
         for i in vel:
-            n, v = self._names[i], float(w.vel_value[i])
-            vals[f"{n}_velocity_rad_s"] = v
-            lines.append(f"{n} velocity {v:.4g} rad/s beyond its limit {lim.velocity[i]:.4g} rad/s")
+            n, v, u = self._names[i], float(w.vel_value[i]), vel_u[i]
+            vals[f"{n}_velocity_{unit_key(u)}"] = v
+            lines.append(f"{n} velocity {v:.4g} {u} beyond its limit {lim.velocity[i]:.4g} {u}")
+        dec_u = self._units["deceleration"]
+        for i in dec:
+            n, a, u = self._names[i], float(w.dec_value[i]), dec_u[i]
+            vals[f"{n}_deceleration_{unit_key(u)}"] = a
+            lines.append(f"{n} decelerating at {abs(a):.4g} {u} (estimate) beyond its limit "
+                         f"{lim.deceleration[i]:.4g} {u}")
         soft_lines = []
         for i in soft:
-            n, q = self._names[i], float(w.soft_value[i])
-            vals[f"{n}_soft_position_rad"] = q
-            soft_lines.append(f"{n} position {q:.4g} rad outside its soft limits "
-                              f"[{lim.soft_lower[i]:.4g}, {lim.soft_upper[i]:.4g}] rad")
+            n, q, u = self._names[i], float(w.soft_value[i]), pos_u[i]
+            vals[f"{n}_soft_position_{unit_key(u)}"] = q
+            soft_lines.append(f"{n} position {q:.4g} {u} outside its soft limits "
+                              f"[{lim.soft_lower[i]:.4g}, {lim.soft_upper[i]:.4g}] {u}")
         if lines or soft_lines:
             vals["failure_label"] = CONTROL_ERROR
             level = ERROR if lines else WARN
@@ -705,21 +763,24 @@ class Monitor:
         rms = np.full(self._nv, np.nan)
         rms[have] = np.sqrt(w.res_sq[have] / w.res_n[have])
         vals: dict = {"effort_measured": True}
+        eff_u = self._units["effort"]
         for i, n in enumerate(self._names):
             if have[i]:
-                vals[f"{n}_residual_rms_nm"] = float(rms[i])
-        ratio = np.where(have, np.nan_to_num(rms) / self._effort, 0.0)
+                vals[f"{n}_residual_rms_{unit_key(eff_u[i])}"] = float(rms[i])
+        ratio = np.where(have, _limit_ratio(np.nan_to_num(rms), self._effort), 0.0)
         j = int(np.argmax(ratio))
-        vals.update(worst_joint=self._names[j], worst_residual_rms_nm=float(rms[j]) if have[j] else 0.0,
-                    residual_warn_ratio=s.residual_warn_ratio)
+        u = eff_u[j]  # the worst joint's unit names the key: worst_residual_rms_nm, _n if prismatic
+        worst_rms = float(rms[j]) if have[j] else 0.0
+        vals.update({"worst_joint": self._names[j], f"worst_residual_rms_{unit_key(u)}": worst_rms,
+                     "residual_warn_ratio": s.residual_warn_ratio})
         if ratio[j] > s.residual_warn_ratio:
             vals["failure_label"] = CONTROL_ERROR
             return Status(RESIDUAL, WARN,
-                          f"{self._names[j]} effort residual {rms[j]:.3g} N·m RMS ({float(ratio[j]) * 100:.0f}% of its "
-                          f"{self._effort[j]:.4g} N·m limit): check payload, friction and the model",
+                          f"{self._names[j]} effort residual {rms[j]:.3g} {u} RMS ({float(ratio[j]) * 100:.0f}% of its "
+                          f"{self._effort[j]:.4g} {u} limit): check payload, friction and the model",
                           hid, vals)
-        return Status(RESIDUAL, OK, f"largest RMS residual {vals['worst_residual_rms_nm']:.3g} N·m "
-                      f"({self._names[j]})", hid, vals)
+        return Status(RESIDUAL, OK, f"largest RMS residual {worst_rms:.3g} {u} ({self._names[j]})",
+                      hid, vals)
 
 
 # --- controller status --------------------------------------------------------------------
@@ -738,6 +799,7 @@ class ControllerTracker:
     def __init__(self, model: RobotModel, settings: Settings):
         self.model = model
         self.settings = settings
+        self._units = joint_units(model)["position"]  # tracking errors: rad, or m if prismatic
         self.state = "stale"
         self.since_s: float | None = None
         # (polynomial | None, hold position, start, active from, active until, breaks as floats)
@@ -871,9 +933,11 @@ class ControllerTracker:
                       "time_in_state_s": now_s - self.since_s if self.since_s is not None else 0.0,
                       "worst_measured_effort_ratio": self._ratio,
                       "trajectory_active": self._active and self.state in ("tracking", "deviating")}
-        for n, e in zip(self.model.joint_names, self._error):
-            vals[f"{n}_tracking_error_rad"] = float(e)
-        vals["tracking_tolerance_rad"] = self.settings.tracking_tolerance
+        units = self._units
+        for n, e, u in zip(self.model.joint_names, self._error, units):
+            vals[f"{n}_tracking_error_{unit_key(u)}"] = float(e)
+        for u in dict.fromkeys(units):  # one tolerance, read in each joint's unit: rad, m or both
+            vals[f"tracking_tolerance_{unit_key(u)}"] = self.settings.tracking_tolerance
         st = self.state
         if st == "stale":
             level, msg, label = STALE, "no joint_states within stale_timeout", STATE_ERROR
@@ -884,8 +948,9 @@ class ControllerTracker:
         elif st == "deviating":
             j = int(np.nanargmax(np.abs(self._error)))
             level, label = WARN, CONTROL_ERROR
-            msg = (f"{self.model.joint_names[j]} is {self._error[j]:+.3g} rad off the trajectory "
-                   f"(tolerance {self.settings.tracking_tolerance:g} rad)")
+            u = self._units[j]
+            msg = (f"{self.model.joint_names[j]} is {self._error[j]:+.3g} {u} off the trajectory "
+                   f"(tolerance {self.settings.tracking_tolerance:g} {u})")
         elif st == "tracking":
             level, msg, label = OK, "tracking the trajectory within tolerance", ""
         else:

@@ -19,6 +19,7 @@ deserialisation as the fallback), so the recorder gets exactly the bytes taken a
 """
 from __future__ import annotations
 
+import collections
 import math
 import queue
 import struct
@@ -45,18 +46,19 @@ from trajectory_msgs.msg import JointTrajectory
 
 # at start, not at the first trajectory: loading the compiled kernels holds the GIL for about
 # 0.7 s, which then stalled joint_states handling by up to 170 ms (seen in make demo)
-from . import feasibility
+from . import feasibility, on_demand
 from .allocator import retain_freed_memory
 from .drops import DropCounter
 from .dynamics import Dynamics, DynamicsOptions
-from .errors import DynNodeError, STATE_ERROR, TrajectoryError
+from .errors import DynNodeError, EVALUATION_ERROR, InputError, STATE_ERROR, TrajectoryError
 from .model import RobotModel
 from .monitor import (ControllerTracker, Counts, Monitor, build_model, model_error_status, model_status,
                       waiting_model_status, JOINT_STATES)
 from .ros_main import end_process, spin_until_signalled
 from .ros_convert import (JointStateOut, RawTrajectory, diagnostic_array, encode_joint_trajectory_cdr,
                           fill_trajectory_effort, parse_joint_state_cdr, parse_joint_trajectory_cdr,
-                          s_to_stamp, status_to_msg, stamp_to_s, trajectory_arrays)
+                          s_to_stamp, status_to_msg, stamp_to_s, to_byte, trajectory_arrays,
+                          trajectory_header_cdr, verdict_array)
 from .selftest import run_self_test
 from .settings import MODEL_PARAMETERS, PARAMETERS, SPECS, Settings, SettingsError, settings_from_mapping
 from .status import STALE, Status
@@ -70,6 +72,10 @@ JOINT_STATES_QOS_RELIABILITY = ReliabilityPolicy.BEST_EFFORT  # matches reliable
 _DRAIN = 256  # most queued joint_states handled per executor wake-up
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+# ~/feasibility keeps the last 10: with depth 1 a burst of answers (a full request queue's
+# 'rejected: busy', several clients' requests) overwrote verdicts a reader had not acknowledged yet
+FEASIBILITY_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
 
 
 def _descriptor(spec) -> ParameterDescriptor:
@@ -118,7 +124,13 @@ class DynNode(Node):
         self._topic_urdf = ""
         self._model_problem: Status | None = None
         self._core: _Core | None = None
+        # log time (the recorder's clock) from which the current core applies: recorded with
+        # each parameter snapshot, so the audit replays each configuration from that moment
+        self._core_since_ns = self.get_clock().now().nanoseconds
         self._last_plan: tuple[Any, float] | None = None
+        # (model, receipt ns, q, q̇) of the last accepted joint_states: a trajectory whose first
+        # point lies ahead starts from it (feasibility.current_state)
+        self._last_state: tuple[RobotModel, int, Any, Any] | None = None
         self._callback_errors = 0
         values = {spec.name: self.get_parameter(spec.name).value for spec in PARAMETERS}
         # An unusable value at start-up raises SettingsError: better no node than a misconfigured one.
@@ -142,7 +154,7 @@ class DynNode(Node):
         self._pub_gravity = self.create_publisher(JointState, "~/gravity_torque", 10, **quiet)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10, **quiet)
         self._pub_controller = self.create_publisher(DiagnosticStatus, "~/controller_status", 10, **quiet)
-        self._pub_feasibility = self.create_publisher(DiagnosticArray, "~/feasibility", LATCHED, **quiet)
+        self._pub_feasibility = self.create_publisher(DiagnosticArray, "~/feasibility", FEASIBILITY_QOS, **quiet)
         self._pub_traj_effort = self.create_publisher(JointTrajectory, "~/trajectory_effort", 10, **quiet)
         # joint_states run on a node of their own, spun by their own executor on a dedicated
         # thread: rclpy's executor rebuilds its wait set from every entity of its nodes on each
@@ -165,27 +177,41 @@ class DynNode(Node):
         # a 100,000-point trajectory never holds the executor thread while rclpy builds its objects
         self._sub_traj = self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10,
                                                   raw=True)
+        # On-demand requests (reliable, depth 10): answered in order from a queue of their own,
+        # apart from joint_trajectory's, so a planner's questions never delay a command's verdict.
+        self._sub_check = self.create_subscription(JointTrajectory, "~/check_trajectory",
+                                                   self._on_check_request, 10, raw=True)
+        self._sub_id_request = self.create_subscription(JointTrajectory, "~/inverse_dynamics_request",
+                                                        self._on_inverse_dynamics_request, 10, raw=True)
+        self._requests: collections.deque = collections.deque()
+        self._requests_cond = threading.Condition()
+        self._requests_closed = False
         self._srv_self_test = self.create_service(SelfTest, "~/self_test", self._on_self_test)
         self._diag_timer = self.create_timer(s.diagnostics_period, self._on_diagnostics)
         self._ctrl_timer = self.create_timer(s.controller_status_period, self._on_controller_timer)
         self._jobs: queue.Queue = queue.Queue(maxsize=64)
-        self._worker_dyn: dict[tuple[int, bool], Dynamics] = {}
+        self._worker_dyn: dict[tuple[int, int, bool], Dynamics] = {}
         # The worker may still be checking when the node is destroyed (destroy_node waits only
         # briefly for it): it publishes under this lock, and not at all once closed is set.
         self._worker_pub_lock = threading.Lock()
         self._worker_closed = False
         self._worker = threading.Thread(target=self._feasibility_loop, name="dyn_node_feasibility", daemon=True)
         self._worker.start()
+        self._request_worker = threading.Thread(target=self._request_loop, name="dyn_node_requests",
+                                                daemon=True)
+        self._request_worker.start()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         # Imported here: the bridge declares the record.* parameters and owns the recorder thread.
         from .ros_recording import RecordingBridge
         self.recording = RecordingBridge(self, lambda: self.model.urdf if self.model else "",
-                                         autostart=False)
+                                         autostart=False,
+                                         configuration_since=lambda: self._core_since_ns)
         self.status_providers.append(self.recording.status)
         # Topics the node itself takes or publishes are recorded from their own callbacks and
         # publish calls, with the bytes the node saw and said (subscriptions' QoS is recorded
         # as the offered profile for inputs).
-        for endpoint in (self._sub_js, self._sub_traj, self._pub_inverse, self._pub_gravity,
+        for endpoint in (self._sub_js, self._sub_traj, self._sub_check, self._sub_id_request,
+                         self._pub_inverse, self._pub_gravity,
                          self._pub_diag, self._pub_controller, self._pub_feasibility,
                          self._pub_traj_effort):
             self.recording.add_publisher(endpoint)
@@ -206,6 +232,15 @@ class DynNode(Node):
         if old is not None and old.model.joint_names == model.joint_names and old.tracker._plan is not None:
             tracker._plan = old.tracker._plan
         return core
+
+    def _swap_core(self, core: _Core | None) -> None:
+        """Replace the core between two joint_states (under the io lock, which each message
+        holds from its receipt time to its outputs) and note the time: every message logged
+        before it used the old core, every one logged at or after it the new one."""
+        with self._io_lock:
+            self._core = core
+            with self._clock_handle:
+                self._core_since_ns = self._clock_handle.get_now().nanoseconds
 
     @property
     def model(self) -> RobotModel | None:
@@ -236,7 +271,7 @@ class DynNode(Node):
             self.get_logger().error(f"robot_description could not be used: {exc!r}")
             return
         self._topic_urdf = msg.data
-        self._core = self._make_core(self.settings, model)
+        self._swap_core(self._make_core(self.settings, model))
         self._model_problem = None
         self.get_logger().info(f"model {model.name} ({model.nv} DoF) from robot_description")
 
@@ -260,7 +295,7 @@ class DynNode(Node):
             return SetParametersResult(successful=False, reason=f"{type(exc).__name__}: {exc}")
         old = self.settings
         self.settings = new
-        self._core = core
+        self._swap_core(core)
         if core is not None:
             self._model_problem = None
         self._ensure_description_subscription()
@@ -433,9 +468,10 @@ class DynNode(Node):
             except Exception:  # not plain little-endian CDR: rclpy reads it (and judges it)
                 try:
                     msg = deserialize_message(data, JointState)
-                except Exception:  # not a JointState after all: counted like any malformed message
-                    self._counts.received += 1
-                    self._callback_failed("joint_states deserialisation")
+                except Exception:  # not a JointState after all: rejected like any malformed message
+                    self._handle_joint_state(InputError(
+                        f"{len(data)} bytes that rclpy cannot deserialise as a sensor_msgs/JointState",
+                        code="undecodable"), receipt_ns)
                     return
                 st = msg.header.stamp
                 fields = (st.sec, st.nanosec, msg.name, msg.position, msg.velocity, msg.effort)
@@ -450,17 +486,23 @@ class DynNode(Node):
             return None
         return info if info is not None else None
 
-    def _handle_joint_state(self, fields: tuple, receipt_ns: int) -> None:
-        """``fields`` = (stamp sec, stamp nanosec, names, position, velocity, effort)."""
+    def _handle_joint_state(self, fields: tuple | InputError, receipt_ns: int) -> None:
+        """``fields`` = (stamp sec, stamp nanosec, names, position, velocity, effort), or the
+        InputError of a message that could not be decoded."""
         core = self._core  # read once: a model swap applies from the next message
         receipt = receipt_ns * 1e-9
         if core is None:
             self._counts.received += 1
+            self._counts.before_model += 1
             return
         try:
-            sec, nsec, names, position, velocity, effort = fields
-            r = core.monitor.process(names, position, velocity, effort, sec + nsec * 1e-9, receipt)
+            if isinstance(fields, InputError):
+                r = core.monitor.reject_message(fields, receipt)
+            else:
+                sec, nsec, names, position, velocity, effort = fields
+                r = core.monitor.process(names, position, velocity, effort, sec + nsec * 1e-9, receipt)
             if r.accepted:
+                self._last_state = (core.model, receipt_ns, r.q, r.v)
                 if r.zero_stamp:
                     st = s_to_stamp(r.stamp_s)
                     sec, nsec = st.sec, st.nanosec
@@ -493,7 +535,11 @@ class DynNode(Node):
                 out += core.monitor.statuses(now, hid)
         else:
             out.append(Status(JOINT_STATES, STALE, "no robot model yet: joint_states cannot be used", hid,
-                              {"received_messages": self._counts.received, "failure_label": STATE_ERROR}))
+                              {"received_messages": self._counts.received,
+                               "accepted_messages": self._counts.accepted,
+                               "invalid_messages": self._counts.invalid,
+                               "before_model_messages": self._counts.before_model,
+                               "failure_label": STATE_ERROR}))
         for provider in list(self.status_providers):
             try:
                 st = provider()
@@ -543,7 +589,7 @@ class DynNode(Node):
     def _on_self_test(self, request: SelfTest.Request, response: SelfTest.Response) -> SelfTest.Response:
         core = self._core
         if core is None:
-            response.passed = False
+            response.passed = to_byte(False)
             response.id = self.get_name()
             response.status = [status_to_msg(self.current_statuses()[0])]
             return response
@@ -552,21 +598,37 @@ class DynNode(Node):
                                              hardware_id=core.model.name)
         except Exception as exc:
             passed, statuses = False, [model_error_status(exc, core.model.name, core.model)]
-        response.passed = passed
+        response.passed = to_byte(passed)  # rclpy sends a bool in a byte field as a garbage byte
         response.id = f"{core.model.name} {core.model.urdf_hash[:12]}"
         response.status = [status_to_msg(s) for s in statuses]
         return response
 
     # --- trajectories --------------------------------------------------------------------
+    def _record_with_state(self, sub: Any, data: bytes) -> tuple[int, _Core | None,
+                                                                 feasibility.StartState | None]:
+        """Record a trajectory taken on ``sub`` and return (receipt ns, core, the robot's state
+        it starts from). Under the joint_states lock, with one clock read for the receipt and
+        the log time: the state is the last joint_states recorded before it, as the audit
+        replays it, and the core the one of that log time."""
+        clock = self._clock_handle
+        with self._io_lock:
+            with clock:
+                receipt_ns = clock.get_now().nanoseconds
+            self.recording.record(sub, data, receipt_ns)
+            last, core = self._last_state, self._core
+        state = None
+        if core is not None and last is not None and last[0].joint_names == core.model.joint_names:
+            state = feasibility.current_state(last[1:], receipt_ns, core.settings.stale_timeout)
+        return receipt_ns, core, state
+
     def _on_trajectory(self, msg: bytes) -> None:
-        self.recording.record(self._sub_traj, msg)
-        core = self._core
-        receipt = self._now_s()
+        receipt_ns, core, state = self._record_with_state(self._sub_traj, msg)
+        receipt = receipt_ns * 1e-9
         if core is None:
             self.get_logger().warn("joint_trajectory ignored: no robot model yet", throttle_duration_sec=5.0)
             return
         try:
-            self._jobs.put_nowait((msg, receipt, core))
+            self._jobs.put_nowait((msg, receipt, core, on_demand.REQUEST_EXECUTE, state))
         except queue.Full:
             self.get_logger().error("feasibility checker busy: trajectory not checked", throttle_duration_sec=5.0)
 
@@ -581,7 +643,8 @@ class DynNode(Node):
                 self._callback_failed("trajectory check")
 
     def _worker_dynamics(self, core: _Core) -> Dynamics:
-        key = (id(core.model), core.settings.include_friction)
+        # one instance per worker thread: a Dynamics holds Pinocchio's scratch data
+        key = (threading.get_ident(), id(core.model), core.settings.include_friction)
         dyn = self._worker_dyn.get(key)
         if dyn is None or dyn.model is not core.model:
             self._worker_dyn.clear()  # one model at a time: drop instances of replaced models
@@ -589,19 +652,22 @@ class DynNode(Node):
             self._worker_dyn[key] = dyn
         return dyn
 
-    def _check_trajectory(self, data: bytes, receipt_s: float, core: _Core) -> None:
-        """Validate, hand to the controller tracker, check feasibility and publish the verdict."""
+    def _check_trajectory(self, data: bytes, receipt_s: float, core: _Core,
+                          request: str = on_demand.REQUEST_EXECUTE,
+                          start_state: feasibility.StartState | None = None) -> None:
+        """Validate, hand to the controller tracker (``request`` "execute" only: a "check" is
+        never tracked), check feasibility and publish the verdict with the request's header."""
         model, settings = core.model, core.settings
         msg: JointTrajectory | None = None
         raw: RawTrajectory | None = None
         try:
             raw = parse_joint_trajectory_cdr(data)
             names, times, (P, V, A, _) = raw.names, raw.times, raw.fields
-            stamp = raw.stamp
+            stamp, frame_id = raw.stamp, raw.frame_id.decode(errors="replace")
         except (ValueError, IndexError, struct.error, UnicodeDecodeError):
             msg = deserialize_message(data, JointTrajectory)  # big-endian or unexpected: rclpy's way
             names, times, P, V, A = trajectory_arrays(msg)
-            stamp = msg.header.stamp
+            stamp, frame_id = msg.header.stamp, msg.header.frame_id
         stamp_s = stamp_to_s(stamp)
         start = stamp_s if stamp_s != 0.0 else receipt_s
         error: TrajectoryError | None = None
@@ -609,7 +675,8 @@ class DynNode(Node):
         try:
             traj = validate_trajectory(model.joint_names, names, times, P, V, A, min_points=1)
             current = self._core
-            if current is not None and current.model.joint_names == model.joint_names:
+            if (request == on_demand.REQUEST_EXECUTE and current is not None
+                    and current.model.joint_names == model.joint_names):
                 with self._io_lock:
                     current.tracker.set_trajectory(traj, start)
             if traj.n_points < 2:
@@ -624,10 +691,13 @@ class DynNode(Node):
             options = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
                                                      effort_warn_ratio=settings.effort_warn_ratio)
             try:
-                result = feasibility.check_trajectory(self._worker_dynamics(core), traj, options)
+                result = feasibility.check_trajectory(self._worker_dynamics(core), traj, options,
+                                                      start=start_state,
+                                                      start_unknown=feasibility.NO_CURRENT_STATE)
             except TrajectoryError as exc:  # e.g. motion so large the torques overflow
-                self._publish_verdict(self._pub_feasibility, diagnostic_array(
-                    feasibility.rejected_statuses(exc, hid, len(times), duration), stamp))
+                self._publish_verdict(self._pub_feasibility, verdict_array(
+                    feasibility.rejected_statuses(exc, hid, len(times), duration), stamp, frame_id,
+                    request))
                 return
             statuses = result.statuses(hid)
             if raw is not None:
@@ -636,7 +706,87 @@ class DynNode(Node):
             else:
                 self._publish_verdict(self._pub_traj_effort, fill_trajectory_effort(msg, result.waypoint_effort,
                                                                      model.joint_names))
-        self._publish_verdict(self._pub_feasibility, diagnostic_array(statuses, stamp))
+        self._publish_verdict(self._pub_feasibility, verdict_array(statuses, stamp, frame_id, request))
+
+    # --- on-demand requests ----------------------------------------------------------------
+    def _on_check_request(self, data: bytes) -> None:
+        # checked like joint_trajectory, from the robot's current state too
+        _, _, state = self._record_with_state(self._sub_check, data)
+        self._enqueue_request(data, on_demand.REQUEST_CHECK, state)
+
+    def _on_inverse_dynamics_request(self, data: bytes) -> None:
+        self.recording.record(self._sub_id_request, data)
+        self._enqueue_request(data, on_demand.REQUEST_INVERSE_DYNAMICS)
+
+    def _enqueue_request(self, data: bytes, request: str,
+                         start_state: feasibility.StartState | None = None) -> None:
+        """Queue a request for the request worker, or answer it at once on ~/feasibility when it
+        cannot be queued (no model yet; ``check_queue_depth`` requests waiting: ``rejected:
+        busy``), so no request goes unanswered."""
+        try:
+            core = self._core
+            receipt = self._now_s()
+            if core is None:
+                self._reject_request(data, request, TrajectoryError(
+                    "no robot model yet", code="no_model", failure_label=STATE_ERROR))
+                return
+            with self._requests_cond:
+                waiting = len(self._requests)
+                if waiting < core.settings.check_queue_depth:
+                    self._requests.append((data, receipt, core, request, start_state))
+                    self._requests_cond.notify()
+                    return
+            self._reject_request(data, request, TrajectoryError(
+                f"busy: {waiting} requests already waiting (check_queue_depth)", code="busy",
+                failure_label=EVALUATION_ERROR))
+        except Exception:  # e.g. bytes that are no JointTrajectory: counted and logged
+            self._callback_failed(f"{request} request")
+
+    def _reject_request(self, data: bytes, request: str, error: TrajectoryError) -> None:
+        stamp, frame_id = trajectory_header_cdr(data)
+        self._publish_verdict(self._pub_feasibility, verdict_array(
+            feasibility.rejected_statuses(error, self.hardware_id), stamp, frame_id, request))
+
+    def _request_loop(self) -> None:
+        while True:
+            with self._requests_cond:
+                while not self._requests and not self._requests_closed:
+                    self._requests_cond.wait()
+                if self._requests_closed:
+                    return
+                data, receipt, core, request, start_state = self._requests.popleft()
+            try:
+                if request == on_demand.REQUEST_CHECK:
+                    self._check_trajectory(data, receipt, core, request, start_state)
+                else:
+                    self._answer_inverse_dynamics(data, core)
+            except Exception:
+                self._callback_failed(f"{request} request")
+
+    def _answer_inverse_dynamics(self, data: bytes, core: _Core) -> None:
+        """The request with each point's effort set to τ(q, q̇, q̈) on ~/trajectory_effort, or a
+        rejected verdict on ~/feasibility naming what is wrong with it."""
+        msg = deserialize_message(data, JointTrajectory)
+        pts = msg.points
+        try:
+            Q, V, A = on_demand.states(core.model.joint_names, msg.joint_names, [p.positions for p in pts],
+                                       [p.velocities for p in pts], [p.accelerations for p in pts])
+            tau = on_demand.inverse_dynamics(self._worker_dynamics(core), Q, V, A)
+        except TrajectoryError as exc:
+            self._publish_verdict(self._pub_feasibility, verdict_array(
+                feasibility.rejected_statuses(exc, core.model.name, len(pts)), msg.header.stamp,
+                msg.header.frame_id, on_demand.REQUEST_INVERSE_DYNAMICS))
+            return
+        self._publish_verdict(self._pub_traj_effort, fill_trajectory_effort(msg, tau, core.model.joint_names))
+
+    def _stop_requests(self) -> None:
+        with self._requests_cond:
+            self._requests_closed = True
+            self._requests.clear()
+            self._requests_cond.notify_all()
+        worker = self._request_worker
+        if worker.is_alive() and worker is not threading.current_thread():
+            worker.join(timeout=0.5)  # a request in progress is abandoned (daemon thread)
 
     def destroy_node(self) -> None:
         if hasattr(self, "_io_thread"):
@@ -651,6 +801,7 @@ class DynNode(Node):
             pass
         if self._worker.is_alive() and self._worker is not threading.current_thread():
             self._worker.join(timeout=0.5)  # a check in progress is abandoned (daemon thread)
+        self._stop_requests()
         with self._worker_pub_lock:
             self._worker_closed = True
         super().destroy_node()

@@ -15,12 +15,15 @@ Guarantees
   failed to write are counted as dropped.
 - Chunks are closed, flushed and fsynced every ``flush_period_s`` (default 0.5 s), so after
   SIGKILL at most the last flush period (plus queue latency) is missing; ``dyn-bag-recover``
-  rewrites the truncated file into an indexed one.
+  rewrites the truncated file into an indexed one. ``metadata.yaml`` is replaced durably too
+  (temp file fsynced, renamed, directory fsynced): after a power loss it is never empty.
 - A write error (ENOSPC, EIO, ...) puts the recorder in the ``error`` state; later messages are
   dropped (counted) and everything flushed before remains readable.
 - Every file begins with the robot description on ``/robot_description`` and an MCAP metadata
-  record ``dyn_node`` (keys ``robot_description``, ``parameters`` (YAML), ``version``), so each
-  split file is self-contained. The injected description copies are counted as
+  record ``dyn_node`` (keys ``robot_description``, ``parameters`` (YAML), ``version``, and
+  ``effective_log_time_ns`` when the owner says since when that configuration applies), so each
+  split file is self-contained. A parameter change writes a new record, in queue order with the
+  messages, each carrying the log time from which the new configuration applies. The injected description copies are counted as
   ``description_copies``, not as received messages.
 
 The MCAP bytes come from :class:`McapFile`, a small writer of our own (chunked, indexed, CRCs
@@ -302,28 +305,55 @@ def bag_metadata(topics: Sequence[TopicInfo], files: Sequence[FileInfo],
     return doc
 
 
-def write_metadata_yaml(bag_dir: str | os.PathLike[str], doc: Mapping[str, Any]) -> None:
-    """Write metadata.yaml atomically (temp file + rename), so a reader never sees half of it."""
+def write_metadata_yaml(bag_dir: str | os.PathLike[str], doc: Mapping[str, Any], *,
+                        fsync: bool = True) -> None:
+    """Write metadata.yaml atomically, so a reader never sees half of it and a power loss
+    leaves the old or the new file whole: temp file, fsync it, rename over, fsync the directory
+    (without the first fsync the rename can reach the disk before the data: an empty file)."""
     path = Path(bag_dir) / "metadata.yaml"
     tmp = path.with_name("metadata.yaml.tmp")
-    tmp.write_text(yaml.safe_dump(dict(doc), sort_keys=False, default_flow_style=False))
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(yaml.safe_dump(dict(doc), sort_keys=False, default_flow_style=False))
+        f.flush()
+        if fsync:
+            os.fsync(f.fileno())
     os.replace(tmp, path)
+    if fsync:
+        fsync_directory(path.parent)
+
+
+def fsync_directory(path: str | os.PathLike[str]) -> None:
+    """fsync a directory, so the names created or renamed in it survive a power loss."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP):  # a file system without dir fsync
+            raise
+    finally:
+        os.close(fd)
 
 
 def new_bag_directory(parent: str | os.PathLike[str], prefix: str = "dyn_node",
-                      now: float | None = None) -> Path:
+                      now: float | None = None, *, fsync: bool = True) -> Path:
     """Create ``parent/<prefix>_<YYYYmmdd_HHMMSS>`` (UTC), suffixed ``_1``, ``_2`` ... when it
-    exists; ``mkdir`` is exclusive, so two recorders never share (or overwrite) a directory."""
+    exists; ``mkdir`` is exclusive, so two recorders never share (or overwrite) a directory.
+    ``fsync``: the directories holding each new name are fsynced, so a power loss cannot lose
+    the bag directory (with every file in it) from its parent."""
     base = Path(parent)
+    created = [p for p in (base, *base.parents) if not p.exists()]
     base.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%Y%m%d_%H%M%S", time.gmtime(time.time() if now is None else now))
     for k in range(10_000):
         d = base / (f"{prefix}_{stamp}" if k == 0 else f"{prefix}_{stamp}_{k}")
         try:
             d.mkdir()
-            return d
         except FileExistsError:
             continue
+        if fsync:
+            for p in (d, *created):
+                fsync_directory(p.parent)
+        return d
     raise RecordingError(f"cannot create a new bag directory in {base}")
 
 
@@ -658,6 +688,7 @@ class Recorder:
 
     def __init__(self, config: RecorderConfig = RecorderConfig(), *,
                  robot_description: str = "", parameters_yaml: str = "",
+                 effective_log_time_ns: int | None = None,
                  opener: Callable[[str], BinaryIO] | None = None,
                  on_state: Callable[[RecorderStats], None] | None = None,
                  clock_ns: Callable[[], int] = time.time_ns):
@@ -668,7 +699,7 @@ class Recorder:
         self._opener = opener or (lambda p: open(p, "xb", buffering=0))
         self._on_state = on_state
         self._clock_ns = clock_ns
-        self.path = new_bag_directory(config.directory, config.prefix)
+        self.path = new_bag_directory(config.directory, config.prefix, fsync=config.fsync)
         # Re-entrant: the on_state observer runs under the lock and may call stats().
         self._lock = threading.RLock()
         self._wake = threading.Condition(self._lock)
@@ -689,6 +720,9 @@ class Recorder:
         self._description = robot_description
         self._description_raw: bytes | None = None
         self._parameters_yaml = parameters_yaml
+        self._effective_ns = effective_log_time_ns
+        # the configuration the writer has reached in queue order (what each file's record says)
+        self._w_parameters = (parameters_yaml, effective_log_time_ns)
         self._description_copies = 0
         self._files: list[FileInfo] = []
         # Writer-thread state.
@@ -763,14 +797,19 @@ class Recorder:
             self._queue.append((None, _DESC, urdf))
             self._wake.notify()
 
-    def set_parameters_yaml(self, text: str) -> None:
-        """New parameter snapshot: a new ``dyn_node`` metadata record is written if it changed."""
+    def set_parameters_yaml(self, text: str, *, effective_log_time_ns: int | None = None) -> None:
+        """New parameter snapshot: a new ``dyn_node`` metadata record is written if it (or the
+        log time from which it applies, ``effective_log_time_ns``) changed. The record follows
+        the messages queued before this call, so every file's record is the configuration in
+        force at that point of the recording."""
         with self._lock:
-            if text == self._parameters_yaml:
+            if effective_log_time_ns is None:
+                effective_log_time_ns = self._effective_ns
+            if (text, effective_log_time_ns) == (self._parameters_yaml, self._effective_ns):
                 return
-            self._parameters_yaml = text
+            self._parameters_yaml, self._effective_ns = text, effective_log_time_ns
             if self._accepting:
-                self._queue.append((None, _META, None))
+                self._queue.append((None, _META, (text, effective_log_time_ns)))
                 self._wake.notify()
 
     def stats(self) -> RecorderStats:
@@ -976,6 +1015,7 @@ class Recorder:
                 self._write_description(self._clock_ns())
                 self._write_metadata_record()
         elif kind == _META:
+            self._w_parameters = item[2]
             self._write_metadata_record()
 
     def _channel(self, info: TopicInfo) -> int:
@@ -1037,10 +1077,13 @@ class Recorder:
     def _write_metadata_record(self) -> None:
         assert self._mcap is not None
         with self._lock:
-            desc, params = self._description, self._parameters_yaml
+            desc = self._description
+        params, effective_ns = self._w_parameters
         self._meta_desc = desc
-        self._mcap.add_metadata(METADATA_RECORD, {
-            "robot_description": desc, "parameters": params, "version": __version__})
+        values = {"robot_description": desc, "parameters": params, "version": __version__}
+        if effective_ns is not None:
+            values["effective_log_time_ns"] = str(effective_ns)
+        self._mcap.add_metadata(METADATA_RECORD, values)
 
     def _maybe_split(self, log_ns: int, size: int) -> None:
         # Only split a file that holds a recorded message: a file with just the description
@@ -1147,7 +1190,8 @@ class Recorder:
         if self._mcap is not None:
             files.append(self._file_info())
         topics = [t for t in self._topics.values()]
-        write_metadata_yaml(self.path, bag_metadata(topics, files, extra))
+        write_metadata_yaml(self.path, bag_metadata(topics, files, extra),
+                            fsync=self.config.fsync)
 
     def _finish(self) -> None:
         if self._state == "recording" and self._mcap is not None:

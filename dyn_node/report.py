@@ -452,8 +452,8 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
     p: list[str] = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         "<meta name='viewport' content='width=device-width,initial-scale=1'>",
-        f"<title>dyn-audit: {_e(Path(inp['bag']).name)}</title><style>{_CSS}</style></head><body><main>",
-        f"<h1>dyn-audit report — <code>{_e(inp['bag'])}</code></h1>",
+        f"<title>{_e(record['tool']['name'])}: {_e(Path(inp['bag']).name)}</title><style>{_CSS}</style></head><body><main>",
+        f"<h1>{_e(record['tool']['name'])} report — <code>{_e(inp['bag'])}</code></h1>",
         f"<div class='verdict {cls}' id='verdict'>{_e(title)}<small>{_e(v['summary'])}</small></div>",
     ]
     if v.get("partial"):
@@ -507,7 +507,7 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
         if out.get("violation_episodes_total", 0) > len(viol):
             p.append(f"<p class='muted'>{out['violation_episodes_total'] - len(viol)} more not listed.</p>")
     else:
-        p.append("<p>No live limit violations (effort, position, velocity).</p>")
+        p.append("<p>No live limit violations (effort, position, velocity, deceleration).</p>")
 
     p.append("<h2 id='trajectories'>Trajectories</h2>")
     trajs = out["trajectories"]
@@ -559,7 +559,8 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
                          "largest |difference|", "identical"],
                         [[_e(t), str(d["matched"]), str(d.get("unmatched", 0)),
                           str(d.get("unanswered", 0)),
-                          _num(d["max_abs_difference"], "{:.3g}"), _num(d.get("identical"))]
+                          _e(d["not_comparable"]) if "not_comparable" in d
+                          else _num(d["max_abs_difference"], "{:.3g}"), _num(d.get("identical"))]
                          for t, d in out["recheck"].items()], (1, 2, 3, 4)))
     else:
         p.append("<p class='muted'>The bag holds no outputs of the node to re-check.</p>")

@@ -39,16 +39,39 @@ def as_double_array(values: np.ndarray) -> array.array:
     return array.array("d", np.ascontiguousarray(values, dtype=float).tobytes())
 
 
+def to_byte(value: int | bool) -> bytes:
+    """The one-byte ``bytes`` a rosidl ``byte`` field needs (diagnostic_msgs' ``level``,
+    SelfTest's ``passed``). Every byte field the node and dyn_sim write goes through here: rclpy
+    does not convert other values (a ``bool`` assigned to ``byte passed`` is serialised as a
+    garbage byte), so anything but an integer 0..255 (``bool``: 0/1) raises TypeError/ValueError."""
+    if isinstance(value, (bool, np.bool_)):
+        return b"\x01" if value else b"\x00"
+    if not isinstance(value, (int, np.integer)):
+        raise TypeError(f"a byte field needs an integer 0..255, not {type(value).__name__}")
+    if not 0 <= int(value) <= 255:
+        raise ValueError(f"a byte field holds 0..255, not {int(value)}")
+    return bytes([int(value)])
+
+
+def from_byte(value: bytes | int) -> int:
+    """The integer of a ``byte`` field as rclpy deserialises it (one-byte ``bytes``)."""
+    if isinstance(value, (bytes, bytearray)):
+        if len(value) != 1:
+            raise ValueError(f"a byte field has one byte, not {len(value)}")
+        return value[0]
+    return int(value)
+
+
 def status_to_msg(status: Status) -> DiagnosticStatus:
-    return DiagnosticStatus(level=bytes([status.level]), name=status.name, message=status.message,
+    return DiagnosticStatus(level=to_byte(status.level), name=status.name, message=status.message,
                             hardware_id=status.hardware_id,
                             values=[KeyValue(key=k, value=v) for k, v in status.key_values()])
 
 
 def msg_to_status(msg: DiagnosticStatus) -> Status:
     """Inverse of :func:`status_to_msg` (values come back as strings)."""
-    level = msg.level[0] if isinstance(msg.level, (bytes, bytearray)) else int(msg.level)
-    return Status(msg.name, level, msg.message, msg.hardware_id, {kv.key: kv.value for kv in msg.values})
+    return Status(msg.name, from_byte(msg.level), msg.message, msg.hardware_id,
+                  {kv.key: kv.value for kv in msg.values})
 
 
 def diagnostic_array(statuses: Iterable[Status], stamp: Time) -> DiagnosticArray:
@@ -355,3 +378,33 @@ def encode_joint_trajectory_cdr(raw: RawTrajectory, effort: np.ndarray) -> bytes
         out.append(b"\0" * pad + _TIME.pack(sec, nsec))
         off += pad + 8
     return b"".join(out)
+
+
+def trajectory_header_cdr(data: bytes) -> tuple[Time, str]:
+    """(stamp, frame_id) of a serialised trajectory_msgs/JointTrajectory, reading only the header
+    (cheap enough for a subscription callback whatever the trajectory's length); big-endian or
+    unexpected bytes go through rclpy's deserialisation."""
+    try:
+        if len(data) < 16 or data[1] != 1:
+            raise ValueError("not little-endian CDR")
+        sec, nsec = _TIME.unpack_from(data, 4)
+        (n,) = _U32.unpack_from(data, 12)
+        if n == 0 or 16 + n > len(data):
+            raise ValueError("frame_id beyond the data")
+        return Time(sec=sec, nanosec=nsec), bytes(data[16:16 + n - 1]).decode()
+    except (ValueError, struct.error, UnicodeDecodeError):
+        from rclpy.serialization import deserialize_message
+
+        msg = deserialize_message(data, JointTrajectory)
+        return msg.header.stamp, msg.header.frame_id
+
+
+def verdict_array(statuses: Sequence[Status], stamp: Time, frame_id: str, request: str) -> DiagnosticArray:
+    """A ``~/feasibility`` verdict: the statuses under the request's whole header (stamp and
+    frame_id, so a client can match answers to tagged requests), and the key ``request``
+    (``execute``, ``check`` or ``inverse_dynamics``) in the summary status."""
+    from .on_demand import with_request
+
+    out = diagnostic_array(with_request(statuses, request), stamp)
+    out.header.frame_id = frame_id
+    return out

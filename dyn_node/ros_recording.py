@@ -35,7 +35,8 @@ from .recording import (COMPRESSIONS, HEADER_STAMP, Recorder, RecorderConfig, Re
 from .status import ERROR, NAME_PREFIX, OK, WARN, Status
 
 STATUS_NAME = NAME_PREFIX + "recorder"
-DEFAULT_TOPICS = ["joint_states", "joint_trajectory", "robot_description", "/diagnostics",
+DEFAULT_TOPICS = ["joint_states", "joint_trajectory", "~/check_trajectory", "~/inverse_dynamics_request",
+                  "robot_description", "/diagnostics",
                   "~/gravity_torque", "~/inverse_dynamics", "~/trajectory_effort",
                   "~/feasibility", "~/controller_status"]
 # Subscriber history: deep enough that a busy executor does not lose 1 kHz messages in DDS.
@@ -62,8 +63,12 @@ class RecordingBridge:
 
     def __init__(self, node: Node, robot_description: Callable[[], str] | None = None, *,
                  discovery_period_s: float = 1.0, flush_period_s: float = 0.5,
-                 opener: Callable[[str], Any] | None = None, autostart: bool = True):
+                 opener: Callable[[str], Any] | None = None, autostart: bool = True,
+                 configuration_since: Callable[[], int | None] | None = None):
+        """``configuration_since() -> ns``: the log time from which the owner's current
+        configuration applies (written as ``effective_log_time_ns`` in each metadata record)."""
         self.node = node
+        self._configuration_since = configuration_since
         self._clock = node.get_clock()
         self._clock_handle = self._clock.handle
         self._ros_clock = self._clock.clock_type == ClockType.ROS_TIME
@@ -222,6 +227,7 @@ class RecordingBridge:
                 description_topic=self.node.resolve_topic_name("robot_description"))
             rec = Recorder(config, robot_description=self._current_description(),
                            parameters_yaml=self.parameters_yaml(),
+                           effective_log_time_ns=self._since(),
                            opener=self._opener, on_state=self._on_state)
         except (RecordingError, OSError) as exc:
             return False, str(exc)
@@ -345,7 +351,7 @@ class RecordingBridge:
         self._ticks += 1
         if self._parameters_changed or self._ticks % self._PARAMETERS_REFRESH == 0:
             self._parameters_changed = False
-            rec.set_parameters_yaml(self.parameters_yaml())
+            rec.set_parameters_yaml(self.parameters_yaml(), effective_log_time_ns=self._since())
         missing = [t for t in self._topics if t not in self._subs and t not in self._direct]
         if not missing:
             return
@@ -384,8 +390,17 @@ class RecordingBridge:
             self._subs[topic] = self.node.create_subscription(
                 cls, topic, self._callback(rec, topic, has_header_first(msg_type)), qos, raw=True)
 
+    def _since(self) -> int | None:
+        return self._configuration_since() if self._configuration_since is not None else None
+
     def _on_parameters_set(self, _parameters: list) -> None:
-        self._parameters_changed = True
+        # Snapshot now, not at the next discovery tick: two changes within one tick would
+        # otherwise leave the first configuration unrecorded, and the audit could not replay it.
+        rec = self._recorder
+        if rec is not None and self._configuration_since is not None:
+            rec.set_parameters_yaml(self.parameters_yaml(), effective_log_time_ns=self._since())
+        else:
+            self._parameters_changed = True
 
     def _callback(self, rec: Recorder, topic: str, stamped: bool) -> Callable[[bytes], None]:
         clock = self._clock_handle

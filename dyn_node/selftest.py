@@ -17,6 +17,7 @@ from .dynamics import Dynamics, DynamicsOptions
 from .errors import EVALUATION_ERROR
 from .model import RobotModel
 from .status import ERROR, NAME_PREFIX, OK, WARN, Status
+from .units import joint_units
 
 SELF_TEST = NAME_PREFIX + "self_test"
 REL_TOL = 1e-9
@@ -61,15 +62,18 @@ def run_self_test(model: RobotModel, include_friction: bool = True, n_states: in
         min_eig = min(min_eig, float(np.min(np.linalg.eigvalsh(M))))
     tol = REL_TOL * scale
     common = {"states": n_states, "seed": seed, "tolerance_nm": tol}
+    # figures over all joints, in their units: "N·m", "N" (prismatic only) or "N·m or N"
+    units = joint_units(model)
+    eff, inertia = (" or ".join(dict.fromkeys(units[k])) for k in ("effort", "inertia"))
     out = [
         _status("rnea_identity", err_id <= tol,
-                f"rnea = M·q̈ + h within {err_id:.3g} N·m over {n_states} states",
+                f"rnea = M·q̈ + h within {err_id:.3g} {eff} over {n_states} states",
                 hardware_id, {**common, "max_error_nm": err_id}),
         _status("gravity_identity", err_g <= tol,
-                f"gravity = rnea(q, 0, 0) within {err_g:.3g} N·m over {n_states} states",
+                f"gravity = rnea(q, 0, 0) within {err_g:.3g} {eff} over {n_states} states",
                 hardware_id, {**common, "max_error_nm": err_g}),
         _status("mass_matrix", err_m <= tol and asym <= tol and min_eig > 0,
-                f"M(q) symmetric positive definite: smallest eigenvalue {min_eig:.4g} kg·m², "
+                f"M(q) symmetric positive definite: smallest eigenvalue {min_eig:.4g} {inertia}, "
                 f"asymmetry {asym:.3g}, CRBA vs RNEA columns {err_m:.3g}",
                 hardware_id, {**common, "min_eigenvalue_kg_m2": min_eig, "max_asymmetry": asym,
                               "max_crba_vs_rnea": err_m}),

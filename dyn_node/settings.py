@@ -86,6 +86,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "sampling period of the trajectory feasibility check (s)", 1.0e-5, 1.0),
     ParamSpec("qos_depth", "integer", 100,
               "history depth of the joint_states subscription (messages)", 1, 100000),
+    ParamSpec("check_queue_depth", "integer", 8,
+              "check-only and inverse-dynamics requests waiting to be answered; one arriving "
+              "when this many wait is answered 'rejected: busy' (requests)", 1, 10000),
 )
 
 SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMETERS}
@@ -116,6 +119,7 @@ class Settings:
     tracking_tolerance: float = 0.05
     sample_period: float = 0.001
     qos_depth: int = 100
+    check_queue_depth: int = 8
 
     @property
     def has_model_source(self) -> bool:

@@ -244,3 +244,28 @@ def sample_times(times: np.ndarray, period: float) -> np.ndarray:
         near = np.minimum(np.abs(grid - times[idx - 1]), np.abs(grid - times[idx]))
         grid = grid[near > 1e-6 * period]
     return np.union1d(grid, times)
+
+
+def from_current_state(traj: Trajectory, positions: np.ndarray, velocities: np.ndarray) -> Trajectory:
+    """``traj`` as joint_trajectory_controller executes it when its first point lies ahead
+    (``time_from_start`` > 0): the robot's current state prepended as a point at t = 0 with the
+    measured q and q̇ and q̈ = 0, so the first segment runs from that state to the first point.
+
+    The prepended point carries what every point carries: velocities always (cubic), and
+    accelerations (0) when the points have them (quintic). A positions-only trajectory keeps
+    the knot velocities of its own C² spline (:func:`clamped_spline_velocities`, computed
+    without the prepended point): the points after the first move exactly as without a start
+    state, and the start segment is the cubic from the measured velocity to the spline's.
+    """
+    t = traj.times
+    if not t[0] > 0:
+        raise ValueError("the first point is at t = 0: there is no segment from the current state")
+    q0 = np.asarray(positions, dtype=float).reshape(1, -1)
+    v0 = np.asarray(velocities, dtype=float).reshape(1, -1)
+    if q0.shape[1] != traj.positions.shape[1] or v0.shape != q0.shape:
+        raise ValueError(f"current state has {q0.shape[1]} positions and {v0.shape[1]} velocities "
+                         f"for {traj.positions.shape[1]} joints")
+    vel = traj.velocities if traj.velocities is not None else clamped_spline_velocities(t, traj.positions)
+    acc = None if traj.accelerations is None else np.vstack([np.zeros_like(q0), traj.accelerations])
+    return Trajectory(times=np.concatenate(([0.0], t)), positions=np.vstack([q0, traj.positions]),
+                      velocities=np.vstack([v0, vel]), accelerations=acc)

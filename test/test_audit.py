@@ -8,18 +8,22 @@ against the shipped schema.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Sequence
 
 import jsonschema
 import numpy as np
 import pytest
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_bag_reader import T0, BagWriter, joint_state  # noqa: E402
 
 from dyn_node.audit import AuditOptions, SeriesBins, main, run_audit, MAX_BINS  # noqa: E402
+from dyn_node.bag_reader import BagReader, decode_joint_state  # noqa: E402
 from dyn_node.evidence import schema  # noqa: E402
 from dyn_node.model import load_model  # noqa: E402
 
@@ -47,12 +51,14 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
              invalid: dict[int, str] | None = None, out_of_order: int | None = None,
              trajectories: list | None = None, description_topic: bool = False,
              perturb: int | None = None, single_file: bool = False, measured: bool = False,
-             output_burst: int = 1, outputs_from: int = 0) -> Path:
+             output_burst: int = 1, outputs_from: int = 0,
+             later_metadata: dict | None = None) -> Path:
     """A Panda bag: 1 kHz joint_states (+ optional node outputs made with the node's Monitor).
 
     ``measured``: finite efforts on the model joints (else NaN: not measured); ``output_burst``:
     the outputs are written after every that many inputs (as a recorder that fell behind);
-    ``outputs_from``: no outputs for the inputs before that one (as a node without a model yet)."""
+    ``outputs_from``: no outputs for the inputs before that one (as a node without a model yet);
+    ``later_metadata``: a second ``dyn_node`` metadata record, written after the messages."""
     from dyn_node.monitor import Monitor
     from dyn_node.settings import settings_from_mapping
     from std_msgs.msg import String
@@ -111,6 +117,8 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
                 pending.clear()
     for args in pending:
         w.write(*args)
+    if later_metadata is not None:
+        w.w.add_metadata("dyn_node", later_metadata)
     return w.close()
 
 
@@ -250,7 +258,9 @@ def test_input_quality_gaps_stale_invalid_out_of_order(tmp_path):
     # message 900's stamp is 5 ms older than 899's; 901 is newer than 900 again
     assert iq["out_of_order"]["count"] == 1
     assert iq["out_of_order"]["examples"][0]["time_s"] == pytest.approx(0.9)
-    assert res.exit_code in (0, 1)
+    # bad inputs are findings (state error), not violations: nothing over a limit, nothing lost
+    assert res.exit_code == 0 and rec["verdict"]["result"] == "feasible"
+    assert rec["failure_labels"] == ["state error"]
 
 
 def test_stale_period_reported(tmp_path):
@@ -289,10 +299,15 @@ def test_recheck_of_node_outputs_is_exactly_zero_and_a_perturbation_is_found(tmp
     assert t[0]["time_scale"] <= 1.0 < t[1]["time_scale"]
     assert t[2]["error_code"] == "non_finite" and t[2]["failure_label"] == "planning error"
     assert t[0]["time_s"] == pytest.approx(0.2 + 500e-9, abs=1e-9)
-    assert isinstance(t[0]["payload_margin_kg"], float)
+    # the payload margin by its definition: feasible with that much more payload, not beyond it
+    _assert_payload_margin(trajs[0][1], t[0]["payload_margin_kg"])
     assert res.exit_code == 1 and "planning error" in rec["failure_labels"]
-    states = rec["outputs"]["controller_states"]["states_seen"]
-    assert "tracking" in states or "deviating" in states
+    # the recorded motion does not follow the plans: deviating from the first trajectory's stamp
+    # (0.2 s); the second (0.4 s, 50 ms long) replaces it and has ended by the sample at 0.451 s;
+    # the rejected third is never tracked
+    cs = rec["outputs"]["controller_states"]
+    assert [(c["state"], c["time_s"]) for c in cs["replayed_transitions"]] == [
+        ("idle", 0.0), ("deviating", pytest.approx(0.2, abs=1e-9)), ("idle", pytest.approx(0.451, abs=1e-9))]
 
     bag2 = make_bag(tmp_path / "bag2", n=300, outputs=True, perturb=123)
     run_audit(AuditOptions(bag=str(bag2), out=str(tmp_path / "out2"), report=False))
@@ -309,6 +324,27 @@ def test_recheck_of_node_outputs_is_exactly_zero_and_a_perturbation_is_found(tmp
     for topic in ("/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics"):
         assert (rc3[topic]["matched"], rc3[topic]["unmatched"], rc3[topic]["unanswered"]) == (260, 0, 40)
         assert rc3[topic]["identical"] is True
+
+
+def _assert_payload_margin(msg, margin: float) -> None:
+    from dyn_node.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.feasibility import FeasibilityOptions, check_trajectory
+    from dyn_node.model import Payload
+    from dyn_node.trajectory import validate_trajectory
+
+    pts = msg.points
+    traj = validate_trajectory(PANDA.joint_names, list(msg.joint_names),
+                               [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
+                               [p.positions for p in pts], [p.velocities for p in pts],
+                               [p.accelerations for p in pts])
+    assert margin > 0.1
+
+    def feasible(extra: float) -> bool:
+        model = load_model(builtin="panda", payload=Payload(extra))
+        dyn = Dynamics(model, DynamicsOptions(include_friction=True))
+        return bool(check_trajectory(dyn, traj, FeasibilityOptions()).feasible)
+
+    assert feasible(margin * 0.999) and not feasible(margin * 1.001)
 
 
 def test_bag_recorded_elsewhere_needs_a_model(tmp_path, capsys):
@@ -339,6 +375,37 @@ def test_bag_recorded_elsewhere_needs_a_model(tmp_path, capsys):
                              for v in rec["outputs"]["violations"])
 
 
+def test_live_deceleration_limit_is_audited_as_the_monitor_checks_it(tmp_path):
+    """max_deceleration is checked on the live acceleration estimate where q̇·q̈̂ < 0, by the
+    node's monitor and by the audit's replay alike. q_at's panda_joint5 (phase 1.2 rad) slows
+    down for its first 118 ms (q̇ > 0, q̈ ≈ −2.8 rad/s²), then speeds up the other way."""
+    from dyn_node.monitor import LIMITS, Monitor
+    from dyn_node.settings import Settings
+
+    bag = make_bag(tmp_path / "bag", n=200)
+    lim = tmp_path / "lim.yaml"
+    lim.write_text("joint_limits:\n  panda_joint5:\n    has_deceleration_limits: true\n"
+                   "    max_deceleration: 1.0\n")
+    assert main([str(bag), "--limits", str(lim), "--out", str(tmp_path / "o"), "--no-report"]) == 1
+    rec = validated(tmp_path / "o")
+    assert rec["configuration"]["limits"]["deceleration"][4] == 1.0
+    (v,) = [v for v in rec["outputs"]["violations"] if v["kind"] == "deceleration"]
+    assert v["joint"] == "panda_joint5" and v["limit"] == 1.0
+    # |q̈| = 0.3·π²·sin(πt + 1.2) grows to its maximum 0.3·π² as q̇ reaches 0 at t = 0.118 s
+    assert v["peak_value"] == pytest.approx(0.3 * np.pi ** 2, rel=1e-3)
+    assert v["peak_ratio"] == v["peak_value"] and v["peak_time_s"] == pytest.approx(0.118, abs=2e-3)
+    assert v["duration_s"] == pytest.approx(0.118, abs=3e-3)
+    # the node, on the same messages and stamps (s since the epoch, as the header carries them)
+    mon = Monitor(PANDA.with_limits(lim), Settings())
+    for i in range(200):
+        q, qd = q_at(i)
+        sec, nsec = divmod(T0 + i * MS, 1_000_000_000)
+        mon.process(list(PANDA.joint_names), q, qd, [], sec + nsec * 1e-9, (T0 + i * MS) * 1e-9)
+    st = {s.name: s for s in mon.statuses(2.0, "t")}[LIMITS]
+    assert st.values["deceleration_violations"] == 1
+    assert st.values["panda_joint5_deceleration_rad_s2"] == pytest.approx(-v["peak_value"], rel=1e-12)
+
+
 @pytest.mark.parametrize("args, words", [
     (["/nonexistent/bag"], "does not exist"),
     (["{junk}"], "unreadable"),
@@ -361,20 +428,21 @@ def test_damaged_bags_partial_audit_or_clear_error(tmp_path, capsys):
     bag = make_bag(tmp_path / "bag", n=1500, outputs=True)
     f = bag / "bag_0.mcap"
     full = f.read_bytes()
-    for frac in (0.0005, 0.2, 0.5, 0.8, 0.95):
+    # cut after the header: nothing usable (2); every later cut: a partial audit, which must not
+    # exit 0 (3: partial, no violations in what was read)
+    f.write_bytes(full[: int(len(full) * 0.0005)])
+    assert main([str(bag), "--out", str(tmp_path / "o0"), "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("dyn-audit: error:") and err.count("\n") == 1 and "Traceback" not in err
+    for frac in (0.2, 0.5, 0.8, 0.95):
         f.write_bytes(full[: int(len(full) * frac)])
         out = tmp_path / f"o{frac}"
         code = main([str(bag), "--out", str(out), "--no-report"])
-        err = capsys.readouterr().err
-        assert "Traceback" not in err
-        if code == 2:
-            assert err.startswith("dyn-audit: error:") and err.count("\n") == 1
-            continue
+        assert "Traceback" not in capsys.readouterr().err
         rec = validated(out)
         ur = rec["input_quality"]["unreadable_ranges"]
-        if rec["inputs"]["message_counts"].get("/joint_states") == 1500:
-            assert ur == []
-            continue
+        assert 0 < rec["inputs"]["message_counts"]["/joint_states"] < 1500
+        assert code == 3 and rec["verdict"]["exit_code"] == 3 and rec["verdict"]["result"] == "feasible"
         assert ur and rec["verdict"]["partial"] is True and "PARTIAL" in rec["verdict"]["summary"]
         # the lost range starts where the readable messages stop and ends at the bag's end
         n_read = rec["inputs"]["message_counts"]["/joint_states"]
@@ -396,7 +464,7 @@ def test_damaged_bags_partial_audit_or_clear_error(tmp_path, capsys):
         pytest.approx(((chunk.message_start_time - t0) * 1e-9, (chunk.message_end_time - t0) * 1e-9),
                       abs=1e-12)]
     assert "damaged chunk" in ur[0]["reason"] and rec["verdict"]["partial"] is True
-    assert code in (0, 1) and "Traceback" not in capsys.readouterr().err
+    assert code == 3 and "Traceback" not in capsys.readouterr().err
 
 
 def test_series_bins_stay_bounded_and_keep_extremes():
@@ -461,10 +529,11 @@ def test_cli_module_runs_and_reports_progress_only_on_a_tty(tmp_path):
     assert "100 msgs" in err and "Traceback" not in err
 
 
-@pytest.mark.timeout(120)
-def test_recorded_node_run_audits_with_zero_difference(ros_context, tmp_path):
-    """A real DynNode recording its inputs and outputs (record.enabled): the audit of that bag
-    recomputes every output with exactly 0.0 difference."""
+def record_node_run(ros_context, tmp_path: Path, n: int, *, trajectories_at: Sequence[int] = (150,),
+                    at: dict | None = None) -> str:
+    """A real DynNode recording its inputs and outputs (record.enabled): n joint_states at
+    ~300 Hz, a trajectory at each of ``trajectories_at``; ``at[i](node)`` runs before input i.
+    Returns the bag path once every output is recorded."""
     import time
 
     from rclpy.executors import SingleThreadedExecutor
@@ -497,13 +566,14 @@ def test_recorded_node_run_audits_with_zero_difference(ros_context, tmp_path):
         # the node records what it takes and publishes itself: no extra subscriptions to wait for
         assert spin_until(lambda: js_pub.get_subscription_count() >= 1
                           and traj_pub.get_subscription_count() >= 1, 30.0)
-        n = 300
         names = list(PANDA.joint_names) + ["panda_finger_joint1", "panda_finger_joint2"]
         for i in range(n):
+            if at and i in at:
+                at[i](node)
             q, v = q_at(i)
             js_pub.publish(joint_state(names, list(q) + [0.01, 0.01], list(v) + [0.0, 0.0], [],
                                        stamp_ns=T0 + i * 5 * MS))
-            if i == 150:
+            if i in trajectories_at:
                 traj_pub.publish(trajectory_msg(T0 + i * 5 * MS))
             spin_until(lambda: False, 0.002)  # ~ 300 Hz, the node keeps up without drops
 
@@ -511,7 +581,8 @@ def test_recorded_node_run_audits_with_zero_difference(ros_context, tmp_path):
             t = rec_topics()
             return all(k in t and t[k].received >= n for k in
                        ("/joint_states", "/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics")) \
-                and "/dyn_node/feasibility" in t and t["/dyn_node/feasibility"].received >= 1
+                and all(k in t and t[k].received >= len(trajectories_at)
+                        for k in ("/dyn_node/feasibility", "/dyn_node/trajectory_effort"))
         assert spin_until(done, 30.0), {k: v.received for k, v in rec_topics().items()}
         ok, path = bridge.stop()
         assert ok, path
@@ -520,20 +591,72 @@ def test_recorded_node_run_audits_with_zero_difference(ros_context, tmp_path):
         ex.shutdown()
         node.destroy_node()
         pub_node.destroy_node()
+    return path
+
+
+@pytest.mark.timeout(120)
+def test_recorded_node_run_audits_with_zero_difference(ros_context, tmp_path):
+    """The audit of a real node's recording recomputes every output with exactly 0.0 difference."""
+    n = 300
+    path = record_node_run(ros_context, tmp_path, n)
     res = run_audit(AuditOptions(bag=path, out=str(tmp_path / "out"), report=False))
     rec = validated(tmp_path / "out")
     assert rec["configuration"]["model"]["urdf_sha256"] == PANDA.urdf_hash
     assert rec["configuration"]["parameters"]["robot_model"] == "panda"
+    assert rec["configuration"]["changes"] == []
     rc = rec["outputs"]["recheck"]
     for topic in ("/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics"):
         assert rc[topic]["matched"] == n, rc[topic]
         assert rc[topic]["max_abs_difference"] == 0.0 and rc[topic]["identical"] is True
-    assert rc["/dyn_node/feasibility"]["matched"] == 1
-    assert rc["/dyn_node/feasibility"]["max_abs_difference"] == 0.0
-    assert rc["/dyn_node/feasibility"]["identical"] is True, rc["/dyn_node/feasibility"]
-    if "/dyn_node/trajectory_effort" in rc:  # recorded when the bridge discovered it in time
-        assert rc["/dyn_node/trajectory_effort"]["max_abs_difference"] == 0.0
+    for topic in ("/dyn_node/feasibility", "/dyn_node/trajectory_effort"):
+        assert rc[topic]["matched"] == 1, rc[topic]
+        assert rc[topic]["max_abs_difference"] == 0.0 and rc[topic]["identical"] is True, rc[topic]
     assert rec["outputs"]["latency"]["stamp_to_output_s"]["count"] == n
+    assert res.exit_code == 0
+
+
+@pytest.mark.timeout(120)
+def test_a_parameter_change_mid_recording_is_replayed_from_when_it_took_effect(ros_context, tmp_path):
+    """payload.mass set on the running node halfway through (as `ros2 param set` does): the
+    recorder writes the new configuration with the log time it took effect, and the audit
+    replays each configuration from that moment: every output identical, before and after."""
+    from mcap.reader import make_reader
+    from rclpy.parameter import Parameter
+
+    n = 300
+    path = record_node_run(ros_context, tmp_path, n, trajectories_at=(100, 200), at={
+        150: lambda node: node.set_parameters([Parameter("payload.mass", value=3.0)])})
+    # every file's dyn_node records: the start configuration, then the change with its time
+    metas = []
+    for f in sorted(Path(path).glob("*.mcap")):
+        with open(f, "rb") as fh:
+            metas += [r.metadata for r in make_reader(fh).iter_metadata() if r.name == "dyn_node"]
+    params = [yaml.safe_load(m["parameters"])["/dyn_node"]["ros__parameters"]["payload"]["mass"]
+              for m in metas]
+    assert params[0] == 0.0 and params[-1] == 3.0
+    since = [int(m["effective_log_time_ns"]) for m in metas]
+    assert since == sorted(since) and since[-1] > since[0]
+    res = run_audit(AuditOptions(bag=path, out=str(tmp_path / "out"), report=False))
+    rec = validated(tmp_path / "out")
+    ch = rec["configuration"]["changes"]
+    assert [(c["parameters"], c["payload_mass_kg"], c["effective_log_time_ns"]) for c in ch] == [
+        ({"payload.mass": 3.0}, 3.0, since[-1])]
+    rc = rec["outputs"]["recheck"]
+    for topic in ("/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics"):
+        assert (rc[topic]["matched"], rc[topic]["unmatched"]) == (n, 0), rc[topic]
+        assert rc[topic]["max_abs_difference"] == 0.0 and rc[topic]["identical"] is True, rc[topic]
+    for topic in ("/dyn_node/feasibility", "/dyn_node/trajectory_effort"):
+        assert rc[topic]["matched"] == 2 and rc[topic]["identical"] is True, rc[topic]
+    # the change mattered: the recorded gravity torque of the last input is not the one the
+    # first configuration gives (so an audit that kept it could not be identical)
+    from dyn_node.dynamics import Dynamics
+
+    last = None
+    for m in BagReader(path).messages():
+        if m.topic == "/dyn_node/gravity_torque":
+            last = decode_joint_state(m.data)
+    g0 = Dynamics(PANDA).gravity(last.position)
+    assert float(np.max(np.abs(last.effort - g0))) > 1.0
     assert res.exit_code == 0
 
 
@@ -580,10 +703,12 @@ def test_batched_live_episodes_equal_a_message_by_message_update():
     U[rng.random((n, nv)) < 0.01] = np.nan
     L = np.full((n, nv), 10.0)
     T = np.arange(n, dtype=np.int64) * MS
-    live = LiveStats(nv, lo, hi, vel)
+    A = rng.normal(0, 4.0, (n, nv))   # acceleration estimates: decelerating where V·A < 0
+    dec = np.array([5.0, np.inf, 3.0])
+    live = LiveStats(nv, lo, hi, vel, dec)
     ref = Episodes()
     for r in range(n):
-        live.add(int(T[r]), U[r] * 10.0, U[r], L[r], Q[r], V[r], None)
+        live.add(int(T[r]), U[r] * 10.0, U[r], L[r], Q[r], V[r], None, A[r])
         for j in range(nv):
             u, lim, q, av = float(U[r, j]), float(L[r, j]), float(Q[r, j]), abs(float(V[r, j]))
             ref.update(j, "effort", u > 1.0, int(T[r]), u * lim, lim, u)
@@ -591,6 +716,8 @@ def test_batched_live_episodes_equal_a_message_by_message_update():
             ref.update(j, "position", bool(q < lo[j] or q > hi[j]), int(T[r]), q,
                        float(lo[j] if below else hi[j]), float(lo[j] - q if below else q - hi[j]))
             ref.update(j, "velocity", av > vel[j], int(T[r]), av, float(vel[j]), av / float(vel[j]))
+            d = abs(float(A[r, j])) if float(V[r, j]) * float(A[r, j]) < 0 else 0.0
+            ref.update(j, "deceleration", d > dec[j], int(T[r]), d, float(dec[j]), d - float(dec[j]))
         if r == 2500:
             live.flush()  # an early, partial batch
     live.flush()
@@ -600,6 +727,7 @@ def test_batched_live_episodes_equal_a_message_by_message_update():
     ref.finish()
     assert live.episodes.total == ref.total > 100
     assert live.episodes.closed == ref.closed
+    assert {e["kind"] for e in ref.closed} == {"effort", "position", "velocity", "deceleration"}
 
 
 @pytest.mark.parametrize("kind", ["measured", "quality", "trajectories", "outputs_in_bursts"])
@@ -641,3 +769,246 @@ def test_batched_replay_gives_exactly_the_per_message_evidence(tmp_path, monkeyp
         for topic in ("/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics"):
             assert fast["outputs"]["recheck"][topic]["identical"] is True
             assert fast["outputs"]["recheck"][topic]["matched"] == 800
+
+
+# --- issue 16: the audit -------------------------------------------------------------------------
+def huge_trajectory_msg(stamp_ns: int):
+    """Finite but so large that the interpolated torques overflow: the check raises non_finite
+    (TrajectoryError) after validation, and the node publishes a rejected verdict."""
+    m = trajectory_msg(stamp_ns)
+    m.points[1].positions = [1e150] * 7
+    return m
+
+
+def test_a_trajectory_the_check_rejects_is_a_finding_and_the_rest_is_audited(tmp_path, capsys):
+    trajs = [(200, huge_trajectory_msg(T0 + 200 * MS)), (400, trajectory_msg(T0 + 400 * MS))]
+    bag = make_bag(tmp_path / "bag", n=600, outputs=True, trajectories=trajs)
+    code = main([str(bag), "--out", str(tmp_path / "o"), "--no-report"])
+    assert "Traceback" not in capsys.readouterr().err
+    rec = validated(tmp_path / "o")
+    t = rec["outputs"]["trajectories"]
+    assert [(x["accepted"], x["feasible"], x["error_code"]) for x in t] == [
+        (False, False, "non_finite"), (True, True, None)]
+    assert t[0]["message"].startswith("rejected: the interpolated motion or its torque is not finite")
+    assert t[0]["failure_label"] == "planning error" and t[0]["n_points"] == 3
+    assert t[0]["duration_s"] == 1.0
+    # the rest of the bag was audited, and the node's rejected verdict is reproduced exactly
+    assert rec["outputs"]["monitor_counts"]["accepted"] == 600
+    fe = rec["outputs"]["recheck"]["/dyn_node/feasibility"]
+    assert (fe["matched"], fe["unmatched"], fe["identical"]) == (2, 0, True)
+    assert code == 1 and rec["verdict"]["result"] == "violations"
+    assert rec["verdict"]["summary"].startswith("1 of 2 trajectories infeasible or rejected")
+
+
+@pytest.mark.parametrize("burst", [1, 40])  # 1: message by message; 40: runs replayed as batches
+def test_outputs_of_zero_stamped_inputs_match_by_the_stamp_the_node_gave_them(tmp_path, burst):
+    """The node answers a zero-stamped joint_states with the receipt time as the outputs' stamp
+    (ros_convert.s_to_stamp, the node's own conversion, is the oracle here)."""
+    from dyn_node.monitor import Monitor
+    from dyn_node.ros_convert import s_to_stamp
+    from dyn_node.settings import settings_from_mapping
+
+    w = BagWriter(tmp_path / "bag", metadata={"robot_description": PANDA.urdf, "parameters": PARAMS,
+                                              "version": "0.1.0"})
+    mon = Monitor(PANDA, settings_from_mapping({"robot_model": "panda"}))
+    names = list(PANDA.joint_names) + ["panda_finger_joint1", "panda_finger_joint2"]
+    pending, n, zeros = [], 200, 0
+    for i in range(n):
+        q, v = q_at(i)
+        # receipt times with sub-µs parts, so a float round trip that loses them would show
+        log_ns = T0 + i * MS + 123_457
+        stamp = 0 if i % 10 == 3 else T0 + i * MS
+        zeros += stamp == 0
+        msg = joint_state(names, list(q) + [0.01, 0.01], list(v) + [0.0, 0.0], [], stamp_ns=stamp)
+        w.write("/joint_states", msg, log_ns)
+        st = msg.header.stamp  # the node's stamp arithmetic (node._handle_joint_state)
+        r = mon.process(msg.name, msg.position, msg.velocity, msg.effort, st.sec + st.nanosec * 1e-9,
+                        log_ns * 1e-9)
+        assert r.accepted and r.zero_stamp == (stamp == 0)
+        st = s_to_stamp(r.stamp_s) if r.zero_stamp else msg.header.stamp
+        out_ns = st.sec * 1_000_000_000 + st.nanosec
+        assert out_ns != 0
+        for topic, eff, dt in (("/dyn_node/gravity_torque", r.gravity, 200_000),
+                               ("/dyn_node/inverse_dynamics", r.tau, 250_000)):
+            pending.append((topic, joint_state(PANDA.joint_names, r.q, r.v, eff, stamp_ns=out_ns),
+                            log_ns + dt))
+        if len(pending) >= 2 * burst:
+            for args in pending:
+                w.write(*args)
+            pending.clear()
+    for args in pending:
+        w.write(*args)
+    bag = w.close()
+    assert zeros == 20
+    run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "o"), report=False))
+    rec = validated(tmp_path / "o")
+    assert rec["input_quality"]["zero_stamp_messages"] == 20
+    for topic in ("/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics"):
+        d = rec["outputs"]["recheck"][topic]
+        assert (d["matched"], d["unmatched"], d["unanswered"]) == (n, 0, 0), d
+        assert d["identical"] is True and d["max_abs_difference"] == 0.0
+
+
+def test_exit_code_mapping_unusable_violations_partial_ok():
+    from dyn_node.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code
+
+    assert (EXIT_OK, EXIT_VIOLATIONS, EXIT_UNUSABLE, EXIT_PARTIAL) == (0, 1, 2, 3)
+    assert exit_code(violations=False, partial=False) == 0
+    assert exit_code(violations=False, partial=True) == 3
+    assert exit_code(violations=True, partial=True) == 1   # violations win; evidence says partial
+    assert exit_code(violations=True, partial=False) == 1
+    assert exit_code(violations=True, partial=True, unusable=True) == 2
+    assert schema()["properties"]["verdict"]["properties"]["exit_code"]["enum"] == [0, 1, 2, 3]
+
+
+def test_a_partial_audit_with_violations_exits_1_and_still_says_partial(tmp_path):
+    from mcap.reader import make_reader
+
+    bag = make_bag(tmp_path / "bag", n=1500, effort_spike=(100, 120), measured=True)
+    f = bag / "bag_0.mcap"
+    full = f.read_bytes()
+    with open(f, "rb") as fh:
+        chunk = list(make_reader(fh).get_summary().chunk_indexes)[-2]  # far from the spike
+    data = bytearray(full)
+    data[chunk.chunk_start_offset + chunk.chunk_length // 2] ^= 0x01
+    f.write_bytes(bytes(data))
+    assert main([str(bag), "--out", str(tmp_path / "o"), "--no-report"]) == 1
+    rec = validated(tmp_path / "o")
+    assert rec["verdict"]["exit_code"] == 1 and rec["verdict"]["partial"] is True
+    assert rec["outputs"]["violation_episodes_total"] >= 1
+    assert len(rec["input_quality"]["unreadable_ranges"]) == 1
+
+
+_REAL_KEY = re.compile(r"(_s|_ns|_kg|_nm|_m_s2|ratio|difference|utilisation|time_scale|^p\d\d"
+                       r"|^min|^max|^mean|^limit|^peak_value)$")
+
+
+def _numeric_paths(node, path=()):
+    """Paths of every real-valued field of a record: floats, "inf"/"-inf", and nulls under a
+    key that names a real quantity (a null trajectory time, difference, measured torque...)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _numeric_paths(v, path + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _numeric_paths(v, path + (i,))
+    elif isinstance(node, float) or node in ("inf", "-inf") or (
+            node is None and isinstance(path[-1], str) and _REAL_KEY.search(path[-1])):
+        yield path
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), float("nan")])
+def test_every_number_a_record_holds_validates_when_not_finite(tmp_path, value):
+    """A record with trajectories, violations, a re-check, latencies, gaps and unreadable ranges:
+    each real-valued field in turn set to ±inf / NaN (jsonable writes "inf", "-inf", null, as
+    the README says), and the whole record validates against the shipped schema."""
+    import copy
+
+    from dyn_node.evidence import jsonable, validate
+
+    trajs = [(200, trajectory_msg(T0 + 200 * MS)), (400, trajectory_msg(T0 + 400 * MS, scale=0.05)),
+             (600, trajectory_msg(T0 + 600 * MS, nan=True))]
+    bag = make_bag(tmp_path / "bag", n=1200, outputs=True, trajectories=trajs, drop=range(700, 800),
+                   effort_spike=(900, 920), measured=True, invalid={50: "nan"}, out_of_order=1000)
+    f = bag / "bag_0.mcap"
+    f.write_bytes(f.read_bytes()[: int(f.stat().st_size * 0.9)])
+    run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "o"), report=False))
+    rec = validated(tmp_path / "o")
+    paths = [p for p in _numeric_paths(rec)
+             if p[0] != "metric_definitions" and p[:2] != ("configuration", "limits")]
+    assert len(paths) > 200
+    sections = {p[0] for p in paths}
+    assert {"outputs", "input_quality", "inputs", "configuration", "timestamps"} <= sections
+    if value < 0:  # durations are never negative: the schema keeps their minimum 0
+        paths = [p for p in paths if p[-1] != "duration_s"]
+    r = copy.deepcopy(rec)
+    for p in paths:
+        node = r
+        for k in p[:-1]:
+            node = node[k]
+        node[p[-1]] = value
+    r = jsonable(r)
+    # every error, not just the first: each field is judged on its own
+    errors = ["/".join(map(str, e.absolute_path)) + ": " + e.message
+              for e in jsonschema.Draft202012Validator(schema()).iter_errors(r)]
+    assert errors == []
+    validate(r)
+
+
+def test_an_override_that_differs_from_the_recorded_model_is_not_comparable(tmp_path, capsys):
+    """The documented override on a bag recorded with robot_model:=panda: the URDF file (fingers
+    not locked) is another model, so the re-check says so instead of an infinite difference."""
+    from dyn_node.model import builtin_urdf
+
+    bag = make_bag(tmp_path / "bag", n=400, outputs=True,
+                   trajectories=[(100, trajectory_msg(T0 + 100 * MS))])
+    urdf = tmp_path / "panda.urdf"
+    urdf.write_text(builtin_urdf("panda"))
+    code = main([str(bag), "--robot-description", str(urdf), "--out", str(tmp_path / "o"), "--no-report"])
+    out = capsys.readouterr()
+    assert "Traceback" not in out.err and "evidence record invalid" not in out.err
+    rec = validated(tmp_path / "o")
+    assert len(rec["configuration"]["model"]["joint_names"]) == 9
+    rc = rec["outputs"]["recheck"]
+    assert set(rc) == {"/dyn_node/gravity_torque", "/dyn_node/inverse_dynamics", "/dyn_node/feasibility"}
+    for d in rc.values():
+        assert d["comparable"] is False and d["identical"] is False and d["max_abs_difference"] is None
+        assert d["not_comparable"] == (
+            "not comparable: joints: 7 recorded, 9 here (here only: panda_finger_joint1, "
+            "panda_finger_joint2); locked joints: recorded panda_finger_joint1, panda_finger_joint2; "
+            "here none")
+    assert "evaluation error" not in rec["failure_labels"]
+    assert "re-check not comparable: joints: 7 recorded, 9 here" in " ".join(rec["verdict"]["findings"])
+    # under that model the 7-joint trajectory lacks the finger joints: rejected, as the node would
+    assert rec["outputs"]["trajectories"][0]["error_code"] == "missing_joints" and code == 1
+    # a tighter --limits file is another configuration too; the same model by name is not
+    lim = tmp_path / "lim.yaml"
+    lim.write_text("joint_limits:\n  panda_joint1:\n    has_velocity_limits: true\n    max_velocity: 2.0\n")
+    main([str(bag), "--limits", str(lim), "--out", str(tmp_path / "o2"), "--no-report"])
+    rc2 = validated(tmp_path / "o2")["outputs"]["recheck"]
+    assert rc2["/dyn_node/gravity_torque"]["not_comparable"] == "not comparable: limits: velocity"
+    assert main([str(bag), "--robot-model", "panda", "--out", str(tmp_path / "o3"), "--no-report"]) == 0
+    rc3 = validated(tmp_path / "o3")["outputs"]["recheck"]
+    for d in rc3.values():
+        assert "comparable" not in d and d["identical"] is True and d["max_abs_difference"] == 0.0
+
+
+def test_undecodable_joint_states_replayed_as_the_node_counts_them(tmp_path):
+    """Bytes that are no JointState: the audit's monitor counts them received and invalid
+    (received = accepted + invalid, as the node's joint_states status) and its controller
+    tracker sees the fault the node reported."""
+    w = BagWriter(tmp_path / "bag", metadata={"robot_description": PANDA.urdf, "parameters": PARAMS,
+                                               "version": "0.1.0"})
+    names = list(PANDA.joint_names)
+    for i in range(3):
+        q, v = q_at(i)
+        w.write("/joint_states", joint_state(names, list(q), list(v), stamp_ns=T0 + i * MS), T0 + i * MS)
+    cid, _ = w.channels["/joint_states"]
+    w.w.add_message(cid, log_time=T0 + 3 * MS, data=b"\x00\x01\x00\x00" + b"\xff" * 12,
+                    publish_time=T0 + 3 * MS, sequence=3)
+    q, v = q_at(4)
+    w.write("/joint_states", joint_state(names, list(q), list(v), stamp_ns=T0 + 4 * MS), T0 + 4 * MS)
+    bag = w.close()
+    run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "out"), report=False))
+    rec = validated(tmp_path / "out")
+    counts = rec["outputs"]["monitor_counts"]
+    assert (counts["received"], counts["accepted"], counts["invalid"]) == (5, 4, 1)
+    assert rec["input_quality"]["invalid_messages"]["count"] == 1
+    assert rec["input_quality"]["invalid_messages"]["by_reason"] == {"undecodable": 1}
+    assert "fault" in rec["outputs"]["controller_states"]["states_seen"]
+
+
+def test_a_configuration_change_without_its_time_is_not_replayed_and_says_so(tmp_path):
+    """Bags from recorders before effective_log_time_ns: a second, different dyn_node record
+    cannot be placed in time, so the re-check is not comparable (not a false difference)."""
+    bag = make_bag(tmp_path / "bag", n=200, outputs=True, later_metadata={
+        "robot_description": PANDA.urdf, "version": "0.1.0",
+        "parameters": PARAMS + "    payload:\n      mass: 3.0\n"})
+    run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "o"), report=False))
+    rec = validated(tmp_path / "o")
+    assert rec["configuration"]["changes"] == []
+    d = rec["outputs"]["recheck"]["/dyn_node/gravity_torque"]
+    assert d["not_comparable"] == ("not comparable: 1 configuration change(s) recorded without the "
+                                   "time they took effect (older recorder): not replayed")
+    assert d["matched"] == 200 and d["max_abs_difference"] is None
+    assert "evaluation error" not in rec["failure_labels"]

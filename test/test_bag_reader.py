@@ -322,10 +322,12 @@ def test_truncation_reports_the_lost_range(tmp_path, fraction):
     times = [m.log_time_ns for m in msgs]
     assert times == [T0 + i * 1_000_000 for i in range(len(times))]
     first_missing = T0 + len(times) * 1_000_000
-    assert lost.start_ns is None or lost.start_ns <= first_missing
-    if lost.start_ns is not None:
-        assert lost.start_ns >= (times[-1] if times else T0) - 100 * 1_000_000
-    assert lost.end_ns == T0 + 1999 * 1_000_000 + 1 or lost.end_ns == T0 + 1999 * 1_000_000
+    if times:  # the range starts inside what was read (the last chunk header, at the latest)
+        assert lost.start_ns is not None
+        assert times[-1] - 100 * 1_000_000 <= lost.start_ns <= first_missing
+    else:  # nothing read: the range starts at the first chunk's start, or is unknown
+        assert lost.start_ns in (None, T0)
+    assert lost.end_ns == T0 + 1999 * 1_000_000  # metadata.yaml's end of the recording
 
 
 def test_corrupt_byte_inside_a_chunk_loses_exactly_that_chunk(tmp_path):
@@ -385,17 +387,19 @@ def test_split_bag_reads_files_in_metadata_order(tmp_path):
     from std_msgs.msg import String
 
     d = tmp_path / "split"
-    files = []
-    for k in range(3):
-        w = BagWriter(d, index=k, metadata={"version": str(k)})
+    # the k-th file of the recording is named bag_{index}: name order (0, 1, 2) would read the
+    # recording's files 1, 2, 0 and give the first metadata record of file 1
+    order = []
+    for k, index in enumerate((2, 0, 1)):
+        w = BagWriter(d, index=index, metadata={"version": str(k)})
         for i in range(100):
             t = T0 + (k * 100 + i) * 1_000_000
             w.write("/joint_states", joint_state(["a"], [k * 100 + i]), t)
         w.write("/robot_description", String(data="<robot/>"), T0 + k * 100 * 1_000_000)
         w.w.finish()
         w._fh.close()
-        files.append(w.file.name)
-    order = [files[0], files[1], files[2]]
+        order.append(w.file.name)
+    assert order == ["bag_2.mcap", "bag_0.mcap", "bag_1.mcap"]
     (d / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
         "relative_file_paths": order, "starting_time": {"nanoseconds_since_epoch": T0},
         "duration": {"nanoseconds": 299 * 1_000_000}}}))
@@ -403,4 +407,186 @@ def test_split_bag_reads_files_in_metadata_order(tmp_path):
     pos = [decode_joint_state(m.data).position[0] for m in r.messages() if m.topic == "/joint_states"]
     assert pos == list(range(300)) and r.stats.message_counts["/robot_description"] == 3
     assert r.peek_metadata("dyn_node") == {"version": "0"}
-    assert r.known_topics() is None or r.known_topics() == {"/joint_states", "/robot_description"}
+    assert r.metadata_records("dyn_node") == [{"version": "0"}, {"version": "1"}, {"version": "2"}]
+    assert r.known_topics() == {"/joint_states", "/robot_description"}  # from the summaries
+
+
+def _unchunked_bag(path: Path, n: int = 30) -> Path:
+    """n JointStates written as Message records outside any chunk (mcap's unchunked mode)."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as fh:
+        w = Writer(fh, use_chunking=False, enable_crcs=True)
+        w.start(profile="ros2", library="test")
+        t = "sensor_msgs/msg/JointState"
+        sid = w.register_schema(t, "ros2msg", msgdef(t).encode())
+        cid = w.register_channel("/joint_states", "cdr", sid)
+        from rclpy.serialization import serialize_message
+        for i in range(n):
+            ts = T0 + i * 1_000_000
+            w.add_message(cid, log_time=ts, publish_time=ts, sequence=i,
+                          data=serialize_message(joint_state(["a"], [float(i)], stamp_ns=ts)))
+        w.finish()
+    return path
+
+
+def _message_record_offsets(data: bytes) -> list[int]:
+    """Byte offsets of the Message records (opcode 0x05) of an unchunked file's data section."""
+    import struct
+
+    out, off = [], 8
+    while off + 9 <= len(data):
+        op, length = struct.unpack_from("<BQ", data, off)
+        if op == 0x0F:  # data end
+            break
+        if op == 0x05:
+            out.append(off)
+        off += 9 + length
+    return out
+
+
+def test_a_malformed_record_outside_a_chunk_is_skipped_and_reading_goes_on(tmp_path):
+    """One unreadable Message record outside a chunk (channel id no Channel record defines) and
+    one cut short: both skipped and reported, every other message still read (as dyn-bag-recover
+    does), the lost range from the message before them to the message after them."""
+    import struct
+
+    f = _unchunked_bag(tmp_path / "u.mcap")
+    data = bytearray(f.read_bytes())
+    offs = _message_record_offsets(bytes(data))
+    assert len(offs) == 30
+    struct.pack_into("<H", data, offs[10] + 9, 0xFFFF)      # message 10: unknown channel
+    struct.pack_into("<Q", data, offs[20] + 1, 10)          # message 20: 10 bytes, header cut
+    # the bytes after message 20's shortened body are not a record: keep the file parseable by
+    # giving them a record of their own (an unknown opcode, which readers must skip)
+    rest = struct.unpack_from("<Q", bytes(f.read_bytes()), offs[20] + 1)[0] - 10
+    struct.pack_into("<BQ", data, offs[20] + 9 + 10, 0x80, rest - 9)
+    f.write_bytes(bytes(data))
+    r = BagReader(f)
+    got = [decode_joint_state(m.data).position[0] for m in r.messages()]
+    assert got == [float(i) for i in range(30) if i not in (10, 20)]
+    assert [(u.start_ns, u.end_ns) for u in r.unreadable] == [
+        (T0 + 9 * 1_000_000, T0 + 11 * 1_000_000), (T0 + 19 * 1_000_000, T0 + 21 * 1_000_000)]
+    assert all("malformed record (opcode 0x05)" in u.reason for u in r.unreadable)
+    assert f"at byte {offs[10]} skipped" in r.unreadable[0].reason
+    assert r.stats.message_counts == {"/joint_states": 28}
+
+
+def test_malformed_records_at_the_end_run_to_the_end_of_the_recording(tmp_path):
+    import struct
+
+    f = _unchunked_bag(tmp_path / "u.mcap", n=10)
+    data = bytearray(f.read_bytes())
+    offs = _message_record_offsets(bytes(data))
+    for k in (8, 9):
+        struct.pack_into("<H", data, offs[k] + 9, 0xFFFF)
+    f.write_bytes(bytes(data))
+    r = BagReader(f)
+    assert len(list(r.messages())) == 8
+    assert [(u.start_ns, u.end_ns) for u in r.unreadable] == [(T0 + 7 * 1_000_000, None)]
+    assert "and 1 more record(s) after it" in r.unreadable[0].reason
+
+
+def test_every_metadata_record_in_file_order_via_summary_and_by_scan(tmp_path, monkeypatch):
+    """A recorder writes one dyn_node record per configuration; all are found, in order, also
+    when the file has no summary (cut short: read without decompressing any chunk)."""
+    from std_msgs.msg import String
+
+    w = BagWriter(tmp_path / "bag", chunk_size=1024, metadata={"version": "a"})
+    for i in range(300):
+        w.write("/chatter", String(data=f"s{i}"), T0 + i * 1_000_000)
+        if i in (100, 200):
+            w.w.add_metadata("other", {"k": str(i)})
+            w.w.add_metadata("dyn_node", {"version": str(i)})
+    bag = w.close()
+    want = [{"version": "a"}, {"version": "100"}, {"version": "200"}]
+    assert BagReader(bag).metadata_records("dyn_node") == want
+    f = bag / "bag_0.mcap"
+    data = f.read_bytes()
+    f.write_bytes(data[: int(len(data) * 0.9)])
+    import dyn_node.bag_reader as br
+
+    calls = []
+    real = br._decompress
+    monkeypatch.setattr(br, "_decompress", lambda *a: calls.append(1) or real(*a))
+    r = BagReader(bag)
+    assert r.metadata_records("dyn_node") == want
+    assert r.metadata_records("other") == [{"k": "100"}, {"k": "200"}]
+    assert calls == []  # the scan skipped every chunk
+    assert len(list(r.messages())) > 0 and calls  # (and reading messages does decompress)
+
+
+def _record_offsets(data: bytes, opcode: int) -> list[int]:
+    """Byte offsets of the records ``opcode`` in a file's data section (outside chunks)."""
+    import struct
+
+    out, off = [], 8
+    while off + 9 <= len(data):
+        op, length = struct.unpack_from("<BQ", data, off)
+        if op == 0x0F:
+            break
+        if op == opcode:
+            out.append(off)
+        off += 9 + length
+    return out
+
+
+def test_messages_whose_schema_record_is_unreadable_are_counted_as_lost(tmp_path):
+    """The Schema record skipped as malformed: its channel's 30 messages cannot be decoded, so
+    they are not handed out with an empty schema (where a reader ignores them uncounted) but
+    counted and reported over their log-time range."""
+    import struct
+
+    f = _unchunked_bag(tmp_path / "u.mcap")
+    data = bytearray(f.read_bytes())
+    (at,) = _record_offsets(bytes(data), 0x03)
+    struct.pack_into("<I", data, at + 9 + 2, 0xFFFFFF)  # the schema name runs past its record
+    f.write_bytes(bytes(data))
+    r = BagReader(f)
+    assert list(r.messages()) == []
+    lost = [u for u in r.unreadable if "undecodable" in u.reason]
+    assert [(u.start_ns, u.end_ns) for u in lost] == [(T0, T0 + 29 * 1_000_000)]
+    assert "30 message(s) on /joint_states" in lost[0].reason and "schema (id 1)" in lost[0].reason
+    assert r.stats.undecodable_messages == 30
+
+
+def test_strings_that_are_not_utf8_are_damage_not_replacement_characters(tmp_path):
+    """A topic name with a byte that is not UTF-8: the Channel record is skipped and reported
+    (never a topic named with U+FFFD), and a JointState whose joint name is not UTF-8 does not
+    decode (rclpy cannot deserialise it either)."""
+    from rclpy.serialization import serialize_message
+
+    f = _unchunked_bag(tmp_path / "u.mcap")
+    data = bytearray(f.read_bytes())
+    (at,) = _record_offsets(bytes(data), 0x04)
+    data[data.index(b"/joint_states", at) + 1] = 0xE9
+    f.write_bytes(bytes(data))
+    r = BagReader(f)
+    assert list(r.messages()) == [] and r.stats.message_counts == {}
+    assert any("opcode 0x04" in u.reason for u in r.unreadable), r.unreadable
+    raw = bytearray(serialize_message(joint_state(["joint_a"], [1.0])))
+    raw[raw.index(b"joint_a")] = 0xE9
+    with pytest.raises(ValueError):
+        decode_joint_state(bytes(raw))
+
+
+def test_a_directory_without_metadata_yaml_never_reads_dyn_bag_recover_outputs(tmp_path, capsys):
+    """dyn-bag-recover's outputs beside the input (named *.recovered.mcap, or renamed: told by
+    their Header) are not inputs of the bag, or every message would be read twice; a directory
+    of nothing but such files is a recovered bag and is read."""
+    import shutil
+
+    from dyn_node.bag_recover import main as recover
+
+    d = tmp_path / "bag"
+    d.mkdir()
+    f = _unchunked_bag(d / "u.mcap")
+    assert recover([str(f)]) == 0
+    shutil.copy(d / "u.recovered.mcap", d / "renamed.mcap")
+    r = BagReader(d)
+    assert r.files == [f]
+    assert len(list(r.messages())) == 30
+    only = tmp_path / "only"
+    only.mkdir()
+    shutil.copy(d / "u.recovered.mcap", only / "u.recovered.mcap")
+    assert len(list(BagReader(only).messages())) == 30

@@ -1,4 +1,6 @@
-"""dyn-bag-recover: truncated and damaged files, exit codes, monotone recovery in the cut point."""
+"""dyn-bag-recover: truncated and damaged files, exit codes, monotone recovery in the cut point;
+every valid file the MCAP specification allows (a corpus written byte by byte from it), read back
+with the official ``mcap`` readers; never our own outputs as inputs."""
 from __future__ import annotations
 
 import random
@@ -8,11 +10,14 @@ import sys
 from pathlib import Path
 
 import pytest
-from mcap.reader import make_reader
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.records import Channel
+from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import Reader as Rosbag2Reader
 
 from dyn_node.bag_recover import main
 from dyn_node.recording import Recorder, RecorderConfig, TopicInfo, qos_profile_dict
+from mcap_corpus import CORPUS, OFFICIAL_READER_MISREADS, Expected, McapBuilder
 
 JS = "/joint_states"
 N = 2000
@@ -130,3 +135,167 @@ def test_runs_as_module_without_traceback(bag, tmp_path):
     assert r.returncode == 3, r.stderr
     assert "Traceback" not in r.stderr and "some data was lost" in r.stdout
     assert (tmp_path / "t.recovered.mcap").is_file()
+
+
+# ------------------------------------------------------------ valid files from the specification
+
+
+def _official(path: Path, *, seeking: bool) -> Expected:
+    """Everything the official ``mcap`` reader finds in a file (messages in file order):
+    through the summary and indexes (``make_reader`` on a file), or reading the file from the
+    start (``NonSeekingReader``, which also sees messages outside chunks in an indexed file)."""
+    def reader(f):
+        return make_reader(f, validate_crcs=True) if seeking else \
+            NonSeekingReader(f, validate_crcs=True)
+
+    with open(path, "rb") as f:
+        messages = [(ch.topic, ch.message_encoding, dict(ch.metadata),
+                     (s.name, s.encoding, s.data) if s is not None else None,
+                     m.log_time, m.publish_time, m.sequence, m.data)
+                    for s, ch, m in reader(f).iter_messages(log_time_order=False)]
+    with open(path, "rb") as f:
+        metadata = [(m.name, dict(m.metadata)) for m in reader(f).iter_metadata()]
+    with open(path, "rb") as f:
+        attachments = [(a.name, a.media_type, a.log_time, a.create_time, a.data)
+                       for a in reader(f).iter_attachments()]
+    with open(path, "rb") as f:
+        if seeking:
+            channels = {c.id: c.topic for c in make_reader(f).get_summary().channels.values()}
+        else:  # the Channel records of the data section
+            channels = {r.id: r.topic for r in StreamReader(f).records
+                        if isinstance(r, Channel)}
+    return Expected(messages, metadata, attachments, sorted(channels.values()))
+
+
+@pytest.mark.parametrize("case", sorted(CORPUS))
+def test_valid_file_from_the_spec_is_kept_whole(case, tmp_path, capsys):
+    data, expected = CORPUS[case]()
+    expected.topics = sorted(expected.topics)
+    src, out = tmp_path / f"{case}.mcap", tmp_path / f"{case}.out.mcap"
+    src.write_bytes(data)
+    if case not in OFFICIAL_READER_MISREADS:
+        # The corpus is what the official reader reads in it.
+        assert _official(src, seeking=False) == expected
+    assert main([str(src), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    # Nothing lost, and no note either: the summary CRC and every other CRC checked out.
+    assert "nothing lost" in text and "lost:" not in text and "note:" not in text
+    assert _official(out, seeking=True) == expected
+    assert _official(out, seeking=False) == expected
+    for name in {m[0] for m in expected.messages}:
+        n = sum(m[0] == name for m in expected.messages)
+        assert f"  {name}: {n} messages kept" in text
+    assert f"{len(expected.metadata)} metadata records kept" in text
+    assert f"{len(expected.attachments)} attachments kept" in text
+
+
+def test_directory_never_rereads_our_own_outputs(bag, tmp_path, capsys):
+    """Recover a file beside its bag (default output), then the directory: each message once.
+    Our output renamed to look like a split is still recognised (its MCAP Header), and so is
+    a file whose name alone says it was recovered."""
+    d = tmp_path / "bag"
+    d.mkdir()
+    src = d / _mcap_of(bag).name
+    src.write_bytes(_mcap_of(bag).read_bytes())
+    assert main([str(src)]) == 0
+    beside = d / (src.name[:-len(".mcap")] + ".recovered.mcap")
+    assert beside.is_file()
+    renamed = d / "copy_7.mcap"  # our output under a split's name: only the marker says so
+    renamed.write_bytes(beside.read_bytes())
+    older = d / "older.recovered.mcap"  # only the name says so (e.g. an earlier version's)
+    older.write_bytes(src.read_bytes())
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main([str(d), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    with Rosbag2Reader(out) as reader:
+        assert {c.topic: c.msgcount for c in reader.connections}[JS] == N
+    assert sorted(p.name for p in out.glob("*.mcap")) == [src.name]
+    assert _read(out / src.name) == [_payload(s) for s in range(N)]
+    assert f"{beside}: skipped (written by dyn-bag-recover)" in text
+    assert f"{renamed}: skipped (written by dyn-bag-recover)" in text
+    assert f"{older}: skipped (written by dyn-bag-recover)" in text
+    with open(beside, "rb") as f:
+        assert make_reader(f).get_header().library.startswith("dyn-bag-recover ")
+    # A directory holding nothing but our outputs: a clear error, and the way out.
+    only = tmp_path / "only"
+    only.mkdir()
+    (only / beside.name).write_bytes(beside.read_bytes())
+    assert main([str(only)]) == 1
+    assert "written by dyn-bag-recover" in capsys.readouterr().err
+    # Given explicitly, one of our outputs is recovered again (the user asked for it).
+    assert main([str(only / beside.name), "-o", str(tmp_path / "again.mcap")]) == 0
+    assert _read(tmp_path / "again.mcap") == [_payload(s) for s in range(N)]
+
+
+def test_damaged_attachment_skipped_rest_kept(tmp_path, capsys):
+    b = McapBuilder()
+    b.add_attachment("good", "text/plain", 1, 1, b"intact")
+    b.add_attachment("bad", "text/plain", 2, 2, b"will be flipped")
+    b.add_metadata("m", {"k": "v"})
+    data = bytearray(b.finish())
+    data[data.index(b"will be flipped")] ^= 0x01  # inside the data its CRC covers
+    src, out = tmp_path / "a.mcap", tmp_path / "a.out.mcap"
+    src.write_bytes(bytes(data))
+    assert main([str(src), "-o", str(out)]) == 3
+    text = capsys.readouterr().out
+    assert "lost: record (opcode 0x9)" in text and "'bad' CRC mismatch" in text
+    assert "the file's statistics list 2 attachments" in text
+    got = _official(out, seeking=True)
+    assert [a[0] for a in got.attachments] == ["good"] and got.metadata == [("m", {"k": "v"})]
+
+
+def test_summary_supplies_definitions_of_a_damaged_chunk(tmp_path, capsys):
+    """The chunk that defined the channel is damaged; the intact summary still has the
+    channel (the spec's copy), so the next chunk's messages are kept."""
+    b = McapBuilder(profile="ros2")
+    b.add_chunk([b.schema(1, "std_msgs/msg/String", "ros2msg", b"string data\n"),
+                 b.channel(1, 1, "/chatter", "cdr"), b.message(1, 0, 1, 1, b"first")])
+    b.add_chunk([b.message(1, 1, 2, 2, b"second"), b.message(1, 2, 3, 3, b"third")])
+    data = bytearray(b.finish())
+    data[data.index(b"first")] ^= 0x01  # the first chunk fails its CRC
+    src, out = tmp_path / "c.mcap", tmp_path / "c.out.mcap"
+    src.write_bytes(bytes(data))
+    assert main([str(src), "-o", str(out)]) == 3
+    text = capsys.readouterr().out
+    assert "chunk at byte" in text and "the file's statistics list 3 messages" in text
+    got = _official(out, seeking=True)
+    assert [(m[0], m[3], m[7]) for m in got.messages] == [
+        ("/chatter", ("std_msgs/msg/String", "ros2msg", b"string data\n"), b"second"),
+        ("/chatter", ("std_msgs/msg/String", "ros2msg", b"string data\n"), b"third")]
+
+
+def test_cut_file_with_only_metadata_keeps_what_came_before(tmp_path, capsys):
+    data, expected = CORPUS["metadata_only"]()
+    second = data.index(b"empty") - 9 - 4  # the second Metadata record's opcode
+    src, out = tmp_path / "m.mcap", tmp_path / "m.out.mcap"
+    src.write_bytes(data[:second + 12])
+    assert main([str(src), "-o", str(out)]) == 3  # something kept, something lost: not 1
+    text = capsys.readouterr().out
+    assert "1 metadata records kept" in text and "some data was lost" in text
+    assert _official(out, seeking=True).metadata == expected.metadata[:1]
+
+
+def test_damaged_summary_is_ignored_and_noted(tmp_path, capsys):
+    data, expected = CORPUS["chunked_zstd"]()
+    expected.topics = sorted(expected.topics)
+    summary_start = struct.unpack_from("<Q", data, len(data) - 8 - 20)[0]
+    damaged = bytearray(data)
+    damaged[summary_start + 20] ^= 0xFF  # inside the summary's first record
+    src, out = tmp_path / "s.mcap", tmp_path / "s.out.mcap"
+    src.write_bytes(bytes(damaged))
+    assert main([str(src), "-o", str(out)]) == 0  # the data section is whole
+    assert "note: summary CRC mismatch: summary ignored" in capsys.readouterr().out
+    assert _official(out, seeking=True) == expected
+
+
+def test_conflicting_channel_definitions_reported(tmp_path, capsys):
+    b = McapBuilder()
+    b.add(b.channel(1, 0, "/a", "json"), b.message(1, 0, 1, 1, b"{}"),
+          b.channel(1, 0, "/b", "json"), b.message(1, 1, 2, 2, b"[]"))
+    src, out = tmp_path / "c.mcap", tmp_path / "c.out.mcap"
+    src.write_bytes(b.finish(summary=False))
+    assert main([str(src), "-o", str(out)]) == 3
+    assert "lost: channel 1 is defined twice, differently" in capsys.readouterr().out
+    assert [(m[0], m[7]) for m in _official(out, seeking=True).messages] == [("/a", b"{}"),
+                                                                             ("/a", b"[]")]

@@ -87,9 +87,8 @@ def test_mujoco_reference_matches_pinocchio(robot: str) -> None:
 def test_kdl_worker_matches_pinocchio_or_reports_why() -> None:
     ok, why = system_pykdl()
     if not ok:
-        # The bench row then says so; check the reason is the one shown, not a crash.
-        assert "not installed" in why
-        return
+        # the bench row then says why (test_bench_harness_smoke checks the row carries the reason)
+        pytest.skip(f"PyKDL unavailable: {why}")
     for robot in ("panda", "ur5"):
         model = load_model(builtin=robot)
         Q, V, A = random_states(model, 40, seed=9)
@@ -139,7 +138,14 @@ def test_bench_harness_smoke(tmp_path, ros_domain: int) -> None:
                        timeout=170)
     assert p.returncode == 0, p.stderr[-2000:]
     doc = json.loads((tmp_path / "out" / "bench.json").read_text())
-    assert set(doc["machine"]["versions"]) >= {"python", "pinocchio", "numpy", "mujoco", "rclpy"}
+    # the versions the figures were taken with are the ones installed (the modules' own attributes)
+    import mujoco
+
+    versions = doc["machine"]["versions"]
+    assert {k: versions[k] for k in ("python", "numpy", "pinocchio", "mujoco")} == {
+        "python": platform.python_version(), "numpy": np.__version__,
+        "pinocchio": pin.__version__, "mujoco": mujoco.__version__}, versions
+    assert versions["rclpy"][:1].isdigit(), versions   # a version, not "not installed"
     dyn = doc["sections"]["dynamics"]
     assert dyn["status"] == "ok", dyn
     rows = dyn["result"]["rows"]
@@ -160,7 +166,11 @@ def test_bench_harness_smoke(tmp_path, ros_domain: int) -> None:
     f = feas["result"]
     assert f["processes"] == 1 and f["check_no_margin_s"] > 0 and f["rnea_loop_s"] > 0
     assert f["heap_retained"] == (platform.libc_ver()[0] == "glibc")   # mallopt is glibc's
-    assert f["page_faults_per_check"] >= 0
+    # the figure is the retained-heap process's, and the setting it reports does what it claims:
+    # under glibc's defaults each repeated check faults its sample arrays in again (thousands)
+    assert f["page_faults_per_check"] == f["heap"]["retain"]["faults"]
+    if f["heap_retained"]:
+        assert f["heap"]["retain"]["faults"] < f["heap"]["default"]["faults"] // 10, f["heap"]
     assert set(f["heap"]) == {"default", "retain"} and f["heap"]["default"]["check_s"] > 0
     text = (tmp_path / "BENCH.md").read_text()
     assert "## Dynamics" in text and "pinocchio.rnea Python loop" in text and "SMOKE" in text

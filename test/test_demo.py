@@ -102,6 +102,9 @@ def test_demo_short_end_to_end(tmp_path):
         assert re.search(rf"^{name}\s", summary, re.M), summary
     assert "[FAIL]" not in summary, summary
     assert summary.count("[PASS]") >= 4, summary  # 5 once the bag is audited
+    # each trajectory was asked on ~/check_trajectory first, and got the execution's verdict
+    assert "[PASS] every trajectory checked on ~/check_trajectory before it was sent" in summary
+    assert text.count("  ~/check_trajectory: ") == 3, text[-3000:]
     assert re.search(r"live effort residual .* RMS [0-9.]+ N·m", summary), summary
     assert re.search(r"^aggressive\s+\S+\s+ERROR\s+panda_joint", summary, re.M)
     left = _leftovers(str(out.resolve()))

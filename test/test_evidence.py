@@ -66,7 +66,9 @@ def test_schema_rejects_what_it_must():
     for mutate in (
         lambda r: r.pop("input_quality"),
         lambda r: r["input_quality"]["unreadable_ranges"].append({"start_s": 0.0, "end_s": 1.0}),
-        lambda r: r["verdict"].update(exit_code=3),
+        lambda r: r["verdict"].update(exit_code=4),  # 0-3 are the audit's codes
+        lambda r: r["inputs"]["time_span"].update(duration_s="-inf"),  # never negative
+        lambda r: r["inputs"]["time_span"].update(duration_s="infinite"),
         lambda r: r["failure_labels"].append("oops"),
         lambda r: r["outputs"]["violations"].append({"joint": "a", "kind": "effort"}),
         lambda r: r.update(extra=1),

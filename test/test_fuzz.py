@@ -10,24 +10,27 @@ Sizes are CI-sized (bounded example counts, no deadline flakiness on a busy mach
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
+import random
 import shutil
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from dyn_node.dynamics import Dynamics
-from dyn_node.errors import InputError, TrajectoryError
+from dyn_node.errors import PLANNING_ERROR, InputError, TrajectoryError
 from dyn_node.feasibility import FeasibilityOptions, check_trajectory
 from dyn_node.model import load_model
 from dyn_node.monitor import Monitor
 from dyn_node.settings import Settings
-from dyn_node.trajectory import validate_trajectory
+from dyn_node.status import ERROR, OK, WARN
+from dyn_node.trajectory import Trajectory, validate_trajectory
 
 FULL = os.environ.get("DYN_RELIABILITY_FULL") == "1"
 SCALE = 10 if FULL else 1
@@ -172,8 +175,82 @@ def test_trajectory_conversion_validation_and_check_only_clear_errors(tr):
     except TrajectoryError as exc:
         assert exc.code and str(exc)
         return
-    assert r.feasible in (True, False) and r.level in (0, 1, 2)
-    assert r.time_scale >= 0 and not math.isnan(r.time_scale)
+    _assert_verdict_consistent(r)
+
+
+def _assert_verdict_consistent(r) -> None:
+    """Every field a client reads tells the same story (README, summary status): feasible exactly
+    when nothing is violated and k <= 1; OK/WARN/ERROR and the label by the documented rule."""
+    assert isinstance(r.feasible, bool) and r.feasible == (not r.violations), (r.feasible, r.violations)
+    assert not math.isnan(r.time_scale) and r.time_scale >= 0.0
+    assert r.feasible == (r.time_scale <= 1.0), (r.time_scale, r.message)
+    assert r.message.startswith("feasible: " if r.feasible else "infeasible: "), r.message
+    ratios = [e["ratio"] for kinds in r.per_joint.values() for kind, e in kinds.items()
+              if kind != "position" and e["ratio"] is not None]
+    assert r.worst_ratio == max(ratios, default=0.0)
+    if not r.feasible:
+        expected = ERROR
+    elif r.worst_ratio > r.effort_warn_ratio or r.warnings:
+        expected = WARN
+    else:
+        expected = OK
+    assert r.level == expected, (r.level, r.message, r.warnings)
+    assert r.failure_label == ("" if expected == OK else PLANNING_ERROR)
+
+
+@st.composite
+def valid_trajectories(draw):
+    """Well-formed planar_2link trajectories (the mostly-malformed ones above rarely get checked):
+    increasing times, positions across and beyond the limits, sometimes velocities."""
+    n = draw(st.integers(2, 5))
+    times = np.cumsum(draw(st.lists(st.floats(0.05, 2.0), min_size=n, max_size=n)))
+    pos = np.array(draw(st.lists(st.lists(st.floats(-3.2, 3.2), min_size=2, max_size=2),
+                                 min_size=n, max_size=n)))
+    vel = None
+    if draw(st.booleans()):
+        vel = np.array(draw(st.lists(st.lists(st.floats(-6, 6), min_size=2, max_size=2),
+                                     min_size=n, max_size=n)))
+    return validate_trajectory(PLANAR.joint_names, PLANAR.joint_names, times, pos, vel, None)
+
+
+def _holds_still(traj: Trajectory) -> bool:
+    """Moves less than a micro-radian: its true k is below the ~1e-8 rounding residue pinned by
+    test_held_pose_needs_no_time_scale."""
+    tiny = 1e-6
+    return bool(np.ptp(traj.positions, axis=0).max() < tiny
+                and (traj.velocities is None or np.abs(traj.velocities).max() < tiny))
+
+
+@pytest.mark.parametrize("q", [[0.0, 0.0], [0.5, -1.0]])
+def test_held_pose_needs_no_time_scale(q):
+    """Nothing moves, so no speed-dependent limit binds: k = 0 (README: "no speed-dependent limit
+    binds"), not a residue of g(q) subtracted from rnea(q, 0, 0)."""
+    traj = validate_trajectory(PLANAR.joint_names, PLANAR.joint_names, [1.0, 2.0], [q, q], None, None)
+    r = check_trajectory(Dynamics(PLANAR), traj)
+    assert r.feasible and r.time_scale == 0.0, r.message
+
+
+def _stretch(traj: Trajectory, k: float) -> Trajectory:
+    return Trajectory(times=traj.times * k, positions=traj.positions,
+                      velocities=None if traj.velocities is None else traj.velocities / k)
+
+
+@settings(max_examples=40 * SCALE, deadline=None, derandomize=not FULL,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(valid_trajectories())
+def test_checked_verdicts_consistent_and_time_scale_contract(traj):
+    """Random feasible and infeasible verdicts keep the README's rules, and k is what DESIGN says:
+    stretched by 1.001·k the trajectory is feasible, by 0.97·k it is not."""
+    dyn, opts = Dynamics(PLANAR), FeasibilityOptions()   # the node's sample period: k's accuracy
+    r = check_trajectory(dyn, traj, opts)
+    _assert_verdict_consistent(r)
+    assume(not _holds_still(traj))   # k of a held pose: test_held_pose_needs_no_time_scale
+    k = r.time_scale
+    if 0.0 < k < math.inf:
+        assert check_trajectory(dyn, _stretch(traj, 1.001 * k), opts).feasible, (k, r.message)
+        assert not check_trajectory(dyn, _stretch(traj, 0.97 * k), opts).feasible, (k, r.message)
+    elif k == math.inf:  # "no slowdown helps"
+        assert not check_trajectory(dyn, _stretch(traj, 100.0), opts).feasible, r.message
 
 
 @settings(max_examples=300 * SCALE, deadline=None, derandomize=not FULL)
@@ -194,13 +271,16 @@ def test_trajectory_cdr_reader_random_bytes(data):
 # --- bag corruption ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def small_bag(tmp_path_factory) -> Path:
-    """A small Panda bag written by the recorder: 300 joint_states at 1 kHz, description inside."""
+    """A small Panda bag written by the recorder: 300 joint_states at 1 kHz, description inside,
+    inside every limit (so a damaged copy that still audits can only be partial, or a value the
+    damage changed)."""
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
     from dyn_node.recording import Recorder, RecorderConfig, TopicInfo, qos_profile_dict
 
     d = tmp_path_factory.mktemp("fuzzbag")
+    mid = (PANDA.limits.position_lower + PANDA.limits.position_upper) / 2
     rec = Recorder(RecorderConfig(directory=str(d), chunk_size=4096, fsync=False),
                    robot_description=PANDA.urdf,
                    parameters_yaml="/dyn_node:\n  ros__parameters:\n    robot_model: panda\n")
@@ -211,7 +291,7 @@ def small_bag(tmp_path_factory) -> Path:
         m.header.stamp.sec = (t0 + i * 10**6) // 10**9
         m.header.stamp.nanosec = (t0 + i * 10**6) % 10**9
         m.name = list(PANDA.joint_names)
-        m.position = [0.1 * math.sin(0.01 * i + k) for k in range(7)]
+        m.position = [float(mid[k]) + 0.1 * math.sin(0.01 * i + k) for k in range(7)]
         m.velocity = [0.1 * math.cos(0.01 * i + k) for k in range(7)]
         rec.write("/joint_states", serialize_message(m), t0 + i * 10**6 + 1000)
     stats = rec.close()
@@ -219,7 +299,14 @@ def small_bag(tmp_path_factory) -> Path:
     return Path(stats.path)
 
 
-corruptions = st.lists(st.tuples(st.floats(0, 1), st.integers(0, 255)), min_size=1, max_size=8)
+@st.composite
+def corruptions(draw) -> tuple[list[tuple[float, int]], float | None]:
+    """1-8 bytes set anywhere in the file, and half the time a cut, both uniformly placed:
+    hypothesis's own floats pile up at 0.0, the magic, where every damage reads as "not an MCAP
+    file" and nothing past it is exercised."""
+    rng = random.Random(draw(st.integers(0, 2**32 - 1)))
+    edits = [(rng.random(), rng.randrange(256)) for _ in range(draw(st.integers(1, 8)))]
+    return edits, (rng.random() if draw(st.booleans()) else None)
 
 
 def _corrupt(src: Path, dst: Path, edits, cut: float | None) -> Path:
@@ -241,12 +328,91 @@ def _run(main, argv):
     return code, out.getvalue(), err.getvalue()
 
 
+def test_undecodable_description_record_makes_the_audit_partial(small_bag, tmp_path):
+    """One byte of the dyn_node metadata record's URDF made invalid UTF-8 (found by the corrupt-bag
+    fuzz): dyn-bag-recover skips that record and exits 3; the audit must not read a description
+    nobody wrote and call the bag whole (exit 0)."""
+    from dyn_node.audit import main as audit
+    from dyn_node.bag_recover import main as recover
+
+    src = next(small_bag.glob("*.mcap")).read_bytes()
+    at = src.index(b"</visual>\n") + len(b"</visual>")   # a newline inside the description
+    assert src.index(b"robot_description") < at < src.index(b"/joint_states")
+    bag = _corrupt(small_bag, tmp_path / "bag", [(at / len(src), 0xE9)], None)
+    code, out, err = _run(recover, [str(next(bag.glob("*.mcap"))), "-o", str(tmp_path / "r.mcap")])
+    assert code == 3 and "0 metadata records kept" in out, out
+    code, out, err = _run(audit, [str(bag), "--out", str(tmp_path / "audit"), "--no-report"])
+    rec = json.loads((tmp_path / "audit" / "evidence.json").read_text())
+    assert code == 3 and rec["input_quality"]["unreadable_ranges"], (code, out, rec["input_quality"])
+    assert any("dyn_node metadata record is damaged" in f for f in rec["verdict"]["findings"]), rec
+
+
+def _data_section_records(data: bytes) -> list[tuple[int, int, int]]:
+    """(offset, opcode, length) of every record of a file's data section, up to Data End."""
+    import struct
+
+    out, off = [], 8
+    while off + 9 <= len(data):
+        op, length = struct.unpack_from("<BQ", data, off)
+        out.append((off, op, length))
+        if op == 0x0F:
+            break
+        off += 9 + length
+    return out
+
+
+def test_damage_only_in_a_message_index_loses_nothing_in_both_tools(small_bag, tmp_path):
+    """One byte changed in a Message Index record (outside every chunk; both tools rebuild it):
+    nothing was lost, so dyn-bag-recover exits 0 with a note naming that record, and dyn-audit
+    exits 0 with the same note and data_crc "index_only". One byte changed in the metadata
+    record instead (no CRC of its own, the data-section CRC the only witness): both say the
+    file cannot be vouched for (recover 3, audit partial 3)."""
+    from dyn_node.audit import main as audit
+    from dyn_node.bag_recover import main as recover
+
+    mcap = next(small_bag.glob("*.mcap"))
+    data = mcap.read_bytes()
+    recs = _data_section_records(data)
+    at, _op, length = [r for r in recs if r[1] == 0x07][1]
+    bag = _corrupt(small_bag, tmp_path / "idx", [], None)
+    f = next(bag.glob("*.mcap"))
+    damaged = bytearray(data)
+    damaged[at + 9 + length - 3] ^= 0x40  # a high byte of the last entry's record offset
+    f.write_bytes(bytes(damaged))
+    code, out, err = _run(recover, [str(f), "-o", str(tmp_path / "r.mcap")])
+    note = (f"{f.name}: data section CRC mismatch, all of it in the message index record(s) at "
+            f"byte {at} (rebuilt from their chunks, the CRC then matches): nothing lost")
+    assert code == 0 and f"  note: {note}" in out and "lost:" not in out, out
+    assert _contents(tmp_path / "r.mcap") == _contents(mcap)
+    code, out, err = _run(audit, [str(bag), "--out", str(tmp_path / "a"), "--no-report"])
+    q = json.loads((tmp_path / "a" / "evidence.json").read_text())["input_quality"]
+    assert code == 0 and q["data_crc"] == {f.name: "index_only"} and q["notes"] == [note], (code, q)
+    assert q["unreadable_ranges"] == []
+
+    (meta_at, _, meta_len), = [r for r in recs if r[1] == 0x0C]
+    damaged = bytearray(data)
+    k = data.index(b"\x07\x00\x00\x00version", meta_at, meta_at + 9 + meta_len) + 11
+    damaged[k + 4 + data[k] - 1] ^= 0x01  # the last digit of the version: still UTF-8, parses
+    f.write_bytes(bytes(damaged))
+    code, out, err = _run(recover, [str(f), "-o", str(tmp_path / "r2.mcap")])
+    assert code == 3 and "lost: data section CRC mismatch" in out, out
+    code, out, err = _run(audit, [str(bag), "--out", str(tmp_path / "a2"), "--no-report"])
+    rec = json.loads((tmp_path / "a2" / "evidence.json").read_text())
+    assert code == 3 and rec["input_quality"]["data_crc"] == {f.name: "mismatch"}, (code, out)
+    assert [u["reason"] for u in rec["input_quality"]["unreadable_ranges"]] == [
+        f"{f.name}: data section CRC mismatch outside every chunk and message index (a record "
+        "without a CRC of its own, e.g. metadata or a message outside a chunk, holds damaged "
+        "bytes)"]
+
+
 def test_intact_bag_audits_and_recovers(small_bag, tmp_path):
     from dyn_node.audit import main as audit
     from dyn_node.bag_recover import main as recover
 
     code, out, err = _run(audit, [str(small_bag), "--out", str(tmp_path / "a"), "--no-report"])
-    assert code in (0, 1) and "Traceback" not in err, err
+    assert code == 0 and "Traceback" not in err, (code, out, err)
+    verdict = json.loads((tmp_path / "a" / "evidence.json").read_text())["verdict"]
+    assert verdict["result"] == "feasible" and verdict["partial"] is False, verdict
     mcap = next(small_bag.glob("*.mcap"))
     code, out, err = _run(recover, [str(mcap), "-o", str(tmp_path / "r.mcap")])
     assert code == 0 and "nothing lost" in out, (out, err)
@@ -257,25 +423,52 @@ _counter = [0]
 
 @settings(max_examples=25 * SCALE, deadline=None, derandomize=not FULL,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(corruptions, st.one_of(st.none(), st.floats(0, 1)))
-def test_corrupt_bag_through_audit_and_recover(small_bag, tmp_path, edits, cut):
+@given(corruptions())
+def test_corrupt_bag_through_audit_and_recover(small_bag, tmp_path, damage):
     from dyn_node.audit import main as audit
     from dyn_node.bag_recover import main as recover
 
     _counter[0] += 1
     work = tmp_path / f"c{_counter[0]}"
-    bag = _corrupt(small_bag, work / "bag", edits, cut)
+    bag = _corrupt(small_bag, work / "bag", *damage)
     code, out, err = _run(audit, [str(bag), "--out", str(work / "audit"), "--no-report"])
     assert "Traceback" not in err + out
-    assert code in (0, 1, 2), (code, err)
     if code == 2:
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert len(lines) == 1 and lines[0].startswith("dyn-audit: error:"), err
+    else:   # the README's codes: 1 violations (wins), 3 partial, 0 only for a whole, clean audit
+        rec = json.loads((work / "audit" / "evidence.json").read_text())
+        verdict, unreadable = rec["verdict"], rec["input_quality"]["unreadable_ranges"]
+        assert verdict["partial"] == bool(unreadable), (verdict, unreadable)
+        expected = 1 if verdict["result"] == "violations" else 3 if unreadable else 0
+        assert code == verdict["exit_code"] == expected, (code, verdict, unreadable)
+    audit_code = code
     mcap = next(bag.glob("*.mcap"))
     code, out, err = _run(recover, [str(mcap), "-o", str(work / "r.mcap")])
     assert "Traceback" not in err + out
     assert code in (0, 1, 3), (code, err)
     if code == 1:
         assert err.startswith("dyn-bag-recover: error:") or "nothing recoverable" in out, (out, err)
+    if code == 3:
+        assert "  lost: " in out, out
     if code == 0:
         assert "nothing lost" in out
+    if audit_code == 0:   # the audit read all of it, so the recovered file holds all of it
+        assert _contents(work / "r.mcap") == _contents(next(small_bag.glob("*.mcap"))), (out, err)
+
+
+def _contents(path: Path) -> tuple[list, list]:
+    """Messages and metadata records as the official ``mcap`` reader sees them from the start."""
+    from mcap.stream_reader import StreamReader
+    from mcap.records import Channel, Message, Metadata
+
+    topics, messages, metadata = {}, [], []
+    with open(path, "rb") as f:
+        for r in StreamReader(f, skip_magic=False).records:
+            if isinstance(r, Channel):
+                topics[r.id] = r.topic
+            elif isinstance(r, Message):
+                messages.append((topics[r.channel_id], r.log_time, r.data))
+            elif isinstance(r, Metadata):
+                metadata.append((r.name, dict(r.metadata)))
+    return messages, metadata

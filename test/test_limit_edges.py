@@ -53,7 +53,7 @@ TRAJ = _moving_traj()
 
 def _unlimited_except(model, kind_arrays: dict):
     inf = np.full(model.nv, np.inf)
-    base = dict(velocity=inf, acceleration=inf, jerk=inf, effort=inf, effort_rate=inf, power=inf,
+    base = dict(velocity=inf, acceleration=inf, deceleration=inf, jerk=inf, effort=inf, effort_rate=inf, power=inf,
                 rms_effort=inf, effort_speed_curve=(None,) * model.nv,
                 position_lower=np.full(model.nv, -np.inf), position_upper=inf,
                 soft_lower=np.full(model.nv, -np.inf), soft_upper=inf)
@@ -79,8 +79,8 @@ def _limit_arrays(kind: str, j: int, value: float, nv: int) -> dict:
     return {kind: arr}
 
 
-DERIVED = ("velocity", "acceleration", "jerk", "effort", "effort_rate", "power", "rms_effort",
-           "effort_speed")
+DERIVED = ("velocity", "acceleration", "deceleration", "jerk", "effort", "effort_rate", "power",
+           "rms_effort", "effort_speed")
 
 
 @pytest.mark.parametrize("kind", DERIVED)
@@ -239,3 +239,180 @@ def test_monitor_model_torque_exactly_at_effort_limit():
         eff[j] = lim_j
         r, st = _monitor_statuses(_with(PLANAR, effort=eff), q, [0.0, 0.0], [])
         assert st[EFFORT].level == level
+
+
+# --- limit semantics shared by the check and the monitor (issue 16) -----------------------------
+def _fd_monitor(model):
+    return Monitor(model, Settings(acceleration_source="finite_difference", include_friction=False))
+
+
+@pytest.mark.parametrize("j", [0, 1])
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_monitor_deceleration_at_and_beyond(j, sign):
+    """Live: |q̈̂| against max_deceleration where q̇·q̈̂ < 0. Two messages 0.25 s apart with
+    |q̇| 1 → 0.5 give q̈̂ = ∓2 rad/s² exactly; at the limit 2 it is allowed, 1e-9 below it is a
+    deceleration violation and nothing else; the same magnitude while speeding up never is."""
+    for limit, v0, v1, violations in ((2.0, 1.0, 0.5, 0), (2.0 * (1 + EPS), 1.0, 0.5, 0),
+                                      (2.0 * (1 - EPS), 1.0, 0.5, 1), (1.0, 0.5, 1.0, 0)):
+        dec = np.full(2, np.inf)
+        dec[j] = limit
+        m = _fd_monitor(_with(PLANAR, deceleration=dec))
+        vel = [[0.0, 0.0], [0.0, 0.0]]
+        vel[0][j], vel[1][j] = sign * v0, sign * v1
+        m.process(NAMES, [0.1, 0.2], vel[0], [], 1.0, 1.0)
+        r = m.process(NAMES, [0.1, 0.2], vel[1], [], 1.25, 1.25)
+        assert r.a_hat[j] == sign * (v1 - v0) / 0.25
+        st = {s.name: s for s in m.statuses(1.3, "t")}[LIMITS]
+        assert st.values["deceleration_violations"] == violations, (limit, v0, v1)
+        assert st.values["position_violations"] == st.values["velocity_violations"] == 0
+        key = f"{NAMES[j]}_deceleration_rad_s2"
+        if violations:
+            assert st.level == ERROR and st.values[key] == sign * (v1 - v0) / 0.25
+            assert st.message.startswith(f"{NAMES[j]} decelerating at 2 rad/s²")
+        else:
+            assert st.level == OK and key not in st.values
+
+
+def _cube(reverse: bool):
+    """joint1 follows q = t³ (speeding up: q̇·q̈ ≥ 0) or q = (1 − t)³ (slowing down from
+    q̇ = −3, q̈ = 6 at t = 0) on [0, 1] s; the quintic through these boundary values is exactly
+    that cubic. joint2 holds still."""
+    P = [[1.0, 0.2], [0.0, 0.2]] if reverse else [[0.0, 0.2], [1.0, 0.2]]
+    V = [[-3.0, 0.0], [0.0, 0.0]] if reverse else [[0.0, 0.0], [3.0, 0.0]]
+    A = [[6.0, 0.0], [0.0, 0.0]] if reverse else [[0.0, 0.0], [6.0, 0.0]]
+    return validate_trajectory(NAMES, NAMES, [0.0, 1.0], P, V, A)
+
+
+def _scaled(traj, k: float):
+    return validate_trajectory(NAMES, NAMES, traj.times * k, traj.positions,
+                               traj.velocities / k, traj.accelerations / k ** 2)
+
+
+def test_deceleration_counts_only_where_speed_decreases_and_scales_as_acceleration():
+    dec = np.array([1.5, 1e-6])
+    model = _unlimited_except(PLANAR, {"deceleration": dec})
+    up = _check(model, _cube(reverse=False))
+    assert up.feasible and up.per_joint["joint1"]["deceleration"]["ratio"] == 0.0
+    assert up.time_scale == 0.0 and up.time_scale_by_kind["deceleration"] == 0.0
+    down = _check(model, _cube(reverse=True))
+    e = down.per_joint["joint1"]["deceleration"]
+    assert e["time_s"] == 0.0 and e["value"] == pytest.approx(6.0, rel=1e-12)
+    assert e["ratio"] == pytest.approx(4.0, rel=1e-12)
+    assert [(v.joint, v.kind) for v in down.violations] == [("joint1", "deceleration")]
+    assert down.violations[0].unit == "rad/s²"
+    # q̈ ÷ k² under time scaling: k = √(6 / 1.5) = 2, by the definition of time_scale
+    k = down.time_scale
+    assert k == pytest.approx(2.0, rel=1e-12)
+    assert (down.time_scale_constraint, down.time_scale_joint) == ("deceleration", "joint1")
+    assert _check(model, _scaled(_cube(reverse=True), 1.001 * k)).feasible
+    slow = _check(model, _scaled(_cube(reverse=True), 0.97 * k))
+    assert not slow.feasible and [v.kind for v in slow.violations] == ["deceleration"]
+    st = {s.name: s for s in down.statuses()}["dyn_node: trajectory feasibility/joint1"]
+    assert st.values["deceleration_ratio"] == e["ratio"] and st.values["deceleration_time_s"] == 0.0
+    assert "deceleration" in down.to_dict()["per_joint"]["joint1"]
+
+
+ZERO_URDF = builtin_urdf("planar_2link").replace('effort="40.0" velocity="3.0"',
+                                                 'effort="0" velocity="0"', 1)
+
+
+def test_urdf_zero_is_unlimited_in_the_check_and_the_monitor():
+    assert 'effort="0" velocity="0"' in ZERO_URDF
+    model = load_model(urdf=ZERO_URDF)
+    assert model.limits.velocity[0] == np.inf and model.limits.effort[0] == np.inf
+    assert model.warnings == ()
+    r = _check(model)
+    for kind in ("velocity", "effort"):
+        assert r.per_joint["joint1"][kind]["ratio"] is None
+    assert not [v for v in r.violations if v.joint == "joint1"]
+    res, st = _monitor_statuses(model, [0.1, 0.2], [50.0, 0.0], [1e4, 0.0])
+    assert res.utilisation[0] == 0.0 and res.effort_limit[0] == np.inf
+    assert st[LIMITS].values["velocity_violations"] == 0
+    assert st[EFFORT].values["joint1_utilisation"] == 0.0
+
+
+def test_yaml_zero_is_a_real_limit_in_the_check_and_the_monitor():
+    model = PLANAR.with_limits("joint_limits:\n  joint1: {max_velocity: 0.0, max_effort: 0.0}\n"
+                               "  joint2: {max_velocity: 0.0}\n")
+    assert model.limits.velocity.tolist() == [0.0, 0.0] and model.limits.effort[0] == 0.0
+    assert len(model.warnings) == 3 and all("applied as a real limit" in w for w in model.warnings)
+    r = _check(model)
+    assert not r.feasible and r.time_scale == np.inf
+    assert {(v.joint, v.kind) for v in r.violations} == {
+        ("joint1", "velocity"), ("joint1", "effort"), ("joint2", "velocity")}
+    assert r.per_joint["joint1"]["velocity"]["ratio"] == np.inf
+    # a joint that does not move satisfies a zero velocity limit at every time scale
+    still = _check(model, validate_trajectory(NAMES, NAMES, [0.0, 1.0], [[0.0, 0.3], [0.0, 0.3]],
+                                              [[0.0, 0.0]] * 2, [[0.0, 0.0]] * 2))
+    assert [(v.joint, v.kind) for v in still.violations] == [("joint1", "effort")]  # gravity
+    model2 = PLANAR.with_limits("joint_limits:\n  joint2: {max_velocity: 0.0}\n")
+    held = _check(model2, validate_trajectory(NAMES, NAMES, [0.0, 1.0], [[0.0, 0.3], [0.5, 0.3]],
+                                              None, None))
+    assert held.feasible and held.time_scale <= 1.0, held.message
+    assert held.per_joint["joint2"]["velocity"]["ratio"] == 0.0
+    # live: the same limits, the same verdicts
+    _, st = _monitor_statuses(model, [0.1, 0.2], [0.0, 0.0], [])
+    assert st[LIMITS].values["velocity_violations"] == 0          # |q̇| = 0 ≤ 0
+    res, st = _monitor_statuses(model, [0.1, 0.2], [1e-12, 0.0], [1e-12, 0.0])
+    assert st[LIMITS].values["velocity_violations"] == 1
+    assert res.utilisation[0] == np.inf and res.measured_ratio == np.inf
+    assert st[EFFORT].level == ERROR and st[EFFORT].values["worst_joint"] == "joint1"
+    assert st[EFFORT].values["joint1_effort_limit_nm"] == 0.0
+
+
+def test_angle_wraps_means_no_position_limit_in_the_check_and_the_monitor():
+    model = PLANAR.with_limits("joint_limits:\n  joint1: {angle_wraps: true}\n")
+    assert bool(model.limits.continuous[0]) and not bool(model.limits.continuous[1])
+    for q0 in (7.0, -50.0):
+        r = _check(model, _hold([q0, 0.0]))
+        assert r.feasible and not r.violations and not r.warnings, r.message
+        assert r.per_joint["joint1"]["position"]["ratio"] is None
+        _, st = _monitor_statuses(model, [q0, 0.0], [0.0, 0.0], [])
+        assert st[LIMITS].values["position_violations"] == 0
+        assert st[LIMITS].values["soft_limit_violations"] == 0
+    assert not _check(PLANAR, _hold([7.0, 0.0])).feasible   # without it: beyond ±3 rad
+
+
+@pytest.mark.parametrize("kind", ["velocity", "acceleration", "deceleration", "jerk", "effort"])
+def test_has_false_disables_the_limit_in_the_check(kind):
+    tiny = f"max_{kind}: 0.001"
+    on = _check(PLANAR.with_limits(f"joint_limits:\n  joint1: {{{tiny}, has_{kind}_limits: true}}\n"))
+    assert ("joint1", kind) in {(v.joint, v.kind) for v in on.violations}
+    off = _check(PLANAR.with_limits(f"joint_limits:\n  joint1: {{{tiny}, has_{kind}_limits: false}}\n"))
+    assert off.per_joint["joint1"][kind]["ratio"] is None
+    assert ("joint1", kind) not in {(v.joint, v.kind) for v in off.violations}
+
+
+def test_has_false_disables_position_and_soft_limits_in_the_check_and_the_monitor():
+    q = [2.95, 0.0]   # inside the URDF's ±3 rad, beyond its ±2.9 rad soft limits
+    assert any("soft-limit zone" in w for w in _check(PLANAR, _hold(q)).warnings)
+    soft_off = PLANAR.with_limits("joint_limits:\n  joint1: {has_soft_limits: false}\n")
+    assert not _check(soft_off, _hold(q)).warnings
+    assert _monitor_statuses(soft_off, q, [0.0, 0.0], [])[1][LIMITS].values["soft_limit_violations"] == 0
+    pos_off = PLANAR.with_limits("joint_limits:\n  joint1: {has_position_limits: false,"
+                                 " min_position: -0.1, max_position: 0.1}\n")
+    assert _check(pos_off, _hold([5.0, 0.0])).per_joint["joint1"]["position"]["ratio"] is None
+    assert _monitor_statuses(pos_off, [5.0, 0.0], [0.0, 0.0], [])[1][LIMITS].values[
+        "position_violations"] == 0
+
+
+def test_audit_live_episode_at_a_zero_effort_limit_reports_the_effort():
+    """The audit's live statistics take the monitor's utilisation (inf at a YAML zero limit):
+    an episode must carry the |effort| itself (not inf·0 = NaN, which its schema rejects)."""
+    from dyn_node.audit import LiveStats
+
+    model = PLANAR.with_limits("joint_limits:\n  joint1: {max_effort: 0.0}\n")
+    m = Monitor(model, Settings(acceleration_source="zero", include_friction=False))
+    live = LiveStats(2, model.limits.position_lower, model.limits.position_upper,
+                     model.limits.velocity)
+    for k, t_ns in enumerate((1_000_000_000, 1_010_000_000)):
+        measured = np.array([100.0 * (k + 1), 1.0])
+        r = m.process(NAMES, [0.1, 0.2], [0.0, 0.0], measured, t_ns * 1e-9, t_ns * 1e-9)
+        assert r.utilisation[0] == np.inf and abs(r.tau[0]) < 100.0
+        live.add(t_ns, r.tau, r.utilisation, r.effort_limit, r.q, r.v, measured)
+    live.flush()
+    live.episodes.finish()
+    (ep,) = [e for e in live.episodes.closed if e["kind"] == "effort"]
+    assert ep["j"] == 0 and ep["limit"] == 0.0 and ep["n"] == 2
+    # every sample is at ratio inf, so the first one stays the peak (as for any tie)
+    assert ep["peak"] == 100.0

@@ -1,12 +1,14 @@
 """Joint limits: URDF parsing, the ros2_control-style YAML with dyn_node's keys, and warnings."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import yaml
 
 from dyn_node.errors import ModelError
-from dyn_node.limits import LIMIT_KINDS, LIMITS_YAML_KEYS, load_limits_yaml
+from dyn_node.limits import IGNORED_YAML_KEYS, LIMIT_KINDS, LIMITS_YAML_KEYS, load_limits_yaml
 from dyn_node.model import load_model
 
 FULL = """
@@ -130,11 +132,80 @@ def test_yaml_errors(tmp_path):
     bad(f, "limits_unknown_key", str(f), "joint2", "max_jerk")
 
 
-def test_every_documented_key_is_accepted():
-    for key, kind in LIMITS_YAML_KEYS.items():
-        value = {bool: True, float: 1.0, list: [[0.0, 1.0]]}[kind]
-        out = load_limits_yaml({"joint_limits": {"j": {key: value}}})
-        assert key in out["j"]
+def _merged(two_link, entry: dict):
+    return two_link.with_limits({"joint_limits": {"joint1": entry}}).limits.to_dict()
+
+
+#: Per value key: an entry whose value differs from every planar_2link URDF value.
+_VALUE_ENTRIES = {"min_position": -1.25, "max_position": 1.25, "max_velocity": 1.25,
+                  "max_acceleration": 1.25, "max_deceleration": 1.25, "max_jerk": 1.25,
+                  "max_effort": 1.25, "soft_lower_limit": -1.25, "soft_upper_limit": 1.25,
+                  "max_effort_rate": 1.25, "max_rms_effort": 1.25, "rms_window": 1.25,
+                  "max_power": 1.25, "effort_speed_curve": [[0.0, 1.25]], "armature": 1.25,
+                  "k_position": 1.25, "k_velocity": 1.25}
+#: Per has_ flag: the value keys it switches (given beside ``has_X: false``, they must not apply).
+_FLAGS = {"has_position_limits": ("min_position", "max_position"),
+          "has_velocity_limits": ("max_velocity",), "has_acceleration_limits": ("max_acceleration",),
+          "has_deceleration_limits": ("max_deceleration",), "has_jerk_limits": ("max_jerk",),
+          "has_effort_limits": ("max_effort",),
+          "has_soft_limits": ("soft_lower_limit", "soft_upper_limit")}
+
+
+def test_every_accepted_key_is_applied_or_documented_as_unused(two_link):
+    """Each key the YAML accepts must change the merged limits (a value key), disable its limit
+    (a has_ flag set false), make the joint wrap (angle_wraps), or be one of the documented
+    non-limits (k_position, k_velocity: soft-limit controller gains), which change nothing. An
+    accepted key that changes nothing and is not documented fails here."""
+    urdf = two_link.limits.to_dict()
+    assert set(LIMITS_YAML_KEYS) == set(_VALUE_ENTRIES) | set(_FLAGS) | {"angle_wraps"}
+    assert IGNORED_YAML_KEYS == {"k_position", "k_velocity"}
+    for key, value in _VALUE_ENTRIES.items():
+        assert load_limits_yaml({"joint_limits": {"j": {key: value}}})["j"][key] is not None
+        changed = _merged(two_link, {key: value}) != urdf
+        assert changed is (key not in IGNORED_YAML_KEYS), key
+    for flag, keys in _FLAGS.items():
+        given = {k: _VALUE_ENTRIES[k] for k in keys}
+        on, off = _merged(two_link, {flag: True, **given}), _merged(two_link, {flag: False, **given})
+        fields = {"has_position_limits": ("position_lower", "position_upper"),
+                  "has_soft_limits": ("soft_lower", "soft_upper")}.get(
+            flag, (flag[len("has_"):-len("_limits")],))
+        for f in fields:
+            assert on[f][0] in (-1.25, 1.25), (flag, f, on[f])
+            assert off[f][0] is None, (flag, f, off[f])   # None: unlimited in to_dict
+        # false also removes what the URDF set (planar_2link's URDF has these four)
+        if flag in ("has_position_limits", "has_velocity_limits", "has_effort_limits",
+                    "has_soft_limits"):
+            assert all(_merged(two_link, {flag: False})[f][0] is None for f in fields), flag
+    wraps = _merged(two_link, {"angle_wraps": True})
+    assert wraps["continuous"] == [True, False]
+    assert [wraps[f][0] for f in ("position_lower", "position_upper", "soft_lower",
+                                  "soft_upper")] == [None] * 4
+    assert _merged(two_link, {"angle_wraps": False}) == urdf
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert "`k_position` and `k_velocity` are gains of ros2_control's soft-limit controller" in readme
+    assert "dyn_node does not use them" in readme
+
+
+def test_yaml_zero_is_a_real_limit_with_a_warning_urdf_zero_means_not_given(two_link):
+    m = two_link.with_limits("joint_limits:\n  joint1: {max_velocity: 0.0, max_deceleration: 0}\n")
+    assert m.limits.velocity[0] == 0.0 and m.limits.deceleration[0] == 0.0
+    assert m.warnings == (
+        "joint1: velocity limit 0 is not positive: applied as a real limit (any nonzero velocity "
+        "violates it); for no limit remove the key or set has_velocity_limits: false",
+        "joint1: deceleration limit 0 is not positive: applied as a real limit (any nonzero "
+        "deceleration violates it); for no limit remove the key or set "
+        "has_deceleration_limits: false")
+    rate = two_link.with_limits("joint_limits:\n  joint2: {max_power: 0.0}\n").warnings
+    assert rate == ("joint2: power limit 0 is not positive: applied as a real limit (any nonzero "
+                    "power violates it); for no limit remove the key",)
+
+
+def test_angle_wraps_drops_position_limits_given_beside_it_with_a_warning(two_link):
+    m = two_link.with_limits("joint_limits:\n  joint2: {angle_wraps: true, min_position: -1.0,"
+                             " max_position: 1.0}\n")
+    assert m.limits.position_lower[1] == -np.inf and m.limits.position_upper[1] == np.inf
+    assert m.warnings == ("joint2: angle_wraps: true, so min_position, max_position not applied "
+                          "(a wrapping joint has no position limit)",)
 
 
 def test_suspicious_limits_warn(two_link):

@@ -367,9 +367,14 @@ def test_process_batch_equals_process_message_by_message(seed):
     orders, stamps with repeats, jumps back, stale gaps and zero stamps, NaN efforts, with and
     without velocities, with and without an active trajectory)."""
     rng = np.random.default_rng(seed)
-    models = {"panda": PANDA, "planar_2link": PLANAR, "ur5": load_model(builtin="ur5")}
+    # planar_limited: live deceleration limits and a real (YAML) zero effort limit
+    models = {"panda": PANDA, "planar_2link": PLANAR, "ur5": load_model(builtin="ur5"),
+              "planar_limited": PLANAR.with_limits(
+                  "joint_limits:\n  joint1: {max_deceleration: 50.0, max_effort: 0.0}\n"
+                  "  joint2: {max_deceleration: 20.0}\n")}
     fields = ("stamp_s", "q", "v", "a_hat", "gravity", "tau", "residual", "utilisation",
               "measured_ratio", "zero_stamp", "out_of_order", "effort_limit")
+    decelerations = 0
     for trial in range(25):
         model = models[str(rng.choice(list(models)))]
         nv, names = model.nv, list(model.joint_names)
@@ -426,9 +431,13 @@ def test_process_batch_equals_process_message_by_message(seed):
             mon.process(msg_names, P[0], [] if V is None else V[0], [], float(t[-1]) + 1e-3, 9.0)
         assert _same(one.last_result.a_hat, many.last_result.a_hat)
         # repr: the values hold NaN (no tracking error known), which == never matches
-        assert repr(one.statuses(9.5, "h")) == repr(many.statuses(9.5, "h"))
+        reports = one.statuses(9.5, "h")
+        assert repr(reports) == repr(many.statuses(9.5, "h"))
+        limits_vals = next(s.values for s in reports if s.name == "dyn_node: limits")
+        decelerations += limits_vals.get("deceleration_violations", 0)
         assert (tr_one.state, tr_one.since_s) == (tr_many.state, tr_many.since_s)
         assert repr(tr_one.status(9.5, "h")) == repr(tr_many.status(9.5, "h"))
+    assert decelerations > 0   # the live deceleration check took part in the comparison
 
 
 def test_process_batch_declines_what_process_must_judge_and_changes_nothing():
@@ -455,3 +464,121 @@ def test_process_batch_declines_what_process_must_judge_and_changes_nothing():
         assert mon.process_batch(names, pos, vel, eff, stamps, stamps) is None
     assert (vars(mon.counts), mon._prev_t) == (before[0], before[1])
     assert np.array_equal(mon._a, before[2]) and mon.last_result is before[3]
+
+
+def _urdf_prismatic(urdf: str) -> dict[str, bool]:
+    """joint name → prismatic?, read with ElementTree (not with dyn_node's model code)."""
+    import xml.etree.ElementTree as ET
+
+    return {j.get("name"): j.get("type") == "prismatic" for j in ET.fromstring(urdf).iter("joint")}
+
+
+def test_live_statuses_use_each_joints_own_units():
+    """A model with prismatic joints: the live effort, limits, residual and controller statuses
+    give prismatic joints m, m/s and N (keys and messages), revolute joints rad, rad/s and N·m."""
+    from robots import BRANCHED_URDF
+
+    model = load_model(urdf=BRANCHED_URDF, limits_yaml={"joint_limits": {"j2": {
+        "has_soft_limits": True, "soft_lower_limit": -0.4, "soft_upper_limit": 0.4}}})
+    prismatic = _urdf_prismatic(BRANCHED_URDF)
+    names = list(model.joint_names)
+    assert [n for n in names if prismatic[n]] == ["j2", "j5"]  # the case this test is about
+    s = Settings(acceleration_source="zero", residual_warn_ratio=0.1, tracking_tolerance=0.05)
+    mon, dyn = Monitor(model, s), Dynamics(model)
+    i2, i5 = names.index("j2"), names.index("j5")
+    q = np.zeros(6)
+    q[i2] = 0.7  # above j2's 0.5 m limit (and its 0.4 m soft limit)
+    v = np.zeros(6)
+    v[i2] = 1.5  # beyond j2's 1 m/s
+    e = dyn.rnea(q, v, np.zeros(6))
+    e[i5] = 150.0  # 150 % of j5's 100 N
+    mon.process(names, q, v, e, 1.0, 1.0)
+    st = {x.name.removeprefix("dyn_node: "): x for x in mon.statuses(1.1, "b")}
+    lim, eff, res = st["limits"], st["effort"], st["residual"]
+    assert lim.values["j2_position_m"] == 0.7 and lim.values["j2_velocity_m_s"] == 1.5
+    assert lim.values["j2_soft_position_m"] == 0.7
+    assert not [k for k in lim.values if k.endswith(("_rad", "_rad_s"))]
+    assert lim.message == "j2 position 0.7 m above its upper limit 0.5 m (+2 more)"
+    assert eff.message.startswith("j5 at 150% of its 100 N effort limit (measured effort)")
+    for n in names:
+        assert eff.values[f"{n}_effort_limit_{'n' if prismatic[n] else 'nm'}"] == float(
+            model.limits.effort[names.index(n)])
+        assert f"{n}_effort_limit_{'nm' if prismatic[n] else 'n'}" not in eff.values
+        assert f"{n}_residual_rms_{'n' if prismatic[n] else 'nm'}" in res.values
+    assert res.values["worst_joint"] == "j5" and "worst_residual_rms_nm" not in res.values
+    assert res.values["worst_residual_rms_n"] == pytest.approx(150.0 - dyn.rnea(q, v, np.zeros(6))[i5],
+                                                              abs=1e-9)
+    assert res.level == WARN and " N RMS (" in res.message and "N·m" not in res.message
+    # revolute joints keep rad: j1 beyond its 3 rad limit
+    q1 = np.zeros(6)
+    q1[names.index("j1")] = 3.5
+    mon.process(names, q1, np.zeros(6), [], 2.0, 2.0)
+    lim = by_name(mon.statuses(2.1, "b"), "limits")
+    assert lim.message == "j1 position 3.5 rad above its upper limit 3 rad"
+    assert lim.values["j1_position_rad"] == 3.5
+    # controller status: j2 0.1 m off a held reference
+    tr = ControllerTracker(model, s)
+    tr.set_trajectory(validate_trajectory(names, names, [0.0, 10.0], [np.zeros(6), np.zeros(6)],
+                                          min_points=1), start_s=0.0)
+    off = np.zeros(6)
+    off[i2] = 0.1
+    tr.update(mon.process(names, off, np.zeros(6), [], 3.0, 3.0), 3.0)
+    ctrl = tr.status(3.0, "b")
+    assert tr.state == "deviating"
+    assert ctrl.message == "j2 is +0.1 m off the trajectory (tolerance 0.05 m)"
+    assert ctrl.values["j2_tracking_error_m"] == pytest.approx(0.1, abs=1e-15)
+    assert "j2_tracking_error_rad" not in ctrl.values and "j1_tracking_error_rad" in ctrl.values
+    assert ctrl.values["tracking_tolerance_m"] == ctrl.values["tracking_tolerance_rad"] == 0.05
+
+
+def test_every_kind_of_message_lands_in_exactly_one_count():
+    """received = accepted + invalid (+ before_model, which only the node counts) after valid,
+    rejected and undecodable messages; an undecodable one is reported like any rejection."""
+    from dyn_node.errors import InputError
+
+    mon = Monitor(PANDA, Settings())
+    mon.process(NAMES, Q0, [], [], 1.0, 1.0)
+    mon.process(NAMES[:3], Q0[:3], [], [], 1.1, 1.1)          # missing joints
+    mon.process(NAMES, [math.nan] + list(Q0[1:]), [], [], 1.2, 1.2)  # non-finite
+    mon.process(NAMES, Q0, [], [], 0.0, 1.3)                  # zero stamp: accepted
+    r = mon.reject_message(InputError("16 bytes that are no JointState", code="undecodable"), 1.4)
+    assert not r.accepted and r.error.code == "undecodable"
+    c = mon.counts
+    assert (c.received, c.accepted, c.invalid, c.before_model) == (5, 2, 3, 0)
+    assert c.invalid_by_reason == {"missing_joints": 1, "non_finite": 1, "undecodable": 1}
+    st = by_name(mon.statuses(1.5, "panda"), "joint_states")
+    assert st.level == ERROR and st.message.startswith("last joint_states rejected (undecodable)")
+    assert st.values["invalid_undecodable"] == 1 and st.values["before_model_messages"] == 0
+    assert st.values["received_messages"] == st.values["accepted_messages"] + st.values["invalid_messages"]
+
+
+def test_every_limit_kind_has_a_unit_for_both_joint_types():
+    """The feasibility statuses and the live statuses read units from one table."""
+    from dyn_node.limits import LIMIT_KINDS
+    from dyn_node.units import LINEAR, ROTARY, unit_key
+
+    for kind in LIMIT_KINDS:
+        assert unit_key(ROTARY[kind]) and unit_key(LINEAR[kind])  # KeyError: no unit or no key
+    assert ROTARY["effort"] == "N·m" and LINEAR["effort"] == "N" and LINEAR["position"] == "m"
+
+
+def test_feasibility_verdict_and_live_status_give_a_prismatic_joint_the_same_units():
+    from robots import BRANCHED_URDF
+
+    from dyn_node.feasibility import check_trajectory
+
+    model = load_model(urdf=BRANCHED_URDF)
+    names = list(model.joint_names)
+    i1, i2 = names.index("j1"), names.index("j2")
+    end = np.zeros(6)
+    end[i1], end[i2] = 2.0, 0.4  # in 0.5 s: beyond j1's 3 rad/s and j2's 1 m/s
+    traj = validate_trajectory(names, names, [0.0, 0.5], [np.zeros(6), end], min_points=2)
+    res = check_trajectory(Dynamics(model), traj)
+    units = {(v.joint, v.kind): v.unit for v in res.violations}
+    assert units[("j2", "velocity")] == "m/s" and units[("j1", "velocity")] == "rad/s"
+    mon = Monitor(model, Settings(acceleration_source="zero"))
+    v = np.zeros(6)
+    v[i2] = 1.5
+    mon.process(names, np.zeros(6), v, [], 1.0, 1.0)
+    lim = by_name(mon.statuses(1.1, "b"), "limits")
+    assert lim.message == f"j2 velocity 1.5 {units[('j2', 'velocity')]} beyond its limit 1 m/s"

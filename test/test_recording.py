@@ -469,3 +469,70 @@ def test_real_full_tmpfs(tmp_path):
         assert [m[3] for m in msgs if m[0] == "/noise"] == sent[:c.written]
     finally:
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def _log_durability_calls(monkeypatch) -> list[tuple[str, ...]]:
+    """Patch os.fsync and os.replace to log, in call order, ("fsync", the fd's path) and
+    ("replace", src, dst), then do the real call."""
+    import os
+    calls: list[tuple[str, ...]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        calls.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        return real_fsync(fd)
+
+    def replace(src, dst, *args, **kwargs):
+        calls.append(("replace", str(Path(src).resolve()), str(Path(dst).resolve())))
+        return real_replace(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    return calls
+
+
+def _durable_replaces(calls: list[tuple[str, ...]], bag: Path) -> int:
+    """How many times metadata.yaml was replaced; each one must be: fsync of the new file, the
+    rename, fsync of the directory (else a power loss can leave an empty metadata.yaml)."""
+    bag = bag.resolve()
+    tmp, meta = str(bag / "metadata.yaml.tmp"), str(bag / "metadata.yaml")
+    at = [i for i, c in enumerate(calls) if c == ("replace", tmp, meta)]
+    for i in at:
+        assert calls[i - 1] == ("fsync", tmp), calls[max(0, i - 2):i + 2]
+        assert calls[i + 1:i + 2] == [("fsync", str(bag))], calls[max(0, i - 2):i + 2]
+    return len(at)
+
+
+def test_metadata_yaml_fsynced_before_and_after_rename(tmp_path, monkeypatch):
+    from dyn_node.recording import write_metadata_yaml
+    calls = _log_durability_calls(monkeypatch)
+    write_metadata_yaml(tmp_path, {"a": 1})
+    assert _durable_replaces(calls, tmp_path) == 1 and len(calls) == 3
+    assert yaml.safe_load((tmp_path / "metadata.yaml").read_text()) == {"a": 1}
+    # The recorder writes it at the start, at every split and at the end: each one durable.
+    rec = make_recorder(tmp_path / "rec", max_bag_size_mb=0.05, compression="lz4")
+    for seq in range(1000):
+        rec.write(JS, joint_state(seq), 10**18 + seq * 1_000_000)
+    stats = rec.close()
+    assert stats.state == "closed" and len(stats.files) >= 2
+    assert _durable_replaces(calls, Path(stats.path)) >= len(stats.files) + 1
+
+
+def test_new_bag_directory_fsyncs_the_directories_that_hold_new_names(tmp_path, monkeypatch):
+    """mkdir alone can be lost in a power loss (the entry lives in the parent's data): the bag
+    directory's parent, and the parent of every directory created on the way, are fsynced
+    after the mkdir; the recorder does it before writing anything into the bag."""
+    from dyn_node.recording import new_bag_directory
+
+    calls = _log_durability_calls(monkeypatch)
+    d = new_bag_directory(tmp_path / "a" / "b", now=0.0)
+    assert d == tmp_path / "a" / "b" / "dyn_node_19700101_000000"
+    assert calls == [("fsync", str(tmp_path / "a" / "b")), ("fsync", str(tmp_path / "a")),
+                     ("fsync", str(tmp_path))]
+    calls.clear()
+    assert new_bag_directory(tmp_path / "a" / "b", now=0.0, fsync=False).name.endswith("_1")
+    assert calls == []
+    rec = make_recorder(tmp_path / "rec")
+    parent = ("fsync", str((tmp_path / "rec").resolve()))
+    assert calls[:1] == [parent], calls  # before anything is written into the bag
+    rec.close()

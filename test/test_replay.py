@@ -126,3 +126,99 @@ def test_replay_under_sim_time_matches_audit(ros_context, tmp_path):
         assert kv["worst_constraint"] == verdict["worst_constraint"]
         stamp_ns = live.header.stamp.sec * 1_000_000_000 + live.header.stamp.nanosec
         assert stamp_ns == verdict["stamp_ns"]
+
+
+@pytest.mark.timeout(120)
+def test_audit_of_the_nodes_own_bag_checks_the_start_segment_as_the_node_did(ros_context, tmp_path):
+    """The node records joint_states (the robot moving away from the first point) and two
+    trajectories whose first point lies 0.5 s ahead, one while it knows the state and one after
+    stale_timeout; dyn-audit starts each from the last joint_states recorded before it (within
+    stale_timeout), so its verdicts, keys and the re-check equal what the node published."""
+    from builtin_interfaces.msg import Duration
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    from dyn_node.node import DynNode
+
+    node = DynNode(context=ros_context, parameter_overrides=[
+        Parameter("robot_model", value="planar_2link"), Parameter("stale_timeout", value=30.0),
+        Parameter("record.enabled", value=True), Parameter("record.directory", value=str(tmp_path))])
+    player = Node("start_segment_player", context=ros_context)
+    reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    js_pub = player.create_publisher(JointState, "joint_states", reliable)
+    traj_pub = player.create_publisher(JointTrajectory, "joint_trajectory", 10)
+    gravity: list[JointState] = []
+    verdicts: list[DiagnosticArray] = []
+    player.create_subscription(JointState, "/dyn_node/gravity_torque", gravity.append, reliable)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    player.create_subscription(DiagnosticArray, "/dyn_node/feasibility", verdicts.append, latched)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    ex.add_node(player)
+
+    def spin_until(cond, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not cond():
+            ex.spin_once(timeout_sec=0.01)
+        return cond()
+
+    def trajectory(sec: int) -> JointTrajectory:
+        m = JointTrajectory()
+        m.header.stamp.sec = sec
+        m.joint_names = ["joint1", "joint2"]
+        for t, q in ((0.5, [0.5, 0.3]), (2.0, [1.5, 0.8])):
+            m.points.append(JointTrajectoryPoint(
+                positions=q, velocities=[0.0, 0.0], accelerations=[0.0, 0.0],
+                time_from_start=Duration(sec=int(t), nanosec=int(round((t % 1) * 1e9)))))
+        return m
+
+    try:
+        bridge = node.recording
+        assert spin_until(lambda: js_pub.get_subscription_count() >= 1
+                          and traj_pub.get_subscription_count() >= 1
+                          and player.count_publishers("/dyn_node/feasibility") >= 1, 30.0)
+        for k in range(5):
+            js = JointState(name=["joint1", "joint2"], position=[0.0 - 0.0025 * k, 0.3],
+                            velocity=[-2.5, 0.0])
+            js.header.stamp.sec, js.header.stamp.nanosec = 100, 1_000_000 * k
+            js_pub.publish(js)
+            assert spin_until(lambda: len(gravity) > k, 10.0), k
+        traj_pub.publish(trajectory(200))
+        assert spin_until(lambda: len(verdicts) >= 1, 30.0)
+        # the same trajectory once the last state is older than stale_timeout
+        assert node.set_parameters([Parameter("stale_timeout", value=0.001)])[0].successful
+        spin_until(lambda: False, 0.05)
+        traj_pub.publish(trajectory(201))
+        assert spin_until(lambda: len(verdicts) >= 2, 30.0)
+        ok, path = bridge.stop()
+        assert ok, path
+    finally:
+        node.recording.close()
+        ex.shutdown()
+        node.destroy_node()
+        player.destroy_node()
+
+    live = [{k.key: k.value for k in v.status[0].values} | {"message": v.status[0].message,
+                                                            "level": v.status[0].level}
+            for v in verdicts]
+    assert live[0]["start_segment"] == "checked" and live[0]["feasible"] == "false"
+    assert live[1]["start_segment"] == "not_checked (no current state within stale_timeout)"
+    assert live[1]["feasible"] == "true" and live[1]["level"] == bytes([1])
+    audit = run_audit(AuditOptions(bag=path, out=str(tmp_path / "audit"), report=False))
+    entries = audit.record["outputs"]["trajectories"]
+    assert len(entries) == 2
+    for got, want in zip(entries, live):
+        assert got["start_segment"] == want["start_segment"]
+        assert got["message"] == want["message"]
+        assert got["time_scale"] == float(want["time_scale"])
+        assert (got["start_state_age_s"] is None) == (want["start_state_age_s"] == "nan")
+        if got["start_state_age_s"] is not None:
+            assert got["start_state_age_s"] == float(want["start_state_age_s"])
+    rc = audit.record["outputs"]["recheck"]["/dyn_node/feasibility"]
+    assert rc["matched"] == 2 and rc["identical"] is True, rc

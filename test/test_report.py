@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import base64
 import json
+import re
 import sys
 from html.parser import HTMLParser
 from pathlib import Path
@@ -71,7 +72,9 @@ def test_report_is_self_contained_and_has_every_section(tmp_path):
     body = " ".join(page.text)
     assert "panda_joint2" in body and "effort" in body
     assert "gap" in body and "0.599" in body and "0.700" in body
-    assert "infeasible" in body and "feasible" in body
+    # one pill per trajectory, in order (the words compared whole: "feasible" is in "infeasible")
+    assert re.findall(r"<span class='pill (\w+)'>(\w+)</span>", html) == [
+        ("ok", "feasible"), ("bad", "infeasible")]
 
 
 def test_report_for_a_clean_bag_and_a_trajectory_only_bag(tmp_path):
@@ -79,7 +82,19 @@ def test_report_for_a_clean_bag_and_a_trajectory_only_bag(tmp_path):
     run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "o1")))
     html, page = parse(tmp_path / "o1" / "report.html")
     assert "FEASIBLE — no violations" in page.text
-    assert "No live limit violations (effort, position, velocity)." in page.text
+    assert "No live limit violations (effort, position, velocity, deceleration)." in page.text
     assert not (tmp_path / "o1" / "trajectories.png").exists()
     assert {a["alt"] for t, a in page.tags if t == "img"} == {
         "per-joint effort vs limit over time", "utilisation heat map, joint by time"}
+
+
+def test_report_says_when_the_recheck_is_not_comparable(tmp_path):
+    from dyn_node.model import builtin_urdf
+
+    bag = make_bag(tmp_path / "bag", n=200, outputs=True)
+    urdf = tmp_path / "panda.urdf"
+    urdf.write_text(builtin_urdf("panda"))
+    run_audit(AuditOptions(bag=str(bag), robot_description=str(urdf), out=str(tmp_path / "o")))
+    html, page = parse(tmp_path / "o" / "report.html")
+    cells = [t for t in page.text if t.startswith("not comparable: joints: 7 recorded, 9 here")]
+    assert len(cells) == 2  # gravity_torque and inverse_dynamics rows

@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import yaml
+
 import pytest
 
 PUBLISH_S = 10.0  # s of 1 kHz publishing, as the issue asks
@@ -40,7 +42,7 @@ class Rig:
     """Host node (with the bridge) + a test publisher node, spun by one executor."""
 
     def __init__(self, context, directory: str, topics: list[str], opener=None,
-                 direct: bool = False):
+                 direct: bool = False, configuration_since=None):
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         from rclpy.parameter import Parameter
@@ -57,7 +59,7 @@ class Rig:
             Parameter("record.directory", value=directory),
             Parameter("record.topics", value=topics)])
         self.bridge = RecordingBridge(self.host, lambda: self.urdf, discovery_period_s=0.2,
-                                      opener=opener)
+                                      opener=opener, configuration_since=configuration_since)
         self.pub_node = Node("test_publisher", context=context)
         self.js_pub = self.pub_node.create_publisher(JointState, "joint_states", 1000)
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -202,15 +204,16 @@ def test_1khz_joint_states_recorded_exactly(ros_context, tmp_path):
         reader = make_reader(f, validate_crcs=True)
         js = [(m.publish_time, m.log_time, m.data) for _s, ch, m in
               reader.iter_messages(log_time_order=False) if ch.topic == JS]
-        meta = {r.name: r.metadata for r in reader.iter_metadata()}
+        metas = [r.metadata for r in reader.iter_metadata() if r.name == "dyn_node"]
         channels = {c.topic: c for c in reader.get_summary().channels.values()}
     assert [d for _p, _l, d in js] == sent[JS]
     for pub, log, data in js:
         sec, nsec = int.from_bytes(data[4:8], "little"), int.from_bytes(data[8:12], "little")
         assert pub == sec * 10**9 + nsec and log >= pub - 10**9
-    assert meta["dyn_node"]["robot_description"] == rig.urdf
-    assert "record.topics" in meta["dyn_node"]["parameters"] or "record:" in \
-        meta["dyn_node"]["parameters"]
+    # the first record: the description and every parameter of the host, as a params file
+    assert metas and metas[0]["robot_description"] == rig.urdf
+    record = yaml.safe_load(metas[0]["parameters"])["/dyn_node"]["ros__parameters"]["record"]
+    assert (record["enabled"], record["directory"], record["topics"]) == (True, str(tmp_path), topics)
     assert "durability: transient_local" in channels["/robot_description"].metadata[
         "offered_qos_profiles"]
 
@@ -331,6 +334,30 @@ def test_parameter_change_recorded_as_metadata(ros_context, tmp_path):
     with open(next(Path(path).glob("*.mcap")), "rb") as f:
         params = [r.metadata["parameters"] for r in make_reader(f).iter_metadata()]
     assert "gain: 2.5" in params[-1] and not any("gain: 2.5" in p for p in params[:-1])
+
+
+def test_each_parameter_change_recorded_with_the_time_it_took_effect(ros_context, tmp_path):
+    """Two parameter sets in a row (no spin between them, so no discovery tick): each one gets
+    a metadata record with the owner's effective time, in the order they happened."""
+    from mcap.reader import make_reader
+    from rclpy.parameter import Parameter
+
+    since = [1_000]
+    rig = Rig(ros_context, str(tmp_path), ["joint_states"], configuration_since=lambda: since[0])
+    try:
+        rig.host.declare_parameter("gain", 1.0)
+        for k, gain in enumerate((2.5, 4.0)):
+            since[0] = 2_000 + k
+            assert rig.host.set_parameters([Parameter("gain", value=gain)])[0].successful
+        ok, path = rig.bridge.stop()
+        assert ok
+    finally:
+        rig.destroy()
+    with open(next(Path(path).glob("*.mcap")), "rb") as f:
+        recs = [r.metadata for r in make_reader(f).iter_metadata() if r.name == "dyn_node"]
+    got = [(int(r["effective_log_time_ns"]),
+            yaml.safe_load(r["parameters"])["/dyn_node"]["ros__parameters"].get("gain")) for r in recs]
+    assert got == [(1_000, None), (1_000, 1.0), (2_000, 2.5), (2_001, 4.0)]
 
 
 def test_log_time_is_the_node_clock_system_or_simulated(ros_context, tmp_path):

@@ -140,3 +140,54 @@ def test_fast_mode_publishes_clock(ros_context, spawn):
     np.testing.assert_allclose(np.round(t / 0.01) * 0.01, t, atol=2e-9)
     rc, _, err = proc.stop(signal.SIGINT)
     assert rc == 0, err
+
+
+def _byte_fields(ros_type, prefix: str = "") -> set[str]:
+    """Every byte (octet) and uint8 field of a message type, nested messages and sequences
+    included, as "<type>.<field>" (read from rosidl's own type definitions)."""
+    import importlib
+
+    from rosidl_parser.definition import AbstractNestedType, BasicType, NamespacedType
+
+    out: set[str] = set()
+    for name, slot in zip(ros_type.get_fields_and_field_types(), ros_type.SLOT_TYPES):
+        while isinstance(slot, AbstractNestedType):
+            slot = slot.value_type
+        if isinstance(slot, BasicType) and slot.typename in ("octet", "uint8"):
+            out.add(f"{ros_type.__name__}.{name}")
+        elif isinstance(slot, NamespacedType):
+            nested = getattr(importlib.import_module(".".join(slot.namespaces)), slot.name)
+            out |= _byte_fields(nested)
+    return out
+
+
+@pytest.mark.timeout(60)
+def test_byte_fields_written_by_dyn_node_and_dyn_sim(ros_context):
+    """The byte fields our publishers and services write: exactly DiagnosticStatus.level and
+    SelfTest's passed, both set through ros_convert.to_byte (rclpy sends a garbage byte for a
+    bool). rclpy's own parameter topic and services are not ours. A new output with a byte
+    field must be added here, and converted the same way."""
+    from rclpy.parameter import Parameter
+
+    from dyn_node.node import DynNode
+    from dyn_node.sim_node import SimNode
+
+    nodes = [DynNode("bytes_node", context=ros_context, namespace="/bytes",
+                     parameter_overrides=[Parameter("robot_model", value="planar_2link")]),
+             SimNode(context=ros_context, namespace="/bytes",
+                     parameter_overrides=[Parameter("robot_model", value="planar_2link"),
+                                          Parameter("publish_rate_hz", value=1.0)])]
+    try:
+        types = set()
+        for node in nodes:
+            types |= {p.msg_type for p in node.publishers if p.topic_name != "/parameter_events"}
+            for srv in node.services:
+                if srv.srv_type.__module__.split(".")[0] not in ("rcl_interfaces", "type_description_interfaces"):
+                    types |= {srv.srv_type.Request, srv.srv_type.Response}
+        assert {t.__name__ for t in types} >= {"JointState", "DiagnosticArray", "DiagnosticStatus",
+                                                "JointTrajectory", "String", "SelfTest_Response"}
+        found = set().union(*(_byte_fields(t) for t in types))
+        assert found == {"DiagnosticStatus.level", "SelfTest_Response.passed"}
+    finally:
+        for node in reversed(nodes):
+            node.destroy_node()

@@ -208,3 +208,54 @@ def test_interpolation_mode_needs_its_data():
         interpolate(random_traj(seed=7, acc=False), "quintic")
     with pytest.raises(ValueError):
         interpolate(traj, "bezier")  # type: ignore[arg-type]
+
+
+def _hermite(t0: float, q: float, v: float, a: float | None, q1: float, v1: float,
+             a1: float | None) -> np.ndarray:
+    """Polynomial coefficients (increasing powers) on [0, t0] from the boundary conditions,
+    by a dense linear solve (independent of trajectory._quintic/_cubic)."""
+    deg = 5 if a is not None else 3
+    rows, rhs = [], []
+    for t, vals in ((0.0, (q, v, a)), (t0, (q1, v1, a1))):
+        for d, val in enumerate(vals[:3 if a is not None else 2]):
+            rows.append([np.prod(np.arange(p - d + 1, p + 1)) * t ** (p - d) if p >= d else 0.0
+                         for p in range(deg + 1)])
+            rhs.append(val)
+    return np.linalg.solve(np.array(rows, dtype=float), np.array(rhs, dtype=float))
+
+
+@pytest.mark.parametrize("mode", ["quintic", "cubic", "spline"])
+def test_from_current_state_prepends_the_measured_state_as_the_controller_does(mode):
+    """joint_trajectory_controller starts from the current state (measured q, q̇, q̈ = 0) at
+    t = 0 and reaches the first point at its time_from_start, interpolating by what the points
+    give; the points after the first move exactly as without the start state."""
+    from dyn_node.trajectory import from_current_state
+
+    t = np.array([0.4, 1.0, 1.7])
+    P = np.array([[0.2, -0.1, 0.5], [0.6, 0.3, 0.1], [0.9, 0.0, -0.2]])
+    V = np.array([[0.3, -0.2, 0.1], [0.5, 0.1, -0.4], [0.0, 0.0, 0.0]])
+    Acc = np.array([[1.0, -2.0, 0.5], [0.2, 0.4, -1.0], [0.0, 0.0, 0.0]])
+    traj = Trajectory(times=t, positions=P, velocities=None if mode == "spline" else V,
+                      accelerations=Acc if mode == "quintic" else None)
+    qm, vm = np.array([-0.3, 0.4, 0.2]), np.array([-1.5, 0.8, 0.0])
+    work = from_current_state(traj, qm, vm)
+    assert work.natural_interpolation == ("quintic" if mode == "quintic" else "cubic")
+    np.testing.assert_array_equal(work.times, [0.0, 0.4, 1.0, 1.7])
+    pp, own = interpolate(work), interpolate(traj)
+    # the first point's velocity: given, or the spline's own (clamped: zero at the ends)
+    v1 = V[0] if mode != "spline" else np.zeros(3)
+    ts = np.linspace(0.0, 0.4, 41)
+    q, qd, qdd, _ = pp.evaluate(ts)
+    for j in range(3):
+        c = _hermite(0.4, qm[j], vm[j], 0.0 if mode == "quintic" else None, P[0, j], v1[j],
+                     Acc[0, j] if mode == "quintic" else None)
+        np.testing.assert_allclose(q[:, j], np.polyval(c[::-1], ts), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(qd[:, j], np.polyval(np.polyder(c[::-1]), ts), rtol=0, atol=1e-11)
+    np.testing.assert_allclose(qd[0], vm, rtol=0, atol=1e-12)
+    if mode == "quintic":
+        np.testing.assert_allclose(qdd[0], 0.0, rtol=0, atol=1e-12)
+    later = np.linspace(0.4, 1.7, 27)
+    for a, b in zip(pp.evaluate(later), own.evaluate(later)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError):
+        from_current_state(Trajectory(times=np.array([0.0, 1.0]), positions=P[:2]), qm, vm)
