@@ -1,20 +1,9 @@
 """Section "feasibility": a 10 s 7-DoF trajectory checked at 1 ms against a bare rnea loop.
 
-The subject is dyn_node.feasibility.check_trajectory (interpolation, RNEA at every sample, every
-limit kind, the time scale, the payload margin). The baseline is what the torque part alone
-costs when written by hand: a Python loop calling pinocchio.rnea on the same samples (the states
-check_trajectory itself evaluates, from its own sampler and interpolation). Ratio = check / loop.
-The headline row runs the check on one thread, as the live node does; the next runs it without
-the payload margin (the issues' targets name every limit kind and the time scale, not the
-margin); a third runs its batched RNEA passes on every core (same result), the next times its
-torque passes alone (the compiled gravity pass and Pinocchio's batched RNEA): the floor under
-every other row, and the last two time gravity alone, by the kernel and by Pinocchio's RNEA.
-
-Those rows run with freed memory kept mapped (dyn_node.allocator.retain_freed_memory, which the
-dyn_node and dyn-audit entry points call): a check's sample arrays then reuse the previous
-check's pages. Every figure comes from fresh child processes (the loop's speed varies by up to a
-third between processes here): the median over PROCESSES of them, and one more process under
-glibc's defaults shows what the heap setting is worth, with the minor page faults per check.
+Ratio = check_trajectory ÷ a Python loop of pinocchio.rnea over the same samples; one thread as
+the node runs it, plus rows without the margin, on every core, and the torque passes alone. Every
+figure comes from fresh child processes, since the loop's speed varies between processes. Rows
+and method: docs/BENCHMARK_METHODS.md.
 """
 from __future__ import annotations
 
@@ -191,9 +180,9 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
     if result_mt.to_dict() | {"compute_time_s": 0} != result.to_dict() | {"compute_time_s": 0}:
         raise RuntimeError("check_trajectory gave different results with 1 and "
                            f"{cores} threads")
-    # The loop's speed differs by up to a third from one process to the next on this machine
-    # (the check's far less), so one process can flatter or wrong either side: every figure is
-    # the median over several fresh processes of that process's medians, and each ratio the
+    # The loop's speed differs between processes far more than the check's, so one process can
+    # flatter either side: every figure is the median over several fresh processes of that
+    # process's medians, and each ratio the
     # median over processes of the per-round ratios. One more process runs under glibc's
     # default heap settings (the setting is process-wide and cannot be undone).
     runs = []

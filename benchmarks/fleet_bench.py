@@ -1,17 +1,8 @@
 """Section "fleet": dyn-fleet's throughput on local Ray with 1 and 2 workers, and what Ray costs.
 
-A fleet of N 7-DoF Panda bags (1 kHz joint_states, written with dyn_node's Recorder) is audited
-with ``run_jobs`` (every bag one Ray task running the same ``audit_bag`` as ``dyn-fleet``, report
-included) four times on each engine: the first pass starts the worker processes (imports,
-compiled kernels loaded), the next three reuse them; bags/s and messages/s are the median of
-those three (the steady state of a fleet of thousands of bags), the first pass is reported as
-cold. Scaling
-efficiency = 2-worker rate ÷ (2 × 1-worker rate), both measured in this run.
-
-Ray's fixed start-up is ``ray.init`` to a ready runtime. Per-bag overhead = (workers × warm wall
-− Σ task time measured inside the tasks) ÷ N: scheduling, argument and result transfer and the
-driver loop (with 2 workers it also holds the time one worker waits for the other at the end). Peak RSS per worker: one worker audits bags of L s then bags of 10 L s; its VmHWM
-after each bag (read inside the task) shows whether a longer bag raises it.
+Steady-state bags/s over warm passes (the first pass, which starts the workers, is reported as
+cold), scaling efficiency, Ray's start-up and per-bag overhead, and a worker's peak RSS on short
+and long bags. Definitions: docs/BENCHMARK_METHODS.md.
 """
 from __future__ import annotations
 

@@ -3,8 +3,8 @@ Python pinocchio.rnea loop on the same samples.
 
 The subject is what the frame, energy and base constraints of issue 18 need per sample: two
 frame points (the flange 0.1 m out, carrying a task wrench, and the hand), M(q) with its
-Cholesky factor, the kinetic energy and effective masses, and the base wrench. Its row sits in
-the "feasibility" section (feasibility_bench adds it to its interleaved rounds);
+Cholesky factor, g(q), the kinetic energy and effective masses, and the base wrench. Its row
+sits in the "feasibility" section (feasibility_bench adds it to its interleaved rounds);
 ``python -m benchmarks.frames_bench [ROUNDS]`` measures it alone in this process.
 """
 from __future__ import annotations
@@ -23,10 +23,11 @@ from .common import median_time
 
 WHAT = ("dyn_node.frames on the same samples, 1 thread: two frame points (position, velocity, "
         "classical acceleration, angular terms, J_localᵀW), M(q) by CRBA with its Cholesky "
-        "factor, kinetic energy, effective masses, base wrench and centre of mass")
+        "factor, g(q), kinetic energy, effective masses, base wrench and centre of mass")
 
 
-def subjects(model, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> dict[str, Callable[[], object]]:
+def subjects(model, Q: np.ndarray, V: np.ndarray,
+             A: np.ndarray) -> dict[str, Callable[[], object]]:
     """Callables timed beside the loop: everything (``frame_kernels``), and the kinematics of
     the two points alone (``frame_kinematics``)."""
     fk = FrameKinematics(model, [FramePoint("panda_link8", (0.0, 0.0, 0.1),

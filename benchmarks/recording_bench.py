@@ -1,16 +1,8 @@
 """Section "recording": the recorder's ceiling beside raw mcap, and dyn-audit on large bags.
 
-Recorder ceiling: N serialized 7-DoF JointStates pushed through dyn_node.recording.Recorder.write
-(queue large enough to hold them all, zstd, the recorder's chunk size) until close() has written
-everything; msgs/s = N ÷ (first write → close returned). Raw: the same bytes through
-mcap.writer.Writer with the same compression and chunk size, from the same process.
-
-Audit: a 60 s 1 kHz 7-DoF bag (60,000 joint_states) written here with dyn_node's Recorder, read
-(1) by mcap's reader alone, decompressing every message, and (2) by ``python -m dyn_node.audit``
-(a subprocess: wall time and peak RSS from wait4). Audit msgs/s is reported both end to end and
-marginal (difference against a 1 s bag, removing start-up and report-writing fixed costs). Peak
-RSS is also measured on a bag ten times larger (600 s); that audit is stopped after 240 s if it has
-not finished (the peak RSS it reached is still reported, and the row says it was stopped).
+Recorder msgs/s against mcap.writer.Writer on the same bytes; dyn-audit on a 60 s 1 kHz bag
+against mcap's reader alone (end to end and marginal), and its peak RSS on bags up to 600 s.
+Method: docs/BENCHMARK_METHODS.md.
 """
 from __future__ import annotations
 
@@ -33,7 +25,7 @@ NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 def _encoder():
     from mcap_ros2._dynamic import serialize_dynamic
 
-    from dyn_node.recording import message_definition
+    from dyn_node.msgdefs import message_definition
 
     enc = serialize_dynamic("sensor_msgs/msg/JointState", message_definition("sensor_msgs/msg/JointState"))
     return enc["sensor_msgs/msg/JointState"]
@@ -97,7 +89,7 @@ def _recorder_ceiling(payloads, stamps, tmp: Path) -> float:
 def _raw_writer(payloads, stamps, tmp: Path, chunk_size: int) -> float:
     from mcap.writer import CompressionType, Writer
 
-    from dyn_node.recording import message_definition
+    from dyn_node.msgdefs import message_definition
 
     path = tmp / f"raw_{time.perf_counter_ns()}.mcap"
     t0 = time.perf_counter()
@@ -234,7 +226,7 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
         progress("recording", f"dyn_node.audit on the {small_s:g} s and {big_s:g} s bags")
         walls: dict[float, list[float]] = {small_s: [], big_s: []}
         rss: dict[str, float] = {}
-        # Five rounds in a full run (an audit of the 60 s bag takes about a second now): the
+        # Five rounds in a full run (an audit of the 60 s bag is short): the
         # median of five resists a busy core better than the median of three.
         for k in range(1 if quick or smoke else 5):
             for s in (small_s, big_s):

@@ -198,7 +198,7 @@ def _feasibility_rows(d: dict) -> list[list[str]]:
     if "frame_kernels_s" in d:
         rows.append(row(d["what_frame_kernels"], d["frame_kernels_s"], d["ratio_frame_kernels"],
                         "a fraction of the 2.0× of issue 18"))
-        rows.append(row(d["what_frame_kernels"] + ": the two points' kinematics alone",
+        rows.append(row(d["what_frame_kernels"] + ": **the two points' kinematics alone**",
                         d["frame_kinematics_s"], d["ratio_frame_kinematics"]))
     for mode, label in (("default", "glibc's defaults"), ("retain", "freed memory kept mapped")):
         h = d.get("heap", {}).get(mode)

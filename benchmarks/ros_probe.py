@@ -1,16 +1,9 @@
 """The live benchmark's measuring end: drives the publisher, receives a subject's output.
 
-Run as ``python -m benchmarks.ros_probe --output TOPIC --subject-pid PID --rates 1000,2000
---window 3 --out result.json``. It starts benchmarks.ros_publisher as a child, waits until the
-subject is matched on both sides, warms up, then for each rate publishes for ``window`` seconds
-and measures, from what arrives on TOPIC:
-  - latency: receipt wall time minus the message's header stamp (the publisher's publish time),
-    p50 and p99 over the window (µs);
-  - loss: messages sent in the window whose stamp never came back (fraction);
-  - CPU share of the subject: Δ(utime + stime) of /proc/<pid>/stat over the window ÷ wall time
-    (1.0 = one core busy).
-Stepping stops after the first rate that loses more than 1%. Output topics are subscribed raw
-(serialized) and only the stamp is read from the CDR bytes, so the probe keeps up at high rates.
+``python -m benchmarks.ros_probe --output TOPIC --subject-pid PID --rates 1000,2000 --window 3
+--out result.json``: per rate, stamp-to-receipt latency p50/p99, loss and the subject's CPU share;
+it stops after the first rate that loses more than 1%. Outputs are subscribed raw and only the
+stamp is read, so the probe keeps up at high rates. Definitions: docs/BENCHMARK_METHODS.md.
 """
 from __future__ import annotations
 

@@ -1,25 +1,9 @@
 """`make soak`: the demo stack at 1 kHz for a long time; memory, file descriptors, latency drift, loss.
 
-Starts ``dyn_sim`` (Panda, real time, ``publish_rate_hz:=1000``) and ``dyn_node`` (model from the
-``robot_description`` topic, recording on with ``record.max_bag_duration_s`` splitting) as child
-processes on their own ROS domain, and a probe in this process that subscribes to ``joint_states``
-and ``/dyn_node/inverse_dynamics``. Every ``--sample-s`` seconds it reads the node's resident set
-size (``/proc/PID/status`` VmRSS) and open file descriptors (``/proc/PID/fd``). At the end it
-stops both children with SIGINT and reads the bag's ``metadata.yaml``.
-
-Figures (printed, and written as JSON to ``--out``):
-- memory growth: least-squares slope of the node's RSS over time after a warm-up (MB/h);
-- fd count: first, last and maximum;
-- latency: per minute, p50/p99 of (probe receipt of ~/inverse_dynamics − its header stamp), ms;
-  the stamp is dyn_sim's wall-clock-based joint_states stamp, so this is stamp → answer latency
-  (it includes dyn_sim publishing late when starved of CPU); and the "hop": probe receipt of the
-  answer − probe receipt of the same joint_states message (the node's share, ± probe scheduling);
-- loss: joint_states the probe saw that the node never answered (excluding the last 2 s), gaps in
-  dyn_sim's evenly spaced stamps as seen by the probe, the node's ``dropped_messages`` /
-  ``invalid_messages`` on /diagnostics, and the recorder's per-topic received/written/dropped.
-
-Run: ``python -m benchmarks.soak [--minutes 30] [--domain 73] [--out soak_out/soak.json]``.
-Not part of the test suite (it runs for as long as asked).
+``python -m benchmarks.soak [--minutes 30] [--domain 73] [--out soak_out/soak.json]`` runs dyn_sim
+and dyn_node (recording, splitting) as children with a probe in this process, samples the node's
+RSS and fds, and reports RSS slope, fd counts, per-minute latency and every loss count (their
+definitions: docs/BENCHMARK_METHODS.md). Not part of the test suite.
 """
 from __future__ import annotations
 

@@ -1,17 +1,9 @@
 """Process-wide heap settings for programs that check trajectories (no rclpy).
 
-A feasibility check builds a few dozen sample arrays of N×nv doubles (560 KB each at 10,000
-samples of 7 joints) and frees them at the end. With glibc's defaults, memory freed at the top
-of the heap beyond a small threshold goes back to the kernel, so the next check takes every page
-again as a fresh page fault. On the virtual machines this project runs on, a minor fault costs
-1-8 µs, and a 10,000-sample check made about 3,300 of them: 3-14 ms on a 42-54 ms check
-(three ``make bench`` runs, each way in a fresh process).
-
-:func:`retain_freed_memory` asks glibc to keep up to ``keep_bytes`` of freed memory mapped, and
-to serve blocks up to ``heap_block_bytes`` from the heap rather than from their own mmap. That
-trades a bounded amount of resident memory after a large check for checks that touch no fresh
-pages. It changes the whole process, so only programs call it (the dyn_node and dyn-audit entry
-points, and the benchmark that measures the check as the node runs it), never the library.
+With glibc's defaults the sample arrays a check frees go back to the kernel, so the next check
+faults every page in again. :func:`retain_freed_memory` keeps a bounded amount of freed memory
+mapped instead. It changes the whole process, so only programs call it (the dyn_node and
+dyn-audit entry points, the benchmark), never the library. Figures: docs/INTERNALS.md.
 """
 from __future__ import annotations
 
@@ -22,9 +14,8 @@ import ctypes.util
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 
-#: Freed memory glibc keeps mapped (bytes). A 10,000-sample 7-joint check leaves about 17 MiB
-#: resident for the next one; a 100,000-sample check peaks near 180 MiB, more than this, so
-#: glibc trims as usual afterwards and the process returns to its size before the check.
+#: Freed memory glibc keeps mapped (bytes): more than a 10,000-sample 7-joint check needs, less
+#: than a 100,000-sample one, after which glibc trims as usual.
 DEFAULT_KEEP_BYTES = 64 << 20
 #: Blocks up to this size come from the heap (glibc's own dynamic threshold stops at 32 MiB).
 DEFAULT_HEAP_BLOCK_BYTES = 32 << 20

@@ -1,27 +1,9 @@
 """dyn-audit: replay a bag through the node's own core and write an EvidenceRecord and a report.
 
-``dyn-audit BAG [--robot-description FILE | --robot-model NAME] [--limits FILE] [--out DIR]
-[--topics T ...]``. The bag is streamed (constant memory): joint_states go through the same
-:class:`~dyn_node.monitor.Monitor` and :class:`~dyn_node.monitor.ControllerTracker` the node runs,
-in the order the node received them (file order = log-time order), with the recorded header
-stamps and log (receipt) times as time; each joint_trajectory goes through
-:func:`~dyn_node.feasibility.check_trajectory`. When the bag holds the node's own outputs
-(``*/gravity_torque``, ``*/inverse_dynamics``, ``*/feasibility``) they are recomputed and the
-largest difference per topic reported (0.0: bit-identical).
-
-Speed: runs of consecutive joint_states on one topic with one byte layout and no gap are decoded
-at once and replayed through :meth:`Monitor.process_batch` / :meth:`ControllerTracker.update_batch`,
-which give exactly the numbers of message-by-message replay (tests compare the two evidence
-records); any other message, and any run the batch path declines (an invalid message in it), is
-replayed message by message.
-
-Configurations: every ``dyn_node`` metadata record of the bag is read first; each later one is
-replayed from its ``effective_log_time_ns`` (a new monitor and tracker, as the node rebuilds its
-core at a parameter change). A re-check under a configuration other than the node's (an
-override that gives another model or limits) is reported "not comparable: <what differs>".
-
-Exit codes (:func:`dyn_node.exit_codes.exit_code`): 0 everything feasible, 1 violations found,
-2 unusable input (one-line error), 3 partial (parts unreadable, no violations in the rest).
+The bag is streamed (constant memory) through the same Monitor, ControllerTracker and
+check_trajectory the node runs, and the node's recorded outputs are recomputed and compared.
+Usage, outputs and exit codes: README "Offline audit"; batch replay and configuration changes:
+docs/BAGS.md.
 """
 from __future__ import annotations
 
@@ -31,21 +13,28 @@ import sys
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import yaml
 
 from . import __version__
 from .allocator import retain_freed_memory
-from .bag_reader import (BagError, BagMessage, BagReader, MessageDecoder, decode_joint_state,
-                         decode_joint_state_batch)
+from .bag_reader import BagMessage, BagReader, MessageDecoder
+from .cdr import decode_joint_state, decode_joint_state_batch
+from .cli import run_command
 from .errors import (CONTROL_ERROR, EVALUATION_ERROR, PLANNING_ERROR, STATE_ERROR, DynNodeError,
                      InputError, TrajectoryError)
 from .evidence import EvidenceRecord, jsonable, utc_now
+from .units import joint_units
 
 from .exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code  # noqa: F401
+
+if TYPE_CHECKING:
+    from .model_source import ModelCache
+
 MAX_BINS = 1024          # time bins kept for plots (adaptive width: memory flat in bag length)
 MAX_EPISODES = 1000      # violation episodes listed (the rest are counted)
 MAX_EXAMPLES = 50        # invalid / out-of-order examples and gaps listed
@@ -79,6 +68,8 @@ class AuditOptions:
     gap_threshold_s: float = 0.05
     progress: bool | None = None    # None: only when stderr is a terminal
     report: bool = True
+    # models built earlier in this process (a fleet worker's); None (dyn-audit): built per bag
+    model_cache: "ModelCache | None" = field(default=None, compare=False, repr=False)
 
 
 @dataclass
@@ -555,15 +546,15 @@ def model_differences(recorded: Any, used: Any) -> list[str]:
 
 # --- the audit ----------------------------------------------------------------------------
 class Audit:
-    """One pass over a bag; :meth:`run` returns the EvidenceRecord dict and the plot series."""
+    """One pass over a bag, in stages: :meth:`read` (the bag and its configurations),
+    :class:`Replay` (the inputs through the node's core), :class:`Rechecker` (the recorded outputs
+    against the replayed ones), :func:`build_evidence`, :func:`add_verdict`. :meth:`run` chains
+    them and returns the EvidenceRecord dict, the exit code and the plot series."""
 
     def __init__(self, opts: AuditOptions):
         self.opts = opts
         self.findings: list[str] = []
         self.decoder = MessageDecoder()
-        # (model, log time ns, q, q̇) of the last accepted joint_states: a trajectory whose first
-        # point lies ahead starts from it, as in the node (feasibility.current_state)
-        self.last_state: tuple[Any, int, np.ndarray, np.ndarray] | None = None
 
     # configuration -------------------------------------------------------------------------
     def _configure(self, reader: BagReader) -> None:
@@ -636,7 +627,8 @@ class Audit:
         for one metadata record; ``overrides_on=False``: what the node itself used."""
         from dataclasses import replace
 
-        from .settings import SPECS, Settings, SettingsError, settings_from_mapping
+        from .errors import SettingsError
+        from .settings import SPECS, Settings, settings_from_mapping
 
         params = parameters_from_yaml(meta.get("parameters", ""))
         known = {k: v for k, v in params.items() if k in SPECS}
@@ -692,7 +684,7 @@ class Audit:
     def _resolve(self, meta: dict, topic_desc: str, *, first: bool,
                  since_ns: int | None = None) -> "_Config":
         """The configuration of one metadata record, and how it differs from the node's."""
-        from .monitor import build_model
+        from .model_source import build_model
 
         findings: list[str] = []
         settings, overrides, missing = self._bag_settings(meta, topic_desc, findings, overrides_on=True)
@@ -701,7 +693,7 @@ class Audit:
                              "metadata, no /robot_description); pass --robot-model or "
                              "--robot-description", code="no_model")
         try:
-            model = build_model(settings)
+            model = build_model(settings, cache=self.opts.model_cache)
         except DynNodeError as exc:
             raise AuditError(f"robot model unusable: {exc}", code="no_model") from None
         differs: list[str] = []
@@ -712,7 +704,8 @@ class Audit:
             node_settings, _, node_missing = self._bag_settings(meta, topic_desc, [], overrides_on=False)
             if node_settings.has_model_source and not node_missing:
                 try:
-                    differs += model_differences(build_model(node_settings), model)
+                    differs += model_differences(
+                        build_model(node_settings, cache=self.opts.model_cache), model)
                 except DynNodeError as exc:
                     differs.append(f"the recorded model cannot be rebuilt here ({exc})")
         for f in findings:
@@ -739,501 +732,377 @@ class Audit:
                 return m
         return None
 
-    # main loop -----------------------------------------------------------------------------
-    def run(self) -> tuple[dict, int, "SeriesBins | None"]:
-        from .dynamics import Dynamics, DynamicsOptions
-        from .monitor import ControllerTracker, Monitor
+    # the stages ----------------------------------------------------------------------------
+    def read(self) -> "AuditSource":
+        """Stage 1: open the bag and resolve the configurations to replay under."""
+        reader = open_bag(self.opts.bag)
+        self._configure(reader)
+        return AuditSource(reader, self.configurations, self.overrides, self.model_source,
+                           self.bag_metadata_version, self.findings)
 
+    def run(self) -> tuple[dict, int, "SeriesBins | None"]:
+        """read → replay (with the re-check of the recorded outputs alongside) → evidence →
+        verdict; returns the EvidenceRecord dict, the exit code and the plot series."""
         opts = self.opts
         started = utc_now()
         wall0 = time.perf_counter()
-        reader = BagReader(opts.bag, topics=None)
-        bad = []
-        for f in reader.files:
-            with open(f, "rb") as fh:
-                if fh.read(8) != b"\x89MCAP0\r\n":
-                    bad.append(f.name)
-        if len(bad) == len(reader.files):
-            raise AuditError(f"bag {opts.bag} is unreadable: {', '.join(bad)} is not an MCAP file",
-                             code="bag_unreadable")
-        self._configure(reader)
-        model, settings = self.model, self.settings
-        nv = model.nv
-        self.monitor = Monitor(model, settings)
-        self.tracker = ControllerTracker(model, settings)
-        self.traj_dynamics = Dynamics(model, DynamicsOptions(include_friction=settings.include_friction))
-        lim = model.limits
-        lo, hi, vel_lim = lim.position_lower, lim.position_upper, lim.velocity
-        names = model.joint_names
+        source = self.read()
+        reader = source.reader
+        recheck = Rechecker(reader.known_topics(), self.decoder)
+        replay = Replay(source.configurations, gap_threshold_s=opts.gap_threshold_s,
+                        decoder=self.decoder, sink=recheck)
+        roles = Roles(opts.topics)
+        self.n_msgs = stream(reader, roles, replay, recheck, _Progress(reader, opts.progress))
+        result = replay.finish()
+        self.settings, self.model = result.settings, result.model
+        require_inputs(opts.bag, reader, result, source.first.model)
+        rec = build_evidence(opts, source, roles, result, recheck.result())
+        rec.started_utc = started
+        code = add_verdict(rec, source, result, gap_threshold_s=opts.gap_threshold_s)
+        rec.duration_s = time.perf_counter() - wall0
+        rec.finished_utc = utc_now()
+        return rec.to_dict(), code, result.live.series
 
-        roles: dict[str, str | None] = {}
-        wanted = set(opts.topics)
-        live = LiveStats(nv, lo, hi, vel_lim, lim.deceleration)
-        gaps: list[dict] = []
-        stale: list[dict] = []
-        n_gaps = n_stale = 0
-        invalid_examples: list[dict] = []
-        invalid_count = 0
-        invalid_by_reason: dict[str, int] = {}
-        ooo_examples: list[dict] = []
-        prev_log: int | None = None
-        pend = {ROLE_GRAVITY: _Pending(), ROLE_ID: _Pending(), ROLE_FEAS: _Pending(),
-                ROLE_TRAJ_EFFORT: _Pending()}
-        recheck = {ROLE_GRAVITY: Recheck(), ROLE_ID: Recheck(), ROLE_FEAS: Recheck(),
-                   ROLE_TRAJ_EFFORT: Recheck()}
-        recheck_topics: dict[str, str] = {}
-        lat_stamp, lat_receipt = Histogram(), Histogram()
-        input_log: OrderedDict[int, int] = OrderedDict()  # stamp → input log time (for latency)
-        trajectories: list[dict] = []
-        n_traj = n_traj_bad = 0
-        ctrl_transitions: list[dict] = []
-        ctrl_time: dict[str, float] = {}
-        ctrl_last: tuple[str, int] | None = None
-        recorded_ctrl: dict[str, int] = {}
-        traj_failure_labels: set[str] = set()
-        js_topics: set[str] = set()
-        progress = _Progress(reader, opts.progress)
-        # Recomputed outputs are kept for matching only when the bag may hold the node's outputs.
-        known = reader.known_topics()
-        want_out = {r: known is None or any(t.rstrip("/").rsplit("/", 1)[-1] == r for t in known)
-                    for r in (ROLE_GRAVITY, ROLE_ID, ROLE_FEAS, ROLE_TRAJ_EFFORT)}
-        n_msgs = 0
-        gap_ns = opts.gap_threshold_s * 1e9
+
+# --- stage 1: read ------------------------------------------------------------------------
+@dataclass
+class AuditSource:
+    """The bag and how its node was configured: the first configuration, then each change."""
+
+    reader: BagReader
+    configurations: list[_Config]
+    overrides: dict[str, Any]
+    model_source: str
+    bag_metadata_version: Any
+    findings: list[str]  # shared with the later stages, which append theirs
+
+    @property
+    def first(self) -> _Config:
+        return self.configurations[0]
+
+
+def open_bag(bag: str) -> BagReader:
+    """A streaming reader of the bag; AuditError when none of its files is an MCAP file."""
+    reader = BagReader(bag, topics=None)
+    bad = []
+    for f in reader.files:
+        with open(f, "rb") as fh:
+            if fh.read(8) != b"\x89MCAP0\r\n":
+                bad.append(f.name)
+    if len(bad) == len(reader.files):
+        raise AuditError(f"bag {bag} is unreadable: {', '.join(bad)} is not an MCAP file",
+                         code="bag_unreadable")
+    return reader
+
+
+class Roles:
+    """Each topic's role (by type and name; None: not used), restricted to ``wanted`` if given."""
+
+    def __init__(self, wanted: Sequence[str] = ()):
+        self.wanted = set(wanted)
+        self.seen: dict[str, str | None] = {}
+
+    def of(self, m: BagMessage) -> str | None:
+        role = self.seen.get(m.topic, "?")
+        if role == "?":
+            role = _role(m.topic, m.channel.schema_name)
+            if self.wanted and m.topic not in self.wanted:
+                role = None
+            self.seen[m.topic] = role
+        return role
+
+
+def stream(reader: BagReader, roles: Roles, replay: "Replay", recheck: "Rechecker | None",
+           progress: "_Progress | None" = None) -> int:
+    """Every message of the bag in file order to the stage that takes its role; the number of
+    messages read. The replay goes first: it answers an output's input before the output."""
+    n_msgs = 0
+    for m in reader.messages():
+        n_msgs += 1
+        if progress is not None and n_msgs & 1023 == 0:
+            progress.update(n_msgs)
+        role = roles.of(m)
+        if role is None:
+            continue
+        if replay.feed(role, m) or recheck is None:
+            continue
+        recheck.output(role, m, replay.model)
+    if progress is not None:
+        progress.done(n_msgs)
+    return n_msgs
+
+
+# --- stage 2: replay ----------------------------------------------------------------------
+class Capped:
+    """A count, and the first ``cap`` items for the record."""
+
+    def __init__(self, cap: int):
+        self.cap = cap
+        self.items: list[dict] = []
+        self.total = 0
+
+    def add(self, item: dict) -> None:
+        self.total += 1
+        if len(self.items) < self.cap:
+            self.items.append(item)
+
+
+class ControllerTimeline:
+    """The replayed controller states: transitions (the first MAX_EPISODES), time in each state,
+    and the states the node recorded on ~/controller_status (informational)."""
+
+    def __init__(self) -> None:
+        self.transitions: list[dict] = []
+        self.time_in_state: dict[str, float] = {}
+        self.last: tuple[str, int] | None = None
+        self.recorded: dict[str, int] = {}
+
+    def enter(self, state: str, t_ns: int) -> None:
+        self.close(t_ns)
+        self.last = (state, t_ns)
+        if len(self.transitions) < MAX_EPISODES:
+            self.transitions.append({"t_ns": t_ns, "state": state})
+
+    def close(self, t_ns: int | None) -> None:
+        """The time in the current state until ``t_ns``."""
+        if self.last is not None and t_ns is not None:
+            st, since = self.last
+            self.time_in_state[st] = self.time_in_state.get(st, 0.0) + (t_ns - since) * 1e-9
+
+
+@dataclass
+class ReplayResult:
+    """What replaying the inputs gave: the live statistics, the input quality, the trajectory
+    verdicts and the controller timeline, under the last configuration replayed."""
+
+    live: LiveStats
+    counts: Any                 # Monitor counts, carried across configurations as in the node
+    model: Any                  # the last configuration's model and settings
+    settings: Any
+    js_topics: set[str]
+    last_log_ns: int | None     # latest joint_states log time
+    gaps: Capped
+    stale: Capped
+    invalid: Capped
+    invalid_by_reason: dict[str, int]
+    out_of_order: list[dict]
+    trajectories: Capped
+    trajectories_bad: int       # executed trajectories infeasible or rejected
+    trajectory_failure_labels: set[str]
+    controller: ControllerTimeline
+
+
+class Replay:
+    """Stage 2: joint_states through the node's Monitor and ControllerTracker, trajectories
+    through check_trajectory, a new core from each configuration change on. The values the node
+    would have published go to ``sink`` (the re-check; None: not kept)."""
+
+    def __init__(self, configurations: Sequence[_Config], *, gap_threshold_s: float = 0.05,
+                 decoder: MessageDecoder | None = None, sink: "Rechecker | None" = None):
+        first = configurations[0]
+        self.changes = list(configurations[1:])
+        lim = first.model.limits
+        self.live = LiveStats(first.model.nv, lim.position_lower, lim.position_upper, lim.velocity,
+                              lim.deceleration)
+        self.monitor: Any = None
+        self.tracker: Any = None
+        self._use(first)
+        self.decoder = decoder or MessageDecoder()
+        self.sink = sink
+        self.gap_ns = gap_threshold_s * 1e9
+        # (model, log time ns, q, q̇) of the last accepted joint_states: a trajectory whose first
+        # point lies ahead starts from it, as in the node (feasibility.current_state)
+        self.last_state: tuple[Any, int, np.ndarray, np.ndarray] | None = None
+        self.prev_log: int | None = None
+        self.js_topics: set[str] = set()
+        self.gaps, self.stale, self.invalid = Capped(MAX_EXAMPLES), Capped(MAX_EXAMPLES), Capped(MAX_EXAMPLES)
+        self.invalid_by_reason: dict[str, int] = {}
+        self.out_of_order: list[dict] = []
+        self.trajectories = Capped(MAX_TRAJECTORIES)
+        self.trajectories_bad = 0
+        self.trajectory_failure_labels: set[str] = set()
+        self.controller = ControllerTimeline()
         # Consecutive joint_states of one topic with one byte layout and no gap are queued as a
         # run and replayed in one batch (decoded at once, Monitor.process_batch); anything else,
         # and any run the batch path declines, goes message by message. Both give the same numbers.
-        run_topic, run_len, run_t, run_d = "", -1, [], []
+        self._run_topic, self._run_len, self._run_t, self._run_d = "", -1, [], []
 
-        changes = list(self.configurations[1:])
-
-        def switch(cfg: _Config) -> None:
-            """What the node does when a parameter is set: a new core (monitor, tracker) from
-            now on, the counts and the plan being tracked carried over."""
-            live.flush()
-            self.settings, self.model = cfg.settings, cfg.model
-            self.monitor = Monitor(cfg.model, cfg.settings, self.monitor.counts)
-            tracker = ControllerTracker(cfg.model, cfg.settings)
-            tracker._plan = self.tracker._plan
-            self.tracker = tracker
-            self.traj_dynamics = Dynamics(cfg.model, DynamicsOptions(
-                include_friction=cfg.settings.include_friction))
-            cl = cfg.model.limits
-            live.lo, live.hi, live.vel = cl.position_lower, cl.position_upper, cl.velocity
-            live.dec = cl.deceleration
-
-        def gap_check(topic: str, t_ns: int) -> None:
-            nonlocal prev_log, n_gaps, n_stale, ctrl_last
-            js_topics.add(topic)
-            if prev_log is not None and t_ns - prev_log > gap_ns:
-                g = {"start_ns": prev_log, "end_ns": t_ns}
-                n_gaps += 1
-                # nothing is known about the limits during a gap: a violation episode ends at
-                # its last sample before it, and one after it is a new episode
-                live.finish()
-                if len(gaps) < MAX_EXAMPLES:
-                    gaps.append(g)
-                if t_ns - prev_log > self.settings.stale_timeout * 1e9:
-                    n_stale += 1
-                    if len(stale) < MAX_EXAMPLES:
-                        stale.append(g)
-                    # The node's controller-status timer sees the silence: stale just after
-                    # stale_timeout (its timer period is not replayed).
-                    stale_ns = prev_log + int(self.settings.stale_timeout * 1e9) + 1000
-                    if self.tracker.tick(stale_ns * 1e-9):
-                        if ctrl_last is not None:
-                            ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (
-                                stale_ns - ctrl_last[1]) * 1e-9
-                        ctrl_last = (self.tracker.state, stale_ns)
-                        if len(ctrl_transitions) < MAX_EPISODES:
-                            ctrl_transitions.append({"t_ns": stale_ns, "state": self.tracker.state})
-            prev_log = t_ns if prev_log is None or t_ns > prev_log else prev_log
-
-        def transition(st: str, t_ns: int) -> None:
-            nonlocal ctrl_last
-            if ctrl_last is not None:
-                ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (t_ns - ctrl_last[1]) * 1e-9
-            ctrl_last = (st, t_ns)
-            if len(ctrl_transitions) < MAX_EPISODES:
-                ctrl_transitions.append({"t_ns": t_ns, "state": st})
-
-        def js_one(topic: str, t_ns: int, data: bytes) -> None:
-            nonlocal invalid_count
-            receipt_s = t_ns * 1e-9
-            try:
-                js = decode_joint_state(data)
-            except ValueError as exc:  # counted and tracked as the node does (Monitor.reject_message)
-                r = self.monitor.reject_message(InputError(str(exc), code="undecodable"), receipt_s)
-            else:
-                stamp_s = js.sec + js.nanosec * 1e-9
-                r = self.monitor.process(js.names, js.position, js.velocity, js.effort, stamp_s, receipt_s)
-            if self.tracker.update(r, receipt_s) or ctrl_last is None:
-                transition(self.tracker.state, t_ns)
-            if not r.accepted:
-                invalid_count += 1
-                code = r.error.code
-                invalid_by_reason[code] = invalid_by_reason.get(code, 0) + 1
-                if len(invalid_examples) < MAX_EXAMPLES:
-                    invalid_examples.append({"t_ns": t_ns, "reason": str(r.error), "code": code,
-                                             "topic": topic})
-                return
-            self.last_state = (self.model, t_ns, r.q, r.v)
-            if r.out_of_order and len(ooo_examples) < MAX_EXAMPLES:
-                ooo_examples.append({"t_ns": t_ns, "stamp_ns": js.stamp_ns})
-            stamp_key = output_stamp_ns(r.stamp_s) if r.zero_stamp else js.stamp_ns
-            if want_out[ROLE_GRAVITY]:
-                pend[ROLE_GRAVITY].put(stamp_key, r.gravity)
-                input_log[stamp_key] = t_ns
-                if len(input_log) > MAX_PENDING:
-                    input_log.popitem(last=False)
-            if want_out[ROLE_ID]:
-                pend[ROLE_ID].put(stamp_key, r.tau)
-            tau = r.tau
-            live.add(t_ns, tau, r.utilisation, r.effort_limit, r.q, r.v,
-                     None if r.residual is None else r.residual + tau, r.a_hat)
-
-        def js_batch(ts: list[int], datas: list[bytes]) -> bool:
-            jb = decode_joint_state_batch(datas)
-            if jb is None or jb.position is None:
-                return False
-            stamp_s = jb.sec.astype(float) + jb.nanosec.astype(float) * 1e-9
-            T = np.array(ts, dtype=np.int64)
-            receipt = T.astype(float) * 1e-9
-            b = self.monitor.process_batch(jb.names, jb.position, jb.velocity, jb.effort, stamp_s,
-                                           receipt)
-            if b is None:
-                return False
-            self.last_state = (self.model, ts[-1], b.q[-1], b.v[-1])  # every row was accepted
-            before = self.tracker.state
-            changes = self.tracker.update_batch(b, receipt)
-            if ctrl_last is None and (not changes or changes[0][0] != 0):
-                changes.insert(0, (0, before))  # row 0 left the state as it was
-            for k, st in changes:
-                transition(st, ts[k])
-            if len(ooo_examples) < MAX_EXAMPLES and b.out_of_order.any():
-                for k in np.flatnonzero(b.out_of_order)[:MAX_EXAMPLES - len(ooo_examples)].tolist():
-                    ooo_examples.append({"t_ns": ts[k], "stamp_ns": int(jb.stamp_ns[k])})
-            if want_out[ROLE_GRAVITY] or want_out[ROLE_ID]:
-                keys = jb.stamp_ns.tolist()
-                for k in np.flatnonzero(b.zero_stamp).tolist():
-                    keys[k] = output_stamp_ns(float(b.stamp_s[k]))
-                for k, key in enumerate(keys):
-                    if want_out[ROLE_GRAVITY]:
-                        pend[ROLE_GRAVITY].put(key, b.gravity[k])
-                        input_log[key] = ts[k]
-                        if len(input_log) > MAX_PENDING:
-                            input_log.popitem(last=False)
-                    if want_out[ROLE_ID]:
-                        pend[ROLE_ID].put(key, b.tau[k])
-            meas = (b.residual + b.tau if b.residual is not None
-                    else np.full(b.tau.shape, np.nan))
-            live.add_arrays(T, b.tau, b.utilisation, b.effort_limit, b.q, b.v, meas, b.a_hat)
+    def feed(self, role: str, m: BagMessage) -> bool:
+        """Replay one message; False when its role is not an input (a recorded output)."""
+        t_ns = m.log_time_ns
+        if self.changes and t_ns >= self.changes[0].since_ns:
+            self.flush()  # the queued joint_states were taken under the configuration before
+            while self.changes and t_ns >= self.changes[0].since_ns:
+                cfg = self.changes.pop(0)
+            self._switch(cfg)
+        if role == ROLE_JOINT_STATES:
+            self._queue(m.topic, t_ns, m.data)
             return True
+        self.flush()
+        if role in (ROLE_TRAJECTORY, ROLE_CHECK):
+            self._trajectory_request(role, m)
+        elif role == ROLE_STATES:
+            self._states_request(m)
+        elif role == ROLE_CTRL:
+            self._recorded_status(m)
+        else:
+            return False
+        return True
 
-        def flush() -> None:
-            nonlocal run_d, run_t, prev_log
-            if not run_d:
-                return
-            ts, datas = run_t, run_d
-            run_t, run_d = [], []
-            if len(datas) < MIN_BATCH or not js_batch(ts, datas):
-                for t, d in zip(ts, datas):
-                    js_one(run_topic, t, d)
-            prev_log = max(prev_log, ts[-1])
+    def finish(self) -> ReplayResult:
+        self.flush()
+        self.live.finish()
+        self.controller.close(self.prev_log)
+        return ReplayResult(self.live, self.monitor.counts, self.model, self.settings,
+                            self.js_topics, self.prev_log, self.gaps, self.stale, self.invalid,
+                            self.invalid_by_reason, self.out_of_order, self.trajectories,
+                            self.trajectories_bad, self.trajectory_failure_labels, self.controller)
 
-        for m in reader.messages():
-            n_msgs += 1
-            if n_msgs & 1023 == 0:
-                progress.update(n_msgs)
-            topic = m.topic
-            role = roles.get(topic, "?")
-            if role == "?":
-                role = _role(topic, m.channel.schema_name)
-                if wanted and topic not in wanted:
-                    role = None
-                roles[topic] = role
-            if role is None:
-                continue
-            t_ns = m.log_time_ns
-            if changes and t_ns >= changes[0].since_ns:
-                flush()  # the queued joint_states were taken under the configuration before
-                while changes and t_ns >= changes[0].since_ns:
-                    cfg = changes.pop(0)
-                switch(cfg)
-            if role == ROLE_JOINT_STATES:
-                data = m.data
-                if (topic == run_topic and len(data) == run_len and run_d
-                        and 0 <= t_ns - run_t[-1] <= gap_ns and len(run_d) < MAX_RUN):
-                    run_t.append(t_ns)
-                    run_d.append(data)
-                    continue
-                flush()
-                gap_check(topic, t_ns)
-                run_topic, run_len, run_t, run_d = topic, len(data), [t_ns], [data]
-                continue
-            flush()
-            if role in (ROLE_TRAJECTORY, ROLE_CHECK):
-                n_traj += 1
-                entry, ok_traj, res = self._trajectory(m, n_traj - 1)
-                execute = role == ROLE_TRAJECTORY
-                entry["request"] = "execute" if execute else "check"
-                # a check-only request is a question: its "no" is listed, not a violation of the run
-                if entry.get("failure_label") and execute:
-                    traj_failure_labels.add(entry["failure_label"])
-                if not entry["feasible"] and execute:
-                    n_traj_bad += 1
-                if len(trajectories) < MAX_TRAJECTORIES:
-                    trajectories.append(entry)
-                if ok_traj is not None and execute:
-                    start = entry["stamp_ns"] * 1e-9 if entry["stamp_ns"] else t_ns * 1e-9
-                    self.tracker.set_trajectory(ok_traj, start)
-                # answers are matched by the whole header the node echoes (stamp and frame_id)
-                key = (entry["stamp_ns"], entry.get("frame_id", ""))
-                if want_out[ROLE_FEAS]:
-                    pend[ROLE_FEAS].put(key, res if res is not None else entry)
-                if res is not None and want_out[ROLE_TRAJ_EFFORT]:
-                    pend[ROLE_TRAJ_EFFORT].put(key, res.waypoint_effort)
-            elif role == ROLE_STATES:
-                self._states_request(m, pend[ROLE_TRAJ_EFFORT] if want_out[ROLE_TRAJ_EFFORT] else None,
-                                     pend[ROLE_FEAS] if want_out[ROLE_FEAS] else None)
-            elif role == ROLE_TRAJ_EFFORT:
-                recheck_topics[role] = topic
-                self._recheck_traj_effort(m, pend[ROLE_TRAJ_EFFORT], recheck[ROLE_TRAJ_EFFORT])
-            elif role in (ROLE_GRAVITY, ROLE_ID):
-                recheck_topics[role] = topic
-                try:
-                    out = decode_joint_state(m.data)
-                except ValueError:
-                    recheck[role].unmatched += 1
-                    continue
-                want = pend[role].take(out.stamp_ns)
-                if want is None:
-                    recheck[role].unmatched += 1
-                    continue
-                got = out.effort
-                if out.names != names and set(out.names) == set(names):
-                    got = got[[out.names.index(n) for n in names]]
-                d = float(np.max(np.abs(got - want))) if got.shape == want.shape else math.inf
-                recheck[role].diff(d, {"stamp_ns": out.stamp_ns, "t_ns": t_ns})
-                if role == ROLE_GRAVITY:
-                    src = input_log.get(out.stamp_ns)
-                    lat_stamp.add((t_ns - out.stamp_ns) * 1e-9)
-                    if src is not None:
-                        lat_receipt.add((t_ns - src) * 1e-9)
-            elif role == ROLE_FEAS:
-                recheck_topics[role] = topic
-                self._recheck_feasibility(m, pend[ROLE_FEAS], recheck[ROLE_FEAS])
-            elif role == ROLE_CTRL:
-                try:
-                    st = self.decoder.decode(m.channel, m.data)
-                    state = next((kv.value for kv in st.values if kv.key == "state"), None)
-                    if state:
-                        recorded_ctrl[state] = recorded_ctrl.get(state, 0) + 1
-                except Exception:  # noqa: BLE001 - recorded status is informational only
-                    pass
-        flush()
-        progress.done(n_msgs)
-        live.finish()
-        series, episodes = live.series, live.episodes
-        peak_util, peak_t, peak_tau, peak_limit = live.peak_util, live.peak_t, live.peak_tau, live.peak_limit
-        peak_meas = live.peak_meas
-        if ctrl_last is not None and prev_log is not None:
-            ctrl_time[ctrl_last[0]] = ctrl_time.get(ctrl_last[0], 0.0) + (prev_log - ctrl_last[1]) * 1e-9
+    def _switch(self, cfg: _Config) -> None:
+        """What the node does when a parameter is set: a new core from now on."""
+        self.live.flush()
+        self._use(cfg)
 
-        stats = reader.stats
-        if reader.readable_files == 0:
-            raise AuditError(f"bag {opts.bag} is unreadable: "
-                             + "; ".join(u.reason for u in reader.unreadable[:3]), code="bag_unreadable")
-        if not js_topics and n_traj == 0:
-            raise AuditError(f"bag {opts.bag} has no joint_states or joint_trajectory messages "
-                             f"(topics: {', '.join(sorted(stats.message_counts)) or 'none'})",
-                             code="no_inputs")
-        if js_topics and self.monitor.counts.accepted == 0 and n_traj == 0 and invalid_examples:
-            raise AuditError(f"none of the {invalid_count} joint_states fits the model "
-                             f"{model.name} ({', '.join(names)}): {invalid_examples[0]['reason']}",
-                             code="no_valid_inputs")
-        start_ns = stats.first_ns
-        end_ns = stats.last_ns
-        for u in reader.unreadable:
-            for t in (u.start_ns, u.end_ns):
-                if t is not None:
-                    start_ns = t if start_ns is None else min(start_ns, t)
-                    end_ns = t if end_ns is None else max(end_ns, t)
-        s0 = start_ns or 0
+    def _use(self, cfg: _Config) -> None:
+        """A core (monitor, tracker, dynamics, live limits) for ``cfg``; a previous core's
+        counts and the plan it was tracking carry over."""
+        from .dynamics import Dynamics, DynamicsOptions
+        from .monitor import Monitor
+        from .tracker import ControllerTracker
 
-        def rel(t: int | None) -> float | None:
-            return None if t is None else (t - s0) * 1e-9
+        self.settings, self.model = cfg.settings, cfg.model
+        self.monitor = Monitor(cfg.model, cfg.settings,
+                               self.monitor.counts if self.monitor is not None else None)
+        tracker = ControllerTracker(cfg.model, cfg.settings)
+        if self.tracker is not None:
+            tracker._plan = self.tracker._plan
+        self.tracker = tracker
+        self.traj_dynamics = Dynamics(cfg.model, DynamicsOptions(
+            include_friction=cfg.settings.include_friction))
+        cl = cfg.model.limits
+        live = self.live
+        live.lo, live.hi, live.vel = cl.position_lower, cl.position_upper, cl.velocity
+        live.dec = cl.deceleration
 
-        # --- record ---------------------------------------------------------------------------
-        rec = EvidenceRecord(kind="audit", tool="dyn-audit")
-        rec.started_utc = started
-        topic_types = {c.topic: c.schema_name for c in reader.channels.values()}
-        rec.inputs = {
-            "bag": str(Path(opts.bag).resolve()), "files": [str(f) for f in reader.files],
-            "topics": [{"name": t, "type": topic_types.get(t, ""), "count": n,
-                        "role": roles.get(t) or "ignored"}
-                       for t, n in sorted(stats.message_counts.items())],
-            "message_counts": dict(sorted(stats.message_counts.items())),
-            "time_span": {"start_ns": start_ns, "end_ns": end_ns,
-                          "duration_s": ((end_ns - start_ns) * 1e-9) if start_ns is not None else 0.0},
-            "bytes_read": stats.bytes_read, "chunks": stats.chunks,
-            "rosbag2_metadata": bool(reader.info),
-        }
-        rec.configuration = {
-            "model": {"name": model.name, "source": self.model_source, "urdf_sha256": model.urdf_hash,
-                      "joint_names": list(names), "dof": nv, "total_mass_kg": model.total_mass,
-                      "payload_mass_kg": model.payload.mass, "gravity_m_s2": list(model.gravity)},
-            "limits": model.limits.to_dict(),
-            "parameters": self.parameters,
-            "settings_used": self._settings_dict(),
-            "overrides": self.overrides,
-            "bag_dyn_node_version": self.bag_metadata_version,
-            "gap_threshold_s": opts.gap_threshold_s,
-            "changes": [{"time_s": rel(c.since_ns), "effective_log_time_ns": c.since_ns,
-                         "parameters": _changed(prev.parameters, c.parameters),
-                         "payload_mass_kg": c.model.payload.mass}
-                        for prev, c in zip(self.configurations, self.configurations[1:])],
-        }
-        units = joint_units(model)  # each joint's own: N·m, or N for a prismatic joint
+    # joint_states --------------------------------------------------------------------------
+    def _queue(self, topic: str, t_ns: int, data: bytes) -> None:
+        run_t = self._run_t
+        if (topic == self._run_topic and len(data) == self._run_len and self._run_d
+                and 0 <= t_ns - run_t[-1] <= self.gap_ns and len(self._run_d) < MAX_RUN):
+            run_t.append(t_ns)
+            self._run_d.append(data)
+            return
+        self.flush()
+        self._gap_check(topic, t_ns)
+        self._run_topic, self._run_len, self._run_t, self._run_d = topic, len(data), [t_ns], [data]
 
-        def joint_peak(j: int, n: str) -> dict:
-            if not peak_util[j] > -np.inf:  # no accepted message
-                return {"joint": n, "unit": units["effort"][j], "peak_utilisation": None,
-                        "peak_time_s": None, "peak_effort": None, "peak_measured_effort": None,
-                        "peak_source": None, "effort_limit": float(lim.effort[j])}
-            meas = float(peak_meas[j]) if np.isfinite(peak_meas[j]) else None
-            # utilisation is the larger of |model| and |measured| over the limit: say which
-            source = "measured" if meas is not None and abs(meas) > abs(peak_tau[j]) else "model"
-            return {"joint": n, "unit": units["effort"][j], "peak_utilisation": float(peak_util[j]),
-                    "peak_time_s": rel(int(peak_t[j])), "peak_effort": float(peak_tau[j]),
-                    "peak_measured_effort": meas, "peak_source": source,
-                    "effort_limit": float(peak_limit[j])}
+    def flush(self) -> None:
+        """Replay the queued run of joint_states: in one batch, or message by message."""
+        if not self._run_d:
+            return
+        ts, datas = self._run_t, self._run_d
+        self._run_t, self._run_d = [], []
+        if len(datas) < MIN_BATCH or not self._js_batch(ts, datas):
+            for t, d in zip(ts, datas):
+                self._js_one(self._run_topic, t, d)
+        self.prev_log = max(self.prev_log, ts[-1])
 
-        per_joint = [joint_peak(j, n) for j, n in enumerate(names)]
-        violations = [{"joint": names[e["j"]], "kind": e["kind"], "start_s": rel(e["start"]),
-                       "end_s": rel(e["end"]), "peak_time_s": rel(e["peak_t"]),
-                       "peak_value": e["peak"], "limit": e["limit"],
-                       "unit": units[e["kind"]][e["j"]],
-                       "peak_ratio": (abs(e["peak"]) / e["limit"] if e["kind"] != "position"
-                                      and e["limit"] not in (0.0, math.inf) else None),
-                       "duration_s": (e["end"] - e["start"]) * 1e-9, "messages": e["n"],
-                       "failure_label": CONTROL_ERROR}
-                      for e in sorted(episodes.closed, key=lambda e: (e["start"], e["j"], e["kind"]))]
-        not_comparable = list(dict.fromkeys(x for c in self.configurations for x in c.not_comparable))
-        rc = {}
-        for role, chk in recheck.items():
-            if chk.matched or chk.unmatched:
-                d = chk.to_dict(pend[role].left())
-                d["topic"] = recheck_topics.get(role, "")
-                if chk.worst and "t_ns" in chk.worst:
-                    d["worst"] = {"stamp_ns": chk.worst.get("stamp_ns"), "time_s": rel(chk.worst["t_ns"]),
-                                  **{k: v for k, v in chk.worst.items() if k not in ("t_ns", "stamp_ns")}}
-                if not_comparable:  # a difference would only measure the other configuration
-                    d.update(comparable=False, identical=False, max_abs_difference=None,
-                             not_comparable="not comparable: " + "; ".join(not_comparable))
-                    d.pop("worst", None)
-                rc[recheck_topics.get(role, role)] = d
-        latency = {}
-        if lat_stamp.n:
-            latency["stamp_to_output_s"] = lat_stamp.to_dict()
-        if lat_receipt.n:
-            latency["receipt_to_output_s"] = lat_receipt.to_dict()
-        for e in trajectories:
-            e["time_s"] = rel(e.pop("t_ns"))
-        rec.outputs = {
-            "trajectories": trajectories, "trajectories_total": n_traj,
-            "trajectories_infeasible_or_rejected": n_traj_bad,
-            "effort": {"per_joint": per_joint, "samples": int(self.monitor.counts.accepted)},
-            "violations": violations, "violation_episodes_total": episodes.total,
-            "controller_states": {"replayed_transitions": [{"time_s": rel(c["t_ns"]), "state": c["state"]}
-                                                           for c in ctrl_transitions],
-                                  "replayed_time_in_state_s": ctrl_time,
-                                  "states_seen": sorted(ctrl_time) or sorted({c["state"] for c in ctrl_transitions}),
-                                  "recorded_status_counts": recorded_ctrl},
-            "recheck": rc, "latency": latency,
-            "monitor_counts": {"received": self.monitor.counts.received,
-                               "accepted": self.monitor.counts.accepted,
-                               "invalid": self.monitor.counts.invalid,
-                               "out_of_order": self.monitor.counts.out_of_order,
-                               "zero_stamp": self.monitor.counts.zero_stamp,
-                               "ignored_joint_values": self.monitor.counts.ignored_joint_values},
-        }
-        unreadable = [{"start_s": rel(u.start_ns), "end_s": rel(u.end_ns), "reason": u.reason,
-                       "file": u.file} for u in reader.unreadable]
-        rec.input_quality = {
-            "gaps": [{"start_s": rel(g["start_ns"]), "end_s": rel(g["end_ns"]),
-                      "duration_s": (g["end_ns"] - g["start_ns"]) * 1e-9} for g in gaps],
-            "gaps_total": n_gaps,
-            "stale_periods": [{"start_s": rel(g["start_ns"]), "end_s": rel(g["end_ns"]),
-                               "duration_s": (g["end_ns"] - g["start_ns"]) * 1e-9} for g in stale],
-            "stale_periods_total": n_stale, "stale_timeout_s": settings.stale_timeout,
-            "invalid_messages": {"count": invalid_count, "by_reason": invalid_by_reason,
-                                 "examples": [{"time_s": rel(e["t_ns"]), "reason": e["reason"],
-                                               "code": e["code"], "topic": e["topic"]}
-                                              for e in invalid_examples]},
-            "out_of_order": {"count": self.monitor.counts.out_of_order,
-                             "examples": [{"time_s": rel(e["t_ns"]), "stamp_ns": e["stamp_ns"]}
-                                          for e in ooo_examples]},
-            "zero_stamp_messages": self.monitor.counts.zero_stamp,
-            "unreadable_ranges": unreadable,
-            "data_crc": stats.data_crc, "chunks_damaged": stats.chunks_bad,
-            "chunks_crc_checked": stats.crc_checked_chunks,
-            "undecodable_messages": stats.undecodable_messages,
-            "notes": list(stats.notes),
-        }
-        # --- verdict --------------------------------------------------------------------------
-        if violations or episodes.total:
-            rec.add_label(CONTROL_ERROR)
-        for lbl in sorted(traj_failure_labels):
-            if n_traj_bad:
-                rec.add_label(lbl)
-        if invalid_count or n_stale or unreadable:
-            rec.add_label(STATE_ERROR)
-        if rc and not_comparable:
-            self.findings.append("re-check not comparable: " + "; ".join(not_comparable))
-        mism = [t for t, d in rc.items() if d["matched"] and not d["identical"] and d.get("comparable", True)]
-        if mism:
-            rec.add_label(EVALUATION_ERROR)
-            self.findings.append("re-check differs from the recorded outputs on " + ", ".join(mism))
-        bad = bool(episodes.total or n_traj_bad)
-        code = exit_code(violations=bad, partial=bool(unreadable))
-        parts = []
-        if episodes.total:
-            rated = [v for v in violations if isinstance(v["peak_ratio"], float)]
-            worst = max(rated, key=lambda v: v["peak_ratio"]) if rated else (violations or [None])[0]
-            parts.append(f"{episodes.total} live limit violation episode(s)"
-                         + (f", worst {worst['joint']} {worst['kind']} at t = {worst['peak_time_s']:.3f} s"
-                            if worst else ""))
-        if n_traj_bad:
-            parts.append(f"{n_traj_bad} of {n_traj} trajectories infeasible or rejected")
-        if not bad:
-            parts.append(f"all feasible: {self.monitor.counts.accepted} joint states, {n_traj} trajectories; "
-                         f"peak utilisation {np.max(peak_util) * 100:.0f}%" if self.monitor.counts.accepted
-                         else f"all feasible: {n_traj} trajectories")
-        if unreadable:
-            parts.append(f"PARTIAL: {len(unreadable)} unreadable range(s)")
-            self.findings.append("could not read: " + "; ".join(
-                f"{_fmt_s(u['start_s'])} – {_fmt_s(u['end_s'])} ({u['reason']})" for u in unreadable))
-        if invalid_count:
-            self.findings.append(f"{invalid_count} invalid joint_states ("
-                                 + ", ".join(f"{k}: {v}" for k, v in sorted(invalid_by_reason.items())) + ")")
-        if n_gaps:
-            self.findings.append(f"{n_gaps} gap(s) in joint_states longer than {opts.gap_threshold_s:g} s"
-                                 + (f", {n_stale} longer than stale_timeout" if n_stale else ""))
-        if self.monitor.counts.out_of_order:
-            self.findings.append(f"{self.monitor.counts.out_of_order} out-of-order joint_states stamps")
-        rec.verdict = {"result": "violations" if bad else "feasible", "exit_code": code,
-                       "summary": "; ".join(parts), "partial": bool(unreadable),
-                       "findings": self.findings}
-        rec.duration_s = time.perf_counter() - wall0
-        rec.finished_utc = utc_now()
-        self.n_msgs = n_msgs
-        return rec.to_dict(), code, series
+    def _gap_check(self, topic: str, t_ns: int) -> None:
+        self.js_topics.add(topic)
+        prev_log = self.prev_log
+        if prev_log is not None and t_ns - prev_log > self.gap_ns:
+            g = {"start_ns": prev_log, "end_ns": t_ns}
+            # nothing is known about the limits during a gap: a violation episode ends at
+            # its last sample before it, and one after it is a new episode
+            self.live.finish()
+            self.gaps.add(g)
+            if t_ns - prev_log > self.settings.stale_timeout * 1e9:
+                self.stale.add(g)
+                # The node's controller-status timer sees the silence: stale just after
+                # stale_timeout (its timer period is not replayed).
+                stale_ns = prev_log + int(self.settings.stale_timeout * 1e9) + 1000
+                if self.tracker.tick(stale_ns * 1e-9):
+                    self.controller.enter(self.tracker.state, stale_ns)
+        self.prev_log = t_ns if prev_log is None or t_ns > prev_log else prev_log
 
-    def _settings_dict(self) -> dict:
-        d = self.settings.to_parameters()
-        if d.get("robot_description"):
-            d["robot_description"] = f"<URDF, {len(d['robot_description'])} chars, sha256 {self.model.urdf_hash[:16]}>"
-        return d
+    def _js_one(self, topic: str, t_ns: int, data: bytes) -> None:
+        receipt_s = t_ns * 1e-9
+        try:
+            js = decode_joint_state(data)
+        except ValueError as exc:  # counted and tracked as the node does (Monitor.reject_message)
+            r = self.monitor.reject_message(InputError(str(exc), code="undecodable"), receipt_s)
+        else:
+            stamp_s = js.sec + js.nanosec * 1e-9
+            r = self.monitor.process(js.names, js.position, js.velocity, js.effort, stamp_s, receipt_s)
+        if self.tracker.update(r, receipt_s) or self.controller.last is None:
+            self.controller.enter(self.tracker.state, t_ns)
+        if not r.accepted:
+            code = r.error.code
+            self.invalid_by_reason[code] = self.invalid_by_reason.get(code, 0) + 1
+            self.invalid.add({"t_ns": t_ns, "reason": str(r.error), "code": code, "topic": topic})
+            return
+        self.last_state = (self.model, t_ns, r.q, r.v)
+        if r.out_of_order and len(self.out_of_order) < MAX_EXAMPLES:
+            self.out_of_order.append({"t_ns": t_ns, "stamp_ns": js.stamp_ns})
+        if self.sink is not None:
+            stamp_key = output_stamp_ns(r.stamp_s) if r.zero_stamp else js.stamp_ns
+            self.sink.expect_state(stamp_key, t_ns, r.gravity, r.tau)
+        tau = r.tau
+        self.live.add(t_ns, tau, r.utilisation, r.effort_limit, r.q, r.v,
+                      None if r.residual is None else r.residual + tau, r.a_hat)
+
+    def _js_batch(self, ts: list[int], datas: list[bytes]) -> bool:
+        jb = decode_joint_state_batch(datas)
+        if jb is None or jb.position is None:
+            return False
+        stamp_s = jb.sec.astype(float) + jb.nanosec.astype(float) * 1e-9
+        T = np.array(ts, dtype=np.int64)
+        receipt = T.astype(float) * 1e-9
+        b = self.monitor.process_batch(jb.names, jb.position, jb.velocity, jb.effort, stamp_s, receipt)
+        if b is None:
+            return False
+        self.last_state = (self.model, ts[-1], b.q[-1], b.v[-1])  # every row was accepted
+        before = self.tracker.state
+        changes = self.tracker.update_batch(b, receipt)
+        if self.controller.last is None and (not changes or changes[0][0] != 0):
+            changes.insert(0, (0, before))  # row 0 left the state as it was
+        for k, st in changes:
+            self.controller.enter(st, ts[k])
+        ooo = self.out_of_order
+        if len(ooo) < MAX_EXAMPLES and b.out_of_order.any():
+            for k in np.flatnonzero(b.out_of_order)[:MAX_EXAMPLES - len(ooo)].tolist():
+                ooo.append({"t_ns": ts[k], "stamp_ns": int(jb.stamp_ns[k])})
+        if self.sink is not None and self.sink.wants_states:
+            keys = jb.stamp_ns.tolist()
+            for k in np.flatnonzero(b.zero_stamp).tolist():
+                keys[k] = output_stamp_ns(float(b.stamp_s[k]))
+            for k, key in enumerate(keys):
+                self.sink.expect_state(key, ts[k], b.gravity[k], b.tau[k])
+        meas = (b.residual + b.tau if b.residual is not None
+                else np.full(b.tau.shape, np.nan))
+        self.live.add_arrays(T, b.tau, b.utilisation, b.effort_limit, b.q, b.v, meas, b.a_hat)
+        return True
+
+    # trajectories and requests -------------------------------------------------------------
+    def _trajectory_request(self, role: str, m: BagMessage) -> None:
+        entry, ok_traj, res = self._trajectory(m, self.trajectories.total)
+        execute = role == ROLE_TRAJECTORY
+        entry["request"] = "execute" if execute else "check"
+        # a check-only request is a question: its "no" is listed, not a violation of the run
+        if entry.get("failure_label") and execute:
+            self.trajectory_failure_labels.add(entry["failure_label"])
+        if not entry["feasible"] and execute:
+            self.trajectories_bad += 1
+        self.trajectories.add(entry)
+        if ok_traj is not None and execute:
+            start = entry["stamp_ns"] * 1e-9 if entry["stamp_ns"] else m.log_time_ns * 1e-9
+            self.tracker.set_trajectory(ok_traj, start)
+        if self.sink is not None:
+            # answers are matched by the whole header the node echoes (stamp and frame_id)
+            key = (entry["stamp_ns"], entry.get("frame_id", ""))
+            self.sink.expect_verdict(key, res if res is not None else entry)
+            if res is not None:
+                self.sink.expect_efforts(key, res.waypoint_effort)
 
     def _trajectory(self, m: BagMessage, index: int):
         from .feasibility import NO_CURRENT_STATE, FeasibilityOptions, check_trajectory, current_state
@@ -1280,24 +1149,9 @@ class Audit:
                          failure_label=PLANNING_ERROR, n_points=n_points,
                          duration_s=float(times[-1]))
             return entry, traj, None
-        d = res.to_dict()
-        entry.update(accepted=True, feasible=bool(res.feasible), error_code=None)
-        for k in ("level", "message", "failure_label", "time_scale", "payload_margin_kg", "worst_joint",
-                  "worst_constraint", "worst_ratio", "first_violation_time_s", "n_points", "duration_s",
-                  "interpolation", "start_segment", "start_state_age_s"):
-            if k in d:
-                entry[k] = d[k]
-        entry["failure_label"] = entry.get("failure_label") or None  # "" (feasible) → null
-        if "violations" in d:
-            entry["violations"] = d["violations"][:50] if isinstance(d["violations"], list) else d["violations"]
-        if "per_joint" in d:
-            entry["per_joint"] = d["per_joint"]
-        if not isinstance(entry.get("level"), str):
-            from .status import LEVEL_NAMES
-            entry["level"] = LEVEL_NAMES.get(entry.get("level"), str(entry.get("level")))
-        return entry, traj, res
+        return _verdict_entry(entry, res), traj, res
 
-    def _states_request(self, m: BagMessage, efforts: _Pending | None, verdicts: _Pending | None) -> None:
+    def _states_request(self, m: BagMessage) -> None:
         """Recompute the node's answer to an ~/inverse_dynamics_request (torques, or the rejected
         verdict), keyed by the request's header like the node's answer."""
         from . import on_demand
@@ -1315,83 +1169,493 @@ class Audit:
                                        [p.accelerations for p in pts])
             tau = on_demand.inverse_dynamics(self.traj_dynamics, Q, V, A)
         except TrajectoryError as exc:
-            if verdicts is not None:
-                verdicts.put(key, {"message": f"rejected: {exc}", "error_code": exc.code,
-                                   "n_points": len(pts), "duration_s": math.nan})
+            if self.sink is not None:
+                self.sink.expect_verdict(key, {"message": f"rejected: {exc}", "error_code": exc.code,
+                                               "n_points": len(pts), "duration_s": math.nan})
             return
-        if efforts is not None:
-            efforts.put(key, tau)
+        if self.sink is not None:
+            self.sink.expect_efforts(key, tau)
 
-    def _recorded_and_recomputed(self, m: BagMessage, pending: _Pending,
-                                 chk: Recheck) -> tuple[Any, int, Any] | None:
+    def _recorded_status(self, m: BagMessage) -> None:
+        try:
+            st = self.decoder.decode(m.channel, m.data)
+            state = next((kv.value for kv in st.values if kv.key == "state"), None)
+            if state:
+                rec = self.controller.recorded
+                rec[state] = rec.get(state, 0) + 1
+        except Exception:  # noqa: BLE001 - recorded status is informational only
+            pass
+
+
+def _verdict_entry(entry: dict[str, Any], res: Any) -> dict[str, Any]:
+    """The trajectory's entry in the record, completed from its FeasibilityResult."""
+    d = res.to_dict()
+    entry.update(accepted=True, feasible=bool(res.feasible), error_code=None)
+    for k in ("level", "message", "failure_label", "time_scale", "payload_margin_kg", "worst_joint",
+              "worst_constraint", "worst_ratio", "first_violation_time_s", "n_points", "duration_s",
+              "interpolation", "start_segment", "start_state_age_s"):
+        if k in d:
+            entry[k] = d[k]
+    entry["failure_label"] = entry.get("failure_label") or None  # "" (feasible) → null
+    if "violations" in d:
+        entry["violations"] = d["violations"][:50] if isinstance(d["violations"], list) else d["violations"]
+    if "per_joint" in d:
+        entry["per_joint"] = d["per_joint"]
+    if not isinstance(entry.get("level"), str):
+        from .status import LEVEL_NAMES
+        entry["level"] = LEVEL_NAMES.get(entry.get("level"), str(entry.get("level")))
+    return entry
+
+
+# --- stage 3: re-check --------------------------------------------------------------------
+OUTPUT_ROLES = (ROLE_GRAVITY, ROLE_ID, ROLE_FEAS, ROLE_TRAJ_EFFORT)
+
+
+@dataclass
+class RecheckResult:
+    """Per output role: the comparison, the recomputed values never answered, the topic; and
+    the latency of the recorded gravity_torque (from the input's stamp, from its receipt)."""
+
+    checks: dict[str, Recheck]
+    unanswered: dict[str, int]
+    topics: dict[str, str]
+    latency_stamp: Histogram
+    latency_receipt: Histogram
+
+
+class Rechecker:
+    """Stage 3: the node's recorded outputs against what the replay recomputed for the same
+    input (matched by header stamp). Recomputed values are kept only for the output roles whose
+    topics the bag may hold (``known_topics``; None: unknown, all kept)."""
+
+    def __init__(self, known_topics: Any = None, decoder: MessageDecoder | None = None):
+        self.want = {r: known_topics is None
+                     or any(t.rstrip("/").rsplit("/", 1)[-1] == r for t in known_topics)
+                     for r in OUTPUT_ROLES}
+        self.decoder = decoder or MessageDecoder()
+        self.pending = {r: _Pending() for r in OUTPUT_ROLES}
+        self.checks = {r: Recheck() for r in OUTPUT_ROLES}
+        self.topics: dict[str, str] = {}
+        self.lat_stamp, self.lat_receipt = Histogram(), Histogram()
+        self.input_log: OrderedDict[int, int] = OrderedDict()  # stamp → input log time (for latency)
+
+    # what the replay recomputed ------------------------------------------------------------
+    @property
+    def wants_states(self) -> bool:
+        return self.want[ROLE_GRAVITY] or self.want[ROLE_ID]
+
+    def expect_state(self, key: int, t_ns: int, gravity: np.ndarray, tau: np.ndarray) -> None:
+        if self.want[ROLE_GRAVITY]:
+            self.pending[ROLE_GRAVITY].put(key, gravity)
+            self.input_log[key] = t_ns
+            if len(self.input_log) > MAX_PENDING:
+                self.input_log.popitem(last=False)
+        if self.want[ROLE_ID]:
+            self.pending[ROLE_ID].put(key, tau)
+
+    def expect_verdict(self, key: tuple[int, str], value: Any) -> None:
+        """A FeasibilityResult, or the rejected entry, for a ~/feasibility answer."""
+        if self.want[ROLE_FEAS]:
+            self.pending[ROLE_FEAS].put(key, value)
+
+    def expect_efforts(self, key: tuple[int, str], tau: np.ndarray) -> None:
+        if self.want[ROLE_TRAJ_EFFORT]:
+            self.pending[ROLE_TRAJ_EFFORT].put(key, tau)
+
+    # what the node recorded ----------------------------------------------------------------
+    def output(self, role: str, m: BagMessage, model: Any) -> None:
+        """Compare one recorded output with its recomputed value (``model``: the one replayed)."""
+        if role not in OUTPUT_ROLES:
+            return
+        self.topics[role] = m.topic
+        if role == ROLE_TRAJ_EFFORT:
+            self._traj_effort(m, model)
+        elif role == ROLE_FEAS:
+            self._feasibility(m, model)
+        else:
+            self._torques(role, m, model)
+
+    def result(self) -> RecheckResult:
+        return RecheckResult(self.checks, {r: p.left() for r, p in self.pending.items()},
+                             self.topics, self.lat_stamp, self.lat_receipt)
+
+    def _torques(self, role: str, m: BagMessage, model: Any) -> None:
+        chk = self.checks[role]
+        try:
+            out = decode_joint_state(m.data)
+        except ValueError:
+            chk.unmatched += 1
+            return
+        want = self.pending[role].take(out.stamp_ns)
+        if want is None:
+            chk.unmatched += 1
+            return
+        names = model.joint_names
+        got = out.effort
+        if out.names != names and set(out.names) == set(names):
+            got = got[[out.names.index(n) for n in names]]
+        d = float(np.max(np.abs(got - want))) if got.shape == want.shape else math.inf
+        t_ns = m.log_time_ns
+        chk.diff(d, {"stamp_ns": out.stamp_ns, "t_ns": t_ns})
+        if role == ROLE_GRAVITY:
+            src = self.input_log.get(out.stamp_ns)
+            self.lat_stamp.add((t_ns - out.stamp_ns) * 1e-9)
+            if src is not None:
+                self.lat_receipt.add((t_ns - src) * 1e-9)
+
+    def _recorded_and_recomputed(self, m: BagMessage, role: str) -> tuple[Any, int, Any] | None:
         """(recorded output, its header stamp in ns, the value recomputed for that stamp), or None
         (counted as unmatched) when the output cannot be decoded or has no recomputed input."""
         try:
             msg = self.decoder.decode(m.channel, m.data)
         except Exception:  # noqa: BLE001 - a damaged output is a finding, not a crash
-            chk.unmatched += 1
+            self.checks[role].unmatched += 1
             return None
         key = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-        want = pending.take((key, msg.header.frame_id))
+        want = self.pending[role].take((key, msg.header.frame_id))
         if want is None:
-            chk.unmatched += 1
+            self.checks[role].unmatched += 1
             return None
         return msg, key, want
 
-    def _recheck_feasibility(self, m: BagMessage, pending: _Pending, chk: Recheck) -> None:
-        from .status import format_value
-
-        found = self._recorded_and_recomputed(m, pending, chk)
+    def _feasibility(self, m: BagMessage, model: Any) -> None:
+        found = self._recorded_and_recomputed(m, ROLE_FEAS)
         if found is None:
             return
         arr, key, res = found
         if any(st.message.startswith(("rejected: busy", "rejected: no robot model yet")) for st in arr.status):
             return  # a request the node could not take (queue full, no model yet): nothing to compare
-        if isinstance(res, dict):  # rejected: the node published rejected_statuses
-            from .feasibility import rejected_statuses
-
-            err = TrajectoryError(res["message"].removeprefix("rejected: "), code=res["error_code"] or "error")
-            statuses = rejected_statuses(err, self.model.name, res.get("n_points", 0),
-                                         res.get("duration_s", 0.0))
-        else:
-            statuses = res.statuses(self.model.name)
-        mine = {s.name: {k: format_value(v) for k, v in s.values.items()} for s in statuses}
-        worst = 0.0
-        where = None
-        for st in arr.status:
-            ref = mine.get(st.name)
-            if ref is None:
-                continue
-            for kv in st.values:
-                if kv.key not in ref or any(x in kv.key for x in RECHECK_EXCLUDED_KEYS):
-                    continue
-                a, b = kv.value, ref[kv.key]
-                try:
-                    fa, fb = float(a), float(b)
-                except ValueError:
-                    if a != b:
-                        chk.mismatched_values += 1
-                    continue
-                if fa == fb or (math.isnan(fa) and math.isnan(fb)):
-                    continue
-                d = abs(fa - fb) if math.isfinite(fa) and math.isfinite(fb) else math.inf
-                if d > worst:
-                    worst, where = d, {"status": st.name, "key": kv.key, "recorded": a, "recomputed": b}
+        worst, where, mismatched = _worst_status_difference(arr.status, _statuses(res, model.name))
+        chk = self.checks[ROLE_FEAS]
+        chk.mismatched_values += mismatched
         chk.diff(worst, {"stamp_ns": key, "t_ns": m.log_time_ns, **(where or {})})
 
-
-    def _recheck_traj_effort(self, m: BagMessage, pending: _Pending, chk: Recheck) -> None:
-        found = self._recorded_and_recomputed(m, pending, chk)
+    def _traj_effort(self, m: BagMessage, model: Any) -> None:
+        found = self._recorded_and_recomputed(m, ROLE_TRAJ_EFFORT)
         if found is None:
             return
         msg, key, want = found
         try:
-            order = [list(msg.joint_names).index(n) for n in self.model.joint_names]
+            order = [list(msg.joint_names).index(n) for n in model.joint_names]
             got = np.array([[p.effort[i] for i in order] for p in msg.points], dtype=float)
             d = float(np.max(np.abs(got - want))) if got.shape == want.shape else math.inf
         except (ValueError, IndexError):
             d = math.inf
-        chk.diff(d, {"stamp_ns": key, "t_ns": m.log_time_ns})
+        self.checks[ROLE_TRAJ_EFFORT].diff(d, {"stamp_ns": key, "t_ns": m.log_time_ns})
+
+
+def _statuses(res: Any, model_name: str) -> dict[str, dict[str, str]]:
+    """The ~/feasibility statuses the node publishes for a result (or a rejected entry), by name,
+    with their values formatted as the node formats them."""
+    from .status import format_value
+
+    if isinstance(res, dict):  # rejected: the node published rejected_statuses
+        from .feasibility import rejected_statuses
+
+        err = TrajectoryError(res["message"].removeprefix("rejected: "), code=res["error_code"] or "error")
+        statuses = rejected_statuses(err, model_name, res.get("n_points", 0), res.get("duration_s", 0.0))
+    else:
+        statuses = res.statuses(model_name)
+    return {s.name: {k: format_value(v) for k, v in s.values.items()} for s in statuses}
+
+
+def _worst_status_difference(recorded: Any, mine: dict[str, dict[str, str]]
+                             ) -> tuple[float, dict | None, int]:
+    """(largest numeric difference, where it is, number of differing non-numeric values) between
+    recorded DiagnosticStatus values and the recomputed ones (wall-clock keys excluded)."""
+    worst, where, mismatched = 0.0, None, 0
+    for st in recorded:
+        ref = mine.get(st.name)
+        if ref is None:
+            continue
+        for kv in st.values:
+            if kv.key not in ref or any(x in kv.key for x in RECHECK_EXCLUDED_KEYS):
+                continue
+            a, b = kv.value, ref[kv.key]
+            try:
+                fa, fb = float(a), float(b)
+            except ValueError:
+                mismatched += a != b
+                continue
+            if fa == fb or (math.isnan(fa) and math.isnan(fb)):
+                continue
+            d = abs(fa - fb) if math.isfinite(fa) and math.isfinite(fb) else math.inf
+            if d > worst:
+                worst, where = d, {"status": st.name, "key": kv.key, "recorded": a, "recomputed": b}
+    return worst, where, mismatched
+
+
+# --- stage 4: evidence --------------------------------------------------------------------
+def require_inputs(bag: str, reader: BagReader, r: ReplayResult, model: Any) -> None:
+    """AuditError when the bag gave nothing to audit (``model``: the first configuration's)."""
+    stats = reader.stats
+    if reader.readable_files == 0:
+        raise AuditError(f"bag {bag} is unreadable: "
+                         + "; ".join(u.reason for u in reader.unreadable[:3]), code="bag_unreadable")
+    n_traj = r.trajectories.total
+    if not r.js_topics and n_traj == 0:
+        raise AuditError(f"bag {bag} has no joint_states or joint_trajectory messages "
+                         f"(topics: {', '.join(sorted(stats.message_counts)) or 'none'})",
+                         code="no_inputs")
+    if r.js_topics and r.counts.accepted == 0 and n_traj == 0 and r.invalid.items:
+        raise AuditError(f"none of the {r.invalid.total} joint_states fits the model "
+                         f"{model.name} ({', '.join(model.joint_names)}): {r.invalid.items[0]['reason']}",
+                         code="no_valid_inputs")
+
+
+def _time_span(reader: BagReader) -> tuple[int | None, int | None]:
+    """First and last log time (ns) of the bag, unreadable ranges included."""
+    start_ns, end_ns = reader.stats.first_ns, reader.stats.last_ns
+    for u in reader.unreadable:
+        for t in (u.start_ns, u.end_ns):
+            if t is not None:
+                start_ns = t if start_ns is None else min(start_ns, t)
+                end_ns = t if end_ns is None else max(end_ns, t)
+    return start_ns, end_ns
+
+
+def _rel(s0: int, t: int | None) -> float | None:
+    return None if t is None else (t - s0) * 1e-9
+
+
+def build_evidence(opts: AuditOptions, source: AuditSource, roles: Roles, replay: ReplayResult,
+                   recheck: RecheckResult) -> EvidenceRecord:
+    """Stage 4: the EvidenceRecord's inputs, configuration, outputs and input quality (times in
+    seconds from the bag's first log time)."""
+    start_ns, end_ns = _time_span(source.reader)
+    rel = partial(_rel, start_ns or 0)
+    rec = EvidenceRecord(kind="audit", tool="dyn-audit")
+    rec.inputs = _inputs_section(opts.bag, source.reader, roles, start_ns, end_ns)
+    rec.configuration = _configuration_section(opts, source, replay, rel)
+    rec.outputs = _outputs_section(source, replay, recheck, rel)
+    rec.input_quality = _input_quality_section(source.reader, replay, source.first.settings, rel)
+    return rec
+
+
+def _inputs_section(bag: str, reader: BagReader, roles: Roles, start_ns: int | None,
+                    end_ns: int | None) -> dict:
+    stats = reader.stats
+    topic_types = {c.topic: c.schema_name for c in reader.channels.values()}
+    return {
+        "bag": str(Path(bag).resolve()), "files": [str(f) for f in reader.files],
+        "topics": [{"name": t, "type": topic_types.get(t, ""), "count": n,
+                    "role": roles.seen.get(t) or "ignored"}
+                   for t, n in sorted(stats.message_counts.items())],
+        "message_counts": dict(sorted(stats.message_counts.items())),
+        "time_span": {"start_ns": start_ns, "end_ns": end_ns,
+                      "duration_s": ((end_ns - start_ns) * 1e-9) if start_ns is not None else 0.0},
+        "bytes_read": stats.bytes_read, "chunks": stats.chunks,
+        "rosbag2_metadata": bool(reader.info),
+    }
+
+
+def _configuration_section(opts: AuditOptions, source: AuditSource, replay: ReplayResult,
+                           rel: Any) -> dict:
+    model, cfgs = source.first.model, source.configurations
+    return {
+        "model": {"name": model.name, "source": source.model_source, "urdf_sha256": model.urdf_hash,
+                  "joint_names": list(model.joint_names), "dof": model.nv,
+                  "total_mass_kg": model.total_mass, "payload_mass_kg": model.payload.mass,
+                  "gravity_m_s2": list(model.gravity)},
+        "limits": model.limits.to_dict(),
+        "parameters": source.first.parameters,
+        "settings_used": _settings_dict(replay.settings, replay.model),
+        "overrides": source.overrides,
+        "bag_dyn_node_version": source.bag_metadata_version,
+        "gap_threshold_s": opts.gap_threshold_s,
+        "changes": [{"time_s": rel(c.since_ns), "effective_log_time_ns": c.since_ns,
+                     "parameters": _changed(prev.parameters, c.parameters),
+                     "payload_mass_kg": c.model.payload.mass}
+                    for prev, c in zip(cfgs, cfgs[1:])],
+    }
+
+
+def _settings_dict(settings: Any, model: Any) -> dict:
+    d = settings.to_parameters()
+    if d.get("robot_description"):
+        d["robot_description"] = f"<URDF, {len(d['robot_description'])} chars, sha256 {model.urdf_hash[:16]}>"
+    return d
+
+
+def _joint_peak(live: LiveStats, model: Any, units: dict, rel: Any, j: int) -> dict:
+    n = model.joint_names[j]
+    if not live.peak_util[j] > -np.inf:  # no accepted message
+        return {"joint": n, "unit": units["effort"][j], "peak_utilisation": None,
+                "peak_time_s": None, "peak_effort": None, "peak_measured_effort": None,
+                "peak_source": None, "effort_limit": float(model.limits.effort[j])}
+    meas = float(live.peak_meas[j]) if np.isfinite(live.peak_meas[j]) else None
+    # utilisation is the larger of |model| and |measured| over the limit: say which
+    source = "measured" if meas is not None and abs(meas) > abs(live.peak_tau[j]) else "model"
+    return {"joint": n, "unit": units["effort"][j], "peak_utilisation": float(live.peak_util[j]),
+            "peak_time_s": rel(int(live.peak_t[j])), "peak_effort": float(live.peak_tau[j]),
+            "peak_measured_effort": meas, "peak_source": source,
+            "effort_limit": float(live.peak_limit[j])}
+
+
+def _violations(episodes: Episodes, names: Sequence[str], units: dict, rel: Any) -> list[dict]:
+    return [{"joint": names[e["j"]], "kind": e["kind"], "start_s": rel(e["start"]),
+             "end_s": rel(e["end"]), "peak_time_s": rel(e["peak_t"]),
+             "peak_value": e["peak"], "limit": e["limit"],
+             "unit": units[e["kind"]][e["j"]],
+             "peak_ratio": (abs(e["peak"]) / e["limit"] if e["kind"] != "position"
+                            and e["limit"] not in (0.0, math.inf) else None),
+             "duration_s": (e["end"] - e["start"]) * 1e-9, "messages": e["n"],
+             "failure_label": CONTROL_ERROR}
+            for e in sorted(episodes.closed, key=lambda e: (e["start"], e["j"], e["kind"]))]
+
+
+def not_comparable(source: AuditSource) -> list[str]:
+    """Why the re-check does not measure the node (the configuration replayed differs)."""
+    return list(dict.fromkeys(x for c in source.configurations for x in c.not_comparable))
+
+
+def _recheck_section(recheck: RecheckResult, differs: list[str], rel: Any) -> dict:
+    rc = {}
+    for role, chk in recheck.checks.items():
+        if not (chk.matched or chk.unmatched):
+            continue
+        d = chk.to_dict(recheck.unanswered[role])
+        d["topic"] = recheck.topics.get(role, "")
+        if chk.worst and "t_ns" in chk.worst:
+            d["worst"] = {"stamp_ns": chk.worst.get("stamp_ns"), "time_s": rel(chk.worst["t_ns"]),
+                          **{k: v for k, v in chk.worst.items() if k not in ("t_ns", "stamp_ns")}}
+        if differs:  # a difference would only measure the other configuration
+            d.update(comparable=False, identical=False, max_abs_difference=None,
+                     not_comparable="not comparable: " + "; ".join(differs))
+            d.pop("worst", None)
+        rc[recheck.topics.get(role, role)] = d
+    return rc
+
+
+def _outputs_section(source: AuditSource, replay: ReplayResult, recheck: RecheckResult,
+                     rel: Any) -> dict:
+    model = source.first.model
+    units = joint_units(model)  # each joint's own: N·m, or N for a prismatic joint
+    latency = {}
+    if recheck.latency_stamp.n:
+        latency["stamp_to_output_s"] = recheck.latency_stamp.to_dict()
+    if recheck.latency_receipt.n:
+        latency["receipt_to_output_s"] = recheck.latency_receipt.to_dict()
+    trajectories = replay.trajectories.items
+    for e in trajectories:
+        e["time_s"] = rel(e.pop("t_ns"))
+    ctrl, counts = replay.controller, replay.counts
+    return {
+        "trajectories": trajectories, "trajectories_total": replay.trajectories.total,
+        "trajectories_infeasible_or_rejected": replay.trajectories_bad,
+        "effort": {"per_joint": [_joint_peak(replay.live, model, units, rel, j)
+                                 for j in range(len(model.joint_names))],
+                   "samples": int(counts.accepted)},
+        "violations": _violations(replay.live.episodes, model.joint_names, units, rel),
+        "violation_episodes_total": replay.live.episodes.total,
+        "controller_states": {"replayed_transitions": [{"time_s": rel(c["t_ns"]), "state": c["state"]}
+                                                       for c in ctrl.transitions],
+                              "replayed_time_in_state_s": ctrl.time_in_state,
+                              "states_seen": sorted(ctrl.time_in_state)
+                              or sorted({c["state"] for c in ctrl.transitions}),
+                              "recorded_status_counts": ctrl.recorded},
+        "recheck": _recheck_section(recheck, not_comparable(source), rel), "latency": latency,
+        "monitor_counts": {"received": counts.received, "accepted": counts.accepted,
+                           "invalid": counts.invalid, "out_of_order": counts.out_of_order,
+                           "zero_stamp": counts.zero_stamp,
+                           "ignored_joint_values": counts.ignored_joint_values},
+    }
+
+
+def _periods(gs: list[dict], rel: Any) -> list[dict]:
+    return [{"start_s": rel(g["start_ns"]), "end_s": rel(g["end_ns"]),
+             "duration_s": (g["end_ns"] - g["start_ns"]) * 1e-9} for g in gs]
+
+
+def _input_quality_section(reader: BagReader, replay: ReplayResult, settings: Any, rel: Any) -> dict:
+    stats = reader.stats
+    return {
+        "gaps": _periods(replay.gaps.items, rel), "gaps_total": replay.gaps.total,
+        "stale_periods": _periods(replay.stale.items, rel),
+        "stale_periods_total": replay.stale.total, "stale_timeout_s": settings.stale_timeout,
+        "invalid_messages": {"count": replay.invalid.total, "by_reason": replay.invalid_by_reason,
+                             "examples": [{"time_s": rel(e["t_ns"]), "reason": e["reason"],
+                                           "code": e["code"], "topic": e["topic"]}
+                                          for e in replay.invalid.items]},
+        "out_of_order": {"count": replay.counts.out_of_order,
+                         "examples": [{"time_s": rel(e["t_ns"]), "stamp_ns": e["stamp_ns"]}
+                                      for e in replay.out_of_order]},
+        "zero_stamp_messages": replay.counts.zero_stamp,
+        "unreadable_ranges": [{"start_s": rel(u.start_ns), "end_s": rel(u.end_ns), "reason": u.reason,
+                               "file": u.file} for u in reader.unreadable],
+        "data_crc": stats.data_crc, "chunks_damaged": stats.chunks_bad,
+        "chunks_crc_checked": stats.crc_checked_chunks,
+        "undecodable_messages": stats.undecodable_messages,
+        "notes": list(stats.notes),
+    }
+
+
+# --- stage 5: verdict ---------------------------------------------------------------------
+def add_verdict(rec: EvidenceRecord, source: AuditSource, replay: ReplayResult, *,
+                gap_threshold_s: float) -> int:
+    """Stage 5: the failure labels, the findings and the verdict of an evidence record whose
+    other sections are filled; returns the exit code."""
+    out, quality = rec.outputs, rec.input_quality
+    violations, rc, unreadable = out["violations"], out["recheck"], quality["unreadable_ranges"]
+    episodes_total, n_traj_bad = out["violation_episodes_total"], replay.trajectories_bad
+    findings, differs = source.findings, not_comparable(source)
+    if violations or episodes_total:
+        rec.add_label(CONTROL_ERROR)
+    for lbl in sorted(replay.trajectory_failure_labels):
+        if n_traj_bad:
+            rec.add_label(lbl)
+    if replay.invalid.total or replay.stale.total or unreadable:
+        rec.add_label(STATE_ERROR)
+    if rc and differs:
+        findings.append("re-check not comparable: " + "; ".join(differs))
+    mism = [t for t, d in rc.items() if d["matched"] and not d["identical"] and d.get("comparable", True)]
+    if mism:
+        rec.add_label(EVALUATION_ERROR)
+        findings.append("re-check differs from the recorded outputs on " + ", ".join(mism))
+    bad = bool(episodes_total or n_traj_bad)
+    code = exit_code(violations=bad, partial=bool(unreadable))
+    findings += _quality_findings(replay, unreadable, gap_threshold_s)
+    rec.verdict = {"result": "violations" if bad else "feasible", "exit_code": code,
+                   "summary": "; ".join(_summary(replay, violations, episodes_total, unreadable)),
+                   "partial": bool(unreadable), "findings": findings}
+    return code
+
+
+def _summary(replay: ReplayResult, violations: list[dict], episodes_total: int,
+             unreadable: list[dict]) -> list[str]:
+    n_traj, n_traj_bad, accepted = replay.trajectories.total, replay.trajectories_bad, replay.counts.accepted
+    parts = []
+    if episodes_total:
+        rated = [v for v in violations if isinstance(v["peak_ratio"], float)]
+        worst = max(rated, key=lambda v: v["peak_ratio"]) if rated else (violations or [None])[0]
+        parts.append(f"{episodes_total} live limit violation episode(s)"
+                     + (f", worst {worst['joint']} {worst['kind']} at t = {worst['peak_time_s']:.3f} s"
+                        if worst else ""))
+    if n_traj_bad:
+        parts.append(f"{n_traj_bad} of {n_traj} trajectories infeasible or rejected")
+    if not (episodes_total or n_traj_bad):
+        parts.append(f"all feasible: {accepted} joint states, {n_traj} trajectories; "
+                     f"peak utilisation {np.max(replay.live.peak_util) * 100:.0f}%" if accepted
+                     else f"all feasible: {n_traj} trajectories")
+    if unreadable:
+        parts.append(f"PARTIAL: {len(unreadable)} unreadable range(s)")
+    return parts
+
+
+def _quality_findings(replay: ReplayResult, unreadable: list[dict], gap_threshold_s: float) -> list[str]:
+    out = []
+    if unreadable:
+        out.append("could not read: " + "; ".join(
+            f"{_fmt_s(u['start_s'])} – {_fmt_s(u['end_s'])} ({u['reason']})" for u in unreadable))
+    if replay.invalid.total:
+        out.append(f"{replay.invalid.total} invalid joint_states ("
+                   + ", ".join(f"{k}: {v}" for k, v in sorted(replay.invalid_by_reason.items())) + ")")
+    if replay.gaps.total:
+        out.append(f"{replay.gaps.total} gap(s) in joint_states longer than {gap_threshold_s:g} s"
+                   + (f", {replay.stale.total} longer than stale_timeout" if replay.stale.total else ""))
+    if replay.counts.out_of_order:
+        out.append(f"{replay.counts.out_of_order} out-of-order joint_states stamps")
+    return out
 
 
 def output_stamp_ns(t_s: float) -> int:
@@ -1504,21 +1768,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         robot_model=args.robot_model, limits=args.limits, out=args.out,
                         topics=tuple(args.topics), gap_threshold_s=args.gap_threshold,
                         report=not args.no_report)
-    try:
-        res = run_audit(opts)
-    except (AuditError, BagError) as exc:
-        print(f"dyn-audit: error: {exc}", file=sys.stderr)
-        return EXIT_UNUSABLE
-    except DynNodeError as exc:
-        print(f"dyn-audit: error: {exc}", file=sys.stderr)
-        return EXIT_UNUSABLE
-    except OSError as exc:
-        print(f"dyn-audit: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "),
-              file=sys.stderr)
-        return EXIT_UNUSABLE
-    except KeyboardInterrupt:
-        print("dyn-audit: interrupted", file=sys.stderr)
-        return 130
+    return run_command("dyn-audit", partial(run_audit, opts), partial(_print_result, opts))
+
+
+def _print_result(opts: AuditOptions, res: AuditResult) -> int:
     v = res.record["verdict"]
     print(f"{v['result'].upper()}: {v['summary']}")
     for f in v.get("findings", []):

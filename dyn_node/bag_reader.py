@@ -4,7 +4,8 @@ Reads one top-level record at a time (a chunk is at most a few MB), so a bag lar
 streams in constant memory. Damage never raises mid-stream: a chunk whose CRC does not match or
 that cannot be decompressed or parsed, and a file that ends early, are reported as
 :class:`UnreadableRange` (the log-time range, ns since the epoch, that was lost) and reading goes
-on with the next readable record or file.
+on with the next readable record or file. A string that is not UTF-8 is damage (its record is
+skipped and reported), never a value with replacement characters in it.
 
 Accepts: a rosbag2 directory (``metadata.yaml`` + ``*.mcap``, ours or recorded elsewhere with
 ``ros2 bag record -s mcap``), a directory of ``.mcap`` files, or a single ``.mcap`` file.
@@ -20,6 +21,7 @@ from typing import Iterator, NamedTuple, Sequence
 
 import yaml
 
+from .cdr import _array_spans, decode_joint_state, decode_joint_state_batch  # noqa: F401 - for tests
 from .errors import STATE_ERROR, DynNodeError
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -136,6 +138,7 @@ def _salvage_map(buf: memoryview, off: int) -> tuple[dict[str, str], list[str]]:
 
 
 def _decompress(kind: str, data: bytes, size: int) -> bytes:
+    """A chunk's records from its compressed bytes (``size``: the uncompressed size declared)."""
     if kind == "":
         return data
     if kind == "zstd":
@@ -400,24 +403,7 @@ class _FileReader:
                 body = fh.read(length)
                 self.stats.bytes_read += 9 + length
                 if op == OP_DATA_END:
-                    (want,) = _U32.unpack_from(body, 0) if length >= 4 else (0,)
-                    state = "absent" if want == 0 else "ok" if want == crc else "mismatch"
-                    if state == "mismatch" and not self.skip_chunks:
-                        # Damage only in Message Indexes (the reader never uses them) lost
-                        # nothing: a note, as dyn-bag-recover gives, not a lost range.
-                        damaged = damaged_message_indexes(self.path)
-                        if damaged:
-                            state = "index_only"
-                            self.stats.notes.append(index_damage_note(name, damaged))
-                        elif not self.unreadable and skipped is None:
-                            # Every chunk passed its CRC and every record parsed, so the damage
-                            # is in a record no CRC of its own covers: what was read from this
-                            # file cannot be vouched for (dyn-bag-recover: "some data lost").
-                            self._lost(None, self.last_ns, f"{name}: data section CRC mismatch "
-                                       "outside every chunk and message index (a record without "
-                                       "a CRC of its own, e.g. metadata or a message outside a "
-                                       "chunk, holds damaged bytes)")
-                    self.stats.data_crc[name] = state
+                    self._data_end(body, crc, skipping=skipped is not None)
                     clean_end = True
                     break
                 crc = zlib.crc32(body, zlib.crc32(head, crc))
@@ -452,12 +438,39 @@ class _FileReader:
                 self._lost_skipped(skipped, None)
             self._lost_orphans()
             if not clean_end:
-                self.stats.data_crc.setdefault(name, "unchecked")
-                start = cut_start if cut_start is not None else self.last_ns
-                self._lost(start, None, f"{name}: file ends early at byte {pos} of {size} "
-                           "(truncated; no data-end record): nothing after "
-                           + ("the last readable message" if start is not None else "the header")
-                           + " could be read")
+                self._ended_early(cut_start, pos, size)
+
+    def _data_end(self, body: bytes, crc: int, *, skipping: bool) -> None:
+        """Check the data section's CRC (``crc``: computed while reading) against Data End's."""
+        name = self.path.name
+        (want,) = _U32.unpack_from(body, 0) if len(body) >= 4 else (0,)
+        state = "absent" if want == 0 else "ok" if want == crc else "mismatch"
+        if state == "mismatch" and not self.skip_chunks:
+            # Damage only in Message Indexes (the reader never uses them) lost
+            # nothing: a note, as dyn-bag-recover gives, not a lost range.
+            damaged = damaged_message_indexes(self.path)
+            if damaged:
+                state = "index_only"
+                self.stats.notes.append(index_damage_note(name, damaged))
+            elif not self.unreadable and not skipping:
+                # Every chunk passed its CRC and every record parsed, so the damage
+                # is in a record no CRC of its own covers: what was read from this
+                # file cannot be vouched for (dyn-bag-recover: "some data lost").
+                self._lost(None, self.last_ns, f"{name}: data section CRC mismatch "
+                           "outside every chunk and message index (a record without "
+                           "a CRC of its own, e.g. metadata or a message outside a "
+                           "chunk, holds damaged bytes)")
+        self.stats.data_crc[name] = state
+
+    def _ended_early(self, cut_start: int | None, pos: int, size: int) -> None:
+        """The file ended without Data End or Footer: truncated after ``pos``."""
+        name = self.path.name
+        self.stats.data_crc.setdefault(name, "unchecked")
+        start = cut_start if cut_start is not None else self.last_ns
+        self._lost(start, None, f"{name}: file ends early at byte {pos} of {size} "
+                   "(truncated; no data-end record): nothing after "
+                   + ("the last readable message" if start is not None else "the header")
+                   + " could be read")
 
     def _orphan_message(self, cid: int, log_ns: int) -> None:
         """A message on a channel without a readable schema is lost (counted, not yielded);
@@ -762,251 +775,6 @@ def _metadata_by_scan(path: Path, name: str) -> dict[str, str] | None:
         if name in fr.metadata:
             break
     return fr.metadata.get(name)
-
-
-# --- CDR decoding ----------------------------------------------------------------------------
-def _empty():
-    import numpy as np
-
-    e = np.empty(0)
-    e.setflags(write=False)
-    return e
-
-
-class JointStateData(NamedTuple):
-    """A decoded sensor_msgs/JointState: header stamp (sec, nanosec as in the message, and ns);
-    arrays as read-only float64 NumPy arrays."""
-
-    sec: int
-    nanosec: int
-    stamp_ns: int
-    frame_id: str
-    names: tuple[str, ...]
-    position: "np.ndarray"
-    velocity: "np.ndarray"
-    effort: "np.ndarray"
-
-
-_EMPTY = _empty()
-_LE_U32 = struct.Struct("<I")
-_BE_U32 = struct.Struct(">I")
-_name_cache: dict[bytes, tuple[str, ...]] = {}
-_last_names: list = [b"", ()]  # raw name section of the last little-endian message, and its names
-
-
-def decode_joint_state(data: bytes) -> JointStateData:
-    """Decode the CDR bytes of a sensor_msgs/JointState (little- or big-endian XCDR1).
-
-    Written by hand because it is the hot path of an audit (1 kHz for hours); it is checked
-    against rclpy's serializer in the tests. The name list, the same in almost every message, is
-    cached by its raw bytes. Raises ValueError on bytes that do not parse.
-    """
-    import numpy as np
-
-    if len(data) < 12 or data[0] != 0 or data[1] not in (0, 1):
-        raise ValueError("not a CDR encapsulation header")
-    le = data[1] == 1
-    u32 = (_LE_U32 if le else _BE_U32).unpack_from
-    buf = memoryview(data)[4:]
-    n = len(buf)
-    try:
-        sec, nsec = struct.unpack_from("<iI" if le else ">iI", buf, 0)
-        ln = u32(buf, 8)[0]
-        off = 12 + ln
-        if off > n:
-            raise ValueError("JointState CDR string runs past the end")
-        frame = bytes(buf[12:off - 1]).decode("utf-8") if ln else ""
-        off = (off + 3) & ~3
-        start = off
-        last_raw, last_names = _last_names
-        end = start + len(last_raw)
-        if last_raw and end <= n and buf[start:end] == last_raw:
-            names, off = last_names, end  # the usual case: the same names as the last message
-        else:
-            count = u32(buf, off)[0]
-            off += 4
-            if count > n:
-                raise ValueError("JointState CDR name count is impossible")
-            for _ in range(count):
-                off = (off + 3) & ~3
-                ln = u32(buf, off)[0]
-                off += 4 + ln
-            if off > n:
-                raise ValueError("JointState CDR names run past the end")
-            raw = bytes(buf[start:off])
-            names = _name_cache.get(raw)
-            if names is None:
-                names = _parse_names(raw, u32)
-                if len(_name_cache) < 64:
-                    _name_cache[raw] = names
-            if le:
-                _last_names[:] = [raw, names]
-        layout = _layouts.get((off, n)) if le else None
-        if layout is not None and layout[0].unpack_from(buf, off) == layout[1]:
-            # Same array sizes where the last such message had them: one view, three slices.
-            _, _, first, span, parts = layout
-            whole = np.frombuffer(buf, dtype="<f8", count=span, offset=first) if span else _EMPTY
-            arrays = [whole[i:j] if j else _EMPTY for i, j in parts]
-        else:
-            arrays = []
-            dt = "<f8" if le else ">f8"
-            off0, count_at, counts, starts = off, [], [], []
-            for _ in range(3):
-                off = (off + 3) & ~3
-                count = u32(buf, off)[0]
-                count_at.append(off)
-                counts.append(count)
-                off += 4
-                if count:
-                    off = (off + 7) & ~7
-                    if off + 8 * count > n:
-                        raise ValueError("JointState CDR array runs past the end")
-                    a = np.frombuffer(buf, dtype=dt, count=count, offset=off)
-                    arrays.append(a.astype(float) if not le else a)  # read-only view
-                    starts.append(off)
-                    off += 8 * count
-                else:
-                    arrays.append(_EMPTY)
-                    starts.append(None)
-            if le and len(_layouts) < 64:
-                _layouts[(off0, n)] = _layout(off0, count_at, counts, starts)
-    except struct.error as exc:
-        raise ValueError(f"JointState CDR ends early ({exc})") from None
-    return JointStateData(sec, nsec, sec * 1_000_000_000 + nsec, frame, names, *arrays)
-
-
-_layouts: dict[tuple[int, int], tuple] = {}  # (offset after the names, size) → array layout
-
-
-def _layout(off0: int, count_at: list[int], counts: list[int], starts: list[int | None]) -> tuple:
-    """The little-endian array layout of a JointState whose arrays start at ``off0``: a Struct
-    reading the three counts, the counts, and where the doubles lie (all 8-aligned, so one
-    float64 view from the first array covers all three)."""
-    fmt, pos = "<", off0
-    for at in count_at:
-        fmt += f"{at - pos}xI"
-        pos = at + 4
-    present = [s for s in starts if s is not None]
-    if not present:
-        return struct.Struct(fmt), tuple(counts), 0, 0, [(0, 0)] * 3
-    first = present[0]
-    last = max(s + 8 * c for s, c in zip(starts, counts) if s is not None)
-    parts = [((s - first) // 8, (s - first) // 8 + c) if s is not None else (0, 0)
-             for s, c in zip(starts, counts)]
-    return struct.Struct(fmt), tuple(counts), first, (last - first) // 8, parts
-
-
-class JointStateBatch(NamedTuple):
-    """N decoded JointStates with one byte layout (same names, frame and array sizes): header
-    stamps as (N,) int64 arrays, value arrays N×len(names) float64 (None when the messages have
-    none). Row k equals :func:`decode_joint_state` of message k."""
-
-    names: tuple[str, ...]
-    sec: "np.ndarray"
-    nanosec: "np.ndarray"
-    stamp_ns: "np.ndarray"
-    position: "np.ndarray | None"
-    velocity: "np.ndarray | None"
-    effort: "np.ndarray | None"
-
-
-def _array_spans(data: bytes) -> tuple[list[tuple[int, int]], list[tuple[int, int]]] | None:
-    """Byte offsets (into ``data``) and counts of position, velocity and effort of a
-    little-endian JointState, and the (offset, length) of every alignment padding run; None when
-    it is not one that parses. Padding matters because CDR leaves it unspecified: Fast CDR
-    serialises whatever the buffer held there, so two equal messages may differ in those bytes."""
-    if len(data) < 12 or data[0] != 0 or data[1] != 1:
-        return None
-    u32 = _LE_U32.unpack_from
-    n = len(data)
-    pads: list[tuple[int, int]] = []
-
-    def align(off: int, to: int) -> int:
-        aligned = 4 + ((off - 4 + to - 1) & ~(to - 1))
-        if aligned > off:
-            pads.append((off, aligned - off))
-        return aligned
-
-    try:
-        off = align(16 + u32(data, 12)[0], 4)
-        count = u32(data, off)[0]
-        off += 4
-        if count > n:
-            return None
-        for _ in range(count):
-            off = align(off, 4)
-            off += 4 + u32(data, off)[0]
-        spans = []
-        for _ in range(3):
-            off = align(off, 4)
-            count = u32(data, off)[0]
-            off += 4
-            if count:
-                off = align(off, 8)
-            if off + 8 * count > n:
-                return None
-            spans.append((off, count))
-            off += 8 * count
-    except struct.error:
-        return None
-    return spans, pads
-
-
-def decode_joint_state_batch(datas: Sequence[bytes]) -> JointStateBatch | None:
-    """Decode N little-endian JointStates of equal size at once, or None unless every message
-    has exactly the first one's bytes outside its stamp, its float64 values and its alignment
-    padding (then the caller decodes them one by one with :func:`decode_joint_state`, which
-    reports the bad ones)."""
-    import numpy as np
-
-    if not datas:
-        return None
-    first = datas[0]
-    size = len(first)
-    layout = _array_spans(first)
-    if layout is None or any(len(d) != size for d in datas):
-        return None
-    spans, pads = layout
-    try:
-        names = decode_joint_state(first).names
-    except ValueError:
-        return None
-    joined = b"".join(datas)
-    rows = np.frombuffer(joined, dtype=np.uint8).reshape(len(datas), size)
-    keep = np.ones(size, dtype=bool)
-    keep[4:12] = False
-    for off, count in spans:
-        keep[off:off + 8 * count] = False
-    for off, length in pads:
-        keep[off:off + length] = False
-    fixed = rows[:, keep]
-    if not (fixed == fixed[0]).all():
-        return None
-    stride = (size,)
-    sec = np.ndarray(len(datas), dtype="<i4", buffer=joined, offset=4, strides=stride).astype(np.int64)
-    nsec = np.ndarray(len(datas), dtype="<u4", buffer=joined, offset=8, strides=stride).astype(np.int64)
-    arrays = []
-    for off, count in spans:
-        if count:
-            view = np.ndarray((len(datas), count), dtype="<f8", buffer=joined, offset=off,
-                              strides=(size, 8))
-            arrays.append(np.array(view, dtype=float))  # aligned, contiguous, writable copy
-        else:
-            arrays.append(None)
-    return JointStateBatch(names, sec, nsec, sec * 1_000_000_000 + nsec, *arrays)
-
-
-def _parse_names(raw: bytes, u32) -> tuple[str, ...]:
-    count = u32(raw, 0)[0]
-    off = 4
-    out = []
-    for _ in range(count):
-        off = (off + 3) & ~3
-        ln = u32(raw, off)[0]
-        off += 4
-        out.append(raw[off:off + ln - 1 if ln else off].decode("utf-8"))
-        off += ln
-    return tuple(out)
 
 
 class MessageDecoder:

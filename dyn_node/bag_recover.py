@@ -1,28 +1,8 @@
 """``dyn-bag-recover INPUT [-o OUTPUT]``: rewrite a truncated or damaged MCAP into a valid, indexed one.
 
-INPUT is either one ``.mcap`` file or a bag directory (every ``*.mcap`` in it, in split order;
-a fresh ``metadata.yaml`` is written for the output directory). OUTPUT defaults to
-``<name>.recovered.mcap`` beside a file, or ``<dir>.recovered/`` beside a directory. In a
-directory, files this command wrote are never inputs: a name ending ``.recovered.mcap``, or an
-MCAP Header whose library field starts with ``dyn-bag-recover`` (every file it writes has one).
-
-How: the file is read record by record from the start, never trusting the summary for data.
-Each record's length must fit in the file; each chunk must decompress to its declared size and
-match its CRC; an attachment must match its CRC. A record cut short by the end of the file ends
-recovery (everything after a truncation is gone); a chunk or attachment that fails its CRC or
-cannot be parsed is skipped and counted as a lost region, and reading continues at the next
-record (its length field is outside the damaged content). Records are read as the MCAP
-specification says: bytes after a record's known fields are fields of a later version (ignored),
-unknown opcodes are skipped, a Schema with id 0 is ignored, a channel with schema id 0 has no
-schema. Schemas, channels (also those without messages), messages (in file order), metadata
-records and attachments are kept. An intact summary (Footer found, summary CRC right) supplies
-Schema and Channel records the data section lacks and the Statistics counts compared below.
-
-Exit status: 0 nothing lost, 3 something lost (truncation, bad chunk or attachment, data-section
-CRC mismatch, or fewer messages, metadata records or attachments than the file's own
-statistics), 1 nothing recoverable (or unusable input).
-Because a cut only removes records at the end, the number of messages recovered never
-decreases as the cut point moves later in the file.
+The file is read record by record from the start, never trusting the summary for data; damaged
+chunks are skipped and reading goes on. Exit status 0 nothing lost, 3 something lost, 1 nothing
+recoverable. Usage: README "Recovering a crashed or damaged bag"; the rules: docs/BAGS.md.
 """
 from __future__ import annotations
 
@@ -41,9 +21,11 @@ from mcap.records import Attachment, Channel, Chunk, Metadata, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from . import __version__
+from .bag_reader import _decompress as decompress  # one decompressor for the reader and here
 from .bag_reader import (OWN_LIBRARY, OWN_SUFFIX, damaged_message_indexes, index_damage_note,
                          is_own_output)
-from .recording import FileInfo, TopicInfo, bag_metadata, write_metadata_yaml
+from .errors import RecoverError
+from .bag_metadata import FileInfo, TopicInfo, bag_metadata, write_metadata_yaml
 
 MAGIC = b"\x89MCAP0\r\n"
 EXIT_OK, EXIT_NOTHING, EXIT_LOST = 0, 1, 3
@@ -57,10 +39,6 @@ FOOTER_LEN = 9 + 20
 # A summary is indexes and definitions (about 100 bytes per chunk); a larger one is taken for
 # a damaged Footer rather than read into memory.
 MAX_SUMMARY = 1 << 28
-
-
-class RecoverError(Exception):
-    """A clear, user-facing failure (bad input path, not an MCAP file, unwritable output)."""
 
 
 @dataclass
@@ -195,20 +173,12 @@ def _header(b: bytes) -> tuple[str, str]:
     return r.string(), r.string()
 
 
-def _decompress(chunk: Chunk) -> bytes:
+def _chunk_payload(chunk: Chunk) -> bytes:
+    """The chunk's records, checked against its declared size and CRC (ValueError if not)."""
     size = chunk.uncompressed_size
     if size > MAX_RECORD:
         raise ValueError("declared uncompressed size is implausible")
-    if chunk.compression == "":
-        data = chunk.data
-    elif chunk.compression == "zstd":
-        import zstandard
-        data = zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=size)
-    elif chunk.compression == "lz4":
-        import lz4.frame
-        data = lz4.frame.decompress(chunk.data)
-    else:
-        raise ValueError(f"unknown chunk compression {chunk.compression!r}")
+    data = decompress(chunk.compression, chunk.data, size)
     if len(data) != size:
         raise ValueError("chunk decompresses to a different size than declared")
     if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
@@ -411,39 +381,52 @@ def recover_file(src: Path, dst: Path) -> Recovery:
     except OSError as exc:
         raise RecoverError(f"cannot read {src}: {exc.strerror or exc}") from None
     with f:
-        if _read_exact(f, 8) != MAGIC:
-            raise RecoverError(f"{src} is not an MCAP file (bad magic)")
-        # Header record: the profile carries over (the walk below reads the Header again).
-        header = _read_header(f, size)
-        if header is None:
-            rec.problems.append("header record unreadable")
-        profile, library = header or ("", "")
-        summary = _read_summary(f, size, rec)
-        f.seek(len(MAGIC))
-        try:
-            out = dst.open("wb")
-        except OSError as exc:
-            raise RecoverError(f"cannot write {dst}: {exc.strerror or exc}") from None
-        with out:
-            rw = _Rewriter(out, profile, _own_library(library), summary)
-            complete = _walk(f, size, rw, rec)
-            try:
-                rw.finish(rec)
-            except OSError as exc:
-                raise RecoverError(f"cannot write {dst}: {exc.strerror or exc}") from None
+        rw, summary, complete = _rewrite(f, size, src, dst, rec)
     rec.lost = bool(rec.problems) or not complete
     if summary.counts is not None:
-        rec.expected, rec.expected_attachments, rec.expected_metadata = summary.counts
-        for what, listed, kept in (("messages", rec.expected, rec.total),
-                                   ("attachments", rec.expected_attachments, rec.attachments),
-                                   ("metadata records", rec.expected_metadata, rec.metadata)):
-            if listed > kept:
-                rec.lost = True
-                rec.problems.append(f"the file's statistics list {listed} {what}")
+        _compare_statistics(rec, summary.counts)
     if not rec.lost:
         rec.problems = []
     rec.topics = _topics(rw)
     return rec
+
+
+def _rewrite(f: BinaryIO, size: int, src: Path, dst: Path,
+             rec: Recovery) -> tuple[_Rewriter, _Summary, bool]:
+    """The readable records of ``f`` written to ``dst``: the writer, the summary section found,
+    and whether the data section ended as the spec says."""
+    if _read_exact(f, 8) != MAGIC:
+        raise RecoverError(f"{src} is not an MCAP file (bad magic)")
+    # Header record: the profile carries over (the walk below reads the Header again).
+    header = _read_header(f, size)
+    if header is None:
+        rec.problems.append("header record unreadable")
+    profile, library = header or ("", "")
+    summary = _read_summary(f, size, rec)
+    f.seek(len(MAGIC))
+    try:
+        out = dst.open("wb")
+    except OSError as exc:
+        raise RecoverError(f"cannot write {dst}: {exc.strerror or exc}") from None
+    with out:
+        rw = _Rewriter(out, profile, _own_library(library), summary)
+        complete = _walk(f, size, rw, rec)
+        try:
+            rw.finish(rec)
+        except OSError as exc:
+            raise RecoverError(f"cannot write {dst}: {exc.strerror or exc}") from None
+    return rw, summary, complete
+
+
+def _compare_statistics(rec: Recovery, counts: tuple[int, int, int]) -> None:
+    """Something was lost when the file's Statistics record lists more than was kept."""
+    rec.expected, rec.expected_attachments, rec.expected_metadata = counts
+    for what, listed, kept in (("messages", rec.expected, rec.total),
+                               ("attachments", rec.expected_attachments, rec.attachments),
+                               ("metadata records", rec.expected_metadata, rec.metadata)):
+        if listed > kept:
+            rec.lost = True
+            rec.problems.append(f"the file's statistics list {listed} {what}")
 
 
 def _walk(f: BinaryIO, size: int, rw: _Rewriter, rec: Recovery) -> bool:
@@ -499,7 +482,7 @@ def _handle(op: int, body: bytes, rw: _Rewriter, rec: Recovery) -> None:
     elif op == Opcode.MESSAGE:
         rw.message(_message(body), rec)
     elif op == Opcode.CHUNK:
-        payload = _decompress(_chunk(body))
+        payload = _chunk_payload(_chunk(body))
         # Parse the whole chunk before emitting anything, so a bad chunk is all-or-nothing.
         inner: list[tuple[int, Schema | Channel | Message]] = []
         for iop, ibody in _records(payload):

@@ -1,21 +1,9 @@
 """dyn-check: check trajectory files with no ROS graph, through the node's own core.
 
-``dyn-check TRAJECTORY ... [--robot-model NAME | --robot-description URDF] [--limits FILE]
-[--params-file YAML] [--out DIR] [--retime OUT]``
-
-Each file (YAML or JSON JointTrajectory, or CSV; see :mod:`dyn_node.trajectory_files`) is
-validated and checked exactly as dyn_node checks a trajectory it receives (same validation,
-limits, statuses and numbers; :func:`dyn_node.on_demand.check`), and one verdict line per file is
-printed. ``--out DIR`` writes ``DIR/<file stem>/evidence.json`` and ``report.html`` per file (the
-audit's EvidenceRecord and report writers). ``--retime OUT`` writes each infeasible trajectory
-stretched by ``time_scale × (1 + RETIME_MARGIN)``, in the input's format, after re-checking it;
-feasible inputs are copied unchanged; one that no slowdown fixes (time_scale inf) or that was
-rejected is reported and not written. OUT is a file for one input, a directory for several.
-
-Exit codes (:func:`dyn_node.exit_codes.exit_code`): 0 every file feasible; 1 some file infeasible
-or rejected (NaN, unknown joints, times not increasing...: the node's reason is printed); 2 a
-file that cannot be read or parsed, or no usable robot model (one line: file, line and field).
-No rclpy import: this runs in a CI job without ROS.
+Each file (see :mod:`dyn_node.trajectory_files`) is checked exactly as dyn_node checks a
+trajectory it receives (:func:`dyn_node.on_demand.check`); one verdict line per file. Options,
+``--retime`` and exit codes: README "Checking trajectory files". No rclpy import: this runs in a
+CI job without ROS.
 """
 from __future__ import annotations
 
@@ -28,20 +16,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-from .errors import DynNodeError, PLANNING_ERROR, STATE_ERROR
+from .errors import CheckError, DynNodeError, PLANNING_ERROR, STATE_ERROR, TrajectoryFileError
 from .exit_codes import EXIT_UNUSABLE, MEANINGS, exit_code
-from .trajectory_files import (TrajectoryFile, TrajectoryFileError, format_trajectory, parse_trajectory,
-                               read_trajectory)
+from .trajectory_files import TrajectoryFile, format_trajectory, parse_trajectory, read_trajectory
 
 #: ``--retime`` stretches by time_scale × (1 + this): just enough that rounding in the written
 #: times cannot leave the result a hair over a limit, while keeping the retimed motion fast.
 RETIME_MARGIN = 0.01
-
-
-class CheckError(DynNodeError):
-    """dyn-check cannot run at all (no usable model, bad options)."""
-
-    failure_label = STATE_ERROR
 
 
 @dataclass(frozen=True)
@@ -86,7 +67,7 @@ def make_checker(*, robot_model: str = "", robot_description: str = "", limits: 
     """Build the model and settings; raises :class:`CheckError` when there is no usable model."""
     from .audit import parameters_from_yaml
     from .dynamics import Dynamics, DynamicsOptions
-    from .monitor import build_model
+    from .model_source import build_model
     from .settings import SPECS, settings_from_mapping
 
     values: dict[str, Any] = {}
@@ -159,6 +140,7 @@ def _g(x: float) -> str:
 def evidence_record(checker: Checker, v: FileVerdict, started_utc: str) -> dict:
     """The file's EvidenceRecord (kind ``check``), shaped like the audit's so its report renders."""
     from .evidence import EvidenceRecord, utc_now
+    from .units import joint_units
 
     model = checker.model
     rec = EvidenceRecord(kind="check", tool="dyn-check")
@@ -182,11 +164,12 @@ def evidence_record(checker: Checker, v: FileVerdict, started_utc: str) -> dict:
     per_joint = []
     for j, name in enumerate(model.joint_names):
         e = o.result.per_joint[name]["effort"] if o is not None and o.result is not None else None
-        per_joint.append({"joint": name, "peak_utilisation": None if e is None else e["ratio"],
+        per_joint.append({"joint": name, "unit": joint_units(model)["effort"][j],
+                          "peak_utilisation": None if e is None else e["ratio"],
                           "peak_time_s": None if e is None else e["time_s"],
-                          "peak_torque_nm": None if e is None else e["value"], "peak_measured_nm": None,
+                          "peak_effort": None if e is None else e["value"], "peak_measured_effort": None,
                           "peak_source": None if e is None else "model",
-                          "effort_limit_nm": float(model.limits.effort[j])})
+                          "effort_limit": float(model.limits.effort[j])})
     rec.outputs = {"trajectories": [entry] if tf else [], "trajectories_total": 1 if tf else 0,
                    "trajectories_infeasible_or_rejected": 0 if v.feasible or not tf else 1,
                    "effort": {"per_joint": per_joint, "samples": 0}, "violations": [],

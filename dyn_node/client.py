@@ -1,23 +1,11 @@
 """A Python client for dyn_node's on-demand requests, usable from any rclpy node.
 
-``DynClient(node, namespace="/dyn_node")`` publishes on the node's ``~/check_trajectory`` and
-``~/inverse_dynamics_request`` and matches each answer on ``~/feasibility`` /
-``~/trajectory_effort`` by a request id it puts in the header's ``frame_id`` (the node echoes the
-whole header), so several requests can be in flight at once, from several clients.
-
-Blocking calls (:meth:`DynClient.check`, :meth:`DynClient.efforts`) wait for the answer. The answer
-arrives through ``node``'s subscriptions, so someone must spin ``node`` meanwhile:
-
-- a node that no executor spins is spun by the call itself until the answer arrives (scripts);
-- a node spun by an executor on *another* thread (``MultiThreadedExecutor``, or a spin thread):
-  the call just waits;
-- called from inside a callback of a ``SingleThreadedExecutor`` (the only thread that could
-  deliver the answer) the call raises :class:`BlockingCallError` instead of deadlocking: use
-  :meth:`DynClient.check_async` / :meth:`DynClient.efforts_async` there, or a
-  ``MultiThreadedExecutor`` (the client's subscriptions have a callback group of their own).
-
-The async variants return an ``rclpy.task.Future`` completed with the :class:`Verdict` / the
-torque array, or with the exception a blocking call would raise.
+``DynClient(node, namespace="/dyn_node")`` publishes on ``~/check_trajectory`` and
+``~/inverse_dynamics_request`` and matches each answer by a request id in ``frame_id`` (the node
+echoes the whole header), so several requests can be in flight. Blocking calls need ``node`` spun
+meanwhile: they spin an unspun node themselves, wait when another thread spins it, and raise
+:class:`BlockingCallError` in a single-threaded executor's callback (use the ``*_async`` variants
+there). README "Python client" has the whole API.
 """
 from __future__ import annotations
 

@@ -1,27 +1,8 @@
 """``make demo``: the model table, then the whole loop over DDS with an independent simulator.
 
-1. The model table: gravity torque g(q) and RNEA torque at a few named poses next to the effort
-   limits, with utilisation in %.
-2. The stack: ``dyn_sim`` (MuJoCo) and ``dyn_node`` (Pinocchio) as separate processes on a ROS
-   domain of their own, localhost only; dyn_node takes the model from ``/robot_description`` and
-   records a bag.
-3. Three trajectories, each first checked on ``~/check_trajectory`` (through
-   :class:`dyn_node.client.DynClient`), then sent on ``joint_trajectory`` stamped to start a
-   little in the future so dyn_node's verdict on ``~/feasibility`` arrives before execution
-   (the two verdicts must agree): a comfortable one, an
-   aggressive one (a fast joint2/joint4 shake that saturates Panda), and the aggressive one slowed
-   by the ``time_scale`` dyn_node reported (× a 1.05 safety factor).
-4. A summary table per trajectory (verdict, worst joint and ratio, time scale, controller states
-   seen, tracking error, effort residual between the simulator's measured effort and dyn_node's
-   ``~/inverse_dynamics``), then dyn-audit on the bag and the paths of the bag and report.
-
-Every child runs in its own process group and is stopped in a ``finally`` (SIGINT, then SIGKILL
-after a grace period), also on Ctrl-C or SIGTERM. A stage that cannot run (a missing module, a
-process that does not come up) is named and the demo continues with what it can do; ``--strict``
-turns that into a non-zero exit.
-
-The pure parts (poses, table, trajectories, residual and tracking statistics) import no ROS; the
-rclpy client is imported only when the stack runs.
+What it runs and prints, and its exit codes: README "The demo". The pure parts (poses, table,
+trajectories, residual and tracking statistics) import no ROS; the rclpy client is imported only
+when the stack runs.
 """
 from __future__ import annotations
 
@@ -41,6 +22,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .dynamics import Dynamics
+from .exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_VIOLATIONS
 from .model import RobotModel, load_model
 from .trajectory import Trajectory, interpolate, validate_trajectory
 
@@ -556,181 +538,256 @@ def _local_verdict(model: RobotModel, traj: DemoTrajectory, o: Outcome, say) -> 
     o.worst_ratio, o.time_scale, o.message = r.worst_ratio, r.time_scale, r.message
 
 
-def run_demo(args: argparse.Namespace) -> int:
-    t_begin = time.monotonic()
-    out = Path(args.out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    logs = out / "logs"
-    logs.mkdir(exist_ok=True)
-    say = lambda s: print(s, flush=True)  # noqa: E731
-    unavailable: list[str] = []
+def _say(s: str) -> None:
+    print(s, flush=True)
 
+
+def _banner(title: str) -> None:
+    _say("=" * 100)
+    _say(f"dyn_node demo — {title}")
+    _say("=" * 100)
+
+
+@dataclass
+class DemoRun:
+    """What the scenes of one demo run share: where it writes, the children's environment, and
+    what has been observed and checked so far."""
+
+    out: Path
+    t_begin: float
+    env: dict[str, str] = field(default_factory=dict)
+    children: list[Child] = field(default_factory=list)
+    stack: Stack | None = None
+    outcomes: list[Outcome] = field(default_factory=list)
+    checks: list[tuple[bool, str]] = field(default_factory=list)
+    unavailable: list[str] = field(default_factory=list)
+    bag_path: str | None = None
+
+    @property
+    def logs(self) -> Path:
+        return self.out / "logs"
+
+    @property
+    def bag_dir(self) -> Path:
+        return self.out / "bags"
+
+    def elapsed(self) -> float:
+        return time.monotonic() - self.t_begin
+
+    def missing(self, what: str, say_text: str | None = None) -> None:
+        """A stage that could not run: listed in the summary, and said now."""
+        self.unavailable.append(what)
+        _say(say_text or f"stage unavailable: {what}")
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    run = DemoRun(Path(args.out).resolve(), time.monotonic())
+    run.out.mkdir(parents=True, exist_ok=True)
+    run.logs.mkdir(exist_ok=True)
     model = load_model(builtin="panda")
-    say("=" * 100)
-    say("dyn_node demo — 1. the model")
-    say("=" * 100)
-    say(model_table(model))
+    _banner("1. the model")
+    _say(model_table(model))
     if args.table_only:
         return 0
-
-    say("")
-    say("=" * 100)
-    say(f"dyn_node demo — 2. the stack (ROS_DOMAIN_ID={args.domain}, localhost only; logs in {logs})")
-    say("=" * 100)
-    # DYN_DEMO_RUN marks the children so a test can prove none is left behind.
-    env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONUNBUFFERED="1", DYN_DEMO_RUN=str(out))
-    env.pop("ROS_LOCALHOST_ONLY", None)
-    bag_dir = out / "bags"
-    children: list[Child] = []
-    stack: Stack | None = None
-    outcomes: list[Outcome] = []
-    bag_path: str | None = None
     try:
-        children.append(Child("dyn_sim", [sys.executable, "-m", "dyn_node.sim_node", "--ros-args",
-                                          "-p", f"initial_positions:={list(READY)}"],
-                              env, logs / "dyn_sim.log"))
-        node_ok = _module_available("dyn_node.node")
-        if node_ok:
-            children.append(Child("dyn_node", [
-                sys.executable, "-m", "dyn_node.node", "--ros-args",
-                "-p", f"locked_joints:={FINGERS}",
-                "-p", f"tracking_tolerance:={TRACKING_TOLERANCE}",
-                "-p", "record.enabled:=true", "-p", f"record.directory:={bag_dir}"],
-                env, logs / "dyn_node.log"))
-        else:
-            unavailable.append("dyn_node (module dyn_node.node missing)")
-            say("stage unavailable: dyn_node (module dyn_node.node missing); the simulator runs alone")
-        stack = Stack(model, args.domain, out, say)
-        say("waiting for dyn_sim's joint_states …")
-        if not stack.spin_until(lambda: len(stack.js) > 50, 60):
-            raise Unavailable(f"dyn_sim published no joint_states within 60 s:\n{children[0].tail()}")
-        say(f"  dyn_sim up ({time.monotonic() - t_begin:.1f} s)")
-        if node_ok:
-            say("waiting for dyn_node to load the model from /robot_description and answer …")
-            if stack.spin_until(lambda: len(stack.inv) > 50, 60):
-                say(f"  dyn_node up ({time.monotonic() - t_begin:.1f} s)")
-            else:
-                unavailable.append("dyn_node (no ~/inverse_dynamics within 60 s)")
-                say("stage unavailable: dyn_node (no ~/inverse_dynamics within 60 s):\n"
-                    + children[1].tail())
-        # Let the subscriptions to joint_trajectory match before sending: dyn_sim's, dyn_node's
-        # and, when it records, the recorder's (discovered a little later), so the bag has all.
-        stack.spin_until(lambda: stack.traj_pub.get_subscription_count() >= len(children), 10)
-        if node_ok:
-            stack.spin_until(lambda: stack.traj_pub.get_subscription_count() >= 3, 3)
-
-        say("")
-        say("=" * 100)
-        say("dyn_node demo — 3. trajectories")
-        say("=" * 100)
-        comfortable, aggressive = demo_trajectories(args.short)
-        outcomes.append(run_trajectory(stack, comfortable, say))
-        agg = run_trajectory(stack, aggressive, say)
-        outcomes.append(agg)
-        k = agg.time_scale
-        if not (math.isfinite(k) and k > 0):
-            unavailable.append("time_scale (no finite time_scale reported for the aggressive trajectory)")
-            say("stage unavailable: slowed trajectory (no finite time_scale was reported)")
-        else:
-            slowed = aggressive.scaled(k * SAFETY_FACTOR, "slowed",
-                                       f"aggressive × {k:.3f} × {SAFETY_FACTOR:g}")
-            outcomes.append(run_trajectory(stack, slowed, say))
-
-        if len(children) > 1 and children[1].alive():
-            bag_path = stack.call_stop_recording()
-        # Raw observations, for looking into any figure of the summary afterwards.
-        js_k = sorted(stack.js)
-        inv_k = sorted(stack.inv)
-        np.savez_compressed(out / "samples.npz", js_stamp_ns=np.array(js_k, dtype=np.int64),
-                            js_q=np.array([stack.js_q[k] for k in js_k]),
-                            js_effort=np.array([stack.js[k] for k in js_k]),
-                            inv_stamp_ns=np.array(inv_k, dtype=np.int64),
-                            inv_effort=np.array([stack.inv[k] for k in inv_k]))
+        _scene_stack(run, model, args.domain)
+        _scene_trajectories(run, args.short)
+        if len(run.children) > 1 and run.children[1].alive():
+            run.bag_path = run.stack.call_stop_recording()
+        _save_samples(run.stack, run.out)
     finally:
-        if stack is not None:
-            stack.close()
-        for c in reversed(children):
-            rc = c.stop()
-            if rc not in (0, -signal.SIGINT, 130):
-                say(f"  {c.name} exited with {rc}; last lines of {c.log_path}:\n{c.tail()}")
-    say(f"stack stopped ({time.monotonic() - t_begin:.1f} s)")
+        _stop_stack(run)
+    _say(f"stack stopped ({run.elapsed():.1f} s)")
+    _scene_summary(run)
+    _scene_audit(run)
+    return _finish(run, strict=args.strict)
 
-    say("")
-    say("=" * 100)
-    say("dyn_node demo — 4. summary")
-    say("=" * 100)
-    say(summary_table(outcomes))
-    checks = acceptance(outcomes)
-    say("")
-    for ok, text in checks:
-        say(f"  [{'PASS' if ok else 'FAIL'}] {text}")
+
+def _scene_stack(run: DemoRun, model: RobotModel, domain: int) -> None:
+    """2. dyn_sim and dyn_node as child processes, and this process's view of them (Stack)."""
+    _say("")
+    _banner(f"2. the stack (ROS_DOMAIN_ID={domain}, localhost only; logs in {run.logs})")
+    # DYN_DEMO_RUN marks the children so a test can prove none is left behind.
+    run.env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   PYTHONUNBUFFERED="1", DYN_DEMO_RUN=str(run.out))
+    run.env.pop("ROS_LOCALHOST_ONLY", None)
+    children = run.children
+    children.append(Child("dyn_sim", [sys.executable, "-m", "dyn_node.sim_node", "--ros-args",
+                                      "-p", f"initial_positions:={list(READY)}"],
+                          run.env, run.logs / "dyn_sim.log"))
+    node_ok = _module_available("dyn_node.node")
+    if node_ok:
+        children.append(Child("dyn_node", [
+            sys.executable, "-m", "dyn_node.node", "--ros-args",
+            "-p", f"locked_joints:={FINGERS}",
+            "-p", f"tracking_tolerance:={TRACKING_TOLERANCE}",
+            "-p", "record.enabled:=true", "-p", f"record.directory:={run.bag_dir}"],
+            run.env, run.logs / "dyn_node.log"))
+    else:
+        run.missing("dyn_node (module dyn_node.node missing)",
+                    "stage unavailable: dyn_node (module dyn_node.node missing); the simulator runs alone")
+    stack = run.stack = Stack(model, domain, run.out, _say)
+    _say("waiting for dyn_sim's joint_states …")
+    if not stack.spin_until(lambda: len(stack.js) > 50, 60):
+        raise Unavailable(f"dyn_sim published no joint_states within 60 s:\n{children[0].tail()}")
+    _say(f"  dyn_sim up ({run.elapsed():.1f} s)")
+    if node_ok:
+        _say("waiting for dyn_node to load the model from /robot_description and answer …")
+        if stack.spin_until(lambda: len(stack.inv) > 50, 60):
+            _say(f"  dyn_node up ({run.elapsed():.1f} s)")
+        else:
+            run.missing("dyn_node (no ~/inverse_dynamics within 60 s)",
+                        "stage unavailable: dyn_node (no ~/inverse_dynamics within 60 s):\n"
+                        + children[1].tail())
+    # Let the subscriptions to joint_trajectory match before sending: dyn_sim's, dyn_node's
+    # and, when it records, the recorder's (discovered a little later), so the bag has all.
+    stack.spin_until(lambda: stack.traj_pub.get_subscription_count() >= len(children), 10)
+    if node_ok:
+        stack.spin_until(lambda: stack.traj_pub.get_subscription_count() >= 3, 3)
+
+
+def _scene_trajectories(run: DemoRun, short: bool) -> None:
+    """3. a comfortable, an aggressive and the aggressive one slowed by its time_scale."""
+    _say("")
+    _banner("3. trajectories")
+    comfortable, aggressive = demo_trajectories(short)
+    run.outcomes.append(run_trajectory(run.stack, comfortable, _say))
+    agg = run_trajectory(run.stack, aggressive, _say)
+    run.outcomes.append(agg)
+    k = agg.time_scale
+    if not (math.isfinite(k) and k > 0):
+        run.missing("time_scale (no finite time_scale reported for the aggressive trajectory)",
+                    "stage unavailable: slowed trajectory (no finite time_scale was reported)")
+    else:
+        slowed = aggressive.scaled(k * SAFETY_FACTOR, "slowed",
+                                   f"aggressive × {k:.3f} × {SAFETY_FACTOR:g}")
+        run.outcomes.append(run_trajectory(run.stack, slowed, _say))
+
+
+def _save_samples(stack: Stack, out: Path) -> None:
+    """Raw observations, for looking into any figure of the summary afterwards."""
+    js_k = sorted(stack.js)
+    inv_k = sorted(stack.inv)
+    np.savez_compressed(out / "samples.npz", js_stamp_ns=np.array(js_k, dtype=np.int64),
+                        js_q=np.array([stack.js_q[k] for k in js_k]),
+                        js_effort=np.array([stack.js[k] for k in js_k]),
+                        inv_stamp_ns=np.array(inv_k, dtype=np.int64),
+                        inv_effort=np.array([stack.inv[k] for k in inv_k]))
+
+
+def _stop_stack(run: DemoRun) -> None:
+    if run.stack is not None:
+        run.stack.close()
+    for c in reversed(run.children):
+        rc = c.stop()
+        if rc not in (0, -signal.SIGINT, 130):
+            _say(f"  {c.name} exited with {rc}; last lines of {c.log_path}:\n{c.tail()}")
+
+
+def _scene_summary(run: DemoRun) -> None:
+    """4. what was observed per trajectory, the acceptance checks and the effort residual."""
+    _say("")
+    _banner("4. summary")
+    outcomes = run.outcomes
+    _say(summary_table(outcomes))
+    run.checks = acceptance(outcomes)
+    _say("")
+    for ok, text in run.checks:
+        _say(f"  [{'PASS' if ok else 'FAIL'}] {text}")
     feas = [o for o in outcomes if o.verdict in ("OK", "WARN") and o.residual_samples]
     if feas:
         rms = math.sqrt(sum(o.residual_rms_nm ** 2 * o.residual_samples for o in feas)
                         / sum(o.residual_samples for o in feas))
-        say(f"  live effort residual MuJoCo (measured) − Pinocchio (dyn_node) on feasible "
-            f"trajectories: RMS {rms:.4f} N·m, max {max(o.residual_max_nm for o in feas):.4f} N·m "
-            f"over {sum(o.residual_samples for o in feas)} samples")
+        _say(f"  live effort residual MuJoCo (measured) − Pinocchio (dyn_node) on feasible "
+             f"trajectories: RMS {rms:.4f} N·m, max {max(o.residual_max_nm for o in feas):.4f} N·m "
+             f"over {sum(o.residual_samples for o in feas)} samples")
 
-    bags = sorted(bag_dir.rglob("*.mcap")) if bag_dir.exists() else []
-    if bag_path is None and bags:
-        bag_path = str(bags[-1])
-    say("")
-    if not bag_path:
-        unavailable.append("recording (no bag written)")
-        say("stage unavailable: recording (no bag was written)")
+
+def _scene_audit(run: DemoRun) -> None:
+    """5. dyn-audit on the bag dyn_node recorded, checked against the live verdicts."""
+    bags = sorted(run.bag_dir.rglob("*.mcap")) if run.bag_dir.exists() else []
+    if run.bag_path is None and bags:
+        run.bag_path = str(bags[-1])
+    _say("")
+    if not run.bag_path:
+        run.missing("recording (no bag written)", "stage unavailable: recording (no bag was written)")
+        return
+    bag = Path(run.bag_path)
+    _say(f"bag: {bag}")
+    if not _module_available("dyn_node.audit"):
+        run.missing("dyn-audit (module dyn_node.audit missing)")
+        return
+    audit_dir = run.out / "audit"
+    _say(f"running dyn-audit on the bag → {audit_dir} …")
+    a = Child("dyn-audit", [sys.executable, "-m", "dyn_node.audit", str(bag), "--out",
+                            str(audit_dir)], run.env, run.logs / "dyn_audit.log")
+    rc = _wait_for(a, 90)
+    _say("\n".join("  " + ln for ln in a.tail(15).splitlines()))
+    report = audit_dir / "report.html"
+    evidence = audit_dir / "evidence.json"
+    outcome = audit_outcome(rc, report.exists())
+    if outcome == "partial":
+        run.checks.append((False, f"dyn-audit: partial (exit 3): parts of the demo's own bag "
+                                  f"could not be read (see {evidence}, "
+                                  "input_quality.unreadable_ranges)"))
+        _say(f"  [FAIL] {run.checks[-1][1]}")
+        _say(f"report: {report}")
+    elif outcome == "audited":
+        for line in audit_recheck_lines(evidence):
+            _say(line)
+        live = sum(o.verdict_source == "dyn_node" for o in run.outcomes) + sum(
+            o.check_feasible is not None for o in run.outcomes)  # check-only verdicts too
+        check = audit_check(evidence, live)
+        run.checks.append(check)
+        _say(f"  [{'PASS' if check[0] else 'FAIL'}] {check[1]}")
+        _say(f"report: {report}")
     else:
-        bag = Path(bag_path)
-        say(f"bag: {bag}")
-        if _module_available("dyn_node.audit"):
-            audit_dir = out / "audit"
-            say(f"running dyn-audit on the bag → {audit_dir} …")
-            a = Child("dyn-audit", [sys.executable, "-m", "dyn_node.audit", str(bag), "--out",
-                                    str(audit_dir)], env, logs / "dyn_audit.log")
-            try:
-                deadline = time.monotonic() + 90
-                while a.alive() and time.monotonic() < deadline:
-                    check_interrupted()
-                    try:
-                        a.proc.wait(timeout=0.1)
-                    except subprocess.TimeoutExpired:
-                        pass
-                if a.alive():
-                    say("  dyn-audit did not finish within 90 s")
-            finally:
-                rc = a.stop()
-            say("\n".join("  " + ln for ln in a.tail(15).splitlines()))
-            report = audit_dir / "report.html"
-            # dyn-audit exits 0 (all feasible), 1 (violations found: expected here, the aggressive
-            # trajectory is infeasible) or 2 (unusable input).
-            if rc in (0, 1) and report.exists():
-                for line in audit_recheck_lines(audit_dir / "evidence.json"):
-                    say(line)
-                live = sum(o.verdict_source == "dyn_node" for o in outcomes) + sum(
-                    o.check_feasible is not None for o in outcomes)  # check-only verdicts too
-                check = audit_check(audit_dir / "evidence.json", live)
-                checks.append(check)
-                say(f"  [{'PASS' if check[0] else 'FAIL'}] {check[1]}")
-                say(f"report: {report}")
-            else:
-                unavailable.append(f"dyn-audit (exit {rc}; see {a.log_path})")
-                say(f"stage failed: dyn-audit exited {rc} (log {a.log_path})")
-        else:
-            unavailable.append("dyn-audit (module dyn_node.audit missing)")
-            say("stage unavailable: dyn-audit (module dyn_node.audit missing)")
+        run.missing(f"dyn-audit (exit {rc}; see {a.log_path})",
+                    f"stage failed: dyn-audit exited {rc} (log {a.log_path})")
 
-    (out / "summary.json").write_text(json.dumps(
-        {"outcomes": [o.__dict__ for o in outcomes], "checks": [[ok, t] for ok, t in checks],
-         "unavailable": unavailable, "bag": bag_path,
-         "wall_time_s": time.monotonic() - t_begin}, indent=2, default=str))
-    say(f"summary: {out / 'summary.json'}")
-    if unavailable:
-        say("unavailable stages: " + "; ".join(unavailable))
-    say(f"demo finished in {time.monotonic() - t_begin:.1f} s")
-    if any(not ok for ok, _ in checks):
+
+def _wait_for(child: Child, timeout_s: float) -> int:
+    """The child's exit code once it ends, or once it was stopped after ``timeout_s``."""
+    try:
+        deadline = time.monotonic() + timeout_s
+        while child.alive() and time.monotonic() < deadline:
+            check_interrupted()
+            try:
+                child.proc.wait(timeout=0.1)
+            except subprocess.TimeoutExpired:
+                pass
+        if child.alive():
+            _say(f"  {child.name} did not finish within {timeout_s:g} s")
+    finally:
+        rc = child.stop()
+    return rc
+
+
+def _finish(run: DemoRun, *, strict: bool) -> int:
+    """summary.json, the closing lines, and the exit code: 2 if a check failed, 3 if a stage
+    was unavailable and ``strict``, else 0."""
+    (run.out / "summary.json").write_text(json.dumps(
+        {"outcomes": [o.__dict__ for o in run.outcomes], "checks": [[ok, t] for ok, t in run.checks],
+         "unavailable": run.unavailable, "bag": run.bag_path,
+         "wall_time_s": run.elapsed()}, indent=2, default=str))
+    _say(f"summary: {run.out / 'summary.json'}")
+    if run.unavailable:
+        _say("unavailable stages: " + "; ".join(run.unavailable))
+    _say(f"demo finished in {run.elapsed():.1f} s")
+    if any(not ok for ok, _ in run.checks):
         return 2
-    return 3 if (unavailable and args.strict) else 0
+    return 3 if (run.unavailable and strict) else 0
+
+
+def audit_outcome(rc: int, report_written: bool) -> str:
+    """What the demo makes of dyn-audit's exit code: ``audited`` for 0 (all feasible) or 1
+    (violations found: expected, the aggressive trajectory is infeasible); ``partial`` for 3
+    (parts of the bag unreadable, no violations in the rest): the demo records its own bag, which
+    must be whole, so that is a failure of the demo (a FAIL check), not a missing stage;
+    ``failed`` for 2 (unusable input), anything else, or no report."""
+    if not report_written:
+        return "failed"
+    return {EXIT_OK: "audited", EXIT_VIOLATIONS: "audited", EXIT_PARTIAL: "partial"}.get(rc, "failed")
 
 
 def audit_recheck_lines(evidence: Path) -> list[str]:

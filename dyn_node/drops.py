@@ -1,23 +1,8 @@
 """Counting the joint_states samples lost between the publishers and the node (no rclpy).
 
-Two sources, never added for the same loss:
-
-- **Sequence numbers.** Fast DDS numbers every sample a publisher writes, and the node reads
-  that number from each sample it takes. A gap is a sample the middleware discarded: a
-  best-effort loss, or a full reader history (``qos_depth``). This is exact, but rclpy does not
-  say which publisher a sample came from. So it is used only while at most one publisher is
-  matched.
-- **The middleware's message-lost event.** Its running total is used while several publishers
-  are matched, or before the rmw has shown any sequence number. It may not include reader
-  history overwrites, so the counting method is reported with the count.
-
-Each change of method starts a new period from a fresh baseline. What earlier periods counted
-stays counted, and no gap is taken across the change: the sample before it may have come from a
-different publisher than the one after. When the count drops back to one publisher, the samples
-the departed one sent may still be queued in the reader. So sequence counting resumes at the
-first sample the middleware received after the node learned of the departure (its
-``received_timestamp``, system clock): that one can only have come from a publisher still
-matched, and it is the new baseline. Until then the lost events count.
+Two sources, never added for the same loss: publication sequence numbers (exact, used while at
+most one publisher is matched) and the middleware's message-lost event (otherwise; a lower bound
+on Fast DDS). The rules for switching between them: docs/INTERNALS.md, "Counting dropped messages".
 """
 from __future__ import annotations
 

@@ -144,6 +144,24 @@ class Dynamics:
             h += self.friction(v)
         return h
 
+    def coriolis_matrix(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """C(q, v) (N·m·s/rad) in Pinocchio's factorisation, the one with Ṁ = C + Cᵀ that the
+        momentum observer needs; C(q, v)v is the Coriolis and centrifugal torque."""
+        return pin.computeCoriolisMatrix(self._pm, self._data, q, v).copy()
+
+    def momentum_terms(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p, C(q, v)ᵀv, g(q)) for the momentum observer: p = M(q)v (armature included) as
+        RNEA(q, 0, v) − g(q), which forms no mass matrix (three Pinocchio passes in all)."""
+        g = pin.computeGeneralizedGravity(self._pm, self._data, q).copy()
+        p = pin.rnea(self._pm, self._data, q, self._zero, v) - g
+        ctv = pin.computeCoriolisMatrix(self._pm, self._data, q, v).T @ v
+        return p, ctv, g
+
+    def potential_energy(self, q: np.ndarray) -> float:
+        """Gravitational potential energy (J) of the model's bodies, payload included; its
+        gradient is g(q)."""
+        return float(pin.computePotentialEnergy(self._pm, self._data, q))
+
     # --- batched -----------------------------------------------------------------------------
     def batch_threads(self, threads: int | None = None) -> int:
         """Threads a batched call will use: ``threads`` (None: the constructor's setting),

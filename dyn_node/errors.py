@@ -6,6 +6,8 @@ parsing the message text.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 STATE_ERROR = "state error"
 PLANNING_ERROR = "planning error"
 CONTROL_ERROR = "control error"
@@ -43,3 +45,41 @@ class TrajectoryError(DynNodeError):
     """A trajectory is malformed: the robot cannot be asked to execute it."""
 
     failure_label = PLANNING_ERROR
+
+
+class SettingsError(DynNodeError):
+    """A parameter value that cannot be used; the message names the parameter and the rule."""
+
+    failure_label = EVALUATION_ERROR
+
+
+class TrajectoryFileError(DynNodeError):
+    """A trajectory file that cannot be read; ``str()`` is ``file:line: field: problem``."""
+
+    failure_label = STATE_ERROR
+
+    def __init__(self, path: str | Path, line: int | None, field: str, problem: str):
+        where = f"{path}:{line}" if line else f"{path}"
+        super().__init__(f"{where}: {field}: {problem}" if field else f"{where}: {problem}",
+                         code="unreadable_file")
+        self.path, self.line, self.field, self.problem = str(path), line, field, problem
+
+
+class CheckError(DynNodeError):
+    """dyn-check cannot run at all (no usable model, bad options)."""
+
+    failure_label = STATE_ERROR
+
+
+class RecordingError(DynNodeError):
+    """Bad recorder configuration (raised at construction, never from write())."""
+
+
+class RecoverError(DynNodeError):
+    """A clear, user-facing dyn-bag-recover failure (bad input path, not an MCAP file,
+    unwritable output)."""
+
+
+class FleetError(DynNodeError):
+    """The fleet run cannot start (no bags, a missing file, Ray unavailable or off loopback);
+    one bag's failure never raises it, it becomes that bag's row."""

@@ -24,7 +24,7 @@ from .errors import FAILURE_LABELS, EVALUATION_ERROR, DynNodeError
 
 SCHEMA_PATH = Path(__file__).resolve().parent / "schemas" / "evidence_record.schema.json"
 SCHEMA_ID = "dyn_node/evidence_record"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: per-joint effort keys unit-neutral, with the joint's unit
 
 #: What every number in an audit record means, with its unit.
 METRIC_DEFINITIONS: dict[str, dict[str, str]] = {
@@ -36,9 +36,14 @@ METRIC_DEFINITIONS: dict[str, dict[str, str]] = {
     "gravity_torque_nm": {"unit": "N·m", "description": "g(q): gravity torque at the recorded position"},
     "rnea_torque_nm": {"unit": "N·m", "description": "RNEA(q, q̇, q̈̂) with friction as configured; q̈̂ "
                        "is the monitor's acceleration estimate"},
-    "effort_limit_nm": {"unit": "N·m", "description": "effort limit (URDF/limits file), min with the "
-                        "torque-speed envelope"},
-    "violation.peak_value": {"unit": "N·m | rad | rad/s | rad/s²", "description": "effort: |torque|; "
+    "effort_limit": {"unit": "N·m | N", "description": "effort limit (URDF/limits file), min with the "
+                     "torque-speed envelope; per joint in its unit (N for a prismatic joint)"},
+    "peak_effort": {"unit": "N·m | N", "description": "model effort (RNEA) at the joint's peak "
+                    "utilisation, in the per-joint entry's unit"},
+    "peak_measured_effort": {"unit": "N·m | N", "description": "measured effort at the joint's peak "
+                             "utilisation (null when not measured), in the entry's unit"},
+    "violation.peak_value": {"unit": "N·m | rad | rad/s | rad/s² (N | m | m/s | m/s² for a prismatic "
+                             "joint: the violation's unit)", "description": "effort: |torque|; "
                              "position: q; velocity: |q̇|; deceleration: |q̈̂| (the acceleration "
                              "estimate) where q̇·q̈̂ < 0, at the peak"},
     "violation.duration_s": {"unit": "s", "description": "time from the first to the last consecutive "

@@ -1,19 +1,9 @@
 """dyn-fleet: audit many bags as Ray tasks and answer for the fleet.
 
-``dyn-fleet ROOT... --out DIR [--address ADDR] [--workers N] [--resume] [--bag-timeout S]
-[--robot-model NAME | --robot-description URDF] [--limits FILE]``
-
 Every bag is one Ray task running :func:`dyn_node.audit.run_audit`, the pure audit ``dyn-audit``
-runs, into ``DIR/bags/<bag id>/`` (evidence.json, report.html). The driver only schedules, stops
-tasks that overrun ``--bag-timeout``, and writes ``DIR/fleet.parquet``, ``DIR/fleet_joints.parquet``
-and ``DIR/fleet.html``. Ray retries a task once when its worker dies (``max_retries=1``); worker
-processes are reused between bags (``max_calls=0``), so imports and compiled kernels are paid once
-per worker. By default Ray runs in this process on 127.0.0.1 with ``--workers`` CPUs and is shut
-down at the end; ``--address auto`` / ``ray://host:port`` joins an existing cluster.
-
-Exit codes (:mod:`dyn_node.exit_codes`): 0 every bag feasible, 1 violations found (wins over 3),
-3 some bags could not be (fully) audited and no violations were found, 2 nothing usable.
-This module never imports rclpy; Ray is imported only when the engine starts.
+runs; the driver only schedules, stops tasks that overrun, and writes the Parquet tables and
+fleet.html. Options, isolation, resume, the tables and exit codes: README "Fleet audit". This
+module never imports rclpy; Ray is imported only when the engine starts.
 """
 from __future__ import annotations
 
@@ -29,13 +19,19 @@ import time
 from collections import deque
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Sequence
 
 from . import __version__
 from .audit import LiveStats
+from .cli import run_command
+from .errors import FleetError
 from .exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code
 from .limits import LIMIT_KINDS
+
+if TYPE_CHECKING:
+    from .model_source import ModelCache
 
 #: Bumped when a row's content changes meaning: --resume then re-audits every bag.
 ROW_FORMAT = 1
@@ -52,11 +48,6 @@ HASH_BLOCK = 1 << 20
 OK, VIOLATIONS, PARTIAL, UNUSABLE, TIMEOUT, CRASHED = (
     "ok", "violations", "partial", "unusable", "timeout", "crashed")
 _CATEGORY = {EXIT_OK: OK, EXIT_VIOLATIONS: VIOLATIONS, EXIT_PARTIAL: PARTIAL, EXIT_UNUSABLE: UNUSABLE}
-
-
-class FleetError(Exception):
-    """The fleet run cannot start (no bags, bad arguments, Ray unavailable)."""
-
 
 # --- the tables' columns: (name, Arrow type, unit, meaning); the README table is made of these ---
 ROW_COLUMNS: list[tuple[str, str, str, str]] = [
@@ -237,7 +228,7 @@ def discover(roots: Sequence[str], *, skip: Path | None = None) -> list[Path]:
                     for line in root.read_text().splitlines()
                     if line.strip() and not line.lstrip().startswith("#")]
         else:
-            raise FleetError(f"{r} does not exist")
+            raise FleetError(f"{r} does not exist", code="not_found")
         for b in bags:
             found.setdefault(str(b), b)
     return [found[k] for k in sorted(found)]
@@ -345,7 +336,7 @@ def _joint_rows(job: BagJob, rec: dict, row: dict) -> list[dict]:
             "recording_start_ns": row["recording_start_ns"],
             "live_effort_peak": _nan(pj.get("peak_utilisation")),
             "live_effort_peak_time_s": _nan(pj.get("peak_time_s")),
-            "effort_limit": _nan(pj.get("effort_limit_nm")),
+            "effort_limit": _nan(pj.get("effort_limit")),
         }
         eps = [v for v in out["violations"] if v["joint"] == name]
         for k in LIVE_KINDS:
@@ -392,6 +383,21 @@ def _node_id() -> str:
         return ""
 
 
+_MODEL_CACHE: "ModelCache | None" = None
+MODEL_CACHE_SIZE = 8  # robot variants a worker keeps built (about 50 kB each for the Panda)
+
+
+def worker_model_cache() -> "ModelCache":
+    """This process's models: a Ray worker runs task after task (one at a time), so the second
+    bag of a robot reuses the model the first one built."""
+    global _MODEL_CACHE
+    if _MODEL_CACHE is None:
+        from .model_source import ModelCache
+
+        _MODEL_CACHE = ModelCache(MODEL_CACHE_SIZE)
+    return _MODEL_CACHE
+
+
 def audit_bag(job: BagJob) -> BagOutcome:
     """Audit one bag exactly as ``dyn-audit`` does (same :func:`run_audit`, same options) and make
     its rows. Never raises for a bad bag: every failure is a row with its error."""
@@ -418,7 +424,7 @@ def audit_bag(job: BagJob) -> BagOutcome:
     opts = AuditOptions(bag=job.path, robot_description=cfg.robot_description,
                         robot_model=cfg.robot_model, limits=cfg.limits, out=str(job.out_dir),
                         topics=cfg.topics, gap_threshold_s=cfg.gap_threshold_s, progress=False,
-                        report=cfg.report)
+                        report=cfg.report, model_cache=worker_model_cache())
     try:
         res = run_audit(opts)
     except (AuditError, BagError, DynNodeError) as exc:
@@ -475,7 +481,8 @@ class Engine:
         try:
             import ray
         except ImportError as exc:  # pragma: no cover - ray is a pinned dependency
-            raise FleetError(f"Ray is not installed ({exc}): pip install -r requirements.txt") from None
+            raise FleetError(f"Ray is not installed ({exc}): pip install -r requirements.txt",
+                             code="ray_missing") from None
         self.ray = ray
         if not self.address:
             # Ray reads this setting once, at import: refuse before anything binds elsewhere
@@ -484,7 +491,7 @@ class Engine:
             if getattr(ray_constants, "ENABLE_RAY_CLUSTER", False):
                 raise FleetError("Ray was imported before dyn_node.fleet could keep it on "
                                  f"{LOOPBACK}: set RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 before "
-                                 "importing ray")
+                                 "importing ray", code="ray_not_loopback")
         common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
                       configure_logging=True)
         try:
@@ -495,13 +502,14 @@ class Engine:
                     ray.init(num_cpus=self.workers, _node_ip_address=LOOPBACK, **common)
         except Exception as exc:  # noqa: BLE001 - Ray's own errors are many; one line for the user
             raise FleetError(f"cannot start Ray{' at ' + self.address if self.address else ''}: "
-                             f"{type(exc).__name__}: {exc}") from None
+                             f"{type(exc).__name__}: {exc}", code="ray_start") from None
         if not self.address:
             ip = ray.util.get_node_ip_address()
             if ip != LOOPBACK:
                 ray.shutdown()
                 raise FleetError(f"local Ray bound to {ip}, not {LOOPBACK}: set "
-                                 "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 before Ray is imported")
+                                 "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 before Ray is imported",
+                                 code="ray_not_loopback")
         self.slots = max(1, int(ray.cluster_resources().get("CPU", self.workers)))
         self.started_s = time.perf_counter() - t0
         self.remote = ray.remote(num_cpus=1, max_retries=1, retry_exceptions=False,
@@ -698,10 +706,10 @@ def run_fleet(roots: Sequence[str], out: str | Path, *, config: FleetConfig = Fl
     out_dir = Path(out).resolve()
     bags = discover(roots, skip=out_dir)
     if not bags:
-        raise FleetError("no bags found under " + ", ".join(roots))
+        raise FleetError("no bags found under " + ", ".join(roots), code="no_bags")
     for f in (config.robot_description, config.limits):
         if f and not Path(f).is_file():
-            raise FleetError(f"{f} does not exist")
+            raise FleetError(f"{f} does not exist", code="not_found")
     config = replace(config, robot_description=str(Path(config.robot_description).resolve())
                      if config.robot_description else "",
                      limits=str(Path(config.limits).resolve()) if config.limits else "")
@@ -781,20 +789,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     cfg = FleetConfig(robot_model=args.robot_model, robot_description=args.robot_description,
                       limits=args.limits, gap_threshold_s=args.gap_threshold,
                       topics=tuple(args.topics), report=not args.no_report)
-    try:
-        res = run_fleet(args.roots, args.out, config=cfg, address=args.address,
-                        workers=args.workers, resume=args.resume, bag_timeout_s=args.bag_timeout,
-                        progress=not args.quiet)
-    except FleetError as exc:
-        print(f"dyn-fleet: error: {exc}", file=sys.stderr)
-        return EXIT_UNUSABLE
-    except OSError as exc:
-        print(f"dyn-fleet: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "),
-              file=sys.stderr)
-        return EXIT_UNUSABLE
-    except KeyboardInterrupt:
-        print("dyn-fleet: interrupted", file=sys.stderr)
-        return 130
+    work = partial(run_fleet, args.roots, args.out, config=cfg, address=args.address,
+                   workers=args.workers, resume=args.resume, bag_timeout_s=args.bag_timeout,
+                   progress=not args.quiet)
+    return run_command("dyn-fleet", work, _print_result)
+
+
+def _print_result(res: FleetResult) -> int:
     print(_summary(res))
     for r in res.rows:
         if r["exit_category"] in (UNUSABLE, TIMEOUT, CRASHED):

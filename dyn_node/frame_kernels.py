@@ -105,12 +105,14 @@ def _cholesky(Mk: np.ndarray, L: np.ndarray, inv: np.ndarray) -> bool:
 @njit(**_JIT)
 def _crba(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.ndarray,
           z: np.ndarray, cm: np.ndarray, ch: np.ndarray, cJ: np.ndarray, armature: np.ndarray,
-          sv: np.ndarray, Mk: np.ndarray) -> None:
+          sv: np.ndarray, g0: float, g1: float, g2: float, Mk: np.ndarray,
+          gq: np.ndarray) -> None:
     """M(q) into Mk from the bodies' mass, first moment and inertia about the world origin
     (cm, ch, cJ, overwritten by the subtree sums): M[j, i] = S_j·(I_i^c S_i) for j = i and its
     ancestors, S the joint's motion in world axes at the origin ([p × z; z] revolute, [z; 0]
     prismatic: its linear part goes to the scratch ``sv``), I_i^c the subtree's spatial
-    inertia."""
+    inertia. The same subtree sums give the generalized gravity g(q) = −S_iᵀ I_i^c [g; 0]
+    into gq: −z·((h − m·p) × g) revolute, −m·z·g prismatic."""
     n = len(parent)
     Mk[:, :] = 0.0     # joints on different branches: never written below
     for i in range(1, n):
@@ -138,6 +140,11 @@ def _crba(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.nd
         e = svx * fx + svy * fy + svz * fz
         if revolute[i]:
             e += zx * nx + zy * ny + zz * nz
+            rx, ry, rz = hx - mi * pw[i, 0], hy - mi * pw[i, 1], hz - mi * pw[i, 2]
+            tx, ty, tz = _cross(rx, ry, rz, g0, g1, g2)
+            gq[c] = -(zx * tx + zy * ty + zz * tz)
+        else:
+            gq[c] = -mi * (svx * g0 + svy * g1 + svz * g2)
         Mk[c, c] = e + armature[c]
         j = parent[i]
         while j > 0:
@@ -203,7 +210,7 @@ def _base(root: np.ndarray, Mt: float, Sx: float, Sy: float, Sz: float, g0: floa
 
 @njit([types.void(_M, _M, _M, _I, _B, _I, _M, _M, _M, _V, _V, _V, _I, _M, _M, _M,
                   types.boolean, types.boolean, _C3, _C3, _C3, _C3, _C3, _C3, _C2, _C3, _C1,
-                  _C2, _C2, _C2)], **_JIT)
+                  _C2, _C2, _C2, _C2)], **_JIT)
 def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
                revolute: np.ndarray, index: np.ndarray, placement: np.ndarray, axis: np.ndarray,
                inertia: np.ndarray, armature: np.ndarray, gravity: np.ndarray,
@@ -211,7 +218,7 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
                fwrench: np.ndarray, with_inertia: bool, with_base: bool,
                pos: np.ndarray, vel: np.ndarray, omega: np.ndarray, acc: np.ndarray,
                alpha: np.ndarray, tau: np.ndarray, mu: np.ndarray, Mout: np.ndarray,
-               ke: np.ndarray, wstatic: np.ndarray, wdynamic: np.ndarray,
+               ke: np.ndarray, gq: np.ndarray, wstatic: np.ndarray, wdynamic: np.ndarray,
                com: np.ndarray) -> None:
     """Per state k of Q, V, A (N×nv) and per frame f (F of them):
 
@@ -221,7 +228,8 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
     * ``tau[f, k]`` (F×N×nv): J_localᵀ·W for the frame's wrench W = ``fwrench[f]`` ([force;
       torque] in the frame's axes, at its origin: Pinocchio's LOCAL Jacobian);
     * with ``with_inertia``: ``Mout[k]`` = M(q) (CRBA, ``armature`` on the diagonal; Mout may
-      be sized 0 when M itself is not wanted), ``ke[k]`` = ½·q̇ᵀMq̇, ``mu[f, k]`` = 1/(uᵀJ_vM⁻¹J_vᵀu) with u = vel/|vel| (by the Cholesky factor of
+      be sized 0 when M itself is not wanted), ``ke[k]`` = ½·q̇ᵀMq̇, ``gq[k]`` = g(q) (the
+      generalized gravity, from the same subtree sums), ``mu[f, k]`` = 1/(uᵀJ_vM⁻¹J_vᵀu) with u = vel/|vel| (by the Cholesky factor of
       M); 0 where |vel| = 0, NaN where M is not positive definite;
     * with ``with_base``: the wrench [force; moment] the mounting exerts on the robot at the
       origin of a frame fixed to the world (``root``) in its axes, split into ``wstatic[k]``
@@ -364,7 +372,8 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
                 cJ[i, 5] = Icw[5] + m * (c2 - cwz * cwz)
         if with_inertia:
             Mk = Mout[k] if len(Mout) else Ms
-            _crba(parent, revolute, index, pw, z, cm, ch, cJ, armature, sv, Mk)
+            _crba(parent, revolute, index, pw, z, cm, ch, cJ, armature, sv, g0, g1, g2, Mk,
+                  gq[k])
             e = 0.0
             for r in range(nv):
                 t = 0.0

@@ -4,7 +4,8 @@ Pinocchio's Python API has no batched Jacobian or mass matrix, so these quantiti
 frame, energy, base and grasp constraints need at every trajectory sample, come from one
 compiled pass (:func:`dyn_node.frame_kernels.frame_rows`) over tables built here from
 Pinocchio's model. Units SI; vectors of a frame in world axes (Pinocchio's
-LOCAL_WORLD_ALIGNED); the base wrench in the URDF root link's axes at its origin.
+LOCAL_WORLD_ALIGNED); the base wrench in the URDF root link's axes at its origin (or in those
+of a frame fixed to it).
 """
 from __future__ import annotations
 
@@ -72,10 +73,13 @@ class FrameTerms:
 
 @dataclass(frozen=True)
 class InertiaTerms:
-    """``kinetic_energy`` ½·q̇ᵀMq̇ (N, J) and, when asked for, ``mass_matrix`` M(q)
-    (N×nv×nv, kg·m², armature on the diagonal when included; else None)."""
+    """``kinetic_energy`` ½·q̇ᵀMq̇ (N, J), ``gravity_torque`` g(q) (N×nv, N·m|N: the
+    generalized gravity, a by-product of the CRBA's subtree sums) and, when asked for,
+    ``mass_matrix`` M(q) (N×nv×nv, kg·m², armature on the diagonal when included; else
+    None)."""
 
     kinetic_energy: np.ndarray
+    gravity_torque: np.ndarray
     mass_matrix: np.ndarray | None
 
 
@@ -260,9 +264,8 @@ class FrameKinematics:
             raise InputError(f"q, v, a have different numbers of states ({len(out[0])}, "
                              f"{len(out[1])}, {len(out[2])})", code="length_mismatch")
         for name, X in zip("qva", out):
-            bad = ~np.isfinite(X)
-            if bad.any():
-                row = int(np.flatnonzero(bad.any(axis=1))[0])
+            if not np.isfinite(X).all():
+                row = int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0])
                 raise InputError(f"{name} is not finite in state {row}", code="non_finite")
         return tuple(out)
 
@@ -270,9 +273,13 @@ class FrameKinematics:
                 base: bool = True, mass_matrix: bool = False) -> FrameBatch:
         """Every frame point's terms over the N states Q, V, A (N×nv, model joint order);
         ``inertia``: also the kinetic energy and the effective masses (M(q) is formed per
-        state either way; ``mass_matrix`` keeps it, N×nv×nv); ``base``: also the base wrench.
-        Raises :class:`InputError` for wrong shapes or non-finite states."""
+        state either way; ``mass_matrix`` keeps it, N×nv×nv, and needs ``inertia``); ``base``:
+        also the base wrench. Raises :class:`InputError` for wrong shapes or non-finite
+        states."""
         from . import frame_kernels   # here, not at import: Numba only for batched checks
+
+        if mass_matrix and not inertia:
+            raise ValueError("mass_matrix=True needs inertia=True")
 
         Q, V, A = self._states(Q, V, A)
         N, nv, F = len(Q), self.nv, len(self.points)
@@ -282,12 +289,13 @@ class FrameKinematics:
         mu = np.empty((F, Ni))
         M = np.empty((Ni if mass_matrix else 0, nv, nv))
         ke = np.empty(Ni)
+        gq = np.empty((Ni, nv))
         ws, wd, com = np.empty((Nb, 6)), np.empty((Nb, 6)), np.empty((Nb, 3))
         t = self._tables
         frame_kernels.frame_rows(Q, V, A, t.parent, t.revolute, t.index, t.placement, t.axis,
                                  t.inertia, t.armature, t.gravity, t.root, self._fjoint,
                                  self._fplace, self._fpoint, self._fwrench, inertia, base, pos,
-                                 vel, omega, acc, alpha, tau, mu, M, ke, ws, wd, com)
+                                 vel, omega, acc, alpha, tau, mu, M, ke, gq, ws, wd, com)
         frames = tuple(FrameTerms(frame=p.frame, point=self._fpoint[f].copy(), position=pos[f],
                                   linear_velocity=vel[f], angular_velocity=omega[f],
                                   linear_acceleration=acc[f], angular_acceleration=alpha[f],
@@ -295,7 +303,7 @@ class FrameKinematics:
                        for f, p in enumerate(self.points))
         return FrameBatch(
             frames=frames,
-            inertia=InertiaTerms(kinetic_energy=ke, mass_matrix=M if mass_matrix else None)
-            if inertia else None,
+            inertia=InertiaTerms(kinetic_energy=ke, gravity_torque=gq,
+                                 mass_matrix=M if mass_matrix else None) if inertia else None,
             base=BaseWrench(frame=self.base_frame, static=ws, dynamic=wd, mass=self.mass,
                             com=com) if base else None)

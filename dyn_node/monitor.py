@@ -2,7 +2,8 @@
 
 Pure and deterministic: every time is passed in (``stamp_s`` from the message header, ``receipt_s``
 and ``now_s`` from the caller's clock), so the offline audit replaying a bag through the same
-:class:`Monitor` and :class:`ControllerTracker` reproduces the live node's numbers bit for bit.
+:class:`Monitor` and :class:`~dyn_node.tracker.ControllerTracker` reproduces the live node's
+numbers bit for bit.
 
 Acceleration estimate (``acceleration_source = finite_difference``): with t the message's header
 stamp (the receipt time when the stamp is zero) and v the reported velocity in model order,
@@ -23,28 +24,23 @@ A message without velocities is computed with q̇ = 0.
 from __future__ import annotations
 
 import math
-from bisect import bisect_right
-from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
 from .dynamics import Dynamics, DynamicsOptions
-from .errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, InputError
-from .model import Payload, RobotModel, load_model
-from .settings import Settings, SettingsError
+from .errors import CONTROL_ERROR, STATE_ERROR, InputError
+from .model import RobotModel
+from .monitor_results import BatchResult, Counts, SampleResult, accepted_result
+from .monitor_window import Window
+from .settings import Settings
 from .status import ERROR, NAME_PREFIX, OK, STALE, WARN, Status
-from .trajectory import PiecewisePolynomial, Trajectory, interpolate
 from .units import joint_units, unit_key
 
-MODEL = NAME_PREFIX + "model"
 JOINT_STATES = NAME_PREFIX + "joint_states"
 EFFORT = NAME_PREFIX + "effort"
 LIMITS = NAME_PREFIX + "limits"
 RESIDUAL = NAME_PREFIX + "residual"
-CONTROLLER = NAME_PREFIX + "controller"
-
-CONTROLLER_STATES = ("idle", "tracking", "deviating", "saturated", "stale", "fault")
 
 
 def _limit_ratio(x: np.ndarray, limit: np.ndarray) -> np.ndarray:
@@ -59,237 +55,6 @@ def _limit_ratio(x: np.ndarray, limit: np.ndarray) -> np.ndarray:
         r = np.where(bad, np.where(np.isnan(a), np.nan,
                                    np.where((a == 0) & (limit == 0), 0.0, np.inf)), r)
     return r
-
-
-# --- model --------------------------------------------------------------------------------
-def build_model(settings: Settings, topic_description: str = "") -> RobotModel:
-    """The model variant the settings ask for; ``topic_description`` is the URDF received on the
-    robot_description topic, used when no model parameter is set. Raises ModelError/SettingsError."""
-    kw = dict(locked_joints=dict(settings.locked_joints), limits_yaml=settings.limits_file or None,
-              payload=Payload(settings.payload_mass, settings.payload_com, settings.payload_frame),
-              gravity=settings.gravity)
-    if settings.robot_description:
-        return load_model(urdf=settings.robot_description, source="parameter:robot_description", **kw)
-    if settings.robot_description_file:
-        return load_model(urdf_file=settings.robot_description_file, **kw)
-    if settings.robot_model:
-        return load_model(builtin=settings.robot_model, **kw)
-    if topic_description:
-        return load_model(urdf=topic_description, source="topic:robot_description", **kw)
-    raise SettingsError("no robot description: set robot_description, robot_description_file or "
-                        "robot_model, or publish the robot_description topic", code="no_source")
-
-
-def _model_values(model: RobotModel) -> dict:
-    vals = {"robot_name": model.name, "dof": model.nv, "joints": " ".join(model.joint_names),
-            "total_mass_kg": model.total_mass, "payload_mass_kg": model.payload.mass,
-            "payload_frame": model.payload_frame, "gravity_m_s2": " ".join(repr(float(g)) for g in model.gravity),
-            "source": model.source, "urdf_sha256": model.urdf_hash, "warnings": len(model.warnings)}
-    for i, w in enumerate(model.warnings, 1):
-        vals[f"warning_{i}"] = w
-    return vals
-
-
-def model_status(model: RobotModel, hardware_id: str) -> Status:
-    """OK with the model's figures, WARN when its limits look suspicious."""
-    vals = _model_values(model)
-    if model.warnings:
-        vals["failure_label"] = EVALUATION_ERROR
-        more = f" (+{len(model.warnings) - 1} more)" if len(model.warnings) > 1 else ""
-        return Status(MODEL, WARN, f"check the limits: {model.warnings[0]}{more}", hardware_id, vals)
-    return Status(MODEL, OK, f"{model.name}: {model.nv} DoF, {model.total_mass:.3f} kg", hardware_id, vals)
-
-
-def waiting_model_status(hardware_id: str) -> Status:
-    return Status(MODEL, STALE, "waiting for robot_description", hardware_id,
-                  {"source": "topic:robot_description", "failure_label": STATE_ERROR})
-
-
-def model_error_status(error: Exception, hardware_id: str, running: RobotModel | None) -> Status:
-    """ERROR: a description or model parameter was rejected; the running model (if any) stays."""
-    vals = _model_values(running) if running is not None else {}
-    vals["error"] = str(error)
-    vals["failure_label"] = EVALUATION_ERROR
-    keep = f"; still using {running.name} ({running.urdf_hash[:12]})" if running else ""
-    return Status(MODEL, ERROR, f"robot description rejected: {error}{keep}", hardware_id, vals)
-
-
-# --- per-message result -------------------------------------------------------------------
-@dataclass(frozen=True)
-class SampleResult:
-    """What one joint_states message produced. When ``accepted`` is False only ``error`` is set.
-
-    Arrays are in model order, each joint in its own units (revolute|prismatic): q (rad|m),
-    v (rad/s|m/s), a_hat (rad/s²|m/s²), gravity and tau (N·m|N),
-    residual = measured − tau (N·m|N, NaN where not measured; None when no effort at all),
-    utilisation = max(|tau|, |measured|) / effort limit at the current speed.
-    ``stamp_s`` is the stamp used (receipt time for a zero stamp).
-    """
-
-    accepted: bool
-    error: InputError | None = None
-    stamp_s: float = 0.0
-    q: np.ndarray | None = None
-    v: np.ndarray | None = None
-    a_hat: np.ndarray | None = None
-    gravity: np.ndarray | None = None
-    tau: np.ndarray | None = None
-    residual: np.ndarray | None = None
-    utilisation: np.ndarray | None = None
-    measured_ratio: float = float("nan")
-    zero_stamp: bool = False
-    out_of_order: bool = False
-    effort_limit: np.ndarray | None = None  # effort limit at the current speed (N·m|N; inf: none)
-
-
-_new = object.__new__
-
-
-def _accepted(t: float, q: np.ndarray, v: np.ndarray, a: np.ndarray, g: np.ndarray, tau: np.ndarray,
-              residual: np.ndarray | None, util: np.ndarray, measured_ratio: float, zero: bool,
-              ooo: bool, lim: np.ndarray) -> SampleResult:
-    # The hot path's constructor: the frozen dataclass __init__ sets 14 fields one by one through
-    # object.__setattr__ (~2 µs); filling the instance dict directly gives the same object.
-    r = _new(SampleResult)
-    r.__dict__.update(accepted=True, error=None, stamp_s=t, q=q, v=v, a_hat=a, gravity=g, tau=tau,
-                      residual=residual, utilisation=util, measured_ratio=measured_ratio,
-                      zero_stamp=zero, out_of_order=ooo, effort_limit=lim)
-    return r
-
-
-@dataclass(frozen=True)
-class BatchResult:
-    """What :meth:`Monitor.process_batch` produced for N accepted messages: row k holds exactly
-    the values :meth:`Monitor.process` returns for message k (same units and order as
-    :class:`SampleResult`). ``residual`` is None when the messages carry no effort;
-    ``measured_ratio`` is NaN then. ``effort_limit`` may be a read-only broadcast view."""
-
-    stamp_s: np.ndarray          # (N,) s
-    q: np.ndarray                # N×nv
-    v: np.ndarray
-    a_hat: np.ndarray
-    gravity: np.ndarray
-    tau: np.ndarray
-    residual: np.ndarray | None
-    utilisation: np.ndarray
-    measured_ratio: np.ndarray   # (N,)
-    zero_stamp: np.ndarray       # (N,) bool
-    out_of_order: np.ndarray     # (N,) bool
-    effort_limit: np.ndarray
-    measured: np.ndarray | None = None  # (N,) bool: rows with effort (None: all, or none)
-
-    def __len__(self) -> int:
-        return len(self.stamp_s)
-
-    def result(self, k: int) -> SampleResult:
-        """Row k as the :class:`SampleResult` :meth:`Monitor.process` would have returned."""
-        return _accepted(float(self.stamp_s[k]), self.q[k], self.v[k], self.a_hat[k], self.gravity[k],
-                         self.tau[k], None if self.residual is None or (
-                             self.measured is not None and not self.measured[k]) else self.residual[k],
-                         self.utilisation[k], float(self.measured_ratio[k]), bool(self.zero_stamp[k]),
-                         bool(self.out_of_order[k]), self.effort_limit[k])
-
-
-@dataclass
-class Counts:
-    """Totals since the node started (they survive model and settings changes). Every message
-    taken lands in exactly one of accepted, invalid and before_model (taken while no model
-    existed), so received = accepted + invalid + before_model."""
-
-    received: int = 0
-    accepted: int = 0
-    invalid: int = 0
-    before_model: int = 0
-    invalid_by_reason: dict = field(default_factory=dict)
-    out_of_order: int = 0
-    zero_stamp: int = 0
-    dropped: int = 0
-    ignored_joint_values: int = 0
-
-
-class _Window:
-    """Worst cases since the last report (reset by :meth:`Monitor.statuses`).
-
-    Accepted messages are queued as rows (references to their result arrays) and folded into the
-    worst cases in batches by :meth:`fold`; the fold gives exactly the state a message-by-message
-    update would (earliest maximum wins, NaN never wins, squares summed in message order)."""
-
-    FOLD_ROWS = 512
-
-    def __init__(self, nv: int, start_s: float | None):
-        self.start_s = start_s
-        self.received = self.accepted = self.invalid = self.out_of_order = self.zero_stamp = 0
-        self.dropped = 0
-        self.util = np.zeros(nv)
-        self.util_limit = np.full(nv, np.inf)
-        self.util_measured = np.zeros(nv, dtype=bool)
-        self.pos_excess = np.full(nv, -np.inf)
-        self.pos_value = np.zeros(nv)
-        self.soft_excess = np.full(nv, -np.inf)
-        self.soft_value = np.zeros(nv)
-        self.vel_excess = np.full(nv, -np.inf)
-        self.vel_value = np.zeros(nv)
-        self.dec_excess = np.full(nv, -np.inf)
-        self.dec_value = np.zeros(nv)
-        self.res_sq = np.zeros(nv)
-        self.res_n = np.zeros(nv, dtype=np.int64)
-        # (q, v, model ratio |τ|/limit, limit, measured ratio | None, residual | None, â) per
-        # message
-        self.rows: list[tuple] = []
-
-    @staticmethod
-    def _worst(x: np.ndarray, best: np.ndarray, *targets: tuple[np.ndarray, np.ndarray]) -> None:
-        """Per column, the first row of ``x`` with the column's largest value replaces ``best``
-        (and the same row of each ``(target, source)``) where it is strictly larger."""
-        x = np.where(np.isnan(x), -np.inf, x)  # a per-message ``>`` never picks NaN
-        cols = np.arange(x.shape[1])
-        k = np.argmax(x, axis=0)
-        top = x[k, cols]
-        b = top > best
-        if b.any():
-            best[b] = top[b]
-            for dst, src in targets:
-                dst[b] = src[k, cols][b]
-
-    def fold(self, lo, hi, slo, shi, soft: bool, vel, nan_row: np.ndarray, *,
-             dec: np.ndarray | None = None) -> None:
-        rows = self.rows
-        if not rows:
-            return
-        self.rows = []
-        Q = np.array([r[0] for r in rows])
-        V = np.array([r[1] for r in rows])
-        UM = np.array([r[2] for r in rows])
-        L = np.array([r[3] for r in rows])
-        MR = np.array([nan_row if r[4] is None else r[4] for r in rows])
-        R = np.array([nan_row if r[5] is None else r[5] for r in rows])
-        A = np.array([r[6] for r in rows]) if dec is not None else None
-        self.fold_arrays(lo, hi, slo, shi, soft, vel, Q, V, UM, L, MR, R, dec=dec, A=A)
-
-    def fold_arrays(self, lo, hi, slo, shi, soft: bool, vel, Q, V, UM, L, MR, R, *,
-                    dec: np.ndarray | None = None, A: np.ndarray | None = None) -> None:
-        """Fold N rows given as N×nv arrays (queued rows must be folded first, to keep the
-        message order). ``MR`` and ``R`` are NaN where not measured. ``dec``: deceleration
-        limits (None: none), checked on the acceleration estimates ``A`` where q̇·q̈̂ < 0."""
-        # utilisation as process computed it; NaN measured ratio: unmeasured, the model's ratio
-        U = np.fmax(UM, MR)
-        self._worst(U, self.util, (self.util_limit, L), (self.util_measured, MR > UM))
-        self._worst(np.maximum(lo - Q, Q - hi), self.pos_excess, (self.pos_value, Q))
-        if soft:
-            self._worst(np.maximum(slo - Q, Q - shi), self.soft_excess, (self.soft_value, Q))
-        self._worst(np.abs(V) - vel, self.vel_excess, (self.vel_value, V))
-        if dec is not None:
-            # excess −inf where |q̇| is not decreasing: only decelerations can exceed the limit
-            ex = np.where(V * A < 0, np.abs(A) - dec, -np.inf)
-            self._worst(ex, self.dec_excess, (self.dec_value, A))
-        ok = ~np.isnan(R)
-        if ok.any():
-            # cumsum adds row by row, in message order: the same rounding as ``res_sq += r²``
-            # message by message (adding +0.0 for an unmeasured joint changes nothing).
-            with np.errstate(over="ignore"):  # a residual beyond 1e154 N·m: its RMS is inf
-                sq = np.where(ok, R * R, 0.0)
-            self.res_sq = np.cumsum(np.vstack([self.res_sq, sq]), axis=0)[-1]
-            self.res_n += ok.sum(axis=0)
 
 
 class Monitor:
@@ -341,7 +106,7 @@ class Monitor:
         self._prev_v: np.ndarray | None = None
         self._a = self._zero
         self._filtered = False
-        self._w = _Window(self._nv, None)
+        self._w = Window(self._nv, None)
 
     # --- hot path ------------------------------------------------------------------------
     def _accel(self, t: float, v: np.ndarray | None) -> tuple[np.ndarray, bool]:
@@ -380,9 +145,7 @@ class Monitor:
         if m is None or len(position) != n or nvel not in (0, n) or neff not in (0, n):
             s = self.model.to_model_order(names, position, velocity, effort)
             if len(self._maps) < 64:
-                idx, ignored = self.model.mapping(names)
-                same = ignored == 0 and n == self._nv and bool(np.all(idx == np.arange(n)))
-                self._maps[key] = (None if same else idx, ignored)
+                self._mapping(key)  # cached for the next message with these names
             return s.q, s.v, s.effort, s.ignored
         idx, ignored = m
         if idx is None:  # a copy, as the reindexing would make: callers may keep the arrays
@@ -460,7 +223,7 @@ class Monitor:
             c.out_of_order += 1
             w.out_of_order += 1
         self.last_error = None
-        r = _accepted(t, q, v, a, g, tau, residual, util, measured_ratio, zero, ooo, lim)
+        r = accepted_result(t, q, v, a, g, tau, residual, util, measured_ratio, zero, ooo, lim)
         self.last_result = r
         return r
 
@@ -476,8 +239,33 @@ class Monitor:
         out of any physical range), it returns None and changes nothing; the caller then feeds
         the messages one by one to :meth:`process`, so findings stay exact.
         """
-        n_msg = len(stamp_s)
-        key = names if isinstance(names, tuple) else tuple(names)
+        inputs = self._batch_inputs(names, position, velocity, effort, stamp_s, receipt_s)
+        if inputs is None:
+            return None
+        Q, V, E, measured, T, zero, ignored = inputs
+        A, ooo, state = self._accel_batch(T, V)
+        Vd = V if V is not None else np.zeros((len(T), self._nv))
+        TAU = self.dynamics.rnea_batch(Q, Vd, A)
+        G = self.dynamics.gravity_batch(Q)
+        # process rejects a row whose torque sum is not finite; rows that large never occur in a
+        # physical recording, so they are left to process (exact) rather than mirrored here.
+        if not (np.abs(TAU).max() < 1e300 and np.abs(G).max() < 1e300):
+            return None
+        lim, UM, util, RES, mratio, MRf, Rf = self._batch_ratios(TAU, E, Vd)
+        # --- commit: from here on the state advances exactly as N process calls would ---------
+        self._prev_t, self._prev_v, self._a, self._filtered = state
+        self._count_batch(receipt_s, ignored=ignored, zero=zero, ooo=ooo)
+        self._fold()
+        self._w.fold_arrays(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel,
+                            Q, Vd, UM, lim, MRf, Rf, dec=self._dec, A=A)
+        out = BatchResult(T, Q, Vd, A, G, TAU, RES, util, mratio, zero, ooo, lim,
+                          None if measured is None or measured.all() else measured)
+        self.last_result = out.result(len(T) - 1)
+        return out
+
+    def _mapping(self, key: tuple[str, ...]) -> tuple[np.ndarray | None, int] | None:
+        """The name mapping as (index array, or None when the names are exactly the model's in
+        its order; ignored names), cached for up to 64 name lists (None: the names are rejected)."""
         m = self._maps.get(key)
         if m is None:
             try:
@@ -488,8 +276,18 @@ class Monitor:
             m = (None if same else idx, ignored)
             if len(self._maps) < 64:
                 self._maps[key] = m
-        n = len(key)
-        shape = (n_msg, n)
+        return m
+
+    def _batch_inputs(self, names: Sequence[str], position: np.ndarray, velocity: np.ndarray | None,
+                      effort: np.ndarray | None, stamp_s: np.ndarray, receipt_s: np.ndarray) -> tuple | None:
+        """The batch in model order as (Q, V, E, measured rows, stamps used, zero stamps, ignored
+        values per message), or None when some message needs :meth:`process`'s handling."""
+        n_msg = len(stamp_s)
+        key = names if isinstance(names, tuple) else tuple(names)
+        m = self._mapping(key)
+        if m is None:
+            return None
+        shape = (n_msg, len(key))
         if n_msg == 0 or position.shape != shape or (velocity is not None and velocity.shape != shape) \
                 or (effort is not None and effort.shape != shape):
             return None
@@ -505,43 +303,35 @@ class Monitor:
             measured = ~np.isnan(E).all(axis=1)
             if not measured.any():
                 E = measured = None
-        A, ooo, state = self._accel_batch(T, V)
-        Vd = V if V is not None else np.zeros((n_msg, self._nv))
-        dyn = self.dynamics
-        TAU = dyn.rnea_batch(Q, Vd, A)
-        G = dyn.gravity_batch(Q)
-        # process rejects a row whose torque sum is not finite; rows that large never occur in a
-        # physical recording, so they are left to process (exact) rather than mirrored here.
-        if not (np.abs(TAU).max() < 1e300 and np.abs(G).max() < 1e300):
-            return None
+        return Q, V, E, measured, T, zero, ignored
+
+    def _batch_ratios(self, TAU: np.ndarray, E: np.ndarray | None, Vd: np.ndarray) -> tuple:
+        """(effort limit, model ratio, utilisation, residual, measured ratio per row, measured
+        ratio and residual for the window (NaN where not measured)) for N rows, as process."""
         lim = self._effort
         if self._has_curve:
             lim = np.minimum(lim, self.model.limits.effort_envelope(Vd))
         else:
             lim = np.broadcast_to(lim, TAU.shape)
         UM = _limit_ratio(TAU, lim) if self._nonpositive else np.abs(TAU) / lim
-        util = UM
-        if E is not None:
-            MR = _limit_ratio(E, lim) if self._nonpositive else np.abs(E) / lim
-            util = np.fmax(UM, MR)
-            RES = E - TAU
-            mratio = np.fmax.reduce(MR, axis=1)  # nanmax, as in process (NaN: no effort at all)
-            MRf, Rf = MR, RES
-        else:
-            RES = None
-            mratio = np.full(n_msg, np.nan)
-            MRf = Rf = np.broadcast_to(self._nan, TAU.shape)
-        # --- commit: from here on the state advances exactly as N process calls would ---------
-        self._prev_t, self._prev_v, self._a, self._filtered = state
+        if E is None:
+            nan = np.broadcast_to(self._nan, TAU.shape)
+            return lim, UM, UM, None, np.full(len(TAU), np.nan), nan, nan
+        MR = _limit_ratio(E, lim) if self._nonpositive else np.abs(E) / lim
+        RES = E - TAU
+        mratio = np.fmax.reduce(MR, axis=1)  # nanmax, as in process (NaN: no effort at all)
+        return lim, UM, np.fmax(UM, MR), RES, mratio, MR, RES
+
+    def _count_batch(self, receipt_s: np.ndarray, *, ignored: int, zero: np.ndarray,
+                     ooo: np.ndarray) -> None:
+        """The counts N accepted :meth:`process` calls would add."""
+        n_msg = len(receipt_s)
         c, w = self.counts, self._w
         c.received += n_msg
         w.received += n_msg
         if w.start_s is None:
             w.start_s = float(receipt_s[0])
         self.last_receipt_s = float(receipt_s[-1])
-        self._fold()
-        w.fold_arrays(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel,
-                      Q, Vd, UM, lim, MRf, Rf, dec=self._dec, A=A)
         c.accepted += n_msg
         w.accepted += n_msg
         c.ignored_joint_values += ignored * n_msg
@@ -551,10 +341,6 @@ class Monitor:
         c.out_of_order += no
         w.out_of_order += no
         self.last_error = None
-        out = BatchResult(T, Q, Vd, A, G, TAU, RES, util, mratio, zero, ooo, lim,
-                          None if measured is None or measured.all() else measured)
-        self.last_result = out.result(n_msg - 1)
-        return out
 
     def _accel_batch(self, T: np.ndarray, V: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, tuple]:
         """:meth:`_accel` over N rows without touching the state: (A, out_of_order, the state
@@ -647,7 +433,7 @@ class Monitor:
         else:
             out += [self._effort_status(hardware_id), self._limits_status(hardware_id),
                     self._residual_status(hardware_id)]
-        self._w = _Window(self._nv, now_s)
+        self._w = Window(self._nv, now_s)
         return out
 
     def _joint_states_status(self, now_s: float, hid: str) -> Status:
@@ -783,183 +569,4 @@ class Monitor:
                       hid, vals)
 
 
-# --- controller status --------------------------------------------------------------------
-class ControllerTracker:
-    """State of execution for ~/controller_status.
-
-    States, first match wins: ``fault`` (the last joint_states was rejected), ``stale`` (nothing
-    within stale_timeout), ``saturated`` (worst measured |effort| / limit ≥ 1), ``deviating``
-    (a trajectory is active and some |q − reference| > tracking_tolerance), ``tracking`` (active
-    and within tolerance), ``idle``. A trajectory is active from its start time (header stamp, or
-    receipt for a zero stamp) plus its first time_from_start until its last point; the reference is
-    interpolated as joint_trajectory_controller does (quintic with accelerations, cubic with
-    velocities, linear with positions only).
-    """
-
-    def __init__(self, model: RobotModel, settings: Settings):
-        self.model = model
-        self.settings = settings
-        self._units = joint_units(model)["position"]  # tracking errors: rad, or m if prismatic
-        self.state = "stale"
-        self.since_s: float | None = None
-        # (polynomial | None, hold position, start, active from, active until, breaks as floats)
-        self._plan: tuple[PiecewisePolynomial | None, np.ndarray, float, float, float, list] | None = None
-        self._nan = np.full(model.nv, np.nan)
-        self._nan.setflags(write=False)  # shared "no error known" value; never written
-        self._error = self._nan
-        self._ratio = math.nan
-        self._last_receipt: float | None = None
-        self._fault: str = ""
-        self._active = False
-
-    def set_trajectory(self, traj: Trajectory, start_s: float) -> None:
-        """Track ``traj`` (model order) starting at ``start_s`` (s). Safe to call from another
-        thread: the new plan replaces the old one in a single assignment."""
-        if traj.velocities is not None and traj.accelerations is not None:
-            mode = "quintic"
-        elif traj.velocities is not None:
-            mode = "cubic"
-        else:
-            mode = "linear"
-        poly = interpolate(traj, mode) if traj.n_points > 1 else None
-        self._plan = (poly, traj.positions[-1], start_s, start_s + float(traj.times[0]),
-                      start_s + float(traj.times[-1]), poly.breaks.tolist() if poly is not None else [])
-
-    def reference(self, t: float) -> np.ndarray | None:
-        """Reference position at time t (s), or None when no trajectory is active then."""
-        plan = self._plan
-        if plan is None:
-            return None
-        poly, hold, start, t0, t1, br = plan
-        if t < t0 or t > t1:
-            return None
-        if poly is None:
-            return hold
-        tau = t - start
-        # bisect on the breaks as Python floats is np.searchsorted(side="right") without its overhead
-        seg = min(max(bisect_right(br, tau) - 1, 0), len(poly.coeffs) - 1)
-        s = min(max(tau - br[seg], 0.0), br[seg + 1] - br[seg])
-        c = poly.coeffs[seg]
-        acc = c[-1]  # Horner; the first product makes a new array, c is never written
-        for k in range(c.shape[0] - 2, -1, -1):
-            acc = acc * s + c[k]
-        return acc if c.shape[0] > 1 else acc.copy()
-
-    def update(self, result: SampleResult, receipt_s: float) -> bool:
-        """Feed one monitor result; returns True when the state changed."""
-        self._last_receipt = receipt_s
-        if not result.accepted:
-            self._fault = str(result.error)
-        else:
-            self._fault = ""
-            ref = self.reference(result.stamp_s)
-            self._active = ref is not None
-            self._error = result.q - ref if ref is not None else self._nan
-            self._ratio = result.measured_ratio
-        return self.tick(receipt_s)
-
-    _STATE_CODES = ("idle", "tracking", "deviating", "saturated")
-
-    def update_batch(self, batch: BatchResult, receipt_s: np.ndarray) -> list[tuple[int, str]]:
-        """:meth:`update` for every row of an accepted batch, in order (receipt times (N,) s);
-        returns (row, new state) for each row at which :meth:`update` would return True."""
-        n = len(batch)
-        if n == 0:
-            return []
-        ratio = batch.measured_ratio
-        sat = ratio >= 1.0 - 1e-9  # NaN compares False, as in _evaluate
-        code = np.where(sat, 3, 0)
-        plan = self._plan
-        active = np.zeros(n, dtype=bool)
-        last_error = self._nan
-        if plan is not None:
-            T = batch.stamp_s
-            active = (T >= plan[3]) & (T <= plan[4])  # where reference() is not None
-            tol = self.settings.tracking_tolerance
-            rows = np.flatnonzero(active & ~sat)
-            if active[-1] and sat[-1]:
-                rows = np.append(rows, n - 1)
-            for k in rows.tolist():
-                error = batch.q[k] - self.reference(float(T[k]))
-                if k == n - 1:
-                    last_error = error
-                if not sat[k]:
-                    err = float(np.fmax.reduce(np.abs(error)))
-                    if err != err:
-                        err = 0.0
-                    code[k] = 2 if err > tol else 1
-        prev = self._STATE_CODES.index(self.state) if self.state in self._STATE_CODES else -1
-        changed = np.flatnonzero(code != np.r_[prev, code[:-1]])
-        if self.since_s is None:
-            self.since_s = float(receipt_s[0])
-        if len(changed):
-            self.since_s = float(receipt_s[changed[-1]])
-        self.state = self._STATE_CODES[int(code[-1])]
-        self._last_receipt = float(receipt_s[-1])
-        self._fault = ""
-        self._active = bool(active[-1])
-        self._error = last_error
-        self._ratio = float(ratio[-1])
-        return [(k, self._STATE_CODES[int(code[k])]) for k in changed.tolist()]
-
-    def _evaluate(self, now_s: float) -> str:
-        if self._last_receipt is not None and now_s < self._last_receipt:
-            self._last_receipt = now_s  # the clock jumped back: staleness counts from the jump
-        if self._last_receipt is None or now_s - self._last_receipt > self.settings.stale_timeout:
-            return "stale"
-        if self._fault:
-            return "fault"
-        # A clamped actuator reports exactly its limit, so reaching it (to rounding) is saturation.
-        if self._ratio >= 1.0 - 1e-9:
-            return "saturated"
-        if self._active:
-            err = float(np.fmax.reduce(np.abs(self._error)))  # nanmax; NaN only if all are NaN
-            if err != err:
-                err = 0.0
-            return "deviating" if err > self.settings.tracking_tolerance else "tracking"
-        return "idle"
-
-    def tick(self, now_s: float) -> bool:
-        """Re-evaluate at ``now_s`` (e.g. for staleness); True when the state changed."""
-        state = self._evaluate(now_s)
-        if state != self.state or self.since_s is None:
-            changed = state != self.state
-            self.state, self.since_s = state, now_s
-            return changed
-        return False
-
-    def status(self, now_s: float, hardware_id: str) -> Status:
-        vals: dict = {"state": self.state,
-                      "time_in_state_s": now_s - self.since_s if self.since_s is not None else 0.0,
-                      "worst_measured_effort_ratio": self._ratio,
-                      "trajectory_active": self._active and self.state in ("tracking", "deviating")}
-        units = self._units
-        for n, e, u in zip(self.model.joint_names, self._error, units):
-            vals[f"{n}_tracking_error_{unit_key(u)}"] = float(e)
-        for u in dict.fromkeys(units):  # one tolerance, read in each joint's unit: rad, m or both
-            vals[f"tracking_tolerance_{unit_key(u)}"] = self.settings.tracking_tolerance
-        st = self.state
-        if st == "stale":
-            level, msg, label = STALE, "no joint_states within stale_timeout", STATE_ERROR
-        elif st == "fault":
-            level, msg, label = ERROR, f"joint_states rejected: {self._fault}", STATE_ERROR
-        elif st == "saturated":
-            level, msg, label = ERROR, f"measured effort at {self._ratio * 100:.0f}% of the limit", CONTROL_ERROR
-        elif st == "deviating":
-            j = int(np.nanargmax(np.abs(self._error)))
-            level, label = WARN, CONTROL_ERROR
-            u = self._units[j]
-            msg = (f"{self.model.joint_names[j]} is {self._error[j]:+.3g} {u} off the trajectory "
-                   f"(tolerance {self.settings.tracking_tolerance:g} {u})")
-        elif st == "tracking":
-            level, msg, label = OK, "tracking the trajectory within tolerance", ""
-        else:
-            level, msg, label = OK, "no active trajectory", ""
-        if label:
-            vals["failure_label"] = label
-        return Status(CONTROLLER, level, msg, hardware_id, vals)
-
-
-__all__ = ["Monitor", "ControllerTracker", "SampleResult", "BatchResult", "Counts", "build_model",
-           "model_status",
-           "waiting_model_status", "model_error_status", "CONTROLLER_STATES"]
+__all__ = ["Monitor", "JOINT_STATES", "EFFORT", "LIMITS", "RESIDUAL"]

@@ -1,39 +1,9 @@
 """A MuJoCo model of a :class:`~dyn_node.model.RobotModel`: independent oracle and simulator plant.
 
 MuJoCo parses the same URDF text with its own parser and computes dynamics with its own
-algorithms, so agreement with Pinocchio checks dyn_node's model loading (locked joints, payload,
-gravity, armature, damping) against code we did not write.
-
-How the URDF is adapted (everything else is MuJoCo's own reading of the URDF):
-
-- ``<visual>``/``<collision>`` are stripped: meshes use ``package://`` paths MuJoCo cannot
-  resolve. With ``contacts=True`` collision primitives (box, cylinder, sphere) are kept; meshes
-  are still dropped.
-- Locked joints become fixed joints with their locked position baked into the joint origin
-  (exact for any locked value), and their ``<mimic>`` tags are dropped.
-- ``fusestatic`` is off so every URDF link, fixed or not, is a MuJoCo body (frames exist).
-- Point masses: MuJoCo refuses moving bodies whose principal inertia is below ``mjMINVAL``
-  (1e-15). Such links are compiled with ``INERTIA_EPS``·I added to their inertia tensor, and the
-  eps is subtracted from ``body_inertia`` after compilation. Adding a multiple of the identity
-  shifts every principal moment by exactly that amount and leaves the principal axes unchanged,
-  so the compiled model has the URDF's inertia up to floating-point rounding (for the exact
-  point masses of planar_2link the restored inertia is exactly 0); its inverse dynamics match
-  the point-mass formula and Pinocchio to ~1e-14 N·m. Only the
-  constraint-solver scaling constants MuJoCo precomputes at compile time (``*_invweight0``) saw
-  the eps; they do not enter inverse dynamics or unconstrained forward dynamics.
-- Gravity is ``model.gravity``; armature per DoF is ``model.limits.armature``; viscous damping is
-  the URDF ``<dynamics damping>`` as MuJoCo reads it; Coulomb ``friction`` becomes MuJoCo's
-  ``frictionloss`` only with ``frictionloss=True`` (a soft constraint in MuJoCo, so it is
-  approximate and off by default).
-- The payload (a point mass) is added as a child body of its frame at the payload's centre of
-  mass, with the same eps treatment.
-- Joint-limit and contact constraints are disabled unless asked for, so ``mj_inverse`` is pure
-  rigid-body inverse dynamics plus damping.
-
-Index arrays map dyn_node model order (``model.joint_names``) to MuJoCo's ``qpos``, ``qvel``/
-``qfrc_*`` and actuator (``ctrl``) arrays. One motor actuator (gear 1, unlimited control) per
-model joint is added so a simulator can command torque via ``data.ctrl[actuator_ids]``; MuJoCo
-clamps actuator force to the URDF effort limit (``actuatorfrcrange``) when ``effort_limits=True``.
+algorithms, so agreement with Pinocchio checks dyn_node's model loading against code we did not
+write. How the URDF is adapted (meshes, locked joints, point masses, payload, constraints off)
+and how indices map to model order: docs/SIMULATOR.md.
 """
 from __future__ import annotations
 

@@ -31,8 +31,7 @@ from typing import Any, Callable, NoReturn
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from diagnostic_msgs.srv import SelfTest
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
-                                SetParametersResult)
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import SingleThreadedExecutor
@@ -50,23 +49,23 @@ from . import feasibility, on_demand
 from .allocator import retain_freed_memory
 from .drops import DropCounter
 from .dynamics import Dynamics, DynamicsOptions
-from .errors import DynNodeError, EVALUATION_ERROR, InputError, STATE_ERROR, TrajectoryError
+from .errors import DynNodeError, EVALUATION_ERROR, InputError, STATE_ERROR, SettingsError, TrajectoryError
 from .model import RobotModel
-from .monitor import (ControllerTracker, Counts, Monitor, build_model, model_error_status, model_status,
-                      waiting_model_status, JOINT_STATES)
+from .model_source import build_model
+from .model_status import model_error_status, model_status, waiting_model_status
+from .monitor import JOINT_STATES, Monitor
+from .monitor_results import Counts
 from .ros_main import end_process, spin_until_signalled
 from .ros_convert import (JointStateOut, RawTrajectory, diagnostic_array, encode_joint_trajectory_cdr,
                           fill_trajectory_effort, parse_joint_state_cdr, parse_joint_trajectory_cdr,
                           s_to_stamp, status_to_msg, stamp_to_s, to_byte, trajectory_arrays,
                           trajectory_header_cdr, verdict_array)
+from .ros_params import KINDS, parameter_descriptor
 from .selftest import run_self_test
-from .settings import MODEL_PARAMETERS, PARAMETERS, SPECS, Settings, SettingsError, settings_from_mapping
+from .settings import MODEL_PARAMETERS, PARAMETERS, SPECS, ParamSpec, Settings, settings_from_mapping
 from .status import STALE, Status
+from .tracker import ControllerTracker
 from .trajectory import validate_trajectory
-
-_KINDS = {"string": ParameterType.PARAMETER_STRING, "double": ParameterType.PARAMETER_DOUBLE,
-          "integer": ParameterType.PARAMETER_INTEGER, "bool": ParameterType.PARAMETER_BOOL,
-          "double_array": ParameterType.PARAMETER_DOUBLE_ARRAY}
 
 JOINT_STATES_QOS_RELIABILITY = ReliabilityPolicy.BEST_EFFORT  # matches reliable and best-effort publishers
 _DRAIN = 256  # most queued joint_states handled per executor wake-up
@@ -78,17 +77,11 @@ FEASIBILITY_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
 
 
-def _descriptor(spec) -> ParameterDescriptor:
-    d = ParameterDescriptor(name=spec.name, type=_KINDS[spec.kind], description=spec.description)
-    if spec.name == "qos_depth":
-        d.read_only = True
-        d.additional_constraints = "read at start-up only"
-    if spec.kind == "double" and spec.low is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=float(spec.low), to_value=float(spec.high),
-                                                     step=0.0)]
-    elif spec.kind == "integer" and spec.low is not None:
-        d.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=1)]
-    return d
+def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    start_only = spec.name == "qos_depth"
+    return parameter_descriptor(spec.name, KINDS[spec.kind], spec.description, low=spec.low,
+                                high=spec.high, read_only=start_only,
+                                constraints="read at start-up only" if start_only else "")
 
 
 @dataclass(frozen=True)
@@ -115,6 +108,27 @@ class DynNode(Node):
         self.status_providers: list[Callable[[], Status]] = []
         for spec in PARAMETERS:
             self.declare_parameter(spec.name, spec.default, _descriptor(spec))
+        self._init_state()
+        values = {spec.name: self.get_parameter(spec.name).value for spec in PARAMETERS}
+        # An unusable value at start-up raises SettingsError: better no node than a misconfigured one.
+        self.settings = settings_from_mapping(values)
+        if self.settings.has_model_source:
+            try:
+                self._core = self._make_core(self.settings, build_model(self.settings))
+            except DynNodeError as exc:
+                self.get_logger().error(f"cannot load the robot model: {exc}")
+                self._model_problem = model_error_status(exc, self.get_name(), None)
+        self._description_sub = None
+        self._ensure_description_subscription()
+        self._create_publishers()
+        self._create_joint_states_io()
+        self._create_inputs_and_timers()
+        self._start_workers()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._start_recording()
+        self._io_thread.start()
+
+    def _init_state(self) -> None:
         self._counts = Counts()
         # Assumes one publisher until the subscription's matched event (or, on an rmw without
         # it, the graph checked each diagnostics period) says otherwise, so gaps from the very
@@ -132,20 +146,8 @@ class DynNode(Node):
         # point lies ahead starts from it (feasibility.current_state)
         self._last_state: tuple[RobotModel, int, Any, Any] | None = None
         self._callback_errors = 0
-        values = {spec.name: self.get_parameter(spec.name).value for spec in PARAMETERS}
-        # An unusable value at start-up raises SettingsError: better no node than a misconfigured one.
-        self.settings = settings_from_mapping(values)
-        if self.settings.has_model_source:
-            try:
-                self._core = self._make_core(self.settings, build_model(self.settings))
-            except DynNodeError as exc:
-                self.get_logger().error(f"cannot load the robot model: {exc}")
-                self._model_problem = model_error_status(exc, self.get_name(), None)
-        s = self.settings
-        self._description_sub = None
-        self._ensure_description_subscription()
-        qos = QoSProfile(depth=s.qos_depth, reliability=JOINT_STATES_QOS_RELIABILITY,
-                         history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+
+    def _create_publishers(self) -> None:
         # Output publishers go without rclpy's default QoS-event handlers: every waitable is rebuilt
         # into the executor's wait set on each iteration, and at 1 kHz that overhead is the budget.
         # Subscriptions keep theirs, so an incompatible publisher is still reported.
@@ -156,6 +158,8 @@ class DynNode(Node):
         self._pub_controller = self.create_publisher(DiagnosticStatus, "~/controller_status", 10, **quiet)
         self._pub_feasibility = self.create_publisher(DiagnosticArray, "~/feasibility", FEASIBILITY_QOS, **quiet)
         self._pub_traj_effort = self.create_publisher(JointTrajectory, "~/trajectory_effort", 10, **quiet)
+
+    def _create_joint_states_io(self) -> None:
         # joint_states run on a node of their own, spun by their own executor on a dedicated
         # thread: rclpy's executor rebuilds its wait set from every entity of its nodes on each
         # wake-up (here ~30: parameter services, self-test, recording services, timers...), in
@@ -163,6 +167,8 @@ class DynNode(Node):
         # node's publishers (~/ names unchanged). _io_lock serialises the per-message work with
         # the timers, services and the feasibility worker that read or feed the same monitor,
         # tracker and recorder.
+        qos = QoSProfile(depth=self.settings.qos_depth, reliability=JOINT_STATES_QOS_RELIABILITY,
+                         history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
         self._io_lock = threading.Lock()
         self._clock_handle = self.get_clock().handle
         self._io_node = Node("_dyn_node_io", context=self.context, namespace=self.get_namespace(),
@@ -173,6 +179,9 @@ class DynNode(Node):
         self._io_wake = self._io_node.create_guard_condition(lambda: None)
         self._io_executor: SingleThreadedExecutor | None = None  # only if the wait set fails
         self._io_thread = threading.Thread(target=self._io_loop, name="dyn_node joint_states", daemon=True)
+
+    def _create_inputs_and_timers(self) -> None:
+        s = self.settings
         # raw: the CDR bytes are read on the worker (see ros_convert.parse_joint_trajectory_cdr), so
         # a 100,000-point trajectory never holds the executor thread while rclpy builds its objects
         self._sub_traj = self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10,
@@ -189,6 +198,8 @@ class DynNode(Node):
         self._srv_self_test = self.create_service(SelfTest, "~/self_test", self._on_self_test)
         self._diag_timer = self.create_timer(s.diagnostics_period, self._on_diagnostics)
         self._ctrl_timer = self.create_timer(s.controller_status_period, self._on_controller_timer)
+
+    def _start_workers(self) -> None:
         self._jobs: queue.Queue = queue.Queue(maxsize=64)
         self._worker_dyn: dict[tuple[int, int, bool], Dynamics] = {}
         # The worker may still be checking when the node is destroyed (destroy_node waits only
@@ -200,7 +211,8 @@ class DynNode(Node):
         self._request_worker = threading.Thread(target=self._request_loop, name="dyn_node_requests",
                                                 daemon=True)
         self._request_worker.start()
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def _start_recording(self) -> None:
         # Imported here: the bridge declares the record.* parameters and owns the recorder thread.
         from .ros_recording import RecordingBridge
         self.recording = RecordingBridge(self, lambda: self.model.urdf if self.model else "",
@@ -217,7 +229,6 @@ class DynNode(Node):
             self.recording.add_publisher(endpoint)
         self.recording.guard = self._io_lock
         self.recording.start_if_enabled()
-        self._io_thread.start()
 
     # --- model and settings ----------------------------------------------------------------
     def _now_s(self) -> float:

@@ -477,14 +477,14 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
 
     p.append("<h2 id='effort'>Effort vs limit</h2>")
     pj = out["effort"]["per_joint"]
-    p.append(_table(["joint", "peak utilisation", "from", "at t (s)", "model torque then (N·m)",
-                     "measured effort then (N·m)", "limit (N·m)"],
+    p.append(_table(["joint", "peak utilisation", "from", "at t (s)", "model effort then",
+                     "measured effort then", "limit", "unit"],
                     [[_e(r["joint"]), _num(None if r["peak_utilisation"] is None else
                                            r["peak_utilisation"] * 100, "{:.1f}%"),
                       _e(r.get("peak_source") or "—"),
-                      _num(r["peak_time_s"], "{:.3f}"), _num(r["peak_torque_nm"]),
-                      _num(r.get("peak_measured_nm")),
-                      _num(r["effort_limit_nm"])] for r in pj], (1, 3, 4, 5, 6)))
+                      _num(r["peak_time_s"], "{:.3f}"), _num(r["peak_effort"]),
+                      _num(r.get("peak_measured_effort")),
+                      _num(r["effort_limit"]), _e(r["unit"])] for r in pj], (1, 3, 4, 5, 6)))
     if "effort.png" in images:
         p.append(_img(images["effort.png"], "per-joint effort vs limit over time"))
     if "utilisation.png" in images:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import array
 import struct
-import sys
 from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
 
@@ -18,6 +17,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
+from .cdr import decode_joint_state
 from .status import Status
 
 
@@ -34,11 +34,6 @@ def s_to_stamp(t: float) -> Time:
     return Time(sec=sec, nanosec=nanosec)
 
 
-def as_double_array(values: np.ndarray) -> array.array:
-    """A float64 NumPy vector as the ``array('d')`` rosidl stores, without per-element checks."""
-    return array.array("d", np.ascontiguousarray(values, dtype=float).tobytes())
-
-
 def to_byte(value: int | bool) -> bytes:
     """The one-byte ``bytes`` a rosidl ``byte`` field needs (diagnostic_msgs' ``level``,
     SelfTest's ``passed``). Every byte field the node and dyn_sim write goes through here: rclpy
@@ -53,25 +48,10 @@ def to_byte(value: int | bool) -> bytes:
     return bytes([int(value)])
 
 
-def from_byte(value: bytes | int) -> int:
-    """The integer of a ``byte`` field as rclpy deserialises it (one-byte ``bytes``)."""
-    if isinstance(value, (bytes, bytearray)):
-        if len(value) != 1:
-            raise ValueError(f"a byte field has one byte, not {len(value)}")
-        return value[0]
-    return int(value)
-
-
 def status_to_msg(status: Status) -> DiagnosticStatus:
     return DiagnosticStatus(level=to_byte(status.level), name=status.name, message=status.message,
                             hardware_id=status.hardware_id,
                             values=[KeyValue(key=k, value=v) for k, v in status.key_values()])
-
-
-def msg_to_status(msg: DiagnosticStatus) -> Status:
-    """Inverse of :func:`status_to_msg` (values come back as strings)."""
-    return Status(msg.name, from_byte(msg.level), msg.message, msg.hardware_id,
-                  {kv.key: kv.value for kv in msg.values})
 
 
 def diagnostic_array(statuses: Iterable[Status], stamp: Time) -> DiagnosticArray:
@@ -82,26 +62,15 @@ def diagnostic_array(statuses: Iterable[Status], stamp: Time) -> DiagnosticArray
 
 
 class JointStateOut:
-    """A reusable outgoing JointState: names set once per model, arrays refilled per message.
-
-    rclpy serialises in ``publish()``, so refilling the same object for the next message is safe.
-    """
+    """An outgoing JointState for one model's joint names (set once), encoded per message."""
 
     def __init__(self, names: Sequence[str]):
-        self.msg = JointState()
-        self.msg.name = list(names)
+        self.names = list(names)
         self._segments: tuple[bytes, bytes, bytes, bytes] | None = None
 
-    def fill(self, stamp: Time, q: np.ndarray, v: np.ndarray, effort: np.ndarray) -> JointState:
-        m = self.msg
-        m.header.stamp = stamp
-        m.position = as_double_array(q)
-        m.velocity = as_double_array(v)
-        m.effort = as_double_array(effort)
-        return m
-
     def encode(self, sec: int, nanosec: int, q: np.ndarray, v: np.ndarray, effort: np.ndarray) -> bytes:
-        """The CDR bytes (little endian) of :meth:`fill`'s message, for ``publish(bytes)``.
+        """The CDR bytes (little endian) of the JointState with these names, the stamp (sec,
+        nanosec) and the arrays as position, velocity and effort, for ``publish(bytes)``.
 
         rclpy's ``publish(msg)`` converts the Python message to C and serialises it on every
         call; the names never change, so everything but the stamp and the three arrays is laid
@@ -110,7 +79,7 @@ class JointStateOut:
         """
         segs = self._segments
         if segs is None:
-            segs = self._segments = _joint_state_segments(list(self.msg.name))
+            segs = self._segments = _joint_state_segments(self.names)
         return b"".join((segs[0], _TIME.pack(sec, nanosec), segs[1],
                          np.asarray(q, dtype="<f8").tobytes(), segs[2],
                          np.asarray(v, dtype="<f8").tobytes(), segs[3],
@@ -146,62 +115,15 @@ def _joint_state_segments(names: list[str]) -> tuple[bytes, bytes, bytes, bytes]
     return (b"\x00\x01\x00\x00", b[8:marks[1]], b[marks[2]:marks[3]], b[marks[4]:marks[5]])
 
 
-_names_cache: list = [(b"", [])]  # [(CDR of the last name sequence, its names)]: senders repeat them
-
-
 def parse_joint_state_cdr(data: bytes) -> tuple[int, int, list, array.array, array.array, array.array]:
     """(stamp sec, stamp nanosec, names, position, velocity, effort) of a little-endian CDR
     sensor_msgs/JointState (what Fast DDS sends on x86 and ARM), with the types rclpy's
-    deserialisation gives, without building rclpy's message object. Raises ValueError (or
-    struct.error/UnicodeDecodeError) on anything else; callers then fall back to
-    ``deserialize_message``, which decides what is malformed."""
-    if len(data) < 20 or data[0] != 0 or data[1] != 1 or not _LITTLE:
-        raise ValueError("not little-endian CDR on a little-endian host")
-    end = len(data)
-    sec, nsec = _TIME.unpack_from(data, 4)
-    (n,) = _U32.unpack_from(data, 12)
-    pos = 16 + n  # absolute; CDR aligns relative to 4, so 4-alignment is the same either way
-    if pos > end:
-        raise ValueError("frame_id beyond the data")
-    pos += (-pos) % 4
-    start = pos
-    cached, names = _names_cache[0]
-    if data.startswith(cached, start) and cached:
-        pos += len(cached)
-    else:
-        (count,) = _U32.unpack_from(data, pos)
-        pos += 4
-        if count * 4 > end - pos:
-            raise ValueError("name count beyond the data")
-        names = []
-        for _ in range(count):
-            pos += (-pos) % 4
-            (n,) = _U32.unpack_from(data, pos)
-            pos += 4
-            if n == 0 or pos + n > end or data[pos + n - 1] != 0:
-                raise ValueError("bad string")
-            raw = data[pos:pos + n - 1]
-            if b"\0" in raw:
-                raise ValueError("NUL inside a name")
-            names.append(raw.decode())
-            pos += n
-        _names_cache[0] = (bytes(data[start:pos]), names)  # one reference: atomic for readers
-    out = [sec, nsec, list(names)]
-    for _ in range(3):
-        pos += (-pos) % 4
-        (count,) = _U32.unpack_from(data, pos)
-        pos += 4
-        a = array.array("d")
-        if count:
-            if pos % 8 != 4:  # the first double sits 8-aligned in the body (offset pos - 4)
-                pos += 4
-            stop = pos + 8 * count
-            if stop > end:
-                raise ValueError("array beyond the data")
-            a.frombytes(data[pos:stop])
-            pos = stop
-        out.append(a)
-    return tuple(out)  # type: ignore[return-value]
+    deserialisation gives, without building rclpy's message object
+    (:func:`dyn_node.cdr.decode_joint_state`, strict). Raises ValueError on anything else;
+    callers then fall back to ``deserialize_message``, which decides what is malformed."""
+    js = decode_joint_state(data, strict=True)
+    return (js.sec, js.nanosec, list(js.names), array.array("d", js.position.tobytes()),
+            array.array("d", js.velocity.tobytes()), array.array("d", js.effort.tobytes()))
 
 
 def _rows(seqs: list) -> np.ndarray | list:
@@ -242,7 +164,8 @@ def fill_trajectory_effort(msg: JointTrajectory, effort_model_order: np.ndarray,
 
 # --- JointTrajectory CDR without a Python message ------------------------------------------
 # rclpy builds a Python object per waypoint when it deserialises a JointTrajectory, in one C call
-# that holds the GIL: ~2 s for 100,000 points, during which no joint_states callback can run.
+# that holds the GIL for seconds on a long trajectory, during which no joint_states callback can
+# run (docs/INTERNALS.md).
 # Reading the CDR bytes here keeps the per-point loop in Python (the interpreter hands the GIL to
 # the executor thread every few milliseconds) and gathers the numbers with NumPy.
 # Layout (XCDR1, little endian, offsets aligned relative to the byte after the 4-byte
@@ -253,7 +176,6 @@ def fill_trajectory_effort(msg: JointTrajectory, effort_model_order: np.ndarray,
 
 _U32 = struct.Struct("<I")
 _TIME = struct.Struct("<iI")
-_LITTLE = sys.byteorder == "little"  # array('d') is native-endian
 
 
 @dataclass(frozen=True)

@@ -1,18 +1,9 @@
 """ROS side of recording: parameters, raw subscriptions, start/stop services, recorder status.
 
-``RecordingBridge(node)`` is constructed once by the node. It declares the ``record.*``
-parameters, offers ``~/start_recording`` and ``~/stop_recording`` (std_srvs/Trigger; the response
-message is the bag path), subscribes with ``raw=True`` to every configured topic once the graph
-tells its type (re-checked every ``discovery_period_s``), and hands the serialized bytes to a
-:class:`dyn_node.recording.Recorder`. The callback does no disk I/O: it stamps the receipt
-time, reads the header stamp straight from the CDR bytes, and queues.
-
-The node's own endpoints registered with :meth:`RecordingBridge.add_publisher` are recorded
-from the node's calls instead (no subscription to itself): its subscriptions (they see every
-publisher of the topic) and its publishers under its private ``~/`` namespace (nobody else
-publishes there). A publisher on a shared topic, e.g. ``/diagnostics``, is recorded by a raw
-subscription like any input, so other nodes' messages on it are in the bag too, and the
-node's own once each (the subscription receives them; the publish path does not record them).
+``RecordingBridge(node)`` subscribes raw to every configured topic and hands the bytes to a
+:class:`dyn_node.recording.Recorder`; the callback does no disk I/O. The node's own endpoints
+are recorded from its calls instead of a subscription to itself (which are, and why:
+docs/BAGS.md).
 """
 from __future__ import annotations
 
@@ -21,7 +12,7 @@ import time
 from typing import Any, Callable
 
 import yaml
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rcl_interfaces.msg import ParameterType
 from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.publisher import Publisher
@@ -29,9 +20,12 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSPro
                        ReliabilityPolicy)
 from std_srvs.srv import Trigger
 
-from .errors import EVALUATION_ERROR
-from .recording import (COMPRESSIONS, HEADER_STAMP, Recorder, RecorderConfig, RecorderStats,
-                        RecordingError, TopicInfo, has_header_first, qos_profile_dict)
+from .errors import EVALUATION_ERROR, RecordingError
+from .bag_metadata import TopicInfo, qos_profile_dict
+from .mcap_writer import COMPRESSIONS
+from .msgdefs import has_header_first
+from .recording import HEADER_STAMP, Recorder, RecorderConfig, RecorderStats
+from .ros_params import parameter_descriptor
 from .status import ERROR, NAME_PREFIX, OK, WARN, Status
 
 STATUS_NAME = NAME_PREFIX + "recorder"
@@ -49,10 +43,6 @@ _DURABILITY = {DurabilityPolicy.TRANSIENT_LOCAL: "transient_local",
 _HISTORY = {HistoryPolicy.KEEP_LAST: "keep_last", HistoryPolicy.KEEP_ALL: "keep_all"}
 _LIVELINESS = {LivelinessPolicy.AUTOMATIC: "automatic",
                LivelinessPolicy.MANUAL_BY_TOPIC: "manual_by_topic"}
-
-
-def _descriptor(description: str, ptype: int, **kw: Any) -> ParameterDescriptor:
-    return ParameterDescriptor(description=description, type=ptype, **kw)
 
 
 class RecordingBridge:
@@ -90,25 +80,7 @@ class RecordingBridge:
         # publisher or subscription object -> (topic, stamped): topic_name is a call into rcl
         self._endpoints: dict[Any, tuple[str, bool]] = {}
         self._live: dict[Any, tuple[str, bool]] = {}  # the endpoints recorded right now
-        node.declare_parameter("record.enabled", False, _descriptor(
-            "Start recording at startup (services ~/start_recording, ~/stop_recording toggle it).",
-            ParameterType.PARAMETER_BOOL))
-        node.declare_parameter("record.directory", "bags", _descriptor(
-            "Parent directory; each recording gets a new timestamped sub-directory.",
-            ParameterType.PARAMETER_STRING))
-        node.declare_parameter("record.topics", DEFAULT_TOPICS, _descriptor(
-            "Topics to record; relative and ~/ names resolve against this node.",
-            ParameterType.PARAMETER_STRING_ARRAY))
-        node.declare_parameter("record.compression", "zstd", _descriptor(
-            "MCAP chunk compression: zstd | lz4 | none.", ParameterType.PARAMETER_STRING,
-            additional_constraints="one of: zstd, lz4, none"))
-        node.declare_parameter("record.max_bag_size_mb", 0.0, _descriptor(
-            "Split into a new file beyond this size in MB (10^6 bytes); 0 = off.",
-            ParameterType.PARAMETER_DOUBLE, floating_point_range=[
-                _range(0.0, 1e9)]))
-        node.declare_parameter("record.max_bag_duration_s", 0.0, _descriptor(
-            "Split into a new file after this many seconds of log time; 0 = off.",
-            ParameterType.PARAMETER_DOUBLE, floating_point_range=[_range(0.0, 1e9)]))
+        self._declare_parameters()
         self._start_srv = node.create_service(Trigger, "~/start_recording", self._on_start)
         self._stop_srv = node.create_service(Trigger, "~/stop_recording", self._on_stop)
         self._timer = node.create_timer(discovery_period_s, self._discover)
@@ -117,6 +89,25 @@ class RecordingBridge:
         node.add_post_set_parameters_callback(self._on_parameters_set)
         if autostart:
             self.start_if_enabled()
+
+    def _declare_parameters(self) -> None:
+        T = ParameterType
+
+        def declare(name: str, default: Any, ptype: int, description: str, **kw: Any) -> None:
+            self.node.declare_parameter(name, default, parameter_descriptor(name, ptype, description, **kw))
+
+        declare("record.enabled", False, T.PARAMETER_BOOL,
+                "Start recording at startup (services ~/start_recording, ~/stop_recording toggle it).")
+        declare("record.directory", "bags", T.PARAMETER_STRING,
+                "Parent directory; each recording gets a new timestamped sub-directory.")
+        declare("record.topics", DEFAULT_TOPICS, T.PARAMETER_STRING_ARRAY,
+                "Topics to record; relative and ~/ names resolve against this node.")
+        declare("record.compression", "zstd", T.PARAMETER_STRING, "MCAP chunk compression: zstd | lz4 | none.",
+                constraints="one of: zstd, lz4, none")
+        declare("record.max_bag_size_mb", 0.0, T.PARAMETER_DOUBLE,
+                "Split into a new file beyond this size in MB (10^6 bytes); 0 = off.", low=0.0, high=1e9)
+        declare("record.max_bag_duration_s", 0.0, T.PARAMETER_DOUBLE,
+                "Split into a new file after this many seconds of log time; 0 = off.", low=0.0, high=1e9)
 
     def start_if_enabled(self) -> None:
         """Start recording when ``record.enabled`` is set (an owner that registers its own
@@ -190,8 +181,8 @@ class RecordingBridge:
 
     def now_ns(self) -> int:
         """The node's clock (ROS time) in ns. Without a /clock override ROS time is the system
-        time, read here with ``time.time_ns`` (0.1 µs) instead of through rclpy's clock handle
-        (~2.5 µs, paid per recorded output at 1 kHz)."""
+        time, read here with ``time.time_ns``: rclpy's clock handle costs far more and this is
+        paid per recorded output."""
         h = self._clock_handle
         # No ``with h``: the node keeps its clock (and handle) for its whole life, and the
         # bridge stops recording before the node is destroyed.
@@ -346,8 +337,9 @@ class RecordingBridge:
         desc = self._current_description()
         if desc:
             rec.set_robot_description(desc)
-        # Dumping every parameter to YAML costs ~1 ms: done after a parameter was set, and every
-        # _PARAMETERS_REFRESH ticks for parameters declared later (written only when changed).
+        # Dumping every parameter to YAML is too slow for every tick: done after a parameter was
+        # set, and every _PARAMETERS_REFRESH ticks for parameters declared later (written only
+        # when changed).
         self._ticks += 1
         if self._parameters_changed or self._ticks % self._PARAMETERS_REFRESH == 0:
             self._parameters_changed = False
@@ -427,11 +419,6 @@ class RecordingBridge:
     def _on_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         response.success, response.message = self.stop()
         return response
-
-
-def _range(lo: float, hi: float):
-    from rcl_interfaces.msg import FloatingPointRange
-    return FloatingPointRange(from_value=lo, to_value=hi, step=0.0)
 
 
 def _import_type(type_name: str):

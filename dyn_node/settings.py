@@ -8,16 +8,10 @@ This module is pure (no rclpy); the adapter turns :class:`ParamSpec` into Parame
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
-from typing import Any, Mapping
+from dataclasses import Field, dataclass, field, fields, replace
+from typing import Any, Callable, Mapping
 
-from .errors import DynNodeError, EVALUATION_ERROR
-
-
-class SettingsError(DynNodeError):
-    """A parameter value that cannot be used; the message names the parameter and the rule."""
-
-    failure_label = EVALUATION_ERROR
+from .errors import SettingsError
 
 
 ACCELERATION_SOURCES = ("finite_difference", "zero")
@@ -36,112 +30,6 @@ class ParamSpec:
     low: float | None = None
     high: float | None = None
     affects_model: bool = False
-
-
-PARAMETERS: tuple[ParamSpec, ...] = (
-    ParamSpec("robot_description", "string", "",
-              "URDF XML of the robot; first of the three model sources that is non-empty wins",
-              affects_model=True),
-    ParamSpec("robot_description_file", "string", "", "path to a URDF file", affects_model=True),
-    ParamSpec("robot_model", "string", "",
-              "built-in model name (panda, ur5, planar_2link); if all three model sources are "
-              "empty the node waits for the robot_description topic", affects_model=True),
-    ParamSpec("gravity", "double_array", [0.0, 0.0, -9.81],
-              "gravity vector in the model's base frame (m/s², 3 values)", affects_model=True),
-    ParamSpec("locked_joints", "string", "",
-              "joints to lock, comma separated 'name' (locked at 0) or 'name=position' (rad|m); "
-              "added to a built-in model's default locks", affects_model=True),
-    ParamSpec("limits_file", "string", "",
-              "joint limits YAML (ros2_control joint_limits format plus dyn_node keys) merged over "
-              "the URDF limits; empty: URDF limits only", affects_model=True),
-    ParamSpec("payload.mass", "double", 0.0, "payload point mass (kg)", 0.0, 1000.0,
-              affects_model=True),
-    ParamSpec("payload.com", "double_array", [0.0, 0.0, 0.0],
-              "payload centre of mass in payload.frame (m, 3 values)", affects_model=True),
-    ParamSpec("payload.frame", "string", "",
-              "frame (link) carrying the payload; empty: the last link", affects_model=True),
-    ParamSpec("include_friction", "bool", True,
-              "add the URDF's viscous and Coulomb joint friction to the model torques"),
-    ParamSpec("acceleration_source", "string", "finite_difference",
-              "how q̈ is estimated for inverse dynamics: finite_difference (of velocity on header "
-              "stamps) or zero"),
-    ParamSpec("acceleration_filter_hz", "double", 0.0,
-              "cut-off of the first-order low-pass on the acceleration estimate (Hz); 0 = unfiltered",
-              0.0, 1.0e6),
-    ParamSpec("effort_warn_ratio", "double", 0.9,
-              "effort utilisation (|τ| / limit) above which effort is reported as WARN", 0.0, 1.0),
-    ParamSpec("residual_warn_ratio", "double", 0.1,
-              "RMS effort residual (measured − model) as a fraction of the effort limit above "
-              "which the residual is reported as WARN", 0.0, 10.0),
-    ParamSpec("stale_timeout", "double", 0.5,
-              "joint_states older than this are STALE; also the largest stamp gap differentiated "
-              "for the acceleration estimate (s)", 1.0e-3, 3600.0),
-    ParamSpec("diagnostics_period", "double", 1.0, "period of /diagnostics (s)", 1.0e-2, 3600.0),
-    ParamSpec("controller_status_period", "double", 0.1, "period of ~/controller_status (s)",
-              1.0e-3, 3600.0),
-    ParamSpec("tracking_tolerance", "double", 0.05,
-              "largest |q − reference| before the controller status is 'deviating' (rad|m)",
-              0.0, 100.0),
-    ParamSpec("sample_period", "double", 0.001,
-              "sampling period of the trajectory feasibility check (s)", 1.0e-5, 1.0),
-    ParamSpec("qos_depth", "integer", 100,
-              "history depth of the joint_states subscription (messages)", 1, 100000),
-    ParamSpec("check_queue_depth", "integer", 8,
-              "check-only and inverse-dynamics requests waiting to be answered; one arriving "
-              "when this many wait is answered 'rejected: busy' (requests)", 1, 10000),
-)
-
-SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMETERS}
-MODEL_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.affects_model)
-
-
-@dataclass(frozen=True)
-class Settings:
-    """Validated node settings (SI units). Field names are the parameter names with '.' → '_'."""
-
-    robot_description: str = ""
-    robot_description_file: str = ""
-    robot_model: str = ""
-    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
-    locked_joints: tuple[tuple[str, float], ...] = ()
-    limits_file: str = ""
-    payload_mass: float = 0.0
-    payload_com: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    payload_frame: str = ""
-    include_friction: bool = True
-    acceleration_source: str = "finite_difference"
-    acceleration_filter_hz: float = 0.0
-    effort_warn_ratio: float = 0.9
-    residual_warn_ratio: float = 0.1
-    stale_timeout: float = 0.5
-    diagnostics_period: float = 1.0
-    controller_status_period: float = 0.1
-    tracking_tolerance: float = 0.05
-    sample_period: float = 0.001
-    qos_depth: int = 100
-    check_queue_depth: int = 8
-
-    @property
-    def has_model_source(self) -> bool:
-        return bool(self.robot_description or self.robot_description_file or self.robot_model)
-
-    def model_key(self) -> tuple:
-        """Everything the model depends on: equal keys mean the same model variant."""
-        return (self.robot_description, self.robot_description_file, self.robot_model,
-                self.gravity, self.locked_joints, self.limits_file, self.payload_mass,
-                self.payload_com, self.payload_frame)
-
-    def to_parameters(self) -> dict[str, Any]:
-        """The parameter values (ROS names) these settings came from, for records and YAML."""
-        out: dict[str, Any] = {}
-        for spec in PARAMETERS:
-            v = getattr(self, spec.name.replace(".", "_"))
-            if spec.name == "locked_joints":
-                v = format_locked_joints(v)
-            elif isinstance(v, tuple):
-                v = list(v)
-            out[spec.name] = v
-        return out
 
 
 def parse_locked_joints(text: str) -> tuple[tuple[str, float], ...]:
@@ -165,6 +53,112 @@ def parse_locked_joints(text: str) -> tuple[tuple[str, float], ...]:
             raise SettingsError(f"locked_joints: '{name}' is listed twice", code="bad_parameter")
         out.append((name, pos))
     return tuple(out)
+
+
+def _param(kind: str, default: Any, description: str, low: float | None = None,
+           high: float | None = None, *, affects_model: bool = False, name: str = "",
+           parse: Callable[[Any], Any] | None = None) -> Any:
+    """A :class:`Settings` field that declares its ROS parameter (the one place its default is
+    written). ``default`` is the parameter's value; the field holds it as settings do (arrays as
+    tuples, ``parse(default)`` for a parsed text). ``name``: the ROS name where it is not the
+    field's ('payload.mass' for payload_mass)."""
+    value = tuple(default) if kind == "double_array" else parse(default) if parse else default
+    spec = dict(name=name, kind=kind, default=default, description=description, low=low, high=high,
+                affects_model=affects_model)
+    return field(default=value, metadata={"parameter": spec})
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Validated node settings (SI units). Each field declares its ROS parameter (the
+    :data:`PARAMETERS` entry): field names are the parameter names with '.' → '_'."""
+
+    robot_description: str = _param(
+        "string", "", "URDF XML of the robot; first of the three model sources that is non-empty wins",
+        affects_model=True)
+    robot_description_file: str = _param("string", "", "path to a URDF file", affects_model=True)
+    robot_model: str = _param(
+        "string", "", "built-in model name (panda, ur5, planar_2link); if all three model sources are "
+        "empty the node waits for the robot_description topic", affects_model=True)
+    gravity: tuple[float, float, float] = _param(
+        "double_array", [0.0, 0.0, -9.81], "gravity vector in the model's base frame (m/s², 3 values)",
+        affects_model=True)
+    locked_joints: tuple[tuple[str, float], ...] = _param(
+        "string", "", "joints to lock, comma separated 'name' (locked at 0) or 'name=position' (rad|m); "
+        "added to a built-in model's default locks", affects_model=True, parse=parse_locked_joints)
+    limits_file: str = _param(
+        "string", "", "joint limits YAML (ros2_control joint_limits format plus dyn_node keys) merged "
+        "over the URDF limits; empty: URDF limits only", affects_model=True)
+    payload_mass: float = _param("double", 0.0, "payload point mass (kg)", 0.0, 1000.0,
+                                 affects_model=True, name="payload.mass")
+    payload_com: tuple[float, float, float] = _param(
+        "double_array", [0.0, 0.0, 0.0], "payload centre of mass in payload.frame (m, 3 values)",
+        affects_model=True, name="payload.com")
+    payload_frame: str = _param("string", "", "frame (link) carrying the payload; empty: the last link",
+                                affects_model=True, name="payload.frame")
+    include_friction: bool = _param(
+        "bool", True, "add the URDF's viscous and Coulomb joint friction to the model torques")
+    acceleration_source: str = _param(
+        "string", "finite_difference", "how q̈ is estimated for inverse dynamics: finite_difference "
+        "(of velocity on header stamps) or zero")
+    acceleration_filter_hz: float = _param(
+        "double", 0.0, "cut-off of the first-order low-pass on the acceleration estimate (Hz); "
+        "0 = unfiltered", 0.0, 1.0e6)
+    effort_warn_ratio: float = _param(
+        "double", 0.9, "effort utilisation (|τ| / limit) above which effort is reported as WARN", 0.0, 1.0)
+    residual_warn_ratio: float = _param(
+        "double", 0.1, "RMS effort residual (measured − model) as a fraction of the effort limit above "
+        "which the residual is reported as WARN", 0.0, 10.0)
+    stale_timeout: float = _param(
+        "double", 0.5, "joint_states older than this are STALE; also the largest stamp gap "
+        "differentiated for the acceleration estimate (s)", 1.0e-3, 3600.0)
+    diagnostics_period: float = _param("double", 1.0, "period of /diagnostics (s)", 1.0e-2, 3600.0)
+    controller_status_period: float = _param("double", 0.1, "period of ~/controller_status (s)",
+                                             1.0e-3, 3600.0)
+    tracking_tolerance: float = _param(
+        "double", 0.05, "largest |q − reference| before the controller status is 'deviating' (rad|m)",
+        0.0, 100.0)
+    sample_period: float = _param("double", 0.001, "sampling period of the trajectory feasibility check (s)",
+                                  1.0e-5, 1.0)
+    qos_depth: int = _param("integer", 100, "history depth of the joint_states subscription (messages)",
+                            1, 100000)
+    check_queue_depth: int = _param(
+        "integer", 8, "check-only and inverse-dynamics requests waiting to be answered; one arriving "
+        "when this many wait is answered 'rejected: busy' (requests)", 1, 10000)
+
+    @property
+    def has_model_source(self) -> bool:
+        return bool(self.robot_description or self.robot_description_file or self.robot_model)
+
+    def model_key(self) -> tuple:
+        """Everything the model depends on: equal keys mean the same model variant."""
+        return (self.robot_description, self.robot_description_file, self.robot_model,
+                self.gravity, self.locked_joints, self.limits_file, self.payload_mass,
+                self.payload_com, self.payload_frame)
+
+    def to_parameters(self) -> dict[str, Any]:
+        """The parameter values (ROS names) these settings came from, for records and YAML."""
+        out: dict[str, Any] = {}
+        for spec in PARAMETERS:
+            v = getattr(self, _FIELDS[spec.name])
+            if spec.name == "locked_joints":
+                v = format_locked_joints(v)
+            elif isinstance(v, tuple):
+                v = list(v)
+            out[spec.name] = v
+        return out
+
+
+def _spec(f: Field) -> ParamSpec:
+    """The parameter a :class:`Settings` field declares."""
+    p = dict(f.metadata["parameter"])
+    return ParamSpec(**{**p, "name": p["name"] or f.name})
+
+
+PARAMETERS: tuple[ParamSpec, ...] = tuple(_spec(f) for f in fields(Settings))
+SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMETERS}
+MODEL_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.affects_model)
+_FIELDS: dict[str, str] = {p.name: f.name for p, f in zip(PARAMETERS, fields(Settings))}
 
 
 def format_locked_joints(locks: tuple[tuple[str, float], ...]) -> str:
@@ -222,12 +216,6 @@ def settings_from_mapping(values: Mapping[str, Any], base: Settings | None = Non
         elif name == "acceleration_source" and value not in ACCELERATION_SOURCES:
             raise SettingsError(f"parameter 'acceleration_source' must be one of "
                                 f"{', '.join(ACCELERATION_SOURCES)}, got '{value}'", code="bad_parameter")
-        kw[name.replace(".", "_")] = value
+        kw[_FIELDS[name]] = value
     return replace(base or Settings(), **kw)
 
-
-def default_parameters() -> dict[str, Any]:
-    return {p.name: p.default for p in PARAMETERS}
-
-
-assert {f.name for f in fields(Settings)} == {p.name.replace(".", "_") for p in PARAMETERS}

@@ -1,41 +1,24 @@
 """A simulated robot: MuJoCo at a fixed step with a joint-space PD + feedforward controller.
 
-The simulator is the independent "other side" of the demo: it integrates the same URDF with
-MuJoCo (not Pinocchio) and executes trajectories the way ros2_control's
-joint_trajectory_controller (JTC) does:
-
-- the trajectory is checked with :func:`dyn_node.trajectory.validate_trajectory` (JTC's rules);
-- it starts at its header stamp, or on receipt when the stamp is zero;
-- when the first point's absolute time lies after the receipt time, the first segment runs from
-  the state at receipt (position, velocity) to the first point, as JTC does;
-- segments are interpolated quintic (positions, velocities, accelerations), cubic (positions and
-  velocities) or linear (positions only), the JTC rules;
-- after the last point the last position is held.
-
-Control law, per 1 ms step, in model joint order::
-
-    τ = clip(τ_ff(q_ref, q̇_ref, q̈_ref) + Kp (q_ref − q) + Kd (q̇_ref − q̇), ±effort_limit)
-
-with the feedforward τ_ff from MuJoCo's own inverse dynamics (``mj_inverse``) of the reference,
-so the controller never uses Pinocchio. Saturation at the URDF effort limits is real: an
-infeasible trajectory visibly fails to track. The measured effort reported is the applied
-(saturated) torque.
-
-Time is simulation time in seconds (starts at 0); nothing here reads a clock, so a run is
-deterministic and steppable from tests. No rclpy: :mod:`dyn_node.sim_node` is the ROS adapter.
+The independent "other side" of the demo: it integrates the same URDF with MuJoCo (never
+Pinocchio) and executes trajectories as ros2_control's joint_trajectory_controller does, with
+real saturation at the effort limits. Control law, trajectory rules and the external push:
+docs/SIMULATOR.md. Nothing here reads a clock, so a run is deterministic and steppable from
+tests. No rclpy: :mod:`dyn_node.sim_node` is the ROS adapter.
 """
 from __future__ import annotations
 
 import math
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import Sequence
 
 import mujoco
 import numpy as np
 
-from .errors import ModelError, TrajectoryError
+from .errors import InputError, ModelError, TrajectoryError
 from .model import RobotModel
-from .mujoco_model import MujocoRobot, mujoco_from_model
+from .mujoco_model import MujocoRobot, mujoco_from_model, mujoco_urdf
 from .trajectory import PiecewisePolynomial, Trajectory, interpolate, validate_trajectory
 
 DEFAULT_TIMESTEP = 0.001
@@ -122,13 +105,90 @@ class ActiveTrajectory:
         return q, v, a
 
 
-def jtc_mode(traj: Trajectory) -> str:
-    """The interpolation ros2_control's joint_trajectory_controller applies to ``traj``."""
-    if traj.velocities is not None and traj.accelerations is not None:
-        return "quintic"
-    if traj.velocities is not None:
-        return "cubic"
-    return "linear"
+# --------------------------------------------------------------------------------------------
+# External wrenches: URDF link → MuJoCo body, and the wrench MuJoCo takes
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class LinkMount:
+    """Where URDF link ``link`` sits in a MuJoCo model: on body ``body`` (id ``body_id``), its
+    origin at ``translation`` (m) and its axes ``rotation`` (columns: link axes) in the body's
+    frame. The identity when the link is a body of its own."""
+
+    link: str
+    body: str
+    body_id: int
+    rotation: np.ndarray
+    translation: np.ndarray
+
+
+def _rpy_matrix(rpy: Sequence[float]) -> np.ndarray:
+    """URDF's fixed-axis roll-pitch-yaw: R = Rz(yaw)·Ry(pitch)·Rx(roll)."""
+    cr, sr = math.cos(rpy[0]), math.sin(rpy[0])
+    cp, sp = math.cos(rpy[1]), math.sin(rpy[1])
+    cy, sy = math.cos(rpy[2]), math.sin(rpy[2])
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+def _joint_origin(joint: ET.Element) -> tuple[np.ndarray, np.ndarray]:
+    origin = joint.find("origin")
+    xyz = [float(x) for x in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
+    rpy = [float(x) for x in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()]
+    return _rpy_matrix(rpy), np.array(xyz)
+
+
+def link_mount(mj: mujoco.MjModel, urdf: ET.Element, link: str) -> LinkMount:
+    """The body of ``mj`` that carries URDF link ``link`` and the link's pose in it. ``urdf``
+    is the URDF MuJoCo compiled (locked joints already fixed, :func:`mujoco_urdf`); MuJoCo names
+    each body after its link. Raises InputError (``unknown_frame``) for a link the URDF lacks."""
+    links = {el.get("name") for el in urdf.findall("link")}
+    if link not in links:
+        raise InputError(f"'{link}' is not a link of the robot (links: {', '.join(sorted(links))})",
+                         code="unknown_frame")
+    parent_joint = {j.find("child").get("link"): j for j in urdf.findall("joint")
+                    if j.find("child") is not None}
+    R, p = np.eye(3), np.zeros(3)  # the link's pose in the frame of `name`
+    name = link
+    while (body_id := mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, name)) < 0:
+        joint = parent_joint.get(name)
+        if joint is None or joint.get("type") != "fixed":
+            # a root link or the child of a moving joint is always a body of its own
+            raise ModelError(f"link '{name}' has no MuJoCo body", code="no_body")
+        Rj, pj = _joint_origin(joint)
+        R, p = Rj @ R, Rj @ p + pj
+        name = joint.find("parent").get("link")
+    return LinkMount(link=link, body=name, body_id=int(body_id), rotation=R, translation=p)
+
+
+def body_wrench(mount: LinkMount, body_rotation: np.ndarray, body_position: np.ndarray,
+                com: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+    """MuJoCo's ``xfrc_applied`` row (world axes, at the body's centre of mass ``com``) for
+    ``wrench`` = [f; m] at the link's origin in the link's axes, the body at
+    (``body_rotation``, ``body_position``) in the world: F = R_wl·f, τ = R_wl·m + (p_o − com) × F."""
+    R_wl = body_rotation @ mount.rotation
+    p_o = body_position + body_rotation @ mount.translation
+    F = R_wl @ wrench[:3]
+    return np.concatenate([F, R_wl @ wrench[3:] + np.cross(p_o - com, F)])
+
+
+@dataclass(frozen=True)
+class AppliedWrench:
+    """A push being applied: ``wrench`` [f (N); m (N·m)] at ``mount.link``'s origin in its
+    axes, on the steps from ``start_step`` up to (not including) ``end_step``."""
+
+    mount: LinkMount
+    wrench: np.ndarray
+    start_step: int
+    end_step: int
+
+    @property
+    def force_n(self) -> float:
+        return float(np.linalg.norm(self.wrench[:3]))
+
+    @property
+    def moment_nm(self) -> float:
+        return float(np.linalg.norm(self.wrench[3:]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -180,6 +240,11 @@ class Simulator:
         self._saturated = np.zeros(nv, dtype=bool)
         self.active: ActiveTrajectory | None = None
         self._ref_cache: tuple[int, np.ndarray, np.ndarray] | None = None
+        # the URDF MuJoCo compiled, to place links merged into an ancestor body
+        self._mujoco_urdf = ET.fromstring(mujoco_urdf(model)[0])
+        self._mounts: dict[str, LinkMount] = {}
+        #: the push being applied (None: none)
+        self.wrench: AppliedWrench | None = None
         self.reset(q0)
 
     # --- setup ---------------------------------------------------------------------------------
@@ -213,6 +278,7 @@ class Simulator:
         if v is not None:
             self.data.qvel[self._di] = np.asarray(v, dtype=float)
         self.data.qfrc_applied[:] = 0.0
+        self.clear_wrench()
         mujoco.mj_forward(self.mj, self.data)
         self.active = None
         self._hold = q.copy()
@@ -275,7 +341,7 @@ class Simulator:
             raise TrajectoryError(f"start time is not finite ({start_time})", code="non_finite")
         now = self.time
         start = now if not start_time else float(start_time)
-        mode = jtc_mode(traj)
+        mode = traj.jtc_interpolation
         poly = interpolate(traj, mode)
         first = None
         first_abs = start + float(traj.times[0])
@@ -348,6 +414,46 @@ class Simulator:
         sat = np.abs(tau) >= self.effort_limit
         return np.clip(tau, -self.effort_limit, self.effort_limit), sat
 
+    # --- external push --------------------------------------------------------------------------
+    def link_mount(self, link: str) -> LinkMount:
+        """Where URDF link ``link`` sits in the MuJoCo model (cached); InputError if unknown."""
+        mount = self._mounts.get(link)
+        if mount is None:
+            mount = self._mounts[link] = link_mount(self.mj, self._mujoco_urdf, link)
+        return mount
+
+    def apply_wrench(self, link: str, force: Sequence[float], moment: Sequence[float], *,
+                     hold_s: float) -> AppliedWrench | None:
+        """Push the robot from the next step on with [force (N); moment (N·m)] at ``link``'s
+        origin in its axes, for ``hold_s`` s (rounded to whole steps, at least one), replacing
+        any push before. A zero wrench ends the push (whatever ``link``) and returns None.
+        Raises InputError (``unknown_frame``, ``non_finite``, ``bad_hold``), state unchanged."""
+        w = np.concatenate([np.asarray(force, dtype=float).reshape(3), np.asarray(moment, dtype=float).reshape(3)])
+        if not np.all(np.isfinite(w)):
+            raise InputError(f"wrench is not finite ({w.tolist()})", code="non_finite")
+        if not (hold_s > 0 and math.isfinite(hold_s)):
+            raise InputError(f"hold must be a positive number of seconds, got {hold_s}", code="bad_hold")
+        if not np.any(w):
+            self.clear_wrench()
+            return None
+        mount = self.link_mount(link)
+        self.clear_wrench()
+        steps = max(1, int(round(hold_s / self.config.timestep)))
+        self.wrench = AppliedWrench(mount=mount, wrench=w, start_step=self._steps,
+                                    end_step=self._steps + steps)
+        return self.wrench
+
+    def clear_wrench(self) -> None:
+        """End the push (if any): nothing is applied from the next step on."""
+        if self.wrench is not None:
+            self.data.xfrc_applied[self.wrench.mount.body_id] = 0.0
+        self.wrench = None
+
+    def _push(self) -> None:
+        w, d = self.wrench, self.data
+        b = w.mount.body_id
+        d.xfrc_applied[b] = body_wrench(w.mount, d.xmat[b].reshape(3, 3), d.xpos[b], d.xipos[b], w.wrench)
+
     def step(self, n: int = 1) -> SimState:
         """Advance n steps of ``timestep`` s and return the state after the last one."""
         if n <= 0:
@@ -359,7 +465,16 @@ class Simulator:
         for k in range(n):
             tau, sat = self.control(Q[k], V[k], A[k])
             self.data.qfrc_applied[self._di] = tau
-            mujoco.mj_step(self.mj, self.data)
+            if self.wrench is not None and self._steps >= self.wrench.end_step:
+                self.clear_wrench()
+            if self.wrench is None:
+                mujoco.mj_step(self.mj, self.data)
+            else:
+                # step1 computes this state's kinematics, which the push's rotation and lever
+                # arm need; step2 integrates with it (the Euler integrator's mj_step, split)
+                mujoco.mj_step1(self.mj, self.data)
+                self._push()
+                mujoco.mj_step2(self.mj, self.data)
             self._steps += 1
             self._effort, self._saturated = tau, sat
         self._ref_cache = (self._steps, Q[n], V[n])

@@ -5,7 +5,11 @@ the applied, saturated actuator torque) at ``publish_rate_hz`` and the URDF on
 ``robot_description`` (std_msgs/String, reliable, transient-local, depth 1, as
 robot_state_publisher does); executes ``joint_trajectory`` (trajectory_msgs/JointTrajectory) as
 ros2_control's joint_trajectory_controller would. Bad trajectories are rejected with a logged
-reason and the current motion continues.
+reason and the current motion continues. ``~/apply_wrench`` (geometry_msgs/WrenchStamped: the
+wrench on the robot at the origin of the link named by frame_id, in that link's axes) pushes the
+robot from the next step on for ``apply_wrench_hold`` s, unless a newer message replaces it; a
+zero wrench ends the push; an unknown frame_id or a non-finite value is logged and counted
+(:meth:`dyn_node.sim.Simulator.apply_wrench` does the math).
 
 Timing: the simulation runs in a thread of its own. With ``real_time`` true it is paced against
 the wall clock in batches (every wake-up steps as many 1 ms steps as are due, publishing at each
@@ -25,7 +29,8 @@ from typing import Any
 
 import rclpy
 from builtin_interfaces.msg import Time as TimeMsg
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType
+from geometry_msgs.msg import WrenchStamped
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -38,6 +43,7 @@ from .errors import DynNodeError
 from .model import DEFAULT_MODEL, model_from_source
 from .sim import DEFAULT_DAMPING_RATIO, DEFAULT_NATURAL_FREQUENCY, DEFAULT_TIMESTEP, SimConfig, Simulator
 from .ros_main import spin_until_signalled
+from .ros_params import parameter_descriptor
 
 #: Largest backlog (s) a real-time run catches up. When the process was starved of CPU (a loaded
 #: machine), the steps that were due are computed in a burst with their own evenly spaced stamps,
@@ -91,14 +97,14 @@ PARAMETERS: tuple[SimParam, ...] = (
     SimParam("publish_locked_joints", _B, True,
              "also publish locked joints (Panda fingers) at their locked position, as "
              "joint_state_broadcaster does for every joint of the robot"),
+    SimParam("apply_wrench_hold", _D, 0.5,
+             "how long (s) each ~/apply_wrench message pushes the robot, unless a newer one "
+             "replaces it", 0.001, 3600.0),
 )
 
 
 def _descriptor(p: SimParam) -> ParameterDescriptor:
-    d = ParameterDescriptor(name=p.name, type=p.kind, description=p.description, read_only=True)
-    if p.kind == _D and p.low is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=p.low, to_value=p.high, step=0.0)]
-    return d
+    return parameter_descriptor(p.name, p.kind, p.description, low=p.low, high=p.high, read_only=True)
 
 
 class SimNode(Node):
@@ -142,7 +148,11 @@ class SimNode(Node):
         self.desc_pub.publish(String(data=self.model.urdf))
         self.clock_pub = None if self.real_time else self.create_publisher(Clock, "/clock", 10)
         self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10)
+        self.create_subscription(WrenchStamped, "~/apply_wrench", self._on_wrench, 10)
 
+        self._wrench_inbox: list[WrenchStamped] = []
+        #: ~/apply_wrench messages rejected (unknown frame_id, non-finite values)
+        self.rejected_wrenches = 0
         self._inbox: list[JointTrajectory] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -161,6 +171,33 @@ class SimNode(Node):
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         with self._lock:
             self._inbox.append(msg)
+
+    def _on_wrench(self, msg: WrenchStamped) -> None:
+        with self._lock:
+            self._wrench_inbox.append(msg)
+
+    def _take_wrenches(self) -> None:
+        """Apply the pushes received since the last step (in order: the newest wins)."""
+        with self._lock:
+            msgs, self._wrench_inbox = self._wrench_inbox, []
+        for msg in msgs:
+            f, m = msg.wrench.force, msg.wrench.torque
+            try:
+                push = self.sim.apply_wrench(msg.header.frame_id, (f.x, f.y, f.z), (m.x, m.y, m.z),
+                                             hold_s=self.p["apply_wrench_hold"])
+            except DynNodeError as exc:
+                self.rejected_wrenches += 1
+                # throttled: a publisher streaming bad pushes must not flood the log; the count says all
+                self.get_logger().error(f"apply_wrench rejected ({exc.failure_label}, {exc.code}): {exc} "
+                                        f"({self.rejected_wrenches} rejected so far)", throttle_duration_sec=1.0)
+                continue
+            if push is None:
+                self.get_logger().info("apply_wrench: zero wrench, push ended", throttle_duration_sec=1.0)
+            else:
+                self.get_logger().info(
+                    f"apply_wrench: {push.force_n:.3g} N, {push.moment_nm:.3g} N·m at {push.mount.link} "
+                    f"(MuJoCo body {push.mount.body}) for {self.p['apply_wrench_hold']:g} s",
+                    throttle_duration_sec=1.0)
 
     def _take_trajectories(self) -> None:
         with self._lock:
@@ -215,6 +252,7 @@ class SimNode(Node):
             self._publish()
             while not self._stop.is_set():
                 self._take_trajectories()
+                self._take_wrenches()
                 if self.real_time:
                     due = int((time.monotonic() - wall0) / dt) - skipped - done
                     if due * dt > MAX_CATCH_UP_S:
@@ -246,6 +284,7 @@ class SimNode(Node):
                 for i in range(chunks):
                     if i:
                         self._take_trajectories()  # a trajectory that arrived mid-burst
+                        self._take_wrenches()
                     self.sim.step(n)
                     done += n
                     self._publish()

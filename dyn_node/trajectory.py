@@ -40,13 +40,21 @@ class Trajectory:
         return float(self.times[-1])
 
     @property
-    def natural_interpolation(self) -> Interpolation:
-        """How ros2_control would interpolate it, except positions-only → the C² spline."""
+    def jtc_interpolation(self) -> Interpolation:
+        """How ros2_control's joint_trajectory_controller interpolates it: quintic with velocities
+        and accelerations, cubic with velocities, linear with positions only."""
         if self.velocities is not None and self.accelerations is not None:
             return "quintic"
         if self.velocities is not None:
             return "cubic"
-        return "spline"
+        return "linear"
+
+    @property
+    def natural_interpolation(self) -> Interpolation:
+        """:attr:`jtc_interpolation`, except positions-only → the C² spline (linear segments would
+        demand unbounded accelerations at the waypoints)."""
+        mode = self.jtc_interpolation
+        return "spline" if mode == "linear" else mode
 
 
 def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
@@ -225,25 +233,6 @@ def interpolate(traj: Trajectory, mode: Interpolation | None = None) -> Piecewis
     else:
         raise ValueError(f"unknown interpolation {mode!r}")
     return PiecewisePolynomial(breaks=t.copy(), coeffs=coeffs)
-
-
-def sample_times(times: np.ndarray, period: float) -> np.ndarray:
-    """A dense time grid over [times[0], times[-1]] at ``period`` s that includes every waypoint.
-
-    Grid points closer than 1e-6·period to a waypoint are dropped, so float round-off in the
-    grid (0.1·3 = 0.30000000000000004) never puts two samples a few 1e-17 s apart, which would
-    turn rounding noise into huge finite-difference rates.
-    """
-    if period <= 0 or not np.isfinite(period):
-        raise ValueError("sample period must be a positive number of seconds")
-    times = np.asarray(times, dtype=float)
-    n = int(np.floor((times[-1] - times[0]) / period)) + 1
-    grid = times[0] + period * np.arange(n)  # multiplication, not accumulation: no drift
-    idx = np.clip(np.searchsorted(times, grid), 1, len(times) - 1) if len(times) > 1 else None
-    if idx is not None:
-        near = np.minimum(np.abs(grid - times[idx - 1]), np.abs(grid - times[idx]))
-        grid = grid[near > 1e-6 * period]
-    return np.union1d(grid, times)
 
 
 def from_current_state(traj: Trajectory, positions: np.ndarray, velocities: np.ndarray) -> Trajectory:

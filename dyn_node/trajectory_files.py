@@ -1,23 +1,8 @@
 """Trajectory files for ``dyn-check``: JointTrajectory as YAML or JSON, or a CSV table; pure.
 
-YAML / JSON: a mapping with the message's own field names::
-
-    header: {stamp: {sec: 0, nanosec: 0}, frame_id: ""}      # optional
-    joint_names: [joint1, joint2]
-    points:
-      - positions: [0.0, 0.0]
-        velocities: [0.0, 0.0]                               # optional (empty or one per joint)
-        accelerations: [0.0, 0.0]                            # optional
-        effort: []                                           # optional, ignored by the check
-        time_from_start: {sec: 0, nanosec: 500000000}        # or a number of seconds
-
-CSV: a header row with ``time`` (s from the start), one column per joint named as the joint, and
-optionally ``<joint>.vel`` / ``<joint>.acc`` for every joint; one row per point.
-
-Reading checks only the *shape* (a file that cannot be read, a field of the wrong type, a missing
-column): :class:`TrajectoryFileError`, whose message names the file, line and field. Values that
-parse but that the node would refuse (NaN, unknown joints, times not increasing) are kept, so the
-check rejects them with the node's own reason.
+Formats: README "Checking trajectory files". Reading checks only the *shape*
+(:class:`TrajectoryFileError` names file, line and field); values the node would refuse (NaN,
+unknown joints, times not increasing) are kept, so the check rejects them with the node's reason.
 """
 from __future__ import annotations
 
@@ -27,25 +12,13 @@ import json
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import yaml
 
-from .errors import DynNodeError, STATE_ERROR
+from .errors import TrajectoryFileError
 
 FORMATS = {".yaml": "yaml", ".yml": "yaml", ".json": "json", ".csv": "csv"}
-
-
-class TrajectoryFileError(DynNodeError):
-    """A trajectory file that cannot be read; ``str()`` is ``file:line: field: problem``."""
-
-    failure_label = STATE_ERROR
-
-    def __init__(self, path: str | Path, line: int | None, field: str, problem: str):
-        where = f"{path}:{line}" if line else f"{path}"
-        super().__init__(f"{where}: {field}: {problem}" if field else f"{where}: {problem}",
-                         code="unreadable_file")
-        self.path, self.line, self.field, self.problem = str(path), line, field, problem
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,8 @@ concurrent test runs on one machine never hear each other. Set DYN_TEST_DOMAIN t
 from __future__ import annotations
 
 import contextlib
+import errno
+import math
 import os
 import signal as _signal
 import subprocess
@@ -129,8 +131,10 @@ class Spinner:
 
 def child_env(**extra: str) -> dict[str, str]:
     env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(TEST_DOMAIN), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONUNBUFFERED="1")
+    # DYN_TEST_DOMAIN too: a child that imports this module (a test file run as a child
+    # process) then stays on the session's domain instead of picking one from its own pid
+    env.update(ROS_DOMAIN_ID=str(TEST_DOMAIN), DYN_TEST_DOMAIN=str(TEST_DOMAIN),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     env.update(extra)
     return env
 
@@ -179,3 +183,126 @@ def spawn() -> Iterator["object"]:
 def python_cmd(module: str, *args: str) -> list[str]:
     """Command line running ``python -m module args`` with this interpreter."""
     return [sys.executable, "-m", module, *args]
+
+
+def kv(status: Any) -> dict[str, str]:
+    """The key/value pairs of a diagnostic_msgs/DiagnosticStatus as a dict."""
+    return {k.key: k.value for k in status.values}
+
+
+def t_msg(t: float) -> Any:
+    """builtin_interfaces/Time of ``t`` seconds (nanoseconds rounded, never 10⁹)."""
+    from builtin_interfaces.msg import Time
+
+    sec = int(math.floor(t))
+    return Time(sec=sec, nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
+
+
+def t_s(stamp: Any) -> float:
+    """Seconds of a builtin_interfaces/Time."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def js(names: Iterable[str], q: Iterable[float], v: Iterable[float] = (), e: Iterable[float] = (),
+       *, stamp: float = 1.0) -> Any:
+    """A sensor_msgs/JointState stamped ``stamp`` seconds."""
+    from sensor_msgs.msg import JointState
+
+    m = JointState()
+    m.header.stamp = t_msg(stamp)
+    m.name = list(names)
+    m.position = [float(x) for x in q]
+    m.velocity = [float(x) for x in v]
+    m.effort = [float(x) for x in e]
+    return m
+
+
+class Stepper:
+    """An executor over ``nodes`` that the test spins on its own thread, between its own steps
+    (publish one message, spin until its answer is in), so nothing runs while it checks."""
+
+    def __init__(self, ctx: Any, nodes: Iterable[Any], *, step_s: float = 0.01):
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.nodes = list(nodes)
+        for n in self.nodes:
+            self.ex.add_node(n)
+        self.step_s = step_s
+
+    def until(self, cond: Callable[[], bool], timeout: float) -> bool:
+        """Spin until cond() or the deadline; the last cond(). ``until(lambda: False, t)`` spins
+        for t seconds."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not cond():
+            self.ex.spin_once(timeout_sec=self.step_s)
+        return cond()
+
+    def close(self, *, destroy_nodes: bool = True) -> None:
+        """Take the nodes off the executor and shut it down; destroy the nodes unless asked not to
+        (a node that outlives this executor)."""
+        for n in self.nodes:
+            self.ex.remove_node(n)
+        self.ex.shutdown()
+        if destroy_nodes:
+            for n in self.nodes:
+                n.destroy_node()
+
+
+class NodeHarness(Collected):
+    """An in-process DynNode and a probe node in one namespace, spun on a background thread.
+
+    Each harness lives in its own namespace so concurrent nodes never hear each other's
+    joint_states. A subclass creates its publishers and collectors (:meth:`sub`), then calls
+    :meth:`start` with the discovery it needs before a test may publish."""
+
+    def __init__(self, ctx: Any, namespace: str, overrides: list[Any], keys: Iterable[str] = ()):
+        import rclpy
+
+        from dyn_node.node import DynNode
+
+        super().__init__(keys)
+        self.ctx = ctx
+        self.ns = namespace
+        self.probe = rclpy.create_node("probe", namespace=namespace, context=ctx)
+        self.node = DynNode(namespace=namespace, context=ctx, parameter_overrides=overrides)
+        self.spinner: Spinner | None = None
+
+    def sub(self, key: str, msg_type: Any, topic: str, qos: Any) -> None:
+        """Collect ``topic`` (relative to the namespace unless absolute) into ``got[key]``."""
+        self.probe.create_subscription(msg_type, topic, self.collector(key), qos)
+
+    def start(self, discovered: Callable[[], bool]) -> None:
+        self.spinner = Spinner(self.ctx, (self.node, self.probe))
+        assert self.wait(discovered), "discovery"
+
+    def close(self) -> None:
+        if self.spinner is not None:
+            self.spinner.stop()
+        self.node.destroy_node()
+        self.probe.destroy_node()
+
+
+class FullDisk:
+    """A file that accepts ``budget`` bytes, then raises ENOSPC like a full file system."""
+
+    def __init__(self, path: str, budget: int):
+        self.f = open(path, "xb")
+        self.budget = budget
+        self.full_at: float | None = None
+
+    def write(self, data: bytes) -> int:
+        if len(data) > self.budget:
+            self.full_at = self.full_at or time.monotonic()
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.budget -= len(data)
+        return self.f.write(data)
+
+    def flush(self) -> None:
+        self.f.flush()
+
+    def fileno(self) -> int:
+        return self.f.fileno()
+
+    def close(self) -> None:
+        self.f.close()

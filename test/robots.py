@@ -1,4 +1,9 @@
-"""Robot descriptions shared by the tests."""
+"""Robot descriptions shared by the tests, and the planar 2-link arm's closed-form dynamics."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
 
 # A branched tree with every joint kind a loaded model can hold: revolute about a principal and a
 # non-principal axis, prismatic along both, a continuous joint (loaded as revolute), a fixed joint
@@ -34,3 +39,21 @@ BRANCHED_URDF = """<robot name="branched">
   <joint name="j6" type="continuous"><parent link="e"/><child link="f"/>
     <origin xyz="0 0.1 0.1"/><axis xyz="0 1 0"/><limit effort="10" velocity="2"/></joint>
 </robot>"""
+
+
+# The built-in planar_2link: point masses M1, M2 at the tips of links L1, L2 (m, kg), joints about
+# the same horizontal axis, gravity G (m/s²).
+M1, M2, L1, L2, G = 1.5, 1.0, 0.5, 0.4, 9.81
+
+
+def two_link_terms(q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(M, C, g) of the point-mass arm in the textbook closed form, with Pinocchio's C
+    factorisation (Ṁ = C + Cᵀ), so τ = M a + C v + g."""
+    c1, c2, s2 = math.cos(q[0]), math.cos(q[1]), math.sin(q[1])
+    c12 = math.cos(q[0] + q[1])
+    M = np.array([[M1 * L1**2 + M2 * (L1**2 + L2**2 + 2 * L1 * L2 * c2), M2 * (L2**2 + L1 * L2 * c2)],
+                  [M2 * (L2**2 + L1 * L2 * c2), M2 * L2**2]])
+    h = -M2 * L1 * L2 * s2
+    C = np.array([[h * v[1], h * (v[0] + v[1])], [-h * v[0], 0.0]])
+    g = np.array([(M1 + M2) * G * L1 * c1 + M2 * G * L2 * c12, M2 * G * L2 * c12])
+    return M, C, g

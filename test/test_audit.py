@@ -223,11 +223,11 @@ def test_effort_violation_found_with_exact_times(tmp_path):
     assert v["peak_ratio"] == pytest.approx(99.9 / 87.0, rel=1e-12)
     # the per-joint peak says it came from the measured effort, and gives both torques then
     pj = {r["joint"]: r for r in rec["outputs"]["effort"]["per_joint"]}["panda_joint2"]
-    assert pj["peak_source"] == "measured" and pj["peak_measured_nm"] == pytest.approx(99.9, rel=1e-12)
+    assert pj["peak_source"] == "measured" and pj["peak_measured_effort"] == pytest.approx(99.9, rel=1e-12)
     assert pj["peak_utilisation"] == pytest.approx(99.9 / 87.0, rel=1e-12)
-    assert abs(pj["peak_torque_nm"]) < 87.0
+    assert abs(pj["peak_effort"]) < 87.0 and pj["unit"] == "N·m" and v["unit"] == "N·m"
     j1 = {r["joint"]: r for r in rec["outputs"]["effort"]["per_joint"]}["panda_joint1"]
-    assert j1["peak_source"] == "model" and j1["peak_measured_nm"] is None  # NaN efforts elsewhere
+    assert j1["peak_source"] == "model" and j1["peak_measured_effort"] is None  # NaN efforts elsewhere
     assert "control error" in rec["failure_labels"] and rec["verdict"]["result"] == "violations"
     assert rec["outputs"]["controller_states"]["states_seen"] == ["idle", "saturated"]
 
@@ -534,14 +534,12 @@ def record_node_run(ros_context, tmp_path: Path, n: int, *, trajectories_at: Seq
     """A real DynNode recording its inputs and outputs (record.enabled): n joint_states at
     ~300 Hz, a trajectory at each of ``trajectories_at``; ``at[i](node)`` runs before input i.
     Returns the bag path once every output is recorded."""
-    import time
-
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import JointState
     from trajectory_msgs.msg import JointTrajectory
 
+    from conftest import Stepper
     from dyn_node.node import DynNode
 
     node = DynNode(context=ros_context, parameter_overrides=[
@@ -551,16 +549,8 @@ def record_node_run(ros_context, tmp_path: Path, n: int, *, trajectories_at: Seq
     pub_node = Node("audit_test_publisher", context=ros_context)
     js_pub = pub_node.create_publisher(JointState, "joint_states", 1000)
     traj_pub = pub_node.create_publisher(JointTrajectory, "joint_trajectory", 10)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(pub_node)
-
-    def spin_until(cond, timeout):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and not cond():
-            ex.spin_once(timeout_sec=0.01)
-        return cond()
-
+    steps = Stepper(ros_context, (node, pub_node))
+    spin_until = steps.until
     rec_topics = lambda: bridge.recorder.stats().topics if bridge.recorder else {}  # noqa: E731
     try:
         # the node records what it takes and publishes itself: no extra subscriptions to wait for
@@ -588,9 +578,7 @@ def record_node_run(ros_context, tmp_path: Path, n: int, *, trajectories_at: Seq
         assert ok, path
     finally:
         bridge.close()
-        ex.shutdown()
-        node.destroy_node()
-        pub_node.destroy_node()
+        steps.close()
     return path
 
 
@@ -1012,3 +1000,31 @@ def test_a_configuration_change_without_its_time_is_not_replayed_and_says_so(tmp
                                    "time they took effect (older recorder): not replayed")
     assert d["matched"] == 200 and d["max_abs_difference"] is None
     assert "evaluation error" not in rec["failure_labels"]
+
+
+def test_per_joint_effort_entries_carry_each_joints_own_unit(tmp_path):
+    """A model with prismatic joints (j2, j5): their per-joint effort entries and violations
+    are in N (as the feasibility verdicts and live statuses say), the revolute ones in N·m; the
+    keys are the same for every joint, so a reader never parses a unit out of a key name."""
+    from robots import BRANCHED_URDF
+    from sensor_msgs.msg import JointState  # noqa: F401 - joint_state builds one
+
+    model = load_model(urdf=BRANCHED_URDF)
+    w = BagWriter(tmp_path / "bag", metadata={"robot_description": BRANCHED_URDF,
+                                              "parameters": "", "version": "0.1.0"})
+    names = list(model.joint_names)
+    for i in range(200):
+        q = [0.1 * np.sin(1e-2 * i + k) for k in range(len(names))]
+        v = [0.1 * np.cos(1e-2 * i + k) for k in range(len(names))]
+        w.write("/joint_states", joint_state(names, q, v, [1e3] * len(names), stamp_ns=T0 + i * MS),
+                T0 + i * MS)
+    bag = w.close()
+    res = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "out"), report=False))
+    rec = validated(tmp_path / "out")
+    units = {r["joint"]: r["unit"] for r in rec["outputs"]["effort"]["per_joint"]}
+    assert units == {"j1": "N·m", "j2": "N", "j3": "N·m", "j4": "N·m", "j5": "N", "j6": "N·m"}
+    assert all(set(r) == {"joint", "unit", "peak_utilisation", "peak_time_s", "peak_effort",
+                          "peak_measured_effort", "peak_source", "effort_limit"}
+               for r in rec["outputs"]["effort"]["per_joint"])
+    effort = {v["joint"]: v["unit"] for v in rec["outputs"]["violations"] if v["kind"] == "effort"}
+    assert res.exit_code == 1 and effort == units  # 1000 N(·m) measured: over every limit

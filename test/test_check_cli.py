@@ -15,8 +15,9 @@ from conftest import REPO
 from dyn_node import check_cli
 from dyn_node.check_cli import RETIME_MARGIN, main
 from dyn_node.demo import READY
+from dyn_node.errors import TrajectoryFileError
 from dyn_node.evidence import validate
-from dyn_node.trajectory_files import TrajectoryFileError, format_trajectory, read_trajectory
+from dyn_node.trajectory_files import format_trajectory, read_trajectory
 
 EXAMPLES = REPO / "examples" / "trajectories"
 REACH = [EXAMPLES / f"panda_reach.{ext}" for ext in ("yaml", "json", "csv")]

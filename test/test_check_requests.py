@@ -20,7 +20,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from conftest import REPO, ChildProcess, Collected, Spinner, child_env, python_cmd
+from conftest import REPO, ChildProcess, Collected, Spinner, child_env, kv, python_cmd
 from dyn_node import check_cli, on_demand
 from dyn_node.client import (BlockingCallError, DynClient, NotRunningError, RequestRejected, Verdict,
                              states_message, trajectory_message)
@@ -104,7 +104,7 @@ def rig(module_ros_context, node_process):
 
 def summary_values(arr: DiagnosticArray) -> tuple[dict[str, str], DiagnosticStatus]:
     st = next(s for s in arr.status if s.name == SUMMARY)
-    return {kv.key: kv.value for kv in st.values}, st
+    return kv(st), st
 
 
 def reach(scale: float = 1.0, stamp: Time | None = None, frame_id: str = "") -> JointTrajectory:
@@ -163,7 +163,7 @@ def _publish_joint_states(rig, stop: threading.Event) -> None:
 
 
 def _ctrl_after(rig, t0: float) -> list[dict[str, str]]:
-    return [{kv.key: kv.value for kv in m.values} for t, m in rig.got.got["ctrl"] if t > t0]
+    return [kv(m) for t, m in rig.got.got["ctrl"] if t > t0]
 
 
 def test_check_only_leaves_controller_status_alone_and_execution_does_not(rig):

@@ -134,3 +134,15 @@ def test_demo_interrupted_leaves_nothing_behind(tmp_path):
     assert "interrupted" in rest, rest[-2000:]
     left = _leftovers(str(out.resolve()))
     assert left == [], [(pid, Path(f"/proc/{pid}/cmdline").read_bytes()) for pid in left]
+
+
+def test_a_partial_audit_of_the_demos_own_bag_is_a_failure_not_a_missing_stage():
+    """dyn-audit's 3 (partial) is neither "audited" (0 feasible, 1 violations: expected) nor a
+    stage that could not run (2 unusable, no report): the demo's own bag must be whole."""
+    from dyn_node.demo import audit_outcome
+    from dyn_node.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS
+
+    assert [audit_outcome(rc, True) for rc in (EXIT_OK, EXIT_VIOLATIONS, EXIT_PARTIAL,
+                                               EXIT_UNUSABLE, -9)] == [
+        "audited", "audited", "partial", "failed", "failed"]
+    assert audit_outcome(EXIT_OK, False) == "failed"

@@ -7,21 +7,9 @@ import pytest
 
 from dyn_node.dynamics import Dynamics, DynamicsOptions
 from dyn_node.model import Payload, load_model
+from robots import G, L1, L2, M1, M2, two_link_terms
 
-M1, M2, L1, L2, G = 1.5, 1.0, 0.5, 0.4, 9.81
 TOL = 1e-9
-
-
-def closed_form(q, v, a):
-    """Textbook planar 2-link arm with point masses at the link tips (the issue's formula)."""
-    c1, c2, s2 = np.cos(q[0]), np.cos(q[1]), np.sin(q[1])
-    c12 = np.cos(q[0] + q[1])
-    M = np.array([[M1 * L1**2 + M2 * (L1**2 + L2**2 + 2 * L1 * L2 * c2), M2 * (L2**2 + L1 * L2 * c2)],
-                  [M2 * (L2**2 + L1 * L2 * c2), M2 * L2**2]])
-    h = -M2 * L1 * L2 * s2
-    C = np.array([[h * v[1], h * (v[0] + v[1])], [-h * v[0], 0.0]])
-    g = np.array([(M1 + M2) * G * L1 * c1 + M2 * G * L2 * c12, M2 * G * L2 * c12])
-    return M, C, g
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +56,7 @@ def random_states(model, n, seed):
 
 def test_two_link_named_state(two_link):
     q, v, a = np.array([0.4, -0.7]), np.array([1.2, 0.9]), np.array([0.3, -0.5])
-    M, C, g = closed_form(q, v, a)
+    M, C, g = two_link_terms(q, v)
     np.testing.assert_allclose(two_link.rnea(q, v, a), M @ a + C @ v + g, rtol=0, atol=TOL)
     np.testing.assert_allclose(two_link.mass_matrix(q), M, rtol=0, atol=TOL)
     np.testing.assert_allclose(two_link.bias(q, v), C @ v + g, rtol=0, atol=TOL)
@@ -82,7 +70,7 @@ def test_two_link_random_states(two_link):
     A = rng.uniform(-20, 20, (1000, 2))
     expected = np.empty((1000, 2))
     for i in range(1000):
-        M, C, g = closed_form(Q[i], V[i], A[i])
+        M, C, g = two_link_terms(Q[i], V[i])
         expected[i] = M @ A[i] + C @ V[i] + g
         if i % 50 == 0:
             np.testing.assert_allclose(two_link.mass_matrix(Q[i]), M, rtol=0, atol=TOL)
@@ -282,5 +270,5 @@ def test_terms_batch_gravity_kernel_matches_pinocchio_pass(arm):
 def test_two_link_gravity_split_is_the_closed_form(two_link):
     Q, V, A = random_states(two_link.model, 50, 14)
     terms = two_link.terms_batch(Q, V, A)
-    np.testing.assert_allclose(terms.static, [closed_form(q, v, a)[2] for q, v, a in zip(Q, V, A)],
+    np.testing.assert_allclose(terms.static, [two_link_terms(q, v)[2] for q, v in zip(Q, V)],
                                rtol=0, atol=TOL)

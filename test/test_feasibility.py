@@ -345,9 +345,20 @@ def test_waypoint_effort_is_rnea_at_waypoints_and_statuses():
     for key in SUMMARY_KEYS:
         assert key in sts[0].values
     assert [s.name for s in sts[1:]] == [f"{STATUS_NAME}/{n}" for n in model.joint_names]
-    for s in sts[1:]:
+    limited = 0
+    for s, name in zip(sts[1:], model.joint_names):
         for kind in LIMIT_KINDS:
-            assert f"{kind}_ratio" in s.values
+            got = r.per_joint[name][kind]
+            if got["limit"] is None:
+                assert (s.values[f"{kind}_ratio"], s.values[f"{kind}_time_s"]) == ("unlimited", "")
+                continue
+            limited += 1
+            assert (s.values[f"{kind}_ratio"], s.values[f"{kind}_time_s"]) == (got["ratio"],
+                                                                               got["time_s"])
+            if kind != "position":   # position ratios are taken against the bound approached
+                assert got["ratio"] == pytest.approx(got["value"] / got["limit"], rel=1e-12)
+            assert 0.0 <= got["time_s"] <= traj.times[-1]
+    assert limited == 3 * model.nv   # panda: position, velocity and effort limits on every joint
     assert sts[1].values["effort_ratio"] == r.per_joint["panda_joint1"]["effort"]["ratio"]
     assert sts[1].values["acceleration_ratio"] == "unlimited"
     d = r.to_dict()

@@ -114,6 +114,8 @@ def test_frame_terms_match_pinocchio(name):
         pin.computeJointJacobians(pm, data, Q[k])
         M = pin.crba(pm, data, Q[k])
         diff("M", out.inertia.mass_matrix[k], M)
+        diff("g(q)", out.inertia.gravity_torque[k],
+             pin.computeGeneralizedGravity(pm, data, Q[k]))
         # Pinocchio 4.1's computeKineticEnergy leaves out the armature of RevoluteUnaligned
         # joints (its crba has it): the energy with armature against ½q̇ᵀMq̇ of its crba, the
         # rigid-body energy against computeKineticEnergy (and both against MuJoCo below)
@@ -139,7 +141,8 @@ def test_frame_terms_match_pinocchio(name):
             else:
                 assert f.effective_mass[k] == 0.0
     assert max(worst.values()) < TOL, worst
-    assert set(worst) >= {"m_u rel", "M", "task torque"}
+    assert set(worst) >= {"m_u rel", "M", "task torque", "g(q)"}
+    assert np.abs(out.inertia.gravity_torque).max() > 1.0
     # the states move the points and load the wrench: the comparisons are not of zeros
     moving = [n for n, p in enumerate(points) if p.frame not in ("base", "base_link")]
     assert min(np.abs(out.frames[n].linear_acceleration).max() for n in moving) > 0.1
@@ -430,6 +433,8 @@ def test_armature_is_optional_and_parts_can_be_switched_off():
     assert FrameKinematics(model, points).compute(Q, V, A).inertia.mass_matrix is None
     np.testing.assert_array_equal(bare.frames[0].linear_acceleration,
                                   with_arm.frames[0].linear_acceleration)
+    with pytest.raises(ValueError, match="needs inertia=True"):
+        FrameKinematics(model, points).compute(Q, V, A, inertia=False, mass_matrix=True)
     empty = FrameKinematics(model, points).compute(Q[:0], V[:0], A[:0])
     assert empty.frames[0].position.shape == (0, 3) and empty.base.static.shape == (0, 6)
 
@@ -451,3 +456,34 @@ def test_bad_frames_and_states_are_rejected_naming_what():
     V[2, 3] = np.inf
     with pytest.raises(InputError, match="v is not finite in state 2"):
         fk.compute(Q, V, A)
+
+
+def test_layouts_and_threads_give_the_same_numbers():
+    """Column-major and strided states give the row-major result to the bit, and compute()
+    calls running in several threads at once (the kernel releases the GIL) do not disturb each
+    other."""
+    import threading
+
+    model, points = robot("tree")
+    fk = FrameKinematics(model, points)
+    Q, V, A = states(model.nv, 300, 11)
+    ref = fk.compute(Q, V, A)
+    wide = np.zeros((300, 2 * model.nv))
+    wide[:, ::2] = V
+    other = fk.compute(np.asfortranarray(Q), wide[:, ::2], np.asfortranarray(A))
+    results = [None] * 4
+
+    def run(i):
+        results[i] = fk.compute(Q, V, A)
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for got in [other] + results:
+        for f, g in zip(ref.frames, got.frames):
+            np.testing.assert_array_equal(f.linear_acceleration, g.linear_acceleration)
+            np.testing.assert_array_equal(f.effective_mass, g.effective_mass)
+        np.testing.assert_array_equal(ref.base.dynamic, got.base.dynamic)
+        np.testing.assert_array_equal(ref.inertia.kinetic_energy, got.inertia.kinetic_energy)

@@ -9,10 +9,12 @@ import pytest
 from dyn_node.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, ModelError
 from dyn_node.model import load_model
-from dyn_node.monitor import (ControllerTracker, Monitor, build_model, model_error_status, model_status,
-                              waiting_model_status)
+from dyn_node.model_source import build_model
+from dyn_node.model_status import model_error_status, model_status, waiting_model_status
+from dyn_node.monitor import Monitor
 from dyn_node.settings import Settings
 from dyn_node.status import ERROR, OK, STALE, WARN
+from dyn_node.tracker import ControllerTracker
 from dyn_node.trajectory import validate_trajectory
 
 PANDA = load_model(builtin="panda")

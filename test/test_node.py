@@ -17,7 +17,6 @@ from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from diagnostic_msgs.srv import SelfTest
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -25,7 +24,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from conftest import REPO, Collected, Spinner, child_env, python_cmd
+from conftest import REPO, NodeHarness, Stepper, child_env, js, python_cmd, t_msg, t_s
+from conftest import kv as values
 from dyn_node.dynamics import Dynamics
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR
 from dyn_node.model import Payload, builtin_urdf, load_model
@@ -40,56 +40,26 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 FAST_DIAG = [Parameter("diagnostics_period", value=0.1), Parameter("controller_status_period", value=0.05)]
 
 
-def t_msg(t: float) -> Time:
-    sec = int(math.floor(t))
-    return Time(sec=sec, nanosec=int(round((t - sec) * 1e9)))
-
-
-def t_s(stamp: Time) -> float:
-    return stamp.sec + stamp.nanosec * 1e-9
-
-
-def js(names, q, v=(), e=(), stamp=1.0) -> JointState:
-    m = JointState()
-    m.header.stamp = t_msg(stamp)
-    m.name = list(names)
-    m.position = [float(x) for x in q]
-    m.velocity = [float(x) for x in v]
-    m.effort = [float(x) for x in e]
-    return m
-
-
-def values(status: DiagnosticStatus) -> dict[str, str]:
-    return {kv.key: kv.value for kv in status.values}
-
-
-class Harness(Collected):
-    """The node under test plus a probe node on one executor spun in a background thread."""
+class Harness(NodeHarness):
+    """The node under test plus a probe node (:class:`conftest.NodeHarness`); /diagnostics is
+    global and filtered by hardware_id."""
 
     def __init__(self, ctx: Context, overrides: list[Parameter], namespace: str):
-        # Each harness lives in its own namespace so concurrent nodes never hear each other's
-        # joint_states; /diagnostics is global and filtered by hardware_id.
-        self.ctx = ctx
-        self.ns = namespace
-        self.probe = rclpy.create_node("probe", namespace=namespace, context=ctx)
-        super().__init__(("inverse", "gravity", "diag", "ctrl", "feas", "teff"))
+        super().__init__(ctx, namespace, overrides)
         self.desc_pub = self.probe.create_publisher(String, "robot_description", LATCHED)
-        self.node = DynNode(namespace=namespace, context=ctx, parameter_overrides=overrides)
         self.js_pub = self.probe.create_publisher(JointState, "joint_states", RELIABLE)
         self.traj_pub = self.probe.create_publisher(JointTrajectory, "joint_trajectory", 10)
-        sub = self.probe.create_subscription
-        sub(JointState, "dyn_node/inverse_dynamics", self.collector("inverse"), RELIABLE)
-        sub(JointState, "dyn_node/gravity_torque", self.collector("gravity"), RELIABLE)
-        sub(DiagnosticArray, "/diagnostics", self.collector("diag"), 100)
-        sub(DiagnosticStatus, "dyn_node/controller_status", self.collector("ctrl"), 100)
-        sub(DiagnosticArray, "dyn_node/feasibility", self.collector("feas"), LATCHED)
-        sub(JointTrajectory, "dyn_node/trajectory_effort", self.collector("teff"), 10)
+        self.sub("inverse", JointState, "dyn_node/inverse_dynamics", RELIABLE)
+        self.sub("gravity", JointState, "dyn_node/gravity_torque", RELIABLE)
+        self.sub("diag", DiagnosticArray, "/diagnostics", 100)
+        self.sub("ctrl", DiagnosticStatus, "dyn_node/controller_status", 100)
+        self.sub("feas", DiagnosticArray, "dyn_node/feasibility", LATCHED)
+        self.sub("teff", JointTrajectory, "dyn_node/trajectory_effort", 10)
         self.params = AsyncParameterClient(self.probe, f"{namespace}/dyn_node")
         self.self_test = self.probe.create_client(SelfTest, "dyn_node/self_test")
-        self.spinner = Spinner(ctx, (self.node, self.probe))
-        assert self.wait(lambda: self.js_pub.get_subscription_count() >= 1
-                         and self.probe.count_publishers(f"{namespace}/dyn_node/inverse_dynamics") >= 1
-                         and self.probe.count_publishers("/diagnostics") >= 1), "discovery"
+        self.start(lambda: self.js_pub.get_subscription_count() >= 1
+                   and self.probe.count_publishers(f"{namespace}/dyn_node/inverse_dynamics") >= 1
+                   and self.probe.count_publishers("/diagnostics") >= 1)
 
     def answer(self, stamp: float, key: str = "inverse", timeout: float = 10.0) -> JointState:
         found: list = []
@@ -124,11 +94,6 @@ class Harness(Collected):
         fut = (self.params.set_parameters_atomically if atomically else self.params.set_parameters)(params)
         assert self.wait(fut.done), "set_parameters timed out"
         return fut.result().results if not atomically else [fut.result().result]
-
-    def close(self) -> None:
-        self.spinner.stop()
-        self.node.destroy_node()
-        self.probe.destroy_node()
 
 
 @pytest.fixture(scope="module")
@@ -315,14 +280,13 @@ def test_byte_fields_converted_once_and_exactly():
     bools as 0/1, anything else refused (rclpy would send a garbage byte)."""
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from dyn_node.ros_convert import from_byte, status_to_msg, to_byte
+    from dyn_node.ros_convert import status_to_msg, to_byte
     from dyn_node.status import Status
 
     for value, want in ((True, 1), (False, 0), (np.bool_(True), 1), (0, 0), (3, 3), (255, 255),
                         (np.uint8(2), 2), (np.int64(7), 7)):
         res = SelfTest.Response(passed=to_byte(value))
         assert deserialize_message(serialize_message(res), SelfTest.Response).passed == bytes([want])
-        assert from_byte(to_byte(value)) == want
     for bad in (-1, 256, 1.0, "1", None, b"\x01"):
         with pytest.raises((TypeError, ValueError)):
             to_byte(bad)
@@ -592,19 +556,12 @@ def test_model_from_topic_and_invalid_description(ros_context):
 @pytest.mark.timeout(120)
 def test_process_params_file_and_signals(ros_context, spawn):
     probe = rclpy.create_node("probe_proc", context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(probe)
+    steps = Stepper(ros_context, (probe,), step_s=0.05)
+    spin_until = steps.until
     got: dict[str, list] = {"diag": [], "inv": []}
     probe.create_subscription(DiagnosticArray, "/diagnostics", got["diag"].append, 10)
     probe.create_subscription(JointState, "/dyn_node/inverse_dynamics", got["inv"].append, 10)
     pub = probe.create_publisher(JointState, "joint_states", RELIABLE)
-
-    def spin_until(pred, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while not pred() and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.05)
-        return pred()
-
     try:
         cp = spawn(python_cmd("dyn_node.node", "--ros-args", "--params-file", "config/dyn_node.yaml",
                               "-p", "robot_model:=panda"))
@@ -647,8 +604,7 @@ def test_process_params_file_and_signals(ros_context, spawn):
         assert bad.returncode == 2 and "Traceback" not in bad.stderr
         assert "acceleration_source" in bad.stderr
     finally:
-        ex.shutdown()
-        probe.destroy_node()
+        steps.close()
 
 
 def test_trajectory_cdr_codec_matches_rclpy():
@@ -715,7 +671,9 @@ def test_joint_state_cdr_codec_matches_rclpy():
             out = JointStateOut(names)
             sec, nsec = int(rng.integers(-3, 2**31 - 1)), int(rng.integers(0, 10**9))
             data = out.encode(sec, nsec, q, v, e)
-            ref = out.fill(Time(sec=sec, nanosec=nsec), q, v, e)
+            ref = JointState(name=names, position=array.array("d", q.tolist()),
+                             velocity=array.array("d", v.tolist()), effort=array.array("d", e.tolist()))
+            ref.header.stamp = Time(sec=sec, nanosec=nsec)
             assert len(data) <= len(serialize_message(ref)), trial
             got = deserialize_message(data, JointState)
             assert got.header.stamp == ref.header.stamp and got.name == ref.name, trial

@@ -7,7 +7,6 @@ import time
 
 import numpy as np
 import pytest
-import rclpy
 from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.context import Context
@@ -23,7 +22,7 @@ from dyn_node.model import load_model
 from dyn_node.node import DynNode
 from dyn_node.status import ERROR, OK, WARN, format_value
 from dyn_node.trajectory import interpolate, validate_trajectory
-from conftest import Collected, Spinner  # noqa: E402
+from conftest import NodeHarness, kv  # noqa: E402
 
 MODEL = load_model(builtin="planar_2link")
 NAMES = list(MODEL.joint_names)
@@ -64,29 +63,20 @@ def trajectory(names, times, positions, velocities=None, accelerations=None) -> 
     return msg
 
 
-def kv(status) -> dict[str, str]:
-    return {k.key: k.value for k in status.values}
-
-
-class Harness(Collected):
+class Harness(NodeHarness):
     default_timeout = 15.0
 
     def __init__(self, ctx: Context, namespace: str):
-        super().__init__(("feas", "teff", "gravity"))
-        self.probe = rclpy.create_node("probe", namespace=namespace, context=ctx)
-        self.node = DynNode(namespace=namespace, context=ctx, parameter_overrides=[
-            Parameter("robot_model", value="planar_2link")])
+        super().__init__(ctx, namespace, [Parameter("robot_model", value="planar_2link")])
         self.traj_pub = self.probe.create_publisher(JointTrajectory, "joint_trajectory", 10)
         self.js_pub = self.probe.create_publisher(JointState, "joint_states", RELIABLE)
-        sub = self.probe.create_subscription
-        sub(DiagnosticArray, "dyn_node/feasibility", self.collector("feas"), LATCHED)
-        sub(JointTrajectory, "dyn_node/trajectory_effort", self.collector("teff"), 10)
-        sub(JointState, "dyn_node/gravity_torque", self.collector("gravity"), RELIABLE)
-        self.spinner = Spinner(ctx, (self.node, self.probe))
-        assert self.wait(lambda: self.traj_pub.get_subscription_count() >= 1
-                         and self.js_pub.get_subscription_count() >= 1
-                         and self.probe.count_publishers(f"{namespace}/dyn_node/feasibility") >= 1
-                         and self.probe.count_publishers(f"{namespace}/dyn_node/gravity_torque") >= 1)
+        self.sub("feas", DiagnosticArray, "dyn_node/feasibility", LATCHED)
+        self.sub("teff", JointTrajectory, "dyn_node/trajectory_effort", 10)
+        self.sub("gravity", JointState, "dyn_node/gravity_torque", RELIABLE)
+        self.start(lambda: self.traj_pub.get_subscription_count() >= 1
+                   and self.js_pub.get_subscription_count() >= 1
+                   and self.probe.count_publishers(f"{namespace}/dyn_node/feasibility") >= 1
+                   and self.probe.count_publishers(f"{namespace}/dyn_node/gravity_torque") >= 1)
 
     def verdict(self, msg: JointTrajectory, timeout: float = 30.0) -> DiagnosticArray:
         hit: list = []
@@ -98,22 +88,20 @@ class Harness(Collected):
         assert self.wait(pred, timeout), "no ~/feasibility verdict for the trajectory"
         return hit[0]
 
-    def close(self) -> None:
-        self.spinner.stop()
-        self.node.destroy_node()
-        self.probe.destroy_node()
+    def make_current(self, q: list[float], v: list[float]) -> None:
+        """Publish the joint state (q, v) and wait until the node has answered it, so it is the
+        node's current state."""
+        js = JointState(name=NAMES, position=q, velocity=v)
+        js.header.stamp = next_stamp()
+        self.js_pub.publish(js)
+        assert self.wait(lambda: any(same(g.header.stamp, js.header.stamp) for g in self.got["gravity"]))
 
 
 @pytest.fixture(scope="module")
-def harness():
-    from conftest import TEST_DOMAIN
-
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=TEST_DOMAIN)
-    h = Harness(ctx, "/feas")
+def harness(module_ros_context):
+    h = Harness(module_ros_context, "/feas")
     yield h
     h.close()
-    rclpy.try_shutdown(context=ctx)
 
 
 def rest_to_rest(duration: float):
@@ -334,11 +322,7 @@ def test_start_segment_checked_from_the_last_joint_states(harness):
     assert node.set_parameters([Parameter("stale_timeout", value=60.0)])[0].successful
     try:
         qm, vm = [0.0, 0.3], [-2.5, 0.0]
-        js = JointState(name=NAMES, position=qm, velocity=vm)
-        js.header.stamp = next_stamp()
-        harness.js_pub.publish(js)
-        assert harness.wait(lambda: any(same(g.header.stamp, js.header.stamp)
-                                        for g in harness.got["gravity"]))
+        harness.make_current(qm, vm)
         msg = trajectory(NAMES, START_TIMES, START_P, START_ZERO, START_ZERO)
         harness.traj_pub.publish(msg)
         arr = harness.verdict(msg)
@@ -387,11 +371,7 @@ def test_start_segment_not_checked_without_joint_states(harness):
 def test_start_segment_not_checked_when_the_state_is_stale(harness):
     """joint_states older than stale_timeout are not the robot's current state."""
     node = harness.node
-    js = JointState(name=NAMES, position=[0.0, 0.3], velocity=[-2.5, 0.0])
-    js.header.stamp = next_stamp()
-    harness.js_pub.publish(js)
-    assert harness.wait(lambda: any(same(g.header.stamp, js.header.stamp)
-                                    for g in harness.got["gravity"]))
+    harness.make_current([0.0, 0.3], [-2.5, 0.0])
     assert node.set_parameters([Parameter("stale_timeout", value=0.001)])[0].successful
     try:
         msg = trajectory(NAMES, START_TIMES, START_P, START_ZERO, START_ZERO)
@@ -413,11 +393,7 @@ def test_check_request_starts_from_the_last_joint_states_too(harness):
     assert harness.wait(lambda: pub.get_subscription_count() >= 1)
     assert node.set_parameters([Parameter("stale_timeout", value=60.0)])[0].successful
     try:
-        js = JointState(name=NAMES, position=[0.0, 0.3], velocity=[-2.5, 0.0])
-        js.header.stamp = next_stamp()
-        harness.js_pub.publish(js)
-        assert harness.wait(lambda: any(same(g.header.stamp, js.header.stamp)
-                                        for g in harness.got["gravity"]))
+        harness.make_current([0.0, 0.3], [-2.5, 0.0])
         msg = trajectory(NAMES, START_TIMES, START_P, START_ZERO, START_ZERO)
         pub.publish(msg)
         arr = harness.verdict(msg)

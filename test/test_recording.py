@@ -1,7 +1,6 @@
 """The pure bag writer, read back by independent readers (rosbags, mcap) with exact counts."""
 from __future__ import annotations
 
-import errno
 import io
 import struct
 import threading
@@ -22,11 +21,12 @@ from rosbags.typesys import Stores, get_typestore, get_types_from_msg
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
+from conftest import FullDisk
 from dyn_node import __version__
 from dyn_node.bag_recover import recover_file
-from dyn_node.recording import (Recorder, RecorderConfig, RecorderStats, RecordingError,
-                                TopicInfo, cdr_string, header_stamp_ns, message_definition,
-                                qos_profile_dict)
+from dyn_node.errors import RecordingError
+from dyn_node.recording import (Recorder, RecorderConfig, RecorderStats, TopicInfo, cdr_string,
+                                header_stamp_ns, message_definition, qos_profile_dict)
 
 URDF = "<robot name='r'><link name='base'/></robot>"
 JS = "/joint_states"
@@ -293,31 +293,6 @@ def test_split_files_each_valid_and_union_exact(tmp_path, split):
     with Rosbag2Reader(bag) as reader:
         assert {c.topic: c.msgcount for c in reader.connections}[JS] == n
         assert sum(1 for c, _, _ in reader.messages() if c.topic == JS) == n
-
-
-class FullDisk:
-    """A file that accepts ``budget`` bytes, then raises ENOSPC like a full file system."""
-
-    def __init__(self, path: str, budget: int):
-        self.f = open(path, "xb")
-        self.budget = budget
-        self.full_at: float | None = None
-
-    def write(self, data: bytes) -> int:
-        if len(data) > self.budget:
-            self.full_at = self.full_at or time.monotonic()
-            raise OSError(errno.ENOSPC, "No space left on device")
-        self.budget -= len(data)
-        return self.f.write(data)
-
-    def flush(self) -> None:
-        self.f.flush()
-
-    def fileno(self) -> int:
-        return self.f.fileno()
-
-    def close(self) -> None:
-        self.f.close()
 
 
 def test_disk_full_reports_error_and_counts_exactly(tmp_path):

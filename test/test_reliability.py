@@ -33,7 +33,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
-from conftest import Collected, Spinner, python_cmd
+from conftest import Collected, Spinner, js, kv, python_cmd, t_msg, t_s
 from dyn_node.dynamics import Dynamics, DynamicsOptions
 from dyn_node.model import builtin_urdf, load_model
 from dyn_node.node import DynNode
@@ -49,28 +49,6 @@ RELIABLE = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 BEST_EFFORT = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 OK, WARN, ERROR, STALE = b"\x00", b"\x01", b"\x02", b"\x03"
-
-
-def t_msg(t: float) -> Time:
-    sec = int(math.floor(t))
-    return Time(sec=sec, nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
-
-
-def t_s(stamp: Time) -> float:
-    return stamp.sec + stamp.nanosec * 1e-9
-
-
-def js(q, v, stamp: float, names=NAMES) -> JointState:
-    m = JointState()
-    m.header.stamp = t_msg(stamp)
-    m.name = list(names)
-    m.position = [float(x) for x in q]
-    m.velocity = [float(x) for x in v]
-    return m
-
-
-def kv(status) -> dict[str, str]:
-    return {k.key: k.value for k in status.values}
 
 
 def js_values(p: "Probe") -> dict[str, str] | None:
@@ -395,13 +373,13 @@ def test_clock_backwards_zero_stamps_and_sim_time_jump(ctx, tmp_path):
         clock(sim)  # (the node records its own joint_states subscription: no extra subscriber)
         stamps = [200.0, 200.001, 199.5, 0.0, 200.002, 0.0, 150.0]  # backwards, zero, backwards
         for s in stamps:
-            js_pub.publish(js(Q0, V0, s))
+            js_pub.publish(js(NAMES, Q0, V0, stamp=s))
             sim += 0.001
             clock(sim)
         for jump in (40.0, 30.0):  # /clock jumps back twice
             sim = jump
             clock(sim)
-            js_pub.publish(js(Q0, V0, 300.0 + jump))
+            js_pub.publish(js(NAMES, Q0, V0, stamp=300.0 + jump))
             n = node._counts.received
             assert p.wait(lambda: node._counts.received > n, 5)
         assert p.wait(lambda: len(p.got["inv"]) >= len(stamps) + 2, 10)
@@ -430,7 +408,7 @@ def test_clock_backwards_zero_stamps_and_sim_time_jump(ctx, tmp_path):
         # (0.5 s) plus three diagnostics periods (0.1 s) of the new time: the jump is noticed at
         # the first tick after it, staleness counts from there, the next tick publishes STALE,
         # and the test advances /clock in steps.
-        js_pub.publish(js(Q0, V0, 400.0))
+        js_pub.publish(js(NAMES, Q0, V0, stamp=400.0))
         n = node._counts.received
         assert p.wait(lambda: node._counts.received > n, 5)
         after_jump, n_diag = run_until_stale(sim - 20.0, 1.1)
@@ -461,7 +439,7 @@ def test_stale_within_timeout_wall_clock(ctx):
         p.sub("inv", JointState, f"{ns}/dyn_node/inverse_dynamics", RELIABLE, stamp_receipt=True)
         p.sub("diag", DiagnosticArray, "/diagnostics", 1000, stamp_receipt=True)
         assert p.wait(lambda: js_pub.get_subscription_count() >= 1, 20)
-        js_pub.publish(js(Q0, V0, 10.0))
+        js_pub.publish(js(NAMES, Q0, V0, stamp=10.0))
         assert p.wait(lambda: len(p.got["inv"]) >= 1, 10)
         t_last = p.got["inv"][0][0]
 
@@ -499,7 +477,7 @@ def test_late_join_latched_description_and_both_qos(ctx):
         # both publishers matched: each one's messages are answered
         for pub, stamp in ((rel, 20.0), (be, 21.0), (rel, 22.0), (be, 23.0)):
             for _ in range(50):  # best effort may lose a sample before discovery settles
-                pub.publish(js(Q0, V0, stamp))
+                pub.publish(js(NAMES, Q0, V0, stamp=stamp))
                 if p.wait(lambda: any(t_s(m.header.stamp) == stamp for m in p.got["inv"]), 0.2):
                     break
             assert any(t_s(m.header.stamp) == stamp for m in p.got["inv"]), stamp
@@ -589,7 +567,7 @@ def _run_shutdown_round(ctx, spawn, tmp: Path, rnd: int, pub_node) -> list[tuple
     while time.monotonic() - t0 < load_for:  # ~1 kHz to each node
         seq += 1
         for j, _ in pubs:
-            j.publish(js(Q0, V0, 100.0 + seq * 1e-3))
+            j.publish(js(NAMES, Q0, V0, stamp=100.0 + seq * 1e-3))
         threading.Event().wait(0.001)
     out = []
     for sig_name, ns, bags, cp in procs:

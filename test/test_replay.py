@@ -8,12 +8,12 @@ bit for bit, and its feasibility verdict must equal what dyn-audit computed from
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from conftest import Stepper, kv  # noqa: E402
 from test_audit import MS, T0, make_bag, trajectory_msg  # noqa: E402
 
 from dyn_node.audit import AuditOptions, run_audit  # noqa: E402
@@ -32,7 +32,6 @@ def _bag_messages(bag: Path) -> list[tuple[str, int, bytes]]:
 
 @pytest.mark.timeout(120)
 def test_replay_under_sim_time_matches_audit(ros_context, tmp_path):
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -74,15 +73,8 @@ def test_replay_under_sim_time_matches_audit(ros_context, tmp_path):
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     player.create_subscription(DiagnosticArray, "/dyn_node/feasibility", feasibility.append, latched)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(player)
-
-    def spin_until(cond, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and not cond():
-            ex.spin_once(timeout_sec=0.01)
-        return cond()
+    steps = Stepper(ros_context, (node, player))
+    spin_until = steps.until
 
     try:
         assert spin_until(lambda: js_pub.get_subscription_count() >= 1
@@ -109,21 +101,19 @@ def test_replay_under_sim_time_matches_audit(ros_context, tmp_path):
         # the node's time is the bag's: the last /clock it was given, not the wall clock
         assert spin_until(lambda: node.get_clock().now().nanoseconds == last_clock, 5.0)
     finally:
-        ex.shutdown()
-        node.destroy_node()
-        player.destroy_node()
+        steps.close()
 
     assert replayed.keys() == recorded.keys()
     assert all(replayed[k] == recorded[k] for k in recorded)  # bit for bit
     assert len(feasibility) == 2
     for live, verdict in zip(feasibility, verdicts):
         summary = next(s for s in live.status if s.name == "dyn_node: trajectory feasibility")
-        kv = {k.key: k.value for k in summary.values}
-        assert (kv["feasible"] == "true") == verdict["feasible"]
-        assert float(kv["time_scale"]) == verdict["time_scale"]
-        assert float(kv["worst_ratio"]) == verdict["worst_ratio"]
-        assert kv["worst_joint"] == verdict["worst_joint"]
-        assert kv["worst_constraint"] == verdict["worst_constraint"]
+        vals = kv(summary)
+        assert (vals["feasible"] == "true") == verdict["feasible"]
+        assert float(vals["time_scale"]) == verdict["time_scale"]
+        assert float(vals["worst_ratio"]) == verdict["worst_ratio"]
+        assert vals["worst_joint"] == verdict["worst_joint"]
+        assert vals["worst_constraint"] == verdict["worst_constraint"]
         stamp_ns = live.header.stamp.sec * 1_000_000_000 + live.header.stamp.nanosec
         assert stamp_ns == verdict["stamp_ns"]
 
@@ -136,7 +126,6 @@ def test_audit_of_the_nodes_own_bag_checks_the_start_segment_as_the_node_did(ros
     stale_timeout), so its verdicts, keys and the re-check equal what the node published."""
     from builtin_interfaces.msg import Duration
     from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -158,15 +147,8 @@ def test_audit_of_the_nodes_own_bag_checks_the_start_segment_as_the_node_did(ros
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     player.create_subscription(DiagnosticArray, "/dyn_node/feasibility", verdicts.append, latched)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(player)
-
-    def spin_until(cond, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and not cond():
-            ex.spin_once(timeout_sec=0.01)
-        return cond()
+    steps = Stepper(ros_context, (node, player))
+    spin_until = steps.until
 
     def trajectory(sec: int) -> JointTrajectory:
         m = JointTrajectory()
@@ -200,11 +182,9 @@ def test_audit_of_the_nodes_own_bag_checks_the_start_segment_as_the_node_did(ros
         assert ok, path
     finally:
         node.recording.close()
-        ex.shutdown()
-        node.destroy_node()
-        player.destroy_node()
+        steps.close()
 
-    live = [{k.key: k.value for k in v.status[0].values} | {"message": v.status[0].message,
+    live = [kv(v.status[0]) | {"message": v.status[0].message,
                                                             "level": v.status[0].level}
             for v in verdicts]
     assert live[0]["start_segment"] == "checked" and live[0]["feasible"] == "false"

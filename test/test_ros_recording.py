@@ -7,7 +7,6 @@ the crash tests (a host node recording its own 1 kHz publisher).
 """
 from __future__ import annotations
 
-import errno
 import os
 import random
 import signal
@@ -20,6 +19,8 @@ from typing import Callable
 import yaml
 
 import pytest
+
+from conftest import FullDisk, Stepper
 
 PUBLISH_S = 10.0  # s of 1 kHz publishing, as the issue asks
 JS = "/joint_states"
@@ -43,7 +44,6 @@ class Rig:
 
     def __init__(self, context, directory: str, topics: list[str], opener=None,
                  direct: bool = False, configuration_since=None):
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         from rclpy.parameter import Parameter
         from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -73,9 +73,8 @@ class Rig:
             self.bridge.add_publisher(self.out_pub)
         self.sent: dict[str, list[bytes]] = {JS: [], "/dyn_node/gravity_torque": []}
         self.host.create_subscription(JointState, "joint_states", self._relay, 1000, raw=True)
-        self.executor = SingleThreadedExecutor(context=context)
-        for n in (self.host, self.pub_node):
-            self.executor.add_node(n)
+        self.steps = Stepper(context, (self.host, self.pub_node))
+        self.spin_until = self.steps.until
         self.timer = None
         self.seq = 0
         # Topics that exist in this rig's graph (diagnostics has no publisher here).
@@ -113,14 +112,6 @@ class Rig:
     def stop_publishing(self) -> None:
         self.timer.cancel()
 
-    def spin_until(self, cond, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if cond():
-                return True
-            self.executor.spin_once(timeout_sec=0.01)
-        return cond()
-
     def subscribed(self) -> bool:
         # The bridge and the relay both listen to joint_states; the bridge to the output.
         return (self.js_pub.get_subscription_count() >= 2
@@ -129,9 +120,7 @@ class Rig:
 
     def destroy(self) -> None:
         self.bridge.close()
-        self.executor.shutdown()
-        self.host.destroy_node()
-        self.pub_node.destroy_node()
+        self.steps.close()
 
 
 def _frame_id(data: bytes) -> str:
@@ -225,7 +214,6 @@ def test_shared_diagnostics_recorded_from_every_publisher(ros_context, tmp_path)
     from collections import Counter
 
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.parameter import Parameter
     from rclpy.serialization import serialize_message
@@ -251,15 +239,8 @@ def test_shared_diagnostics_recorded_from_every_publisher(ros_context, tmp_path)
     diag_pub.publish = spy
     other = Node("other_diagnostics_publisher", context=ros_context)
     other_pub = other.create_publisher(DiagnosticArray, "/diagnostics", 100)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(other)
-
-    def spin_until(cond, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and not cond():
-            ex.spin_once(timeout_sec=0.01)
-        return cond()
+    steps = Stepper(ros_context, (node, other))
+    spin_until = steps.until
 
     theirs: list[bytes] = []
     n_other = 60
@@ -290,9 +271,7 @@ def test_shared_diagnostics_recorded_from_every_publisher(ros_context, tmp_path)
         assert ok, path
     finally:
         bridge.close()
-        ex.shutdown()
-        node.destroy_node()
-        other.destroy_node()
+        steps.close()
     final = bridge._last_stats.topics["/diagnostics"]
     assert (final.received, final.written, final.dropped) == (len(own) + n_other,) * 2 + (0,)
 
@@ -495,26 +474,9 @@ def test_sigterm_closes_bag_cleanly(spawn, tmp_path):
 def test_full_disk_reports_error_host_keeps_publishing(ros_context, tmp_path):
     from dyn_node.status import ERROR
 
-    class FullDisk:
-        def __init__(self, path: str):
-            self.f, self.budget, self.full_at = open(path, "xb"), 20_000, None
-
-        def write(self, data: bytes) -> int:
-            if len(data) > self.budget:
-                self.full_at = self.full_at or time.monotonic()
-                raise OSError(errno.ENOSPC, "No space left on device")
-            self.budget -= len(data)
-            return self.f.write(data)
-
-        def flush(self):
-            self.f.flush()
-
-        def close(self):
-            self.f.close()
-
     disks: list[FullDisk] = []
     rig = Rig(ros_context, str(tmp_path), ["joint_states", "~/gravity_torque"],
-              opener=lambda p: disks.append(FullDisk(p)) or disks[-1])
+              opener=lambda p: disks.append(FullDisk(p, 20_000)) or disks[-1])
     try:
         assert rig.spin_until(rig.subscribed, 15.0)
         rig.start_publishing()

@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import fields
 from pathlib import Path
 
 import pytest
 import yaml
 
-from dyn_node.settings import (PARAMETERS, Settings, SettingsError, default_parameters, parse_locked_joints,
-                               settings_from_mapping)
+from dyn_node.errors import SettingsError
+from dyn_node.settings import PARAMETERS, Settings, parse_locked_joints, settings_from_mapping
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "dyn_node.yaml"
 
@@ -17,8 +18,17 @@ CONFIG = Path(__file__).resolve().parents[1] / "config" / "dyn_node.yaml"
 def test_yaml_holds_every_parameter_with_its_default():
     data = yaml.safe_load(CONFIG.read_text())
     params = data["dyn_node"]["ros__parameters"]
-    assert params == default_parameters()
+    assert params == {p.name: p.default for p in PARAMETERS}
     assert settings_from_mapping(params) == Settings()
+
+
+def test_each_settings_field_declares_its_parameter_and_default():
+    """One source: every Settings field is one parameter (same order, '.' → '_'), and the
+    field's default is its parameter's default as settings_from_mapping reads it."""
+    assert [p.name.replace(".", "_") for p in PARAMETERS] == [f.name for f in fields(Settings)]
+    for p in PARAMETERS:
+        assert settings_from_mapping({p.name: p.default}) == Settings(), p.name
+    assert Settings().to_parameters() == {p.name: p.default for p in PARAMETERS}
 
 
 def test_defaults_from_the_issue():

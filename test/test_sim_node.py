@@ -2,13 +2,12 @@
 from __future__ import annotations
 
 import signal
-import time
 from typing import Callable
 
 import numpy as np
 import pytest
 
-from conftest import python_cmd
+from conftest import Stepper, python_cmd
 from dyn_node.dynamics import Dynamics
 from dyn_node.model import builtin_urdf, load_model
 
@@ -24,18 +23,13 @@ def sim_cmd(*params: str) -> list[str]:
 
 
 def spin_until(ctx, node, cond: Callable[[], bool], timeout: float, what: str) -> None:
-    from rclpy.executors import SingleThreadedExecutor
-
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
+    """Spin ``node`` (which outlives the call) until cond(); AssertionError naming ``what`` if not."""
+    steps = Stepper(ctx, (node,), step_s=0.05)
     try:
-        deadline = time.monotonic() + timeout
-        while not cond():
-            if time.monotonic() > deadline:
-                raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-            ex.spin_once(timeout_sec=0.05)
+        if not steps.until(cond, timeout):
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
     finally:
-        ex.remove_node(node)
+        steps.close(destroy_nodes=False)
 
 
 def probe(ctx):
@@ -191,3 +185,63 @@ def test_byte_fields_written_by_dyn_node_and_dyn_sim(ros_context):
     finally:
         for node in reversed(nodes):
             node.destroy_node()
+
+
+@pytest.mark.timeout(90)
+def test_apply_wrench_round_trip(ros_context, spawn):
+    """~/apply_wrench over DDS: an unknown frame_id is logged and counted and the simulation keeps
+    publishing; a push at the flange settles to effort = g(q) − J_localᵀ·wrench (the controller
+    holding the robot against it; Pinocchio's g and Jacobian at the published q); a zero wrench
+    ends it (effort = g(q) again)."""
+    import pinocchio as pin
+    from geometry_msgs.msg import WrenchStamped
+
+    model = load_model(builtin="panda")
+    dyn = Dynamics(model)
+    pm = model.pin_model
+    pdata = pm.createData()
+    flange = pm.getFrameId("panda_link8")
+    w = np.array([6.0, -4.0, 20.0, 0.0, 0.0, 0.5])
+
+    def wrench_msg(frame: str, x: np.ndarray) -> WrenchStamped:
+        msg = WrenchStamped()
+        msg.header.frame_id = frame
+        f, m = msg.wrench.force, msg.wrench.torque
+        f.x, f.y, f.z, m.x, m.y, m.z = (float(v) for v in x)
+        return msg
+
+    def held(push: np.ndarray, tol: float) -> Callable[[], bool]:
+        def cond() -> bool:
+            if not got["js"]:
+                return False
+            last = got["js"][-1]
+            q = np.array(last.position[:7])
+            J = pin.computeFrameJacobian(pm, pdata, q, flange, pin.ReferenceFrame.LOCAL)
+            expect = dyn.gravity(q) - J.T @ push
+            return (np.abs(np.array(last.velocity[:7])).max() < 1e-6
+                    and np.abs(np.array(last.effort[:7]) - expect).max() < tol)
+        return cond
+
+    proc = spawn(sim_cmd("apply_wrench_hold:=60.0", "publish_rate_hz:=100.0"))
+    node, got = probe(ros_context)
+    pub = node.create_publisher(WrenchStamped, "/dyn_sim/apply_wrench", 10)
+    try:
+        spin_until(ros_context, node, lambda: len(got["js"]) >= 5 and pub.get_subscription_count() > 0,
+                   30, "dyn_sim to come up")
+        pub.publish(wrench_msg("panda_link9", w))
+        pub.publish(wrench_msg("panda_link8", w))
+        spin_until(ros_context, node, held(w, 1e-4), 30, "the robot to settle against the push")
+        pushed_q = np.array(got["js"][-1].position[:7])
+        pub.publish(wrench_msg("panda_link8", np.zeros(6)))
+        spin_until(ros_context, node, held(np.zeros(6), 1e-4), 30, "the robot to settle after the push")
+    finally:
+        node.destroy_node()
+    # the push moved the robot (it is held by a PD controller, not infinitely stiff)
+    assert np.abs(pushed_q - READY).max() > 1e-3
+    np.testing.assert_allclose(got["js"][-1].position[:7], READY, atol=1e-6)
+    rc, out, err = proc.stop(signal.SIGINT)
+    assert rc == 0, err
+    log = out + err
+    assert "apply_wrench rejected (state error, unknown_frame): 'panda_link9' is not a link" in log
+    assert "(1 rejected so far)" in log
+    assert "apply_wrench: 21.3 N, 0.5 N·m at panda_link8 (MuJoCo body panda_link8) for 60 s" in log

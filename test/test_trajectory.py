@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from dyn_node.errors import PLANNING_ERROR, TrajectoryError
-from dyn_node.trajectory import (Trajectory, clamped_spline_velocities, interpolate, sample_times,
-                                 validate_trajectory)
+from dyn_node.trajectory import Trajectory, clamped_spline_velocities, interpolate, validate_trajectory
 
 J = ("a", "b", "c")
 
@@ -55,6 +54,9 @@ def test_validation_reorders_and_detects_mode():
     t3 = validate_trajectory(J, J, [0.0, 1.0], [[0] * 3] * 2, [[0] * 3] * 2, [[0] * 3] * 2)
     assert t3.natural_interpolation == "quintic"
     assert validate_trajectory(J, J, [0.2], [[0, 0, 0]], min_points=1).n_points == 1
+    # the controller's own choice differs only for positions-only trajectories (linear, not spline)
+    assert (t.jtc_interpolation, t2.jtc_interpolation, t3.jtc_interpolation) == \
+        ("cubic", "linear", "quintic")
 
 
 def random_traj(n=6, nj=3, seed=0, vel=True, acc=True):
@@ -183,20 +185,6 @@ def test_clamped_spline_against_dense_solve(n):
     for tk in t[1:-1]:
         left, right = one_sided(pp, tk, 1e-9)
         np.testing.assert_allclose(left[2], right[2], rtol=0, atol=1e-4)
-
-
-def test_sample_times():
-    times = np.array([0.0, 0.3, 0.35, 1.0])
-    s = sample_times(times, 0.1)
-    assert set(times) <= set(s)
-    assert np.all(np.diff(s) > 0.01)  # no round-off near-duplicates (0.1·3 vs 0.3)
-    np.testing.assert_allclose(s, [0, 0.1, 0.2, 0.3, 0.35, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0])
-    assert s[0] == 0.0 and s[-1] == 1.0
-    s2 = sample_times(np.array([0.5, 2.5]), 0.001)
-    assert len(s2) == 2001 and np.all(np.diff(s2) > 0.999e-3)
-    for bad in (0.0, -1.0, np.nan):
-        with pytest.raises(ValueError):
-            sample_times(times, bad)
 
 
 def test_interpolation_mode_needs_its_data():
