@@ -24,7 +24,7 @@ from . import __version__
 from .allocator import retain_freed_memory
 from .bag_reader import BagMessage, BagReader, MessageDecoder
 from .cdr import decode_joint_state, decode_joint_state_batch
-from .cli import run_command
+from .cli import add_audit_options, run_command
 from .errors import (CONTROL_ERROR, EVALUATION_ERROR, PLANNING_ERROR, STATE_ERROR, DynNodeError,
                      InputError, TrajectoryError)
 from .evidence import EvidenceRecord, jsonable, utc_now
@@ -1744,19 +1744,8 @@ def build_parser() -> argparse.ArgumentParser:
         "report.html. Exit 0: all feasible, 1: violations found, 2: unusable input, "
         "3: partial (parts of the bag unreadable, no violations in the rest).")
     p.add_argument("bag", help="bag directory (rosbag2 layout), or a single .mcap file")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--robot-description", metavar="FILE", default="",
-                     help="URDF file (overrides the description stored in the bag)")
-    src.add_argument("--robot-model", metavar="NAME", default="",
-                     help="built-in model: panda, ur5, planar_2link (overrides the bag)")
-    p.add_argument("--limits", metavar="FILE", default="", help="joint limits YAML (overrides the bag's)")
     p.add_argument("--out", metavar="DIR", default="audit", help="output directory (default: ./audit)")
-    p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
-                   help="only use these topics (roles by type and name: */joint_states, "
-                        "*/joint_trajectory, node outputs)")
-    p.add_argument("--gap-threshold", type=float, default=0.05, metavar="S",
-                   help="report joint_states gaps longer than this (s, default 0.05)")
-    p.add_argument("--no-report", action="store_true", help="write evidence.json only")
+    add_audit_options(p)
     p.add_argument("--version", action="version", version=f"dyn-audit {__version__}")
     return p
 

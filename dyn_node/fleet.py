@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Sequence
 
 from . import __version__
 from .audit import LiveStats
-from .cli import run_command
+from .cli import add_audit_options, run_command
 from .errors import FleetError
 from .exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code
 from .limits import LIMIT_KINDS
@@ -753,16 +753,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip bags whose content and configuration are unchanged since their evidence")
     p.add_argument("--bag-timeout", type=float, default=1800.0, metavar="S",
                    help="stop a bag's task after S seconds and report it (0: no limit; default 1800)")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--robot-description", metavar="URDF", default="",
-                     help="URDF file for every bag (overrides the bags' descriptions)")
-    src.add_argument("--robot-model", metavar="NAME", default="",
-                     help="built-in model for every bag: panda, ur5, planar_2link")
-    p.add_argument("--limits", metavar="FILE", default="", help="joint limits YAML for every bag")
-    p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="only use these topics")
-    p.add_argument("--gap-threshold", type=float, default=0.05, metavar="S",
-                   help="report joint_states gaps longer than this (s, default 0.05)")
-    p.add_argument("--no-report", action="store_true", help="no report.html per bag")
+    add_audit_options(p, every_bag=True)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--version", action="version", version=f"dyn-fleet {__version__}")
     return p

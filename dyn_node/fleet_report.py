@@ -3,19 +3,20 @@
 The fleet verdict, the worst bags (linked to their own report.html), per-joint utilisation
 distributions across the fleet, violations over recording time (is it getting worse) and the
 input-quality problems. Figures are drawn once per fleet with matplotlib (Agg) and embedded as
-base64 PNGs, so the page needs no other file.
+base64 PNGs, so the page needs no other file; the HTML helpers (escaping, tables, images) are
+report.py's.
+matplotlib is fine once per fleet run (report.py keeps Pillow: a 0.64 s import per dyn-audit, LIBRARIES.md).
 """
 from __future__ import annotations
 
-import base64
-import html
 import io
 import math
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from .exit_codes import MEANINGS
+from .report import _e, _img, _num, _table  # one set of HTML helpers for both pages
 
 WORST_BAGS = 25
 CATEGORY_COLOURS = {"ok": "#2e7d32", "violations": "#c62828", "partial": "#ef6c00",
@@ -24,29 +25,19 @@ QUALITY_KEYS = ("invalid_messages", "out_of_order_messages", "zero_stamp_message
                 "stale_periods", "unreadable_ranges", "chunks_damaged")
 
 
-def _e(x: Any) -> str:
-    return html.escape(str(x), quote=True)
+def _f(x: Any) -> str:
+    """A row's number; NaN (the tables' "none") as the evidence's null is shown."""
+    return _num(None if isinstance(x, float) and math.isnan(x) else x, "{:.3g}")
 
 
-def _f(x: Any, fmt: str = "{:.3g}") -> str:
-    if x is None or (isinstance(x, float) and math.isnan(x)):
-        return "–"
-    return fmt.format(x) if isinstance(x, float) else str(x)
-
-
-def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=96, bbox_inches="tight")
+def _png(fig, alt: str) -> str:
+    """The matplotlib figure as an embedded PNG (closed: the page is the only place it lives)."""
     import matplotlib.pyplot as plt
 
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=96, bbox_inches="tight")
     plt.close(fig)
-    return f'<img alt="figure" src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
-
-
-def _table(head: Sequence[str], rows: list[Sequence[str]]) -> str:
-    th = "".join(f"<th>{_e(h)}</th>" for h in head)
-    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
-    return f"<table><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
+    return _img(buf.getvalue(), alt)
 
 
 def utilisation_figure(joints: list[dict]) -> str:
@@ -81,7 +72,7 @@ def utilisation_figure(joints: list[dict]) -> str:
         ax.set_yscale("symlog", linthresh=100)
         ax.set_ylim(bottom=0)  # utilisations are magnitudes
     fig.tight_layout()
-    return _png(fig)
+    return _png(fig, "peak effort utilisation per joint across bags")
 
 
 def timeline_figure(rows: list[dict]) -> str:
@@ -111,7 +102,7 @@ def timeline_figure(rows: list[dict]) -> str:
     a2.set_xlabel("recording start (UTC)")
     fig.autofmt_xdate()
     fig.tight_layout()
-    return _png(fig)
+    return _png(fig, "violations and worst ratio per bag over recording time")
 
 
 def _link(r: dict) -> str:

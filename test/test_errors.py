@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import pytest
 
-from dyn_node import bag_recover, check_cli, recording, settings, trajectory_files
-from dyn_node.errors import (CheckError, DynNodeError, RecordingError, RecoverError, SettingsError,
-                             TrajectoryFileError)
+from dyn_node import bag_recover, check_cli, fleet, recording, settings, trajectory_files
+from dyn_node.errors import (CheckError, DynNodeError, FleetError, RecordingError, RecoverError,
+                             SettingsError, TrajectoryFileError)
 from dyn_node.recording import RecorderConfig
 
 MOVED = [(RecordingError, recording), (RecoverError, bag_recover), (SettingsError, settings),
-         (TrajectoryFileError, trajectory_files), (CheckError, check_cli)]
+         (TrajectoryFileError, trajectory_files), (CheckError, check_cli), (FleetError, fleet)]
 
 
 @pytest.mark.parametrize("cls,module", MOVED, ids=lambda x: getattr(x, "__name__", ""))
@@ -27,3 +27,12 @@ def test_recorder_and_recover_raise_dyn_node_errors(tmp_path):
     (tmp_path / "x.mcap").write_bytes(b"not mcap at all")
     with pytest.raises(DynNodeError, match="not an MCAP file"):
         bag_recover.recover_file(tmp_path / "x.mcap", tmp_path / "y.mcap")
+
+
+def test_fleet_raises_dyn_node_errors_with_a_code(tmp_path):
+    with pytest.raises(DynNodeError, match="does not exist") as missing:
+        fleet.discover([str(tmp_path / "missing")])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DynNodeError, match="no bags found") as empty:  # before any engine starts
+        fleet.run_fleet([str(tmp_path / "empty")], tmp_path / "out", progress=False)
+    assert (missing.value.code, empty.value.code) == ("not_found", "no_bags")

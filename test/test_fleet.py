@@ -344,6 +344,83 @@ class TestOnOneLocalRay:
     def test_timeout_and_worker_death_are_rows_and_the_run_goes_on(self, engine, tmp_path):
         _timeout_and_death(engine, tmp_path)
 
+    def test_a_worker_keeps_its_models_between_bags(self, engine, tmp_path):
+        _worker_models(engine, tmp_path)
+
+
+def _worker_models(engine, tmp_path):
+    """Six bags of one robot on two reused workers: on each worker, every bag after its first
+    takes the model from the worker's cache (one lookup per bag, a hit)."""
+    cfg = fleet.FleetConfig(report=False)
+    jobs = []
+    for k in range(6):
+        b = write_bag(tmp_path / "bags", BagSpec(f"m{k}", "planar_2link", 0.2, start_s=k))
+        jobs.append(fleet.BagJob(str(b), fleet.bag_id(b), str(tmp_path / "out"), cfg,
+                                 fleet.config_hash(cfg)))
+
+    def probe(job):  # pickled by value: runs in the worker
+        import os as _os
+
+        from dyn_node.fleet import audit_bag, worker_model_cache
+
+        before = worker_model_cache().hits
+        outcome = audit_bag(job)
+        outcome.row["probe"] = (_os.getpid(), worker_model_cache().hits - before)
+        return outcome
+
+    outcomes = fleet.run_jobs(engine, jobs, fn=probe)
+    assert [o.row["exit_category"] for o in outcomes] == ["ok"] * 6
+    per_worker: dict[int, list[int]] = {}
+    for o in outcomes:  # jobs order: a worker takes its bags in that order, one at a time
+        pid, hits = o.row["probe"]
+        per_worker.setdefault(pid, []).append(hits)
+    assert max(len(h) for h in per_worker.values()) >= 2, per_worker  # workers were reused
+    assert all(h[1:] == [1] * (len(h) - 1) for h in per_worker.values()), per_worker
+
+
+def _flat(tree, prefix=""):
+    """{dotted path: leaf} of a JSON tree, for field-by-field comparison."""
+    if isinstance(tree, dict):
+        return {k: v for key, sub in tree.items() for k, v in _flat(sub, f"{prefix}{key}.").items()}
+    if isinstance(tree, list):
+        return {k: v for i, sub in enumerate(tree) for k, v in _flat(sub, f"{prefix}{i}.").items()}
+    return {prefix.rstrip("."): tree}
+
+
+def test_a_worker_reuses_its_model_and_the_evidence_is_unchanged(tmp_path, monkeypatch):
+    """audit_bag in one process, as a worker runs it: the second Panda bag takes the model the
+    first built (no second build), the UR5 bag builds its own, and every evidence record equals,
+    field by field, that of an uncached audit of the bag alone (dyn-audit builds per run)."""
+    from dyn_node import model_source
+    from dyn_node.audit import AuditOptions, run_audit
+
+    builds: list[dict] = []
+    real = model_source.load_model
+    monkeypatch.setattr(model_source, "load_model", lambda **kw: builds.append(kw) or real(**kw))
+    monkeypatch.setattr(fleet, "_MODEL_CACHE", None)  # a fresh worker
+    specs = [BagSpec("w_panda_a", "panda", 0.4, spike=(0.1, 0.2), trajectories=(True,)),
+             BagSpec("w_panda_b", "panda", 0.6, trajectories=(False,), start_s=10),
+             BagSpec("w_ur5", "ur5", 0.4, start_s=20)]
+    cfg = fleet.FleetConfig(report=False)
+    counts, jobs = [], []
+    for s in specs:
+        b = write_bag(tmp_path / "bags", s)
+        job = fleet.BagJob(str(b), fleet.bag_id(b), str(tmp_path / "out"), cfg, fleet.config_hash(cfg))
+        assert fleet.audit_bag(job).row["verdict"] != "error", s.name
+        cache = fleet.worker_model_cache()
+        counts.append((cache.hits, cache.misses, len(builds)))
+        jobs.append(job)
+    assert counts == [(0, 1, 1), (1, 1, 1), (1, 2, 2)]  # (hits, misses, models built) after each bag
+    for job in jobs:
+        alone = tmp_path / "alone" / job.bag_id
+        fresh = run_audit(AuditOptions(bag=job.path, out=str(alone), progress=False, report=False))
+        mine = _flat(_strip(json.loads((job.out_dir / "evidence.json").read_text())))
+        theirs = _flat(_strip(json.loads((alone / "evidence.json").read_text())))
+        assert mine.keys() == theirs.keys() and len(mine) > 100
+        assert [k for k in mine if not _same(mine[k], theirs[k])] == [], job.path
+        assert fresh.exit_code == json.loads((job.out_dir / fleet.STATE_FILE).read_text())["row"]["exit_code"]
+    assert len(builds) == 2 + len(jobs)  # the uncached audits each built their own
+
 
 def _resume(engine, tmp_path):
     specs = [BagSpec(f"r{k}", ("panda", "ur5", "planar_2link")[k % 3], 0.4, start_s=k) for k in range(5)]

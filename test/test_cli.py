@@ -1,0 +1,62 @@
+"""dyn_node.cli: the one error handling and the one set of audit options of dyn-audit and dyn-fleet."""
+from __future__ import annotations
+
+import errno
+
+import pytest
+
+from dyn_node import audit, fleet  # fleet imports Ray only when its engine starts
+from dyn_node.bag_reader import BagError
+from dyn_node.cli import EXIT_INTERRUPTED, run_command
+from dyn_node.errors import ModelError
+
+
+def _raise(exc: BaseException):
+    def work():
+        raise exc
+    return work
+
+
+def _never(_):
+    raise AssertionError("report ran after a failure")
+
+
+@pytest.mark.parametrize("exc,line", [
+    (BagError("bag x is unreadable", code="bag_unreadable"), "dyn-x: error: bag x is unreadable"),
+    (ModelError("no such robot"), "dyn-x: error: no such robot"),
+    (FileNotFoundError(errno.ENOENT, "No such file or directory", "/nope"),
+     "dyn-x: error: No such file or directory: /nope"),
+    (PermissionError(errno.EACCES, "Permission denied"), "dyn-x: error: Permission denied"),
+])
+def test_input_errors_are_one_line_and_exit_2(exc, line, capsys):
+    assert run_command("dyn-x", _raise(exc), _never) == 2
+    err = capsys.readouterr().err
+    assert err == line + "\n"
+
+
+def test_interrupt_is_130_and_a_result_goes_to_report(capsys):
+    assert run_command("dyn-x", _raise(KeyboardInterrupt()), _never) == EXIT_INTERRUPTED == 130
+    assert capsys.readouterr().err == "dyn-x: interrupted\n"
+    assert run_command("dyn-x", lambda: 41, lambda r: r + 1) == 42
+
+
+def test_a_bug_is_not_reported_as_input():
+    with pytest.raises(ZeroDivisionError):
+        run_command("dyn-x", lambda: 1 / 0, _never)
+
+
+def test_both_commands_read_the_audit_options_alike(tmp_path):
+    opts = ["--robot-model", "ur5", "--limits", "l.yaml", "--topics", "/a", "/b",
+            "--gap-threshold", "0.2", "--no-report"]
+    a = vars(audit.build_parser().parse_args(["bag", *opts]))
+    f = vars(fleet.build_parser().parse_args(["root", "--out", str(tmp_path), *opts]))
+    keys = ("robot_model", "robot_description", "limits", "topics", "gap_threshold", "no_report")
+    assert {k: a[k] for k in keys} == {k: f[k] for k in keys} == {
+        "robot_model": "ur5", "robot_description": "", "limits": "l.yaml", "topics": ["/a", "/b"],
+        "gap_threshold": 0.2, "no_report": True}
+    defaults = ("bag",), ("root", "--out", str(tmp_path))
+    a0, f0 = (vars(p.parse_args(list(d))) for p, d in zip((audit.build_parser(), fleet.build_parser()), defaults))
+    assert {k: a0[k] for k in keys} == {k: f0[k] for k in keys}
+    for p, d in zip((audit.build_parser(), fleet.build_parser()), defaults):
+        with pytest.raises(SystemExit):  # one model source at a time, in both
+            p.parse_args([*d, "--robot-model", "ur5", "--robot-description", "x.urdf"])
