@@ -35,7 +35,6 @@ def build_model(settings: Settings, topic_description: str = "", *,
                         "robot_model, or publish the robot_description topic", code="no_source")
 
 
-
 def _sha256(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
