@@ -9,7 +9,8 @@ import pytest
 from dyn_node.dynamics import Dynamics
 from dyn_node.model import load_model
 from dyn_node.power_balance import PowerBalance, PowerBalanceOptions
-from test_observer import G, L1, L2, M1, M2, READY, two_link_motion, two_link_terms
+from robots import G, L1, L2, M1, M2, two_link_terms
+from test_observer import READY, two_link_motion
 
 
 @pytest.fixture(scope="module")
