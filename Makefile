@@ -20,11 +20,11 @@ $(STAMP): requirements.txt setup.py package.xml
 	@# linked into $(VENV)/bin too, so `source $(VENV)/bin/activate` puts them on PATH
 	@for s in $(VENV)/lib/dyn_node/*; do ln -sf "../lib/dyn_node/$${s##*/}" "$(VENV)/bin/$${s##*/}"; done
 	@echo "compiling the feasibility kernels (first run only, ~15 s; cached in dyn_node/__pycache__)"
-	$(PY) -c "import dyn_node.kernels"
+	$(PY) -c "import dyn_node.core.kernels"
 	@touch $@
 
 demo: $(STAMP)
-	$(PY) -m dyn_node.demo
+	$(PY) -m dyn_node.ros.demo
 
 test: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)

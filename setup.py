@@ -24,13 +24,13 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "dyn_node = dyn_node.node:main",
-            "dyn_sim = dyn_node.sim_node:main",
-            "dyn-audit = dyn_node.audit:main",
-            "dyn-bag-recover = dyn_node.bag_recover:main",
-            "dyn-check = dyn_node.check_cli:main",
-            "dyn-fleet = dyn_node.fleet:main",
-            "dyn_node_demo = dyn_node.demo:main",
+            "dyn_node = dyn_node.ros.node:main",
+            "dyn_sim = dyn_node.ros.sim_node:main",
+            "dyn-audit = dyn_node.audit.bag_audit:main",
+            "dyn-bag-recover = dyn_node.bag.recover:main",
+            "dyn-check = dyn_node.audit.check:main",
+            "dyn-fleet = dyn_node.fleet.engine:main",
+            "dyn_node_demo = dyn_node.ros.demo:main",
         ],
     },
 )

@@ -22,7 +22,7 @@ def _bags(directory: Path, n: int, seconds: float) -> list[Path]:
 
 
 def _jobs(bags: list[Path], out: Path):
-    from dyn_node import fleet
+    from dyn_node.fleet import engine as fleet
 
     cfg = fleet.FleetConfig(robot_model="panda")  # as the recording section's dyn-audit runs
     h = fleet.config_hash(cfg)
@@ -30,7 +30,7 @@ def _jobs(bags: list[Path], out: Path):
 
 
 def _measure(workers: int, jobs, n_msgs: int, warm_passes: int) -> dict:
-    from dyn_node import fleet
+    from dyn_node.fleet import engine as fleet
 
     t0 = time.perf_counter()
     with fleet.Engine(workers=workers) as engine:
@@ -57,10 +57,10 @@ def _measure(workers: int, jobs, n_msgs: int, warm_passes: int) -> dict:
 
 def _rss(jobs_short, jobs_long) -> dict:
     """One worker audits the short bags, then the long ones; VmHWM after each (MiB)."""
-    from dyn_node import fleet
+    from dyn_node.fleet import engine as fleet
 
     def audited_with_hwm(job):  # pickled by value: runs in the worker
-        from dyn_node.fleet import audit_bag
+        from dyn_node.fleet.engine import audit_bag
 
         out = audit_bag(job)
         for line in open("/proc/self/status"):
@@ -81,12 +81,12 @@ def _rss(jobs_short, jobs_long) -> dict:
 
 
 def run(quick: bool = False, smoke: bool = False) -> dict:
-    why = module_available("fleet")
+    why = module_available("fleet.engine")
     if why:
         raise NotAvailable(why)
     import importlib.util
 
-    if importlib.util.find_spec("ray") is None:  # not imported here: dyn_node.fleet imports it
+    if importlib.util.find_spec("ray") is None:  # not imported here: dyn_node.fleet.engine imports it
         raise NotAvailable("ray not installed")
     n, seconds = (4, 0.5) if smoke else (12, 3.0) if quick else (24, 10.0)
     short_s, n_rss = (0.5, 2) if smoke else (3.0, 2) if quick else (6.0, 3)

@@ -57,7 +57,7 @@ def _workload(seconds: float) -> list[tuple[int, int, bytes]]:
 
 
 def _channel_meta(type_name: str) -> dict[str, str]:
-    from dyn_node.recording import qos_profile_dict, qos_yaml, type_description_hash
+    from dyn_node.bag.recorder import qos_profile_dict, qos_yaml, type_description_hash
 
     meta = {"offered_qos_profiles": qos_yaml([qos_profile_dict()])}
     h = type_description_hash(type_name)
@@ -70,7 +70,7 @@ class _Ours:
     name = "dyn_node McapFile"
 
     def __init__(self, stream, chunk_size: int):
-        from dyn_node.recording import McapFile
+        from dyn_node.bag.recorder import McapFile
 
         self.f = McapFile(stream, "zstd", "ros2", "bench")
         self.chunk_size = chunk_size
@@ -148,7 +148,7 @@ class _zstd_level:
 def _write_layer(cls, work, path: Path, chunk_size: int, fsync: bool) -> dict:
     """Write ``work`` through one writer: chunks closed every 0.5 s of log time (or at
     chunk_size), each flushed and fsynced. Returns CPU s, wall s, file bytes."""
-    from dyn_node.recording import METADATA_RECORD, _CountingFile, message_definition
+    from dyn_node.bag.recorder import METADATA_RECORD, _CountingFile, message_definition
 
     raw = open(path, "xb", buffering=0)
     stream = _CountingFile(raw)
@@ -178,7 +178,7 @@ def _count_messages(path: Path) -> tuple[int, int]:
     """(messages by mcap's reader with CRCs checked, messages by dyn_node's BagReader)."""
     from mcap.reader import make_reader
 
-    from dyn_node.bag_reader import BagReader
+    from dyn_node.bag.reader import BagReader
 
     with open(path, "rb") as fh:
         n_lib = sum(1 for _ in make_reader(fh, validate_crcs=True).iter_messages())
@@ -252,8 +252,8 @@ def _library_mcapfile():
 def _paced_recording(seconds: float, work, variant: str, tmp: Path) -> dict:
     """Feed ``work`` at its log-time pace (every 10 ms, what arrived in it) into a Recorder with
     fsync on, or into nothing (``variant='none'``); process CPU over the whole run incl. close."""
-    import dyn_node.recording as rec_mod
-    from dyn_node.recording import Recorder, RecorderConfig, TopicInfo
+    import dyn_node.bag.recorder as rec_mod
+    from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
 
     saved = rec_mod.McapFile
     if variant == "library":
@@ -300,7 +300,7 @@ def _paced_recording(seconds: float, work, variant: str, tmp: Path) -> dict:
 
 
 def run_writer(quick: bool) -> dict:
-    from dyn_node.recording import RecorderConfig
+    from dyn_node.bag.recorder import RecorderConfig
 
     repeats = 5
     seconds = 10.0 if quick else 30.0
@@ -382,7 +382,7 @@ def run_layout(quick: bool) -> dict:
     and one byte flipped in chunk 1."""
     from mcap.reader import make_reader
 
-    from dyn_node.bag_reader import BagReader
+    from dyn_node.bag.reader import BagReader
 
     work = _workload(5.0)
     out: dict = {}
@@ -450,7 +450,7 @@ def _lib_stream(path: Path, crc: bool) -> Callable[[], int]:
 
 def _ours_read(path: Path) -> Callable[[], int]:
     def read() -> int:
-        from dyn_node.bag_reader import BagReader
+        from dyn_node.bag.reader import BagReader
 
         return sum(1 for _ in BagReader(path).messages())
     return read
@@ -543,7 +543,7 @@ def _readers(path: Path) -> tuple[dict[str, Callable[[], "object"]], dict]:
     """The four readers of the damage table, by name, and a holder for what each reported."""
     from mcap.reader import NonSeekingReader, make_reader
 
-    from dyn_node.bag_reader import BagReader
+    from dyn_node.bag.reader import BagReader
 
     holder: dict = {}
 
@@ -571,7 +571,7 @@ def _readers(path: Path) -> tuple[dict[str, Callable[[], "object"]], dict]:
 
 def _small_chunk_bag(directory: Path, seconds: float) -> Path:
     """A dyn_node bag (Recorder) of 1 kHz joint_states in 64 KiB chunks: many chunks to damage."""
-    from dyn_node.recording import Recorder, RecorderConfig, TopicInfo
+    from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
 
     from .recording_bench import _stamp_patched, joint_state_bytes
 
@@ -701,7 +701,7 @@ import pickle, sys, time
 t0, c0 = time.perf_counter(), time.process_time()
 mode = sys.argv[2]
 if mode == "ours":
-    from dyn_node import report
+    from dyn_node.audit import report
 else:
     import matplotlib
     matplotlib.use("Agg")
@@ -712,7 +712,7 @@ record, series, names = pickle.loads(open(sys.argv[1], "rb").read())
 out = sys.argv[3]
 def render():
     if mode == "ours":
-        from dyn_node.report import write_report
+        from dyn_node.audit.report import write_report
         write_report(record, series, None, out)
     else:
         lb.mpl_write_report(record, series, out, fmt=mode)
@@ -729,7 +729,7 @@ print(f"{t_import} {t_first} {warm[len(warm) // 2]} {c_import} {c_first}")
 def _mpl_effort(plt, series, names, start_ns, violations):
     import numpy as np
 
-    from dyn_node.report import _BLUE, _DARK_BLUE, _ORANGE, _RED, _centres
+    from dyn_node.audit.report import _BLUE, _DARK_BLUE, _ORANGE, _RED, _centres
 
     n, nv = series.n, len(names)
     t = _centres(series, start_ns)
@@ -766,7 +766,7 @@ def _mpl_effort(plt, series, names, start_ns, violations):
 def _mpl_utilisation(plt, series, names, start_ns):
     import numpy as np
 
-    from dyn_node.report import _centres
+    from dyn_node.audit.report import _centres
 
     n, nv = series.n, len(names)
     u = np.where(series.count[:n, None] > 0, series.util[:n], np.nan).T
@@ -786,7 +786,7 @@ def _mpl_utilisation(plt, series, names, start_ns):
 
 
 def _mpl_trajectories(plt, trajs):
-    from dyn_node.report import _GREEN, _RED, _finite
+    from dyn_node.audit.report import _GREEN, _RED, _finite
 
     idx = [t["index"] for t in trajs]
     fig, (a, b) = plt.subplots(1, 2, figsize=(11.0, 3.2), dpi=100)
@@ -813,7 +813,7 @@ def mpl_write_report(record: dict, series, out_dir: str, *, fmt: str = "png") ->
 
     import matplotlib.pyplot as plt
 
-    from dyn_node.report import render_html
+    from dyn_node.audit.report import render_html
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -836,7 +836,7 @@ def mpl_write_report(record: dict, series, out_dir: str, *, fmt: str = "png") ->
 
 
 def _audit_inputs(bag: Path, tmp: Path, label: str) -> tuple[Path, dict]:
-    from dyn_node.audit import Audit, AuditOptions
+    from dyn_node.audit.bag_audit import Audit, AuditOptions
 
     t0 = time.perf_counter()
     record, _code, series = Audit(AuditOptions(bag=str(bag), out=str(tmp / f"a_{label}"),
@@ -853,7 +853,7 @@ def _audit_inputs(bag: Path, tmp: Path, label: str) -> tuple[Path, dict]:
 
 _IMPORTS = {"Pillow (Image, ImageDraw, ImageFont)": "from PIL import Image, ImageDraw, ImageFont",
             "matplotlib + pyplot, Agg": "import matplotlib; matplotlib.use('Agg'); import matplotlib.pyplot",
-            "dyn_node.report": "import dyn_node.report"}
+            "dyn_node.audit.report": "import dyn_node.audit.report"}
 
 
 def _import_times(repeats: int, env: dict) -> dict[str, float]:

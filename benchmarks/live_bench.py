@@ -37,7 +37,7 @@ def ros_env() -> dict[str, str]:
 
 def _dyn_node_reason() -> str | None:
     if not (REPO / "dyn_node" / "node.py").exists():
-        return "dyn_node/node.py does not exist yet"
+        return "dyn_node/ros/node.py does not exist yet"
     return None
 
 
@@ -65,14 +65,14 @@ def subjects(record_dir: str) -> list[dict]:
              output="/minimal_node/inverse_dynamics", module="benchmarks.subjects.minimal_node",
              reason=None),
         dict(key="dyn_node", name="(c) dyn_node",
-             what="python -m dyn_node.node -p robot_model:=panda (all checks, diagnostics)",
-             cmd=[py, "-m", "dyn_node.node", "--ros-args", "-p", "robot_model:=panda"],
-             output="/dyn_node/inverse_dynamics", module="dyn_node.node", reason=_dyn_node_reason()),
+             what="python -m dyn_node.ros.node -p robot_model:=panda (all checks, diagnostics)",
+             cmd=[py, "-m", "dyn_node.ros.node", "--ros-args", "-p", "robot_model:=panda"],
+             output="/dyn_node/inverse_dynamics", module="dyn_node.ros.node", reason=_dyn_node_reason()),
         dict(key="dyn_node_record", name="(d) dyn_node, recording on",
              what="as (c) with record.enabled:=true (MCAP, zstd) into a temporary directory",
-             cmd=[py, "-m", "dyn_node.node", "--ros-args", "-p", "robot_model:=panda",
+             cmd=[py, "-m", "dyn_node.ros.node", "--ros-args", "-p", "robot_model:=panda",
                   "-p", "record.enabled:=true", "-p", f"record.directory:={record_dir}"],
-             output="/dyn_node/inverse_dynamics", module="dyn_node.node",
+             output="/dyn_node/inverse_dynamics", module="dyn_node.ros.node",
              reason=_recording_reason()),
     ]
 

@@ -1,6 +1,6 @@
 """MuJoCo's mj_inverse on the same robot: damping, armature and friction loss zeroed, contacts and
 all constraints off, so it computes the same rigid-body inverse dynamics as RNEA. The MJCF comes
-from ``dyn_node.mujoco_model`` (the simulator's URDF loader, which compiles point-mass links by
+from ``dyn_node.sim.mujoco_model`` (the simulator's URDF loader, which compiles point-mass links by
 adding and then removing a small inertia, so the compiled model keeps the URDF's inertias).
 """
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from dyn_node import mujoco_model
+from dyn_node.sim import mujoco_model
 
 
 def _zeroed(mj: mujoco.MjModel, gravity: np.ndarray) -> mujoco.MjModel:
@@ -29,7 +29,7 @@ class MujocoInverse:
         self.mj = _zeroed(robot.model, np.asarray(model.pin_model.gravity.linear, dtype=float))
         self.data = robot.make_data()
         self._robot = robot
-        self.source = "dyn_node.mujoco_model"
+        self.source = "dyn_node.sim.mujoco_model"
 
     def rnea(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
         return mujoco_model.inverse_dynamics(self._robot, q, v, a, self.data)

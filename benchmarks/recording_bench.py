@@ -25,7 +25,7 @@ NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 def _encoder():
     from mcap_ros2._dynamic import serialize_dynamic
 
-    from dyn_node.msgdefs import message_definition
+    from dyn_node.bag.msgdefs import message_definition
 
     enc = serialize_dynamic("sensor_msgs/msg/JointState", message_definition("sensor_msgs/msg/JointState"))
     return enc["sensor_msgs/msg/JointState"]
@@ -65,8 +65,8 @@ def _stamp_patched(cycle: list[bytes], n: int, t0_ns: int, rate_hz: float):
 
 
 def _recorder_ceiling(payloads, stamps, tmp: Path) -> float:
-    from dyn_node.model import load_model
-    from dyn_node.recording import Recorder, RecorderConfig, TopicInfo
+    from dyn_node.core.model import load_model
+    from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
 
     urdf = load_model(builtin="panda").urdf
     d = tmp / f"rec_{time.perf_counter_ns()}"
@@ -89,7 +89,7 @@ def _recorder_ceiling(payloads, stamps, tmp: Path) -> float:
 def _raw_writer(payloads, stamps, tmp: Path, chunk_size: int) -> float:
     from mcap.writer import CompressionType, Writer
 
-    from dyn_node.msgdefs import message_definition
+    from dyn_node.bag.msgdefs import message_definition
 
     path = tmp / f"raw_{time.perf_counter_ns()}.mcap"
     t0 = time.perf_counter()
@@ -109,8 +109,8 @@ def _raw_writer(payloads, stamps, tmp: Path, chunk_size: int) -> float:
 
 def write_bag(directory: Path, seconds: float, rate_hz: float = 1000.0) -> Path:
     """A dyn_node bag (via Recorder) with ``seconds`` of joint_states at ``rate_hz``."""
-    from dyn_node.model import load_model
-    from dyn_node.recording import Recorder, RecorderConfig, TopicInfo
+    from dyn_node.core.model import load_model
+    from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
 
     urdf = load_model(builtin="panda").urdf
     rec = Recorder(RecorderConfig(directory=str(directory), fsync=False, queue_size=50_000),
@@ -144,13 +144,13 @@ def raw_read_rate(bag: Path) -> tuple[float, int]:
 
 
 def run_audit(bag: Path, out: Path, timeout_s: float = 600.0) -> dict:
-    """``python -m dyn_node.audit`` on ``bag``: wall s, peak RSS MiB (wait4), exit code.
+    """``python -m dyn_node.audit.bag_audit`` on ``bag``: wall s, peak RSS MiB (wait4), exit code.
 
     Past ``timeout_s`` the audit is stopped and the result says so, with the peak RSS it had
     reached (VmHWM sampled while it ran), so one slow audit cannot eat the whole bench budget.
     """
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "dyn_node.audit", str(bag), "--robot-model", "panda",
+    proc = subprocess.Popen([sys.executable, "-m", "dyn_node.audit.bag_audit", str(bag), "--robot-model", "panda",
                              "--out", str(out)], cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, start_new_session=True)
     hwm = 0.0
@@ -174,15 +174,15 @@ def run_audit(bag: Path, out: Path, timeout_s: float = 600.0) -> dict:
     proc.returncode = rc
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
     if rc not in (0, 1):
-        raise NotAvailable(f"dyn_node.audit exited {rc}: {' | '.join(err.strip().splitlines()[-3:])}")
+        raise NotAvailable(f"dyn_node.audit.bag_audit exited {rc}: {' | '.join(err.strip().splitlines()[-3:])}")
     return dict(wall_s=wall, peak_rss_mib=max(hwm, usage.ru_maxrss / 1024), rc=rc, finished=True)
 
 
 def run(quick: bool = False, smoke: bool = False) -> dict:
-    why = module_available("recording")
+    why = module_available("bag.recorder")
     if why:
         raise NotAvailable(why)
-    from dyn_node.recording import RecorderConfig
+    from dyn_node.bag.recorder import RecorderConfig
 
     out: dict = {}
     n = 1000 if smoke else 20_000 if quick else 100_000
@@ -219,11 +219,11 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
         # bag_messages counts joint_states plus the robot_description copy the recorder adds.
         audit.update(bag_seconds=big_s, bag_messages=count, raw_read_msgs_per_s=rate,
                      bag_mib=sum(f.stat().st_size for f in bags[big_s].glob("*.mcap")) / 2**20)
-        why = module_available("audit")
+        why = module_available("audit.bag_audit")
         if why:
             audit["status"] = f"not available: {why}"
             return out
-        progress("recording", f"dyn_node.audit on the {small_s:g} s and {big_s:g} s bags")
+        progress("recording", f"dyn_node.audit.bag_audit on the {small_s:g} s and {big_s:g} s bags")
         walls: dict[float, list[float]] = {small_s: [], big_s: []}
         rss: dict[str, float] = {}
         # Five rounds in a full run (an audit of the 60 s bag is short): the
@@ -232,13 +232,13 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
             for s in (small_s, big_s):
                 r = run_audit(bags[s], tmp / f"audit_{s:g}", timeout_s=120.0)
                 if not r["finished"]:
-                    raise NotAvailable(f"dyn_node.audit did not finish a {s:g} s bag in 120 s")
+                    raise NotAvailable(f"dyn_node.audit.bag_audit did not finish a {s:g} s bag in 120 s")
                 walls[s].append(r["wall_s"])
                 rss[f"{s:g} s"] = max(rss.get(f"{s:g} s", 0.0), r["peak_rss_mib"])
             if sum(walls[big_s]) > 40.0:  # slow audit: fewer repeats, stay within the budget
                 break
         budget = 60.0 if smoke or quick else 240.0
-        progress("recording", f"dyn_node.audit on the {huge_s:g} s bag (peak RSS; stopped after {budget:.0f} s)")
+        progress("recording", f"dyn_node.audit.bag_audit on the {huge_s:g} s bag (peak RSS; stopped after {budget:.0f} s)")
         huge = run_audit(bags[huge_s], tmp / "audit_huge", timeout_s=budget)
         rss[f"{huge_s:g} s" + ("" if huge["finished"] else f" (stopped after {budget:.0f} s)")] = huge["peak_rss_mib"]
         w_small = sorted(walls[small_s])[len(walls[small_s]) // 2]

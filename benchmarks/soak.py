@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
 
-    from dyn_node.demo import FINGERS, READY
+    from dyn_node.ros.demo import FINGERS, READY
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
@@ -135,10 +135,10 @@ def main(argv: list[str] | None = None) -> int:
     py = sys.executable
     sim_log = open(logs / "soak_dyn_sim.log", "w")
     node_log = open(logs / "soak_dyn_node.log", "w")
-    sim = subprocess.Popen([py, "-m", "dyn_node.sim_node", "--ros-args", "-p",
+    sim = subprocess.Popen([py, "-m", "dyn_node.ros.sim_node", "--ros-args", "-p",
                             f"publish_rate_hz:={args.rate}", "-p", f"initial_positions:={list(READY)}"],
                            env=env, stdout=sim_log, stderr=subprocess.STDOUT, start_new_session=True)
-    node = subprocess.Popen([py, "-m", "dyn_node.node", "--ros-args", "-p", f"locked_joints:={FINGERS}",
+    node = subprocess.Popen([py, "-m", "dyn_node.ros.node", "--ros-args", "-p", f"locked_joints:={FINGERS}",
                              "-p", "record.enabled:=true", "-p", f"record.directory:={bags}",
                              "-p", f"record.max_bag_duration_s:={args.split_s}"],
                             env=env, stdout=node_log, stderr=subprocess.STDOUT, start_new_session=True)

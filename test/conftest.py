@@ -259,7 +259,7 @@ class NodeHarness(Collected):
     def __init__(self, ctx: Any, namespace: str, overrides: list[Any], keys: Iterable[str] = ()):
         import rclpy
 
-        from dyn_node.node import DynNode
+        from dyn_node.ros.node import DynNode
 
         super().__init__(keys)
         self.ctx = ctx

@@ -32,7 +32,7 @@ class BagSpec:
 
 
 def _model(robot: str):
-    from dyn_node.model import load_model
+    from dyn_node.core.model import load_model
 
     return load_model(builtin=robot)
 
@@ -67,7 +67,7 @@ def write_bag(parent: Path, spec: BagSpec) -> Path:
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
-    from dyn_node.recording import Recorder, RecorderConfig, TopicInfo
+    from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
 
     model = _model(spec.robot)
     t0 = T0 + int(spec.start_s * 1e9)

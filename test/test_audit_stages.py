@@ -11,10 +11,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_audit import MS, PARAMS, T0, make_bag, trajectory_msg  # noqa: E402
 
-from dyn_node.audit import (ROLE_GRAVITY, ROLE_ID, Audit, AuditError, AuditOptions,  # noqa: E402
+from dyn_node.audit.bag_audit import (ROLE_GRAVITY, ROLE_ID, Audit, AuditError, AuditOptions,  # noqa: E402
                             Rechecker, Replay, Roles, add_verdict, build_evidence, open_bag, stream)
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR  # noqa: E402
-from dyn_node.exit_codes import EXIT_OK, EXIT_VIOLATIONS  # noqa: E402
+from dyn_node.audit.exit_codes import EXIT_OK, EXIT_VIOLATIONS  # noqa: E402
 
 
 def _source(bag: Path, tmp_path: Path):

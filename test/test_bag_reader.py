@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from dyn_node.bag_reader import (BagError, BagReader, MessageDecoder, decode_joint_state,
+from dyn_node.bag.reader import (BagError, BagReader, MessageDecoder, decode_joint_state,
                                  decode_joint_state_batch)
 
 SHARE = Path(sys.prefix) / "share"
@@ -236,7 +236,7 @@ def test_batch_decoder_ignores_what_alignment_padding_holds():
     padding still splits the run."""
     from rclpy.serialization import serialize_message
 
-    from dyn_node.bag_reader import _array_spans
+    from dyn_node.bag.reader import _array_spans
 
     names = ["panda_joint1", "j2", "abc"]  # NUL-terminated lengths 13, 3, 4: padding after each
     rng = np.random.default_rng(11)
@@ -504,7 +504,7 @@ def test_every_metadata_record_in_file_order_via_summary_and_by_scan(tmp_path, m
     f = bag / "bag_0.mcap"
     data = f.read_bytes()
     f.write_bytes(data[: int(len(data) * 0.9)])
-    import dyn_node.bag_reader as br
+    import dyn_node.bag.reader as br
 
     calls = []
     real = br._decompress
@@ -576,7 +576,7 @@ def test_a_directory_without_metadata_yaml_never_reads_dyn_bag_recover_outputs(t
     of nothing but such files is a recovered bag and is read."""
     import shutil
 
-    from dyn_node.bag_recover import main as recover
+    from dyn_node.bag.recover import main as recover
 
     d = tmp_path / "bag"
     d.mkdir()

@@ -15,8 +15,8 @@ from mcap.records import Channel
 from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import Reader as Rosbag2Reader
 
-from dyn_node.bag_recover import main
-from dyn_node.recording import Recorder, RecorderConfig, TopicInfo, qos_profile_dict
+from dyn_node.bag.recover import main
+from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo, qos_profile_dict
 from mcap_corpus import CORPUS, OFFICIAL_READER_MISREADS, Expected, McapBuilder
 
 JS = "/joint_states"
@@ -130,7 +130,7 @@ def test_runs_as_module_without_traceback(bag, tmp_path):
     # (the magic) before the end of the file. Cut 1000 bytes into the data section.
     (summary_start,) = struct.unpack_from("<Q", data, len(data) - 8 - 20)
     src.write_bytes(data[:summary_start - 1000])
-    r = subprocess.run([sys.executable, "-m", "dyn_node.bag_recover", str(src)],
+    r = subprocess.run([sys.executable, "-m", "dyn_node.bag.recover", str(src)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 3, r.stderr
     assert "Traceback" not in r.stderr and "some data was lost" in r.stdout

@@ -22,7 +22,7 @@ from benchmarks.common import SYSTEM_PYTHON, read_proc_cpu, read_vm, system_pykd
 from benchmarks.dynamics_bench import random_states
 from benchmarks.mujoco_ref import MujocoInverse
 from benchmarks.numpy_rnea import NumpyRNEA
-from dyn_node.model import load_model
+from dyn_node.core.model import load_model
 from robots import BRANCHED_URDF
 
 REPO = Path(__file__).resolve().parents[1]

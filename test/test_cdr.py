@@ -1,4 +1,4 @@
-"""The one JointState CDR decoder (dyn_node.cdr), as the audit uses it and as the live node uses
+"""The one JointState CDR decoder (dyn_node.bag.cdr), as the audit uses it and as the live node uses
 it (strict: whatever rclpy might read otherwise is refused, and the node lets rclpy judge it).
 The bytes are built here by hand from the XCDR1 layout, and checked against rclpy's reading."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ import struct
 import numpy as np
 import pytest
 
-from dyn_node.cdr import decode_joint_state
+from dyn_node.bag.cdr import decode_joint_state
 
 
 def _cdr(names_raw: list[bytes], pos: list[float], *, big: bool = False, sec: int = 7,
@@ -59,7 +59,7 @@ def test_strict_and_lax_read_a_plain_message_as_rclpy_does():
 
 def test_the_nodes_parser_gives_rclpys_types_from_the_same_decoder():
     pytest.importorskip("rclpy")
-    from dyn_node.ros_convert import parse_joint_state_cdr
+    from dyn_node.ros.convert import parse_joint_state_cdr
 
     sec, nsec, names, p, v, e = parse_joint_state_cdr(_cdr(GOOD, [0.5, -1.25]))
     assert (sec, nsec, names) == (7, 9, ["j1", "joint_2"])

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from conftest import REPO
-from dyn_node import check_cli
-from dyn_node.check_cli import RETIME_MARGIN, main
-from dyn_node.demo import READY
+from dyn_node.audit import check as check_cli
+from dyn_node.audit.check import RETIME_MARGIN, main
+from dyn_node.ros.demo import READY
 from dyn_node.errors import TrajectoryFileError
-from dyn_node.evidence import validate
-from dyn_node.trajectory_files import format_trajectory, read_trajectory
+from dyn_node.audit.evidence import validate
+from dyn_node.audit.trajectory_files import format_trajectory, read_trajectory
 
 EXAMPLES = REPO / "examples" / "trajectories"
 REACH = [EXAMPLES / f"panda_reach.{ext}" for ext in ("yaml", "json", "csv")]
@@ -166,11 +166,11 @@ def test_retime_copies_feasible_and_skips_what_no_slowdown_fixes(tmp_path, capsy
 
 
 def test_module_and_help_run_without_ros():
-    # python -m dyn_node.check_cli works, and the command never imports rclpy
+    # python -m dyn_node.audit.check works, and the command never imports rclpy
     code = ("import sys, runpy; sys.argv = ['dyn-check', '--help']\n"
-            "try:\n    runpy.run_module('dyn_node.check_cli', run_name='__main__')\n"
+            "try:\n    runpy.run_module('dyn_node.audit.check', run_name='__main__')\n"
             "except SystemExit as e:\n    assert e.code == 0\n"
-            "from dyn_node import check_cli\n"
+            "from dyn_node.audit import check as check_cli\n"
             f"assert check_cli.main([{str(REACH[0])!r}, '--robot-model', 'panda']) == 0\n"
             "assert 'rclpy' not in sys.modules, 'rclpy imported'\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(REPO),

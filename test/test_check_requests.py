@@ -21,14 +21,15 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from conftest import REPO, ChildProcess, Collected, Spinner, child_env, kv, python_cmd
-from dyn_node import check_cli, on_demand
-from dyn_node.client import (BlockingCallError, DynClient, NotRunningError, RequestRejected, Verdict,
+from dyn_node.audit import check as check_cli
+from dyn_node.core import on_demand
+from dyn_node.ros.client import (BlockingCallError, DynClient, NotRunningError, RequestRejected, Verdict,
                              states_message, trajectory_message)
-from dyn_node.demo import READY, demo_trajectories
-from dyn_node.dynamics import Dynamics
-from dyn_node.model import load_model
-from dyn_node.settings import Settings
-from dyn_node.trajectory_files import read_trajectory
+from dyn_node.ros.demo import READY, demo_trajectories
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.model import load_model
+from dyn_node.core.settings import Settings
+from dyn_node.audit.trajectory_files import read_trajectory
 
 MODEL = load_model(builtin="panda")
 NAMES = list(MODEL.joint_names)
@@ -47,7 +48,7 @@ def bag_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def node_process(bag_dir):
-    cp = ChildProcess(python_cmd("dyn_node.node", "--ros-args", "-p", "robot_model:=panda",
+    cp = ChildProcess(python_cmd("dyn_node.ros.node", "--ros-args", "-p", "robot_model:=panda",
                                  "-p", "check_queue_depth:=3", "-p", "record.enabled:=true",
                                  "-p", f"record.directory:={bag_dir}"), env=child_env(), cwd=str(REPO))
     yield cp
@@ -345,7 +346,7 @@ def test_dyn_check_rejects_like_the_node(rig, tmp_path):
 def test_the_audit_rechecks_check_only_and_torque_answers(rig, tmp_path):
     from std_srvs.srv import Trigger
 
-    from dyn_node.audit import AuditOptions, run_audit
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
 
     _, aggressive = demo_trajectories(short=True)
     z = np.zeros((len(aggressive.times), 7))

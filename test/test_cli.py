@@ -1,13 +1,15 @@
-"""dyn_node.cli: the one error handling and the one set of audit options of dyn-audit and dyn-fleet."""
+"""dyn_node.audit.cli: the one error handling and the one set of audit options of dyn-audit and dyn-fleet."""
 from __future__ import annotations
 
 import errno
 
 import pytest
 
-from dyn_node import audit, fleet  # fleet imports Ray only when its engine starts
-from dyn_node.bag_reader import BagError
-from dyn_node.cli import EXIT_INTERRUPTED, run_command
+from dyn_node.audit import bag_audit as audit
+
+from dyn_node.fleet import engine as fleet  # fleet imports Ray only when its engine starts
+from dyn_node.bag.reader import BagError
+from dyn_node.audit.cli import EXIT_INTERRUPTED, run_command
 from dyn_node.errors import ModelError
 
 

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from conftest import REPO, TEST_DOMAIN, child_env
-from dyn_node.demo import (PANDA_POSES, READY, demo_trajectories, effort_residual, model_table,
+from dyn_node.ros.demo import (PANDA_POSES, READY, demo_trajectories, effort_residual, model_table,
                            tracking_error)
-from dyn_node.dynamics import Dynamics
-from dyn_node.model import load_model
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.model import load_model
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def test_tracking_error_and_residual_statistics(panda):
     _, aggressive = demo_trajectories(short=True)
     traj = aggressive.validated(panda.joint_names)
     t = np.linspace(0, traj.duration, 50)
-    from dyn_node.trajectory import interpolate
+    from dyn_node.core.trajectory import interpolate
 
     q = interpolate(traj, "quintic").evaluate(t)[0]
     q[10, 3] += 0.07
@@ -79,7 +79,7 @@ def _leftovers(marker: str) -> list[int]:
 
 
 def _demo(out: Path, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "dyn_node.demo", "--short", "--out", str(out),
+    return subprocess.Popen([sys.executable, "-m", "dyn_node.ros.demo", "--short", "--out", str(out),
                              "--domain", str(TEST_DOMAIN), *args],
                             cwd=str(REPO), env=child_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
@@ -139,8 +139,8 @@ def test_demo_interrupted_leaves_nothing_behind(tmp_path):
 def test_a_partial_audit_of_the_demos_own_bag_is_a_failure_not_a_missing_stage():
     """dyn-audit's 3 (partial) is neither "audited" (0 feasible, 1 violations: expected) nor a
     stage that could not run (2 unusable, no report): the demo's own bag must be whole."""
-    from dyn_node.demo import audit_outcome
-    from dyn_node.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS
+    from dyn_node.ros.demo import audit_outcome
+    from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS
 
     assert [audit_outcome(rc, True) for rc in (EXIT_OK, EXIT_VIOLATIONS, EXIT_PARTIAL,
                                                EXIT_UNUSABLE, -9)] == [

@@ -4,10 +4,16 @@ from __future__ import annotations
 
 import pytest
 
-from dyn_node import bag_recover, check_cli, fleet, recording, settings, trajectory_files
+from dyn_node.bag import recover as bag_recover, recorder as recording
+
+from dyn_node.audit import check as check_cli, trajectory_files
+
+from dyn_node.fleet import engine as fleet
+
+from dyn_node.core import settings
 from dyn_node.errors import (CheckError, DynNodeError, FleetError, RecordingError, RecoverError,
                              SettingsError, TrajectoryFileError)
-from dyn_node.recording import RecorderConfig
+from dyn_node.bag.recorder import RecorderConfig
 
 MOVED = [(RecordingError, recording), (RecoverError, bag_recover), (SettingsError, settings),
          (TrajectoryFileError, trajectory_files), (CheckError, check_cli), (FleetError, fleet)]

@@ -10,7 +10,7 @@ import pytest
 
 from dyn_node import __version__
 from dyn_node.errors import CONTROL_ERROR, PLANNING_ERROR
-from dyn_node.evidence import (SCHEMA_PATH, EvidenceError, EvidenceRecord, jsonable, schema,
+from dyn_node.audit.evidence import (SCHEMA_PATH, EvidenceError, EvidenceRecord, jsonable, schema,
                                validate)
 
 

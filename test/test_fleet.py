@@ -25,9 +25,9 @@ import pytest  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fleet_bags import BagSpec, damage_chunk, truncate, write_bag  # noqa: E402
 
-from dyn_node import fleet  # noqa: E402
-from dyn_node.audit import main as audit_main  # noqa: E402
-from dyn_node.model import load_model  # noqa: E402
+from dyn_node.fleet import engine as fleet  # noqa: E402
+from dyn_node.audit.bag_audit import main as audit_main  # noqa: E402
+from dyn_node.core.model import load_model  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RATE = 500.0
@@ -361,7 +361,7 @@ def _worker_models(engine, tmp_path):
     def probe(job):  # pickled by value: runs in the worker
         import os as _os
 
-        from dyn_node.fleet import audit_bag, worker_model_cache
+        from dyn_node.fleet.engine import audit_bag, worker_model_cache
 
         before = worker_model_cache().hits
         outcome = audit_bag(job)
@@ -391,8 +391,8 @@ def test_a_worker_reuses_its_model_and_the_evidence_is_unchanged(tmp_path, monke
     """audit_bag in one process, as a worker runs it: the second Panda bag takes the model the
     first built (no second build), the UR5 bag builds its own, and every evidence record equals,
     field by field, that of an uncached audit of the bag alone (dyn-audit builds per run)."""
-    from dyn_node import model_source
-    from dyn_node.audit import AuditOptions, run_audit
+    from dyn_node.core import model_source
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
 
     builds: list[dict] = []
     real = model_source.load_model
@@ -532,7 +532,7 @@ def _timeout_and_death(engine, tmp_path):
         import threading as _threading
         from pathlib import Path as _P
 
-        from dyn_node.fleet import audit_bag
+        from dyn_node.fleet.engine import audit_bag
 
         name = _P(job.path).name
         with open(_P(marks) / f"{name}.attempts", "a") as fh:
@@ -619,11 +619,11 @@ def test_two_node_cluster_gives_identical_rows(fleet_run, tmp_path):
 def test_module_runs_as_python_m(tmp_path):
     import subprocess
 
-    res = subprocess.run([sys.executable, "-m", "dyn_node.fleet", "--version"], capture_output=True,
+    res = subprocess.run([sys.executable, "-m", "dyn_node.fleet.engine", "--version"], capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 0 and res.stdout.startswith("dyn-fleet ")
     assert "rclpy" not in subprocess.run(
-        [sys.executable, "-c", "import sys, dyn_node.fleet, dyn_node.fleet_report; "
+        [sys.executable, "-c", "import sys, dyn_node.fleet.engine, dyn_node.fleet.report; "
          "print(' '.join(sorted(m for m in sys.modules if m.startswith('rclpy'))))"],
         capture_output=True, text=True, timeout=60).stdout
 

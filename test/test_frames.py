@@ -7,11 +7,11 @@ import pinocchio as pin
 import pytest
 from robots import BRANCHED_URDF
 
-from dyn_node.dynamics import Dynamics
+from dyn_node.core.dynamics import Dynamics
 from dyn_node.errors import InputError, ModelError
-from dyn_node.frames import FrameKinematics, FramePoint, root_link
-from dyn_node.model import Payload, load_model
-from dyn_node.mujoco_model import mujoco_from_model, mujoco_urdf
+from dyn_node.core.frames import FrameKinematics, FramePoint, root_link
+from dyn_node.core.model import Payload, load_model
+from dyn_node.sim.mujoco_model import mujoco_from_model, mujoco_urdf
 
 TOL = 1e-9
 WRENCH = (3.0, -2.0, 20.0, 0.4, -0.3, 0.2)

@@ -23,14 +23,14 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from dyn_node.dynamics import Dynamics
+from dyn_node.core.dynamics import Dynamics
 from dyn_node.errors import PLANNING_ERROR, InputError, TrajectoryError
-from dyn_node.feasibility import FeasibilityOptions, check_trajectory
-from dyn_node.model import load_model
-from dyn_node.monitor import Monitor
-from dyn_node.settings import Settings
-from dyn_node.status import ERROR, OK, WARN
-from dyn_node.trajectory import Trajectory, validate_trajectory
+from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.model import load_model
+from dyn_node.core.monitor import Monitor
+from dyn_node.core.settings import Settings
+from dyn_node.core.status import ERROR, OK, WARN
+from dyn_node.core.trajectory import Trajectory, validate_trajectory
 
 FULL = os.environ.get("DYN_RELIABILITY_FULL") == "1"
 SCALE = 10 if FULL else 1
@@ -151,7 +151,7 @@ def test_trajectory_conversion_validation_and_check_only_clear_errors(tr):
     from rclpy.serialization import deserialize_message, serialize_message
     from trajectory_msgs.msg import JointTrajectory
 
-    from dyn_node.ros_convert import parse_joint_trajectory_cdr, trajectory_arrays
+    from dyn_node.ros.convert import parse_joint_trajectory_cdr, trajectory_arrays
 
     names, times, P, V, A = tr
     data = serialize_message(_msg(names, times, P, V, A))
@@ -260,7 +260,7 @@ def test_trajectory_cdr_reader_random_bytes(data):
     falling back to rclpy's deserialiser."""
     import struct
 
-    from dyn_node.ros_convert import parse_joint_trajectory_cdr
+    from dyn_node.ros.convert import parse_joint_trajectory_cdr
 
     try:
         parse_joint_trajectory_cdr(b"\x00\x01\x00\x00" + data if data[:1] == b"!" else data)
@@ -277,7 +277,7 @@ def small_bag(tmp_path_factory) -> Path:
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
-    from dyn_node.recording import Recorder, RecorderConfig, TopicInfo, qos_profile_dict
+    from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo, qos_profile_dict
 
     d = tmp_path_factory.mktemp("fuzzbag")
     mid = (PANDA.limits.position_lower + PANDA.limits.position_upper) / 2
@@ -332,8 +332,8 @@ def test_undecodable_description_record_makes_the_audit_partial(small_bag, tmp_p
     """One byte of the dyn_node metadata record's URDF made invalid UTF-8 (found by the corrupt-bag
     fuzz): dyn-bag-recover skips that record and exits 3; the audit must not read a description
     nobody wrote and call the bag whole (exit 0)."""
-    from dyn_node.audit import main as audit
-    from dyn_node.bag_recover import main as recover
+    from dyn_node.audit.bag_audit import main as audit
+    from dyn_node.bag.recover import main as recover
 
     src = next(small_bag.glob("*.mcap")).read_bytes()
     at = src.index(b"</visual>\n") + len(b"</visual>")   # a newline inside the description
@@ -367,8 +367,8 @@ def test_damage_only_in_a_message_index_loses_nothing_in_both_tools(small_bag, t
     exits 0 with the same note and data_crc "index_only". One byte changed in the metadata
     record instead (no CRC of its own, the data-section CRC the only witness): both say the
     file cannot be vouched for (recover 3, audit partial 3)."""
-    from dyn_node.audit import main as audit
-    from dyn_node.bag_recover import main as recover
+    from dyn_node.audit.bag_audit import main as audit
+    from dyn_node.bag.recover import main as recover
 
     mcap = next(small_bag.glob("*.mcap"))
     data = mcap.read_bytes()
@@ -406,8 +406,8 @@ def test_damage_only_in_a_message_index_loses_nothing_in_both_tools(small_bag, t
 
 
 def test_intact_bag_audits_and_recovers(small_bag, tmp_path):
-    from dyn_node.audit import main as audit
-    from dyn_node.bag_recover import main as recover
+    from dyn_node.audit.bag_audit import main as audit
+    from dyn_node.bag.recover import main as recover
 
     code, out, err = _run(audit, [str(small_bag), "--out", str(tmp_path / "a"), "--no-report"])
     assert code == 0 and "Traceback" not in err, (code, out, err)
@@ -425,8 +425,8 @@ _counter = [0]
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(corruptions())
 def test_corrupt_bag_through_audit_and_recover(small_bag, tmp_path, damage):
-    from dyn_node.audit import main as audit
-    from dyn_node.bag_recover import main as recover
+    from dyn_node.audit.bag_audit import main as audit
+    from dyn_node.bag.recover import main as recover
 
     _counter[0] += 1
     work = tmp_path / f"c{_counter[0]}"

@@ -6,16 +6,16 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, ModelError
-from dyn_node.model import load_model
-from dyn_node.model_source import build_model
-from dyn_node.model_status import model_error_status, model_status, waiting_model_status
-from dyn_node.monitor import Monitor
-from dyn_node.settings import Settings
-from dyn_node.status import ERROR, OK, STALE, WARN
-from dyn_node.tracker import ControllerTracker
-from dyn_node.trajectory import validate_trajectory
+from dyn_node.core.model import load_model
+from dyn_node.core.model_source import build_model
+from dyn_node.core.model_status import model_error_status, model_status, waiting_model_status
+from dyn_node.core.monitor import Monitor
+from dyn_node.core.settings import Settings
+from dyn_node.core.status import ERROR, OK, STALE, WARN
+from dyn_node.core.tracker import ControllerTracker
+from dyn_node.core.trajectory import validate_trajectory
 
 PANDA = load_model(builtin="panda")
 PLANAR = load_model(builtin="planar_2link")
@@ -284,7 +284,7 @@ def test_controller_tracker_states():
 
 
 def test_tracker_reference_quintic_matches_interpolation():
-    from dyn_node.trajectory import interpolate
+    from dyn_node.core.trajectory import interpolate
 
     rng = np.random.default_rng(1)
     P = Q0 + rng.normal(0, 0.1, (4, 7))
@@ -556,8 +556,8 @@ def test_every_kind_of_message_lands_in_exactly_one_count():
 
 def test_every_limit_kind_has_a_unit_for_both_joint_types():
     """The feasibility statuses and the live statuses read units from one table."""
-    from dyn_node.limits import LIMIT_KINDS
-    from dyn_node.units import LINEAR, ROTARY, unit_key
+    from dyn_node.core.limits import LIMIT_KINDS
+    from dyn_node.core.units import LINEAR, ROTARY, unit_key
 
     for kind in LIMIT_KINDS:
         assert unit_key(ROTARY[kind]) and unit_key(LINEAR[kind])  # KeyError: no unit or no key
@@ -567,7 +567,7 @@ def test_every_limit_kind_has_a_unit_for_both_joint_types():
 def test_feasibility_verdict_and_live_status_give_a_prismatic_joint_the_same_units():
     from robots import BRANCHED_URDF
 
-    from dyn_node.feasibility import check_trajectory
+    from dyn_node.core.feasibility import check_trajectory
 
     model = load_model(urdf=BRANCHED_URDF)
     names = list(model.joint_names)

@@ -26,10 +26,10 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from conftest import REPO, NodeHarness, Stepper, child_env, js, python_cmd, t_msg, t_s
 from conftest import kv as values
-from dyn_node.dynamics import Dynamics
+from dyn_node.core.dynamics import Dynamics
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR
-from dyn_node.model import Payload, builtin_urdf, load_model
-from dyn_node.node import DynNode
+from dyn_node.core.model import Payload, builtin_urdf, load_model
+from dyn_node.ros.node import DynNode
 
 PANDA = load_model(builtin="panda")
 NAMES = list(PANDA.joint_names)
@@ -280,8 +280,8 @@ def test_byte_fields_converted_once_and_exactly():
     bools as 0/1, anything else refused (rclpy would send a garbage byte)."""
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from dyn_node.ros_convert import status_to_msg, to_byte
-    from dyn_node.status import Status
+    from dyn_node.ros.convert import status_to_msg, to_byte
+    from dyn_node.core.status import Status
 
     for value, want in ((True, 1), (False, 0), (np.bool_(True), 1), (0, 0), (3, 3), (255, 255),
                         (np.uint8(2), 2), (np.int64(7), 7)):
@@ -485,7 +485,7 @@ def test_every_message_taken_lands_in_exactly_one_count(ros_context):
     serialised message, taken raw by the node)."""
     from rclpy.serialization import deserialize_message
 
-    from dyn_node.ros_convert import parse_joint_state_cdr
+    from dyn_node.ros.convert import parse_joint_state_cdr
 
     with pytest.raises(Exception):
         parse_joint_state_cdr(UNDECODABLE)
@@ -563,7 +563,7 @@ def test_process_params_file_and_signals(ros_context, spawn):
     probe.create_subscription(JointState, "/dyn_node/inverse_dynamics", got["inv"].append, 10)
     pub = probe.create_publisher(JointState, "joint_states", RELIABLE)
     try:
-        cp = spawn(python_cmd("dyn_node.node", "--ros-args", "--params-file", "config/dyn_node.yaml",
+        cp = spawn(python_cmd("dyn_node.ros.node", "--ros-args", "--params-file", "config/dyn_node.yaml",
                               "-p", "robot_model:=panda"))
         # the in-process harness also reports as "panda" on /diagnostics, so readiness is judged by
         # the process's own topics and parameters
@@ -589,7 +589,7 @@ def test_process_params_file_and_signals(ros_context, spawn):
         # shown, not judged (a shared machine can stretch it)
         assert rc == 0 and "Traceback" not in err, (rc, took, err)
         got["diag"].clear()
-        cp = spawn(python_cmd("dyn_node.node", "--ros-args", "-p", "robot_model:=ur5"))
+        cp = spawn(python_cmd("dyn_node.ros.node", "--ros-args", "-p", "robot_model:=ur5"))
         assert spin_until(lambda: any(s.hardware_id == "ur5" for a in got["diag"] for s in a.status), 40), \
             cp.stop()[2]
         t0 = time.monotonic()
@@ -599,7 +599,7 @@ def test_process_params_file_and_signals(ros_context, spawn):
         # shown, not judged (a shared machine can stretch it)
         assert rc == 0 and "Traceback" not in err, (rc, took, err)
         # an unusable parameter at start-up: exit code 2 and one clear line, no traceback
-        bad = subprocess.run(python_cmd("dyn_node.node", "--ros-args", "-p", "acceleration_source:=magic"),
+        bad = subprocess.run(python_cmd("dyn_node.ros.node", "--ros-args", "-p", "acceleration_source:=magic"),
                              env=child_env(), cwd=str(REPO), capture_output=True, text=True, timeout=60)
         assert bad.returncode == 2 and "Traceback" not in bad.stderr
         assert "acceleration_source" in bad.stderr
@@ -612,7 +612,7 @@ def test_trajectory_cdr_codec_matches_rclpy():
     both must agree with rclpy's own (de)serialisation, ragged and empty fields included."""
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from dyn_node.ros_convert import encode_joint_trajectory_cdr, parse_joint_trajectory_cdr
+    from dyn_node.ros.convert import encode_joint_trajectory_cdr, parse_joint_trajectory_cdr
 
     rng = np.random.default_rng(0)
     encoded = 0
@@ -656,7 +656,7 @@ def test_joint_state_cdr_codec_matches_rclpy():
 
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from dyn_node.ros_convert import JointStateOut, parse_joint_state_cdr
+    from dyn_node.ros.convert import JointStateOut, parse_joint_state_cdr
 
     rng = np.random.default_rng(1)
     parsed = refused = 0

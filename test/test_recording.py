@@ -23,9 +23,9 @@ from std_msgs.msg import String
 
 from conftest import FullDisk
 from dyn_node import __version__
-from dyn_node.bag_recover import recover_file
+from dyn_node.bag.recover import recover_file
 from dyn_node.errors import RecordingError
-from dyn_node.recording import (Recorder, RecorderConfig, RecorderStats, TopicInfo, cdr_string,
+from dyn_node.bag.recorder import (Recorder, RecorderConfig, RecorderStats, TopicInfo, cdr_string,
                                 header_stamp_ns, message_definition, qos_profile_dict)
 
 URDF = "<robot name='r'><link name='base'/></robot>"
@@ -479,7 +479,7 @@ def _durable_replaces(calls: list[tuple[str, ...]], bag: Path) -> int:
 
 
 def test_metadata_yaml_fsynced_before_and_after_rename(tmp_path, monkeypatch):
-    from dyn_node.recording import write_metadata_yaml
+    from dyn_node.bag.recorder import write_metadata_yaml
     calls = _log_durability_calls(monkeypatch)
     write_metadata_yaml(tmp_path, {"a": 1})
     assert _durable_replaces(calls, tmp_path) == 1 and len(calls) == 3
@@ -497,7 +497,7 @@ def test_new_bag_directory_fsyncs_the_directories_that_hold_new_names(tmp_path, 
     """mkdir alone can be lost in a power loss (the entry lives in the parent's data): the bag
     directory's parent, and the parent of every directory created on the way, are fsynced
     after the mkdir; the recorder does it before writing anything into the bag."""
-    from dyn_node.recording import new_bag_directory
+    from dyn_node.bag.recorder import new_bag_directory
 
     calls = _log_durability_calls(monkeypatch)
     d = new_bag_directory(tmp_path / "a" / "b", now=0.0)

@@ -34,10 +34,10 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from conftest import Collected, Spinner, js, kv, python_cmd, t_msg, t_s
-from dyn_node.dynamics import Dynamics, DynamicsOptions
-from dyn_node.model import builtin_urdf, load_model
-from dyn_node.node import DynNode
-from dyn_node.ros_convert import RawTrajectory, encode_joint_trajectory_cdr
+from dyn_node.core.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.model import builtin_urdf, load_model
+from dyn_node.ros.node import DynNode
+from dyn_node.ros.convert import RawTrajectory, encode_joint_trajectory_cdr
 
 FULL = os.environ.get("DYN_RELIABILITY_FULL") == "1"
 PANDA = load_model(builtin="panda")
@@ -187,7 +187,7 @@ def _long_trajectory_cdr(n: int, stamp: Time) -> bytes:
 def test_overload_5khz_bursts_during_100k_point_check(ctx, spawn):
     ns = "/ovl"
     bursts = 5 if FULL else 2
-    node = spawn(python_cmd("dyn_node.node", "--ros-args", "-r", f"__ns:={ns}", "-p", "robot_model:=panda",
+    node = spawn(python_cmd("dyn_node.ros.node", "--ros-args", "-r", f"__ns:={ns}", "-p", "robot_model:=panda",
                             "-p", "acceleration_source:=zero", "-p", "diagnostics_period:=0.1",
                             "-p", "qos_depth:=10"))
     p = Probe(ctx, "ovl_probe")
@@ -287,7 +287,7 @@ def test_two_publisher_flood_counts_a_lower_bound_then_exact_again(ctx, spawn):
     is a lower bound). One publisher leaves; after a few samples the node is back on sequence
     numbers, and the next flood from the remaining publisher is accounted exactly."""
     ns = "/two"
-    node = spawn(python_cmd("dyn_node.node", "--ros-args", "-r", f"__ns:={ns}", "-p", "robot_model:=panda",
+    node = spawn(python_cmd("dyn_node.ros.node", "--ros-args", "-r", f"__ns:={ns}", "-p", "robot_model:=panda",
                             "-p", "acceleration_source:=zero", "-p", "diagnostics_period:=0.1",
                             "-p", "qos_depth:=10"))
     p = Probe(ctx, "two_probe")
@@ -548,7 +548,7 @@ def _run_shutdown_round(ctx, spawn, tmp: Path, rnd: int, pub_node) -> list[tuple
     for sig_name in ("INT", "TERM"):
         ns = f"/sd{rnd}{sig_name.lower()}"
         bags = tmp / f"{rnd}_{sig_name}"
-        cp = spawn(python_cmd("dyn_node.node", "--ros-args", "-r", f"__ns:={ns}", "-p", "robot_model:=panda",
+        cp = spawn(python_cmd("dyn_node.ros.node", "--ros-args", "-r", f"__ns:={ns}", "-p", "robot_model:=panda",
                               "-p", "record.enabled:=true", "-p", f"record.directory:={bags}",
                               "-p", "diagnostics_period:=0.05"))
         procs.append((sig_name, ns, bags, cp))

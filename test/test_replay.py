@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from conftest import Stepper, kv  # noqa: E402
 from test_audit import MS, T0, make_bag, trajectory_msg  # noqa: E402
 
-from dyn_node.audit import AuditOptions, run_audit  # noqa: E402
+from dyn_node.audit.bag_audit import AuditOptions, run_audit  # noqa: E402
 
 
 def _bag_messages(bag: Path) -> list[tuple[str, int, bytes]]:
@@ -41,7 +41,7 @@ def test_replay_under_sim_time_matches_audit(ros_context, tmp_path):
     from sensor_msgs.msg import JointState
     from trajectory_msgs.msg import JointTrajectory
 
-    from dyn_node.node import DynNode
+    from dyn_node.ros.node import DynNode
 
     n = 400
     bag = make_bag(tmp_path / "bag", n=n, outputs=True,
@@ -132,7 +132,7 @@ def test_audit_of_the_nodes_own_bag_checks_the_start_segment_as_the_node_did(ros
     from sensor_msgs.msg import JointState
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-    from dyn_node.node import DynNode
+    from dyn_node.ros.node import DynNode
 
     node = DynNode(context=ros_context, parameter_overrides=[
         Parameter("robot_model", value="planar_2link"), Parameter("stale_timeout", value=30.0),

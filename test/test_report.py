@@ -13,9 +13,9 @@ import jsonschema
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_audit import MS, T0, make_bag, trajectory_msg  # noqa: E402
 
-from dyn_node.audit import AuditOptions, run_audit  # noqa: E402
-from dyn_node.evidence import schema  # noqa: E402
-from dyn_node.report import PNG_FILES  # noqa: E402
+from dyn_node.audit.bag_audit import AuditOptions, run_audit  # noqa: E402
+from dyn_node.audit.evidence import schema  # noqa: E402
+from dyn_node.audit.report import PNG_FILES  # noqa: E402
 
 
 class Page(HTMLParser):
@@ -89,7 +89,7 @@ def test_report_for_a_clean_bag_and_a_trajectory_only_bag(tmp_path):
 
 
 def test_report_says_when_the_recheck_is_not_comparable(tmp_path):
-    from dyn_node.model import builtin_urdf
+    from dyn_node.core.model import builtin_urdf
 
     bag = make_bag(tmp_path / "bag", n=200, outputs=True)
     urdf = tmp_path / "panda.urdf"

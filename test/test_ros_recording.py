@@ -51,7 +51,7 @@ class Rig:
         from sensor_msgs.msg import JointState
         from std_msgs.msg import String
 
-        from dyn_node.ros_recording import RecordingBridge
+        from dyn_node.ros.recording import RecordingBridge
 
         self.urdf = "<robot name='rig'><link name='base'/></robot>"
         self.host = Node("dyn_node", context=context, parameter_overrides=[
@@ -142,7 +142,7 @@ def test_1khz_joint_states_recorded_exactly(ros_context, tmp_path):
     from mcap.reader import make_reader
     from rosbags.rosbag2 import Reader as Rosbag2Reader
 
-    from dyn_node.status import OK
+    from dyn_node.core.status import OK
 
     topics = ["joint_states", "robot_description", "~/gravity_torque", "/diagnostics"]
     # The output is recorded from the node's publish path (add_publisher/record), the inputs
@@ -220,7 +220,7 @@ def test_shared_diagnostics_recorded_from_every_publisher(ros_context, tmp_path)
     from rosbags.rosbag2 import Reader as Rosbag2Reader
     from rosbags.typesys import Stores, get_typestore
 
-    from dyn_node.node import DynNode
+    from dyn_node.ros.node import DynNode
 
     node = DynNode(context=ros_context, parameter_overrides=[
         Parameter("robot_model", value="planar_2link"), Parameter("record.enabled", value=True),
@@ -346,7 +346,7 @@ def test_log_time_is_the_node_clock_system_or_simulated(ros_context, tmp_path):
     from rclpy.parameter import Parameter
     from rclpy.time import Time
 
-    from dyn_node.ros_recording import RecordingBridge
+    from dyn_node.ros.recording import RecordingBridge
 
     host = Node("clock_host", context=ros_context, parameter_overrides=[
         Parameter("record.directory", value=str(tmp_path))])
@@ -399,7 +399,7 @@ class ChildOutput:
 def test_sigkill_then_recover_contiguous_prefix(spawn, tmp_path):
     from mcap.reader import make_reader
 
-    from dyn_node.bag_recover import main as recover
+    from dyn_node.bag.recover import main as recover
 
     child = spawn([sys.executable, __file__, "child", str(tmp_path), "60"])
     output = ChildOutput(child.proc)
@@ -440,7 +440,7 @@ def test_sigterm_closes_bag_cleanly(spawn, tmp_path):
     import yaml
     from mcap.reader import make_reader
 
-    from dyn_node.bag_recover import main as recover
+    from dyn_node.bag.recover import main as recover
 
     child = spawn([sys.executable, __file__, "child", str(tmp_path), "60"])
     output = ChildOutput(child.proc)
@@ -472,7 +472,7 @@ def test_sigterm_closes_bag_cleanly(spawn, tmp_path):
 
 @pytest.mark.timeout(60)
 def test_full_disk_reports_error_host_keeps_publishing(ros_context, tmp_path):
-    from dyn_node.status import ERROR
+    from dyn_node.core.status import ERROR
 
     disks: list[FullDisk] = []
     rig = Rig(ros_context, str(tmp_path), ["joint_states", "~/gravity_torque"],

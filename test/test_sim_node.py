@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from conftest import Stepper, python_cmd
-from dyn_node.dynamics import Dynamics
-from dyn_node.model import builtin_urdf, load_model
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.model import builtin_urdf, load_model
 
 READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
 ARM = [f"panda_joint{i}" for i in range(1, 8)]
@@ -19,7 +19,7 @@ def sim_cmd(*params: str) -> list[str]:
     args = ["--ros-args", "-p", f"initial_positions:={READY}"]
     for p in params:
         args += ["-p", p]
-    return python_cmd("dyn_node.sim_node", *args)
+    return python_cmd("dyn_node.ros.sim_node", *args)
 
 
 def spin_until(ctx, node, cond: Callable[[], bool], timeout: float, what: str) -> None:
@@ -163,8 +163,8 @@ def test_byte_fields_written_by_dyn_node_and_dyn_sim(ros_context):
     field must be added here, and converted the same way."""
     from rclpy.parameter import Parameter
 
-    from dyn_node.node import DynNode
-    from dyn_node.sim_node import SimNode
+    from dyn_node.ros.node import DynNode
+    from dyn_node.ros.sim_node import SimNode
 
     nodes = [DynNode("bytes_node", context=ros_context, namespace="/bytes",
                      parameter_overrides=[Parameter("robot_model", value="planar_2link")]),

@@ -10,9 +10,9 @@ import pinocchio as pin
 import pytest
 
 from dyn_node.errors import InputError
-from dyn_node.model import load_model
-from dyn_node.mujoco_model import mujoco_urdf
-from dyn_node.sim import SimConfig, Simulator, body_wrench, link_mount
+from dyn_node.core.model import load_model
+from dyn_node.sim.mujoco_model import mujoco_urdf
+from dyn_node.sim.simulator import SimConfig, Simulator, body_wrench, link_mount
 
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 

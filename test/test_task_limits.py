@@ -1,4 +1,4 @@
-"""Task-space limits configuration (dyn_node.task_limits): the issue's YAML parses into the typed
+"""Task-space limits configuration (dyn_node.core.task_limits): the issue's YAML parses into the typed
 sections, and bad configuration is rejected with a message naming what and where."""
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from dyn_node.errors import ModelError
-from dyn_node.model import load_model
-from dyn_node.task_limits import (
+from dyn_node.core.model import load_model
+from dyn_node.core.task_limits import (
     LIMITS_FILE_KEYS, UNUSED_TOP_LEVEL_KEYS, check_tipping_gravity, did_you_mean,
     limits_mapping, parse_task_limits, support_polygon)
 

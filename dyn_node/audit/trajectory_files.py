@@ -1,0 +1,323 @@
+"""Trajectory files for ``dyn-check``: JointTrajectory as YAML or JSON, or a CSV table; pure.
+
+Formats: README "Checking trajectory files". Reading checks only the *shape*
+(:class:`TrajectoryFileError` names file, line and field); values the node would refuse (NaN,
+unknown joints, times not increasing) are kept, so the check rejects them with the node's reason.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from dyn_node.errors import TrajectoryFileError
+
+FORMATS = {".yaml": "yaml", ".yml": "yaml", ".json": "json", ".csv": "csv"}
+
+
+@dataclass(frozen=True)
+class TrajectoryFile:
+    """A trajectory read from a file: names, times (s) and per-point rows in the file's joint
+    order (velocities / accelerations None when the file has none)."""
+
+    path: str
+    format: str
+    joint_names: list[str]
+    times: list[float]
+    positions: list[list[float]]
+    velocities: list[list[float]] | None = None
+    accelerations: list[list[float]] | None = None
+    stamp: tuple[int, int] = (0, 0)
+    frame_id: str = ""
+
+    @property
+    def stamp_ns(self) -> int:
+        return self.stamp[0] * 1_000_000_000 + self.stamp[1]
+
+    def stretched(self, factor: float) -> "TrajectoryFile":
+        """The same path run ``factor`` times slower: times × k, velocities ÷ k, accelerations ÷ k²."""
+        def div(rows: list[list[float]] | None, by: float) -> list[list[float]] | None:
+            return None if rows is None else [[x / by for x in r] for r in rows]
+
+        return replace(self, times=[message_time(t * factor) for t in self.times],
+                       velocities=div(self.velocities, factor),
+                       accelerations=div(self.accelerations, factor * factor))
+
+
+def file_format(path: str | Path) -> str:
+    fmt = FORMATS.get(Path(path).suffix.lower())
+    if fmt is None:
+        raise TrajectoryFileError(path, None, "", f"unknown file type '{Path(path).suffix}' "
+                                  "(.yaml, .yml, .json or .csv)")
+    return fmt
+
+
+def read_trajectory(path: str | Path) -> TrajectoryFile:
+    """Read one trajectory file (format from its extension); raises :class:`TrajectoryFileError`."""
+    fmt = file_format(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrajectoryFileError(path, None, "", f"cannot be read: {exc}") from None
+    return parse_trajectory(text, fmt, str(path))
+
+
+def parse_trajectory(text: str, fmt: str, path: str = "<text>") -> TrajectoryFile:
+    if fmt == "csv":
+        return _parse_csv(text, path)
+    return _parse_mapping(text, fmt, path)
+
+
+# --- YAML / JSON -------------------------------------------------------------------------------
+class _Lines:
+    """Line numbers (1-based) of the document's nodes by path, from YAML's composer (JSON is
+    read with ``json`` for its values, and located here when YAML can compose it)."""
+
+    def __init__(self, text: str):
+        try:
+            self.root = yaml.compose(text, Loader=yaml.SafeLoader)
+        except yaml.YAMLError:
+            self.root = None
+
+    def line(self, *path: str | int) -> int | None:
+        node, best = self.root, None
+        for key in path:
+            if node is None:
+                break
+            best = node.start_mark.line + 1
+            if isinstance(node, yaml.MappingNode) and isinstance(key, str):
+                node = next((v for k, v in node.value if getattr(k, "value", None) == key), None)
+                if node is None:
+                    return best
+            elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
+                node = node.value[key]
+            else:
+                return best
+        return node.start_mark.line + 1 if node is not None else best
+
+
+def _load(text: str, fmt: str, path: str) -> Any:
+    if fmt == "json":
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise TrajectoryFileError(path, exc.lineno, "", f"not valid JSON: {exc.msg}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise TrajectoryFileError(path, mark.line + 1 if mark else None, "",
+                                  f"not valid YAML: {problem}") from None
+
+
+def _number(x: Any, fail: Any) -> float:
+    # bool is an int in Python, not a number in a trajectory
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        if isinstance(x, str) and x.strip().lower() in ("nan", ".nan", "inf", ".inf", "-inf", "-.inf"):
+            return float(x.strip().lower().replace(".", ""))  # parsed: the check rejects it
+        fail(f"not a number ({x!r})")
+    return float(x)
+
+
+def _parse_mapping(text: str, fmt: str, path: str) -> TrajectoryFile:
+    doc = _load(text, fmt, path)
+    lines = _Lines(text)
+
+    def fail(field: str, problem: str, *at: str | int) -> None:
+        raise TrajectoryFileError(path, lines.line(*at), field, problem)
+
+    if not isinstance(doc, dict):
+        fail("", "expected a mapping with joint_names and points (a trajectory_msgs/JointTrajectory)")
+    names = doc.get("joint_names")
+    if names is None:
+        fail("joint_names", "missing")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        fail("joint_names", "must be a list of joint names (strings)", "joint_names")
+    points = doc.get("points")
+    if points is None:
+        fail("points", "missing")
+    if not isinstance(points, list):
+        fail("points", "must be a list of points", "points")
+    stamp, frame_id = _header(doc.get("header"), lambda f, p, *at: fail(f"header.{f}", p, "header", *at))
+    times: list[float] = []
+    rows: dict[str, list[list[float]]] = {"positions": [], "velocities": [], "accelerations": []}
+    for i, pt in enumerate(points):
+        where = f"points[{i}]"
+        if not isinstance(pt, dict):
+            fail(where, "must be a mapping (positions, velocities, accelerations, time_from_start)",
+                 "points", i)
+        for key in rows:
+            seq = pt.get(key, [])
+            if key == "positions" and key not in pt:
+                fail(f"{where}.positions", "missing", "points", i)
+            if not isinstance(seq, list):
+                fail(f"{where}.{key}", "must be a list of numbers", "points", i, key)
+            rows[key].append([_number(x, lambda p, j=j: fail(f"{where}.{key}[{j}]", p, "points", i, key, j))
+                              for j, x in enumerate(seq)])
+        if "effort" in pt and not isinstance(pt["effort"], list):
+            fail(f"{where}.effort", "must be a list of numbers", "points", i, "effort")
+        times.append(_duration(pt.get("time_from_start"),
+                               lambda f, p: fail(f"{where}.time_from_start{f}", p, "points", i,
+                                                 "time_from_start")))
+    vel = rows["velocities"] if any(rows["velocities"]) else None
+    acc = rows["accelerations"] if any(rows["accelerations"]) else None
+    return TrajectoryFile(path, fmt, list(names), times, rows["positions"], vel, acc, stamp, frame_id)
+
+
+def _header(h: Any, fail: Any) -> tuple[tuple[int, int], str]:
+    if h is None:
+        return (0, 0), ""
+    if not isinstance(h, dict):
+        fail("", "must be a mapping (stamp, frame_id)")
+    frame_id = h.get("frame_id", "")
+    if not isinstance(frame_id, str):
+        fail("frame_id", "must be a string", "frame_id")
+    st = h.get("stamp", {}) or {}
+    if not isinstance(st, dict):
+        fail("stamp", "must be a mapping {sec, nanosec}", "stamp")
+    out = []
+    for key in ("sec", "nanosec"):
+        v = st.get(key, 0)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0 or (key == "nanosec" and v >= 10**9):
+            fail(f"stamp.{key}", f"must be an integer{' below 1e9' if key == 'nanosec' else ''} "
+                 f"≥ 0 ({v!r})", "stamp", key)
+        out.append(int(v))
+    return (out[0], out[1]), frame_id
+
+
+def _duration(d: Any, fail: Any) -> float:
+    if d is None:
+        fail("", "missing")
+    if isinstance(d, dict):
+        sec, nsec = d.get("sec", 0), d.get("nanosec", 0)
+        for key, v in (("sec", sec), ("nanosec", nsec)):
+            if isinstance(v, bool) or not isinstance(v, int):
+                fail(f".{key}", f"must be an integer ({v!r})")
+        return sec + nsec * 1e-9
+    return message_time(_number(d, lambda p: fail("", p + "; expected {sec, nanosec} or seconds")))
+
+
+def message_time(t: float) -> float:
+    """``t`` s as the node reads it from a message: rounded to {sec, nanosec}, then
+    sec + nanosec·1e-9 (non-finite values stay, for the check to reject)."""
+    if not math.isfinite(t):
+        return t
+    d = _split_seconds(t)
+    return d["sec"] + d["nanosec"] * 1e-9
+
+
+# --- CSV -----------------------------------------------------------------------------------------
+def _parse_csv(text: str, path: str) -> TrajectoryFile:
+    reader = csv.reader(io.StringIO(text))
+    try:
+        header = next(reader)
+    except StopIteration:
+        raise TrajectoryFileError(path, 1, "", "empty file: expected a header row (time, joints)") from None
+    except csv.Error as exc:
+        raise TrajectoryFileError(path, 1, "", f"not valid CSV: {exc}") from None
+    cols = [c.strip() for c in header]
+    if "time" not in cols:
+        raise TrajectoryFileError(path, 1, "time", "missing column (seconds from the start)")
+    dup = sorted({c for c in cols if cols.count(c) > 1})
+    if dup:
+        raise TrajectoryFileError(path, 1, dup[0], "column appears twice")
+    joints = [c for c in cols if c != "time" and not c.endswith((".vel", ".acc"))]
+    if not joints:
+        raise TrajectoryFileError(path, 1, "", "no joint columns (one column per joint, named as the joint)")
+    extra: dict[str, bool] = {}
+    for suffix in (".vel", ".acc"):
+        given = [c for c in cols if c.endswith(suffix)]
+        for c in given:
+            if c[:-len(suffix)] not in joints:
+                raise TrajectoryFileError(path, 1, c, f"no position column '{c[:-len(suffix)]}' for it")
+        if given and len(given) != len(joints):
+            missing = next(f"{j}{suffix}" for j in joints if f"{j}{suffix}" not in cols)
+            raise TrajectoryFileError(path, 1, missing, f"missing column (the {suffix} columns must "
+                                      "cover every joint or none)")
+        extra[suffix] = bool(given)
+    idx = {c: i for i, c in enumerate(cols)}
+    times: list[float] = []
+    P: list[list[float]] = []
+    V: list[list[float]] = []
+    A: list[list[float]] = []
+    try:
+        for row in reader:
+            line = reader.line_num
+            if not any(cell.strip() for cell in row):
+                continue  # blank line
+            if len(row) != len(cols):
+                raise TrajectoryFileError(path, line, "", f"{len(row)} cells for {len(cols)} columns")
+
+            def cell(name: str) -> float:
+                raw = row[idx[name]].strip()
+                try:
+                    return float(raw)
+                except ValueError:
+                    raise TrajectoryFileError(path, line, name, f"not a number ({raw!r})") from None
+
+            times.append(message_time(cell("time")))
+            P.append([cell(j) for j in joints])
+            if extra[".vel"]:
+                V.append([cell(f"{j}.vel") for j in joints])
+            if extra[".acc"]:
+                A.append([cell(f"{j}.acc") for j in joints])
+    except csv.Error as exc:
+        raise TrajectoryFileError(path, reader.line_num, "", f"not valid CSV: {exc}") from None
+    if not times:
+        raise TrajectoryFileError(path, 2, "", "no rows after the header")
+    return TrajectoryFile(path, "csv", joints, times, P, V or None, A or None)
+
+
+# --- writing -------------------------------------------------------------------------------------
+def _split_seconds(t: float) -> dict[str, int]:
+    ns = int(round(t * 1e9))
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
+def to_mapping(tf: TrajectoryFile) -> dict[str, Any]:
+    """The trajectory as the message's fields (what the YAML and JSON files hold)."""
+    points = []
+    for i, t in enumerate(tf.times):
+        pt: dict[str, Any] = {"positions": [float(x) for x in tf.positions[i]]}
+        if tf.velocities is not None:
+            pt["velocities"] = [float(x) for x in tf.velocities[i]]
+        if tf.accelerations is not None:
+            pt["accelerations"] = [float(x) for x in tf.accelerations[i]]
+        pt["time_from_start"] = _split_seconds(t)
+        points.append(pt)
+    return {"header": {"stamp": {"sec": int(tf.stamp[0]), "nanosec": int(tf.stamp[1])},
+                       "frame_id": tf.frame_id},
+            "joint_names": list(tf.joint_names), "points": points}
+
+
+def format_trajectory(tf: TrajectoryFile, fmt: str | None = None) -> str:
+    """The text of ``tf`` in ``fmt`` (default: its own format); floats round-trip exactly."""
+    fmt = fmt or tf.format
+    if fmt == "json":
+        return json.dumps(to_mapping(tf), indent=1) + "\n"
+    if fmt == "yaml":
+        return yaml.safe_dump(to_mapping(tf), sort_keys=False, default_flow_style=None)
+    cols = ["time", *tf.joint_names]
+    if tf.velocities is not None:
+        cols += [f"{j}.vel" for j in tf.joint_names]
+    if tf.accelerations is not None:
+        cols += [f"{j}.acc" for j in tf.joint_names]
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(cols)
+    for i, t in enumerate(tf.times):
+        row: list[float] = [t, *tf.positions[i]]
+        if tf.velocities is not None:
+            row += tf.velocities[i]
+        if tf.accelerations is not None:
+            row += tf.accelerations[i]
+        w.writerow([repr(float(x)) for x in row])
+    return out.getvalue()
+

@@ -1,0 +1,1 @@
+"""Bag I/O without ROS: CDR, the MCAP writer and reader, the recorder, recovery of damaged bags."""

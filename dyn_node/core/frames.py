@@ -1,0 +1,309 @@
+"""Batched frame motion, task torque, joint-space inertia, energy and base wrench over N states.
+
+Pinocchio's Python API has no batched Jacobian or mass matrix, so these quantities, which the
+frame, energy, base and grasp constraints need at every trajectory sample, come from one
+compiled pass (:func:`dyn_node.core.frame_kernels.frame_rows`) over tables built here from
+Pinocchio's model. Units SI; vectors of a frame in world axes (Pinocchio's
+LOCAL_WORLD_ALIGNED); the base wrench in the URDF root link's axes at its origin (or in those
+of a frame fixed to it).
+"""
+from __future__ import annotations
+
+import difflib
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import pinocchio as pin
+
+from dyn_node.core.dynamics import joint_axis
+from dyn_node.errors import InputError, ModelError
+from dyn_node.core.model import RobotModel
+
+
+@dataclass(frozen=True)
+class FramePoint:
+    """A point to follow: ``frame`` (a URDF link or any Pinocchio frame of the model),
+    ``point`` the offset in the frame's axes (m), ``wrench`` [force (N); torque (N·m)] in the
+    frame's axes at its origin, whose joint torque J_localᵀ·wrench is reported
+    (:attr:`FrameTerms.task_torque`)."""
+
+    frame: str
+    point: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    wrench: tuple[float, float, float, float, float, float] = (0.0,) * 6
+
+
+@dataclass(frozen=True)
+class FrameTerms:
+    """One :class:`FramePoint` over N states (N×3 world axes unless said).
+
+    ``linear_velocity`` J_v·q̇ (m/s) and ``linear_acceleration`` J_v·q̈ + J̇_v·q̇ (m/s², the
+    classical acceleration, no gravity) are the point's; ``angular_velocity`` (rad/s) and
+    ``angular_acceleration`` (rad/s²) the frame's. ``task_torque`` (N×nv, N·m|N) is
+    J_localᵀ·wrench. ``effective_mass`` (N, kg) is m_u = 1/(uᵀJ_vM⁻¹J_vᵀu) along the direction
+    of motion u = v/|v|, defined as 0 where the point is still (|v| = 0: the energy ½·m_u·v²
+    is then 0 whatever the direction, and stays 0 under any time scaling), NaN only where M(q)
+    is not positive definite (a chain of massless links); None unless the inertia terms were
+    asked for."""
+
+    frame: str
+    point: np.ndarray
+    position: np.ndarray
+    linear_velocity: np.ndarray
+    angular_velocity: np.ndarray
+    linear_acceleration: np.ndarray
+    angular_acceleration: np.ndarray
+    task_torque: np.ndarray
+    effective_mass: np.ndarray | None
+
+    @property
+    def speed(self) -> np.ndarray:
+        """|J_v·q̇| (N, m/s)."""
+        return np.linalg.norm(self.linear_velocity, axis=1)
+
+    @property
+    def transferred_energy(self) -> np.ndarray:
+        """½·m_u·|v|² (N, J); needs the inertia terms."""
+        if self.effective_mass is None:
+            raise ValueError("transferred_energy needs the inertia terms (inertia=True)")
+        v = self.linear_velocity
+        return 0.5 * self.effective_mass * np.einsum("ij,ij->i", v, v)
+
+
+@dataclass(frozen=True)
+class InertiaTerms:
+    """``kinetic_energy`` ½·q̇ᵀMq̇ (N, J), ``gravity_torque`` g(q) (N×nv, N·m|N: the
+    generalized gravity, a by-product of the CRBA's subtree sums) and, when asked for,
+    ``mass_matrix`` M(q) (N×nv×nv, kg·m², armature on the diagonal when included; else
+    None)."""
+
+    kinetic_energy: np.ndarray
+    gravity_torque: np.ndarray
+    mass_matrix: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class BaseWrench:
+    """The wrench [force (N); moment (N·m)] the mounting exerts ON the robot at ``frame``'s
+    origin, in its axes (the mounting is loaded with the opposite), N×6. ``frame``: the URDF
+    root link, or another frame fixed to it (:class:`FrameKinematics`'s ``base_frame``).
+
+    ``static``: gravity alone (q̇ = q̈ = 0); ``dynamic``: the momentum rate dh/dt of the states
+    as given, quadratic in q̇ and linear in q̈, so a trajectory stretched in time by k has
+    ``static + dynamic/k²`` (:meth:`at`). Joint friction and armature are internal to the
+    robot and do not enter. ``mass`` (kg) and ``com`` (N×3, root axes) cover every body the
+    mounting carries (payload and the root link included), ``com`` in ``frame``'s axes from
+    its origin."""
+
+    frame: str
+    static: np.ndarray
+    dynamic: np.ndarray
+    mass: float
+    com: np.ndarray
+
+    def at(self, k: float = 1.0) -> np.ndarray:
+        """The wrench with the trajectory stretched by k (s = 1/k²)."""
+        return self.static + self.dynamic / (k * k)
+
+
+@dataclass(frozen=True)
+class FrameBatch:
+    """What :meth:`FrameKinematics.compute` returns: one :class:`FrameTerms` per configured
+    frame point (in order), and the inertia and base terms when asked for (else None)."""
+
+    frames: tuple[FrameTerms, ...]
+    inertia: InertiaTerms | None
+    base: BaseWrench | None
+
+    def frame(self, name: str) -> FrameTerms:
+        """The first terms of frame ``name``."""
+        for f in self.frames:
+            if f.frame == name:
+                return f
+        raise KeyError(name)
+
+
+@dataclass(frozen=True)
+class JointTables:
+    """The model arrays of :func:`dyn_node.core.frame_kernels.frame_rows` (see there)."""
+
+    parent: np.ndarray
+    revolute: np.ndarray
+    index: np.ndarray
+    placement: np.ndarray
+    axis: np.ndarray
+    inertia: np.ndarray
+    armature: np.ndarray
+    gravity: np.ndarray
+    root: np.ndarray
+
+
+def _se3_row(M: pin.SE3) -> np.ndarray:
+    return np.concatenate([np.asarray(M.rotation).reshape(9), np.asarray(M.translation)])
+
+
+def joint_tables(pm: pin.Model, root_frame: str) -> JointTables:
+    """Tables of a model of one-DoF revolute and prismatic joints; ``root_frame`` the frame on
+    the world whose origin and axes the base wrench is given in. Raises :class:`ModelError` for
+    any other joint kind."""
+    n = pm.njoints
+    revolute = np.zeros(n, dtype=bool)
+    index = np.zeros(n, dtype=np.int64)
+    placement = np.zeros((n, 12))
+    axis = np.zeros((n, 3))
+    inertia = np.zeros((n, 10))
+    for i in range(n):
+        Y = pm.inertias[i]
+        I = np.asarray(Y.inertia)
+        inertia[i] = [Y.mass, *np.asarray(Y.lever), I[0, 0], I[0, 1], I[0, 2], I[1, 1], I[1, 2],
+                      I[2, 2]]
+        if i == 0:
+            continue
+        found = joint_axis(pm.joints[i])
+        if found is None:
+            raise ModelError(f"joint '{pm.names[i]}' is a {pm.joints[i].shortname()}; the frame "
+                             "kernels take one-DoF revolute and prismatic joints",
+                             code="urdf_joint_type")
+        revolute[i], axis[i] = found
+        index[i] = pm.joints[i].idx_v
+        placement[i] = _se3_row(pm.jointPlacements[i])
+    fid = pm.getFrameId(root_frame)
+    if fid >= len(pm.frames) or pm.frames[fid].parentJoint != 0:
+        raise ModelError(f"base frame '{root_frame}' is not fixed to the root link (it moves "
+                         "with a joint)", code="bad_frame")
+    tables = JointTables(parent=np.array(pm.parents, dtype=np.int64), revolute=revolute,
+                         index=index, placement=placement, axis=axis, inertia=inertia,
+                         armature=np.array(pm.armature, dtype=float),
+                         gravity=np.array(pm.gravity.linear, dtype=float),
+                         root=_se3_row(pm.frames[fid].placement))
+    for x in vars(tables).values():
+        x.setflags(write=False)
+    return tables
+
+
+def root_link(urdf: str) -> str:
+    """The URDF's root link: the one link that is no joint's child."""
+    root = ET.fromstring(urdf)
+    children = {j.find("child").get("link") for j in root.findall("joint")}
+    roots = [link.get("name") for link in root.findall("link") if link.get("name") not in children]
+    if len(roots) != 1:
+        raise ModelError(f"the URDF has {len(roots)} root links ({', '.join(roots)}); expected 1",
+                         code="urdf_root")
+    return roots[0]
+
+
+def _vector(value: Sequence[float], size: int, what: str) -> np.ndarray:
+    try:
+        x = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        x = np.full(1, np.nan)
+    if x.shape != (size,) or not np.all(np.isfinite(x)):
+        raise ModelError(f"{what} must be {size} finite numbers, got {value!r}",
+                         code="bad_frame_point")
+    return x
+
+
+def _frame_id(pm: pin.Model, name: str) -> int:
+    if not isinstance(name, str) or not pm.existFrame(name):
+        names = [f.name for f in pm.frames]
+        near = difflib.get_close_matches(str(name), names, n=1)
+        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        raise ModelError(f"frame '{name}' is not a link or frame of the model{hint}",
+                         code="bad_frame")
+    return pm.getFrameId(name)
+
+
+class FrameKinematics:
+    """Batched frame terms of one model and a fixed list of :class:`FramePoint`.
+
+    ``include_armature``: armature (limits' reflected rotor inertia) on M's diagonal, so in the
+    kinetic energy and the effective masses, as :class:`~dyn_node.core.dynamics.DynamicsOptions`.
+    ``base_frame``: where the base wrench is given (None: the URDF root link; else a frame
+    fixed to it, e.g. a mounting flange).
+    Stateless after construction: :meth:`compute` may run in several threads at once.
+    """
+
+    def __init__(self, model: RobotModel, frames: Sequence[FramePoint] = (), *,
+                 include_armature: bool = True, base_frame: str | None = None):
+        pm = model.pin_model.copy()
+        if not include_armature:
+            pm.armature = np.zeros(pm.nv)
+        self.root_link = root_link(model.urdf)
+        self.base_frame = self.root_link if base_frame is None else base_frame
+        _frame_id(pm, self.base_frame)
+        self._tables = joint_tables(pm, self.base_frame)
+        self.nv = pm.nv
+        self.points = tuple(frames)
+        F = len(self.points)
+        self._fjoint = np.zeros(F, dtype=np.int64)
+        self._fplace = np.zeros((F, 12))
+        self._fpoint = np.zeros((F, 3))
+        self._fwrench = np.zeros((F, 6))
+        for f, spec in enumerate(self.points):
+            fr = pm.frames[_frame_id(pm, spec.frame)]
+            self._fjoint[f] = fr.parentJoint
+            self._fplace[f] = _se3_row(fr.placement)
+            self._fpoint[f] = _vector(spec.point, 3, f"point of frame '{spec.frame}'")
+            self._fwrench[f] = _vector(spec.wrench, 6, f"wrench at frame '{spec.frame}'")
+        for x in (self._fjoint, self._fplace, self._fpoint, self._fwrench):
+            x.setflags(write=False)   # shared by concurrent compute() calls
+        # every body's mass: the root link's and payload's included (Pinocchio keeps bodies
+        # fixed to the world on joint 0)
+        self.mass = float(self._tables.inertia[:, 0].sum())
+
+    def _states(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, ...]:
+        out = []
+        for name, X in (("q", Q), ("v", V), ("a", A)):
+            X = np.asarray(X, dtype=float)
+            if X.ndim != 2 or X.shape[1] != self.nv:
+                raise InputError(f"{name} must be N×{self.nv} (one state per row), got shape "
+                                 f"{X.shape}", code="length_mismatch")
+            out.append(X)
+        if not out[0].shape == out[1].shape == out[2].shape:
+            raise InputError(f"q, v, a have different numbers of states ({len(out[0])}, "
+                             f"{len(out[1])}, {len(out[2])})", code="length_mismatch")
+        for name, X in zip("qva", out):
+            if not np.isfinite(X).all():
+                row = int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0])
+                raise InputError(f"{name} is not finite in state {row}", code="non_finite")
+        return tuple(out)
+
+    def compute(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray, *, inertia: bool = True,
+                base: bool = True, mass_matrix: bool = False) -> FrameBatch:
+        """Every frame point's terms over the N states Q, V, A (N×nv, model joint order);
+        ``inertia``: also the kinetic energy and the effective masses (M(q) is formed per
+        state either way; ``mass_matrix`` keeps it, N×nv×nv, and needs ``inertia``); ``base``:
+        also the base wrench. Raises :class:`InputError` for wrong shapes or non-finite
+        states."""
+        from dyn_node.core import frame_kernels  # here, not at import: Numba only for batched checks
+
+        if mass_matrix and not inertia:
+            raise ValueError("mass_matrix=True needs inertia=True")
+
+        Q, V, A = self._states(Q, V, A)
+        N, nv, F = len(Q), self.nv, len(self.points)
+        Ni, Nb = (N if inertia else 0), (N if base else 0)
+        pos, vel, omega, acc, alpha = (np.empty((F, N, 3)) for _ in range(5))
+        tau = np.empty((F, N, nv))
+        mu = np.empty((F, Ni))
+        M = np.empty((Ni if mass_matrix else 0, nv, nv))
+        ke = np.empty(Ni)
+        gq = np.empty((Ni, nv))
+        ws, wd, com = np.empty((Nb, 6)), np.empty((Nb, 6)), np.empty((Nb, 3))
+        t = self._tables
+        frame_kernels.frame_rows(Q, V, A, t.parent, t.revolute, t.index, t.placement, t.axis,
+                                 t.inertia, t.armature, t.gravity, t.root, self._fjoint,
+                                 self._fplace, self._fpoint, self._fwrench, inertia, base, pos,
+                                 vel, omega, acc, alpha, tau, mu, M, ke, gq, ws, wd, com)
+        frames = tuple(FrameTerms(frame=p.frame, point=self._fpoint[f].copy(), position=pos[f],
+                                  linear_velocity=vel[f], angular_velocity=omega[f],
+                                  linear_acceleration=acc[f], angular_acceleration=alpha[f],
+                                  task_torque=tau[f], effective_mass=mu[f] if inertia else None)
+                       for f, p in enumerate(self.points))
+        return FrameBatch(
+            frames=frames,
+            inertia=InertiaTerms(kinetic_energy=ke, gravity_torque=gq,
+                                 mass_matrix=M if mass_matrix else None) if inertia else None,
+            base=BaseWrench(frame=self.base_frame, static=ws, dynamic=wd, mass=self.mass,
+                            com=com) if base else None)

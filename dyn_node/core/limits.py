@@ -1,0 +1,359 @@
+"""Joint limits: parsed from the URDF, merged with a ros2_control-style joint_limits YAML.
+
+A missing limit is represented by ``inf`` (unlimited), never by zero. One rule for what a zero
+means, applied alike by the feasibility check and the live monitor: a URDF ``velocity="0"`` /
+``effort="0"`` is URDF's way of writing "not given" (unlimited); a YAML ``max_X: 0`` is a real
+limit (only a value of exactly 0 satisfies it), reported as a model warning. Everything is in SI
+units and in the model's joint order: rad or m for positions, rad/s, rad/s², rad/s³, N·m (or N for
+prismatic joints), N·m/s, W, seconds for the RMS window.
+
+Every accepted YAML key is either applied or documented as not a limit: ``k_position`` and
+``k_velocity`` are gains of ros2_control's soft-limit controller (how hard it pushes back), not
+bounds, so dyn_node accepts and ignores them (``IGNORED_YAML_KEYS``).
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import yaml
+
+from dyn_node.errors import ModelError
+
+#: Window used for the RMS (thermal) effort limit when the limits file gives none.
+DEFAULT_RMS_WINDOW_S = 1.0
+
+# ros2_control's joint_limits keys, then dyn_node's own extensions.
+_ROS2_CONTROL_KEYS = {
+    "has_position_limits": bool, "min_position": float, "max_position": float,
+    "has_velocity_limits": bool, "max_velocity": float,
+    "has_acceleration_limits": bool, "max_acceleration": float,
+    "has_deceleration_limits": bool, "max_deceleration": float,
+    "has_jerk_limits": bool, "max_jerk": float,
+    "has_effort_limits": bool, "max_effort": float,
+    "angle_wraps": bool,
+    "has_soft_limits": bool, "k_position": float, "k_velocity": float,
+    "soft_lower_limit": float, "soft_upper_limit": float,
+}
+_EXTENSION_KEYS = {
+    "max_effort_rate": float, "max_rms_effort": float, "rms_window": float,
+    "max_power": float, "effort_speed_curve": list, "armature": float,
+}
+LIMITS_YAML_KEYS: dict[str, type] = {**_ROS2_CONTROL_KEYS, **_EXTENSION_KEYS}
+#: Kinds that ros2_control switches with a ``has_<kind>_limits`` flag.
+_FLAGGED_KINDS = ("position", "velocity", "acceleration", "deceleration", "jerk", "effort")
+#: Accepted (standard files carry them) but not limits: soft-limit controller gains.
+IGNORED_YAML_KEYS = frozenset({"k_position", "k_velocity"})
+
+#: The limit kinds dyn_node checks, in report order. ``deceleration`` is |q̈| where |q̇| is
+#: decreasing (q̇·q̈ < 0), against ros2_control's ``max_deceleration``.
+LIMIT_KINDS = ("position", "velocity", "acceleration", "deceleration", "jerk", "effort",
+               "effort_rate", "rms_effort", "power", "effort_speed")
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """Per-joint limits in model order; ``inf`` (or ``-inf`` for lower bounds) means unlimited.
+
+    ``continuous`` marks joints without any position limit: URDF ``continuous`` joints and joints
+    the YAML declares ``angle_wraps: true``.
+
+    ``effort_speed_curve[i]`` is ``None`` or an (n, 2) array of (|speed| rad/s, max |effort| N·m)
+    points with ascending speeds: the motor's torque-speed envelope, interpolated linearly and held
+    constant beyond its last point.
+    """
+
+    names: tuple[str, ...]
+    position_lower: np.ndarray
+    position_upper: np.ndarray
+    soft_lower: np.ndarray
+    soft_upper: np.ndarray
+    continuous: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    deceleration: np.ndarray
+    jerk: np.ndarray
+    effort: np.ndarray
+    effort_rate: np.ndarray
+    rms_effort: np.ndarray
+    rms_window: np.ndarray
+    power: np.ndarray
+    armature: np.ndarray
+    effort_speed_curve: tuple[np.ndarray | None, ...]
+    warnings: tuple[str, ...] = field(default=())
+
+    @property
+    def nv(self) -> int:
+        return len(self.names)
+
+    def effort_envelope(self, speed: np.ndarray) -> np.ndarray:
+        """Max |effort| allowed at joint speeds ``speed`` (…×nv rad/s), from the torque-speed curve.
+
+        Joints without a curve get ``inf``. Broadcasts over leading dimensions.
+        """
+        speed = np.abs(np.asarray(speed, dtype=float))
+        out = np.full(speed.shape, np.inf)
+        for j, curve in enumerate(self.effort_speed_curve):
+            if curve is not None:
+                out[..., j] = np.interp(speed[..., j], curve[:, 0], curve[:, 1])
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly form (``None`` for unlimited) for evidence records and self-test output."""
+
+        def arr(a: np.ndarray) -> list[float | None]:
+            return [None if not math.isfinite(x) else float(x) for x in a]
+
+        return {
+            "names": list(self.names),
+            "position_lower": arr(self.position_lower), "position_upper": arr(self.position_upper),
+            "soft_lower": arr(self.soft_lower), "soft_upper": arr(self.soft_upper),
+            "continuous": [bool(c) for c in self.continuous],
+            "velocity": arr(self.velocity), "acceleration": arr(self.acceleration),
+            "deceleration": arr(self.deceleration), "jerk": arr(self.jerk),
+            "effort": arr(self.effort), "effort_rate": arr(self.effort_rate),
+            "rms_effort": arr(self.rms_effort), "rms_window": arr(self.rms_window),
+            "power": arr(self.power), "armature": arr(self.armature),
+            "effort_speed_curve": [None if c is None else c.tolist() for c in self.effort_speed_curve],
+            "warnings": list(self.warnings),
+        }
+
+
+def _float_attr(elem: ET.Element | None, name: str, where: str) -> float | None:
+    if elem is None or elem.get(name) is None:
+        return None
+    try:
+        return float(elem.get(name))
+    except ValueError as exc:
+        raise ModelError(f"URDF {where}: attribute {name}={elem.get(name)!r} is not a number",
+                         code="urdf_bad_number") from exc
+
+
+def limits_from_urdf(root: ET.Element, joint_names: Sequence[str]) -> JointLimits:
+    """Read position, velocity and effort limits, soft limits and continuity from URDF joints."""
+    # Only <robot>'s direct <joint> children: <transmission> elements also contain <joint name=…>
+    # tags (UR5's do), and iterating the whole tree would let those shadow the real joints.
+    by_name = {j.get("name"): j for j in root.findall("joint")}
+    n = len(joint_names)
+    lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
+    slo, shi = np.full(n, -np.inf), np.full(n, np.inf)
+    vel, eff = np.full(n, np.inf), np.full(n, np.inf)
+    cont = np.zeros(n, dtype=bool)
+    for i, name in enumerate(joint_names):
+        j = by_name[name]
+        where = f"joint '{name}'"
+        lim = j.find("limit")
+        cont[i] = j.get("type") == "continuous"
+        if not cont[i]:
+            lower, upper = _float_attr(lim, "lower", where), _float_attr(lim, "upper", where)
+            if lower is not None and upper is not None and not (lower == 0.0 and upper == 0.0):
+                lo[i], hi[i] = lower, upper
+        v = _float_attr(lim, "velocity", where)
+        e = _float_attr(lim, "effort", where)
+        # URDF writes 0 for "not given"; a zero maximum would forbid all motion, so treat it as absent.
+        if v is not None and v > 0:
+            vel[i] = v
+        if e is not None and e > 0:
+            eff[i] = e
+        sc = j.find("safety_controller")
+        s_lo, s_hi = _float_attr(sc, "soft_lower_limit", where), _float_attr(sc, "soft_upper_limit", where)
+        if s_lo is not None:
+            slo[i] = s_lo
+        if s_hi is not None:
+            shi[i] = s_hi
+    inf = np.full(n, np.inf)
+    return JointLimits(
+        names=tuple(joint_names), position_lower=lo, position_upper=hi, soft_lower=slo,
+        soft_upper=shi, continuous=cont, velocity=vel, acceleration=inf.copy(),
+        deceleration=inf.copy(), jerk=inf.copy(),
+        effort=eff, effort_rate=inf.copy(), rms_effort=inf.copy(),
+        rms_window=np.full(n, DEFAULT_RMS_WINDOW_S), power=inf.copy(), armature=np.zeros(n),
+        effort_speed_curve=(None,) * n)
+
+
+def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Parse a joint_limits YAML (path, YAML text or already-parsed mapping) into per-joint dicts.
+
+    Accepts the ros2_control layout ``joint_limits: {joint: {...}}``, also nested under
+    ``<node>: ros__parameters:``. Unknown keys and wrong types raise :class:`ModelError` naming the
+    joint and key (with a suggestion for likely typos).
+    """
+    where = "limits"
+    if isinstance(source, Mapping):
+        data: Any = source
+    else:
+        text = str(source)
+        p = Path(text)
+        if "\n" not in text and (p.suffix in (".yaml", ".yml") or p.exists()):
+            if not p.is_file():
+                raise ModelError(f"limits file {p} does not exist", code="limits_file_missing")
+            where, text = str(p), p.read_text()
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ModelError(f"{where}: not valid YAML: {exc}", code="limits_bad_yaml") from exc
+    if isinstance(data, Mapping) and "joint_limits" not in data:
+        # A ROS parameters file: <node name or /**>: ros__parameters: joint_limits: …
+        nested = [v["ros__parameters"] for v in data.values()
+                  if isinstance(v, Mapping) and isinstance(v.get("ros__parameters"), Mapping)
+                  and "joint_limits" in v["ros__parameters"]]
+        if len(nested) > 1:
+            raise ModelError(f"{where}: several nodes' ros__parameters carry joint_limits; "
+                             "give a file with one", code="limits_no_joint_limits")
+        if nested:
+            data = nested[0]
+    if not isinstance(data, Mapping) or not isinstance(data.get("joint_limits"), Mapping):
+        raise ModelError(f"{where}: expected a top-level 'joint_limits:' mapping of joint names",
+                         code="limits_no_joint_limits")
+    out: dict[str, dict[str, Any]] = {}
+    for joint, entries in data["joint_limits"].items():
+        if not isinstance(entries, Mapping):
+            raise ModelError(f"{where}: joint_limits.{joint} must be a mapping of limit keys",
+                             code="limits_bad_entry")
+        clean: dict[str, Any] = {}
+        for key, value in entries.items():
+            if key not in LIMITS_YAML_KEYS:
+                close = difflib.get_close_matches(str(key), LIMITS_YAML_KEYS, n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                raise ModelError(f"{where}: joint_limits.{joint}: unknown key '{key}'{hint}",
+                                 code="limits_unknown_key")
+            clean[key] = _coerce(where, joint, key, value)
+        out[str(joint)] = clean
+    return out
+
+
+def _coerce(where: str, joint: str, key: str, value: Any) -> Any:
+    want = LIMITS_YAML_KEYS[key]
+    bad = ModelError(f"{where}: joint_limits.{joint}.{key} must be {want.__name__}, got {value!r}",
+                     code="limits_wrong_type")
+    if want is bool:
+        if not isinstance(value, bool):
+            raise bad
+        return value
+    if want is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+            raise bad
+        return float(value)
+    # effort_speed_curve: [[speed, effort], ...] with ascending speeds
+    try:
+        curve = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        curve = np.empty((0, 0))  # reported as a bad curve below, with the expected shape
+    if (curve.ndim != 2 or curve.shape[1] != 2 or len(curve) < 1 or not np.all(np.isfinite(curve))
+            or np.any(curve < 0) or np.any(np.diff(curve[:, 0]) <= 0)):
+        raise ModelError(f"{where}: joint_limits.{joint}.effort_speed_curve must be a list of "
+                         "[speed rad/s, effort N·m] pairs, non-negative, speeds strictly ascending",
+                         code="limits_bad_curve")
+    return curve
+
+
+def merge_limits(base: JointLimits, overrides: Mapping[str, Mapping[str, Any]],
+                 where: str = "limits") -> JointLimits:
+    """Apply parsed YAML overrides on top of URDF limits; YAML wins, ``has_*: false`` removes.
+
+    A ``max_*`` given without its ``has_*`` flag is applied (the flag is implied); every ``has_*:
+    false`` removes its limit, also one the URDF set (``has_soft_limits: false`` the URDF's soft
+    limits). ``angle_wraps: true`` makes the joint continuous: no hard or soft position limit (a
+    position limit given beside it is dropped, with a warning). Joints named in the YAML that the
+    model lacks raise :class:`ModelError`.
+    """
+    idx = {n: i for i, n in enumerate(base.names)}
+    unknown = sorted(set(overrides) - set(idx))
+    if unknown:
+        raise ModelError(f"{where}: joint_limits names joints the model does not have: "
+                         f"{', '.join(unknown)} (model joints: {', '.join(base.names)})",
+                         code="limits_unknown_joint")
+    arrays = {k: getattr(base, k).copy() for k in (
+        "position_lower", "position_upper", "soft_lower", "soft_upper", "continuous", "velocity",
+        "acceleration", "deceleration", "jerk", "effort", "effort_rate", "rms_effort",
+        "rms_window", "power", "armature")}
+    curves = list(base.effort_speed_curve)
+    notes: list[str] = []
+
+    def flagged(entry: Mapping[str, Any], flag: str, key: str, target: str, i: int) -> None:
+        if entry.get(flag) is False:
+            arrays[target][i] = np.inf
+        elif key in entry:
+            arrays[target][i] = entry[key]
+
+    for joint, e in overrides.items():
+        i = idx[joint]
+        if e.get("has_position_limits") is False:
+            arrays["position_lower"][i], arrays["position_upper"][i] = -np.inf, np.inf
+        else:
+            if "min_position" in e:
+                arrays["position_lower"][i] = e["min_position"]
+            if "max_position" in e:
+                arrays["position_upper"][i] = e["max_position"]
+        if e.get("has_soft_limits") is False:
+            arrays["soft_lower"][i], arrays["soft_upper"][i] = -np.inf, np.inf
+        else:
+            if "soft_lower_limit" in e:
+                arrays["soft_lower"][i] = e["soft_lower_limit"]
+            if "soft_upper_limit" in e:
+                arrays["soft_upper"][i] = e["soft_upper_limit"]
+        if e.get("angle_wraps") is True:
+            given = [k for k in ("has_position_limits", "min_position", "max_position",
+                                 "soft_lower_limit", "soft_upper_limit")
+                     if k in e and e[k] is not False]
+            if given:
+                notes.append(f"{joint}: angle_wraps: true, so {', '.join(given)} "
+                             "not applied (a wrapping joint has no position limit)")
+            arrays["continuous"][i] = True
+            for k, v in (("position_lower", -np.inf), ("position_upper", np.inf),
+                         ("soft_lower", -np.inf), ("soft_upper", np.inf)):
+                arrays[k][i] = v
+        flagged(e, "has_velocity_limits", "max_velocity", "velocity", i)
+        flagged(e, "has_acceleration_limits", "max_acceleration", "acceleration", i)
+        flagged(e, "has_deceleration_limits", "max_deceleration", "deceleration", i)
+        flagged(e, "has_jerk_limits", "max_jerk", "jerk", i)
+        flagged(e, "has_effort_limits", "max_effort", "effort", i)
+        for key, target in (("max_effort_rate", "effort_rate"), ("max_rms_effort", "rms_effort"),
+                            ("rms_window", "rms_window"), ("max_power", "power"),
+                            ("armature", "armature")):
+            if key in e:
+                arrays[target][i] = e[key]
+        if "effort_speed_curve" in e:
+            curves[i] = e["effort_speed_curve"]
+    return replace(base, effort_speed_curve=tuple(curves), warnings=base.warnings + tuple(notes),
+                   **arrays)
+
+
+def check_limits(limits: JointLimits, gravity_load: np.ndarray | None = None) -> tuple[str, ...]:
+    """Return human-readable warnings for suspicious limits (never silently used as-is).
+
+    ``gravity_load`` is the largest |gravity torque| per joint seen over sample poses (N·m); an
+    effort limit more than 1000× a joint's gravity load is likely a unit or placeholder error.
+    """
+    out: list[str] = []
+    for i, n in enumerate(limits.names):
+        if limits.position_lower[i] > limits.position_upper[i]:
+            out.append(f"{n}: lower position limit {limits.position_lower[i]:g} > upper "
+                       f"{limits.position_upper[i]:g}")
+        if limits.soft_lower[i] > limits.soft_upper[i]:
+            out.append(f"{n}: soft lower limit {limits.soft_lower[i]:g} > soft upper "
+                       f"{limits.soft_upper[i]:g}")
+        for kind in ("velocity", "acceleration", "deceleration", "jerk", "effort", "effort_rate",
+                     "rms_effort", "power", "rms_window"):
+            value = getattr(limits, kind)[i]
+            if value == 0 and kind != "rms_window":
+                # only a YAML max_X can be 0 here (a URDF 0 is "not given"); it is applied as set
+                off = f" or set has_{kind}_limits: false" if kind in _FLAGGED_KINDS else ""
+                out.append(f"{n}: {kind} limit 0 is not positive: applied as a real limit (any "
+                           f"nonzero {kind.replace('_', ' ')} violates it); for no limit remove "
+                           f"the key{off}")
+            elif value <= 0:
+                out.append(f"{n}: {kind} limit {value:g} is not positive")
+        if limits.armature[i] < 0:
+            out.append(f"{n}: armature {limits.armature[i]:g} kg·m² is negative")
+        if gravity_load is not None and gravity_load[i] > 1e-2 and math.isfinite(limits.effort[i]):
+            ratio = limits.effort[i] / gravity_load[i]
+            if ratio > 1000:
+                out.append(f"{n}: effort limit {limits.effort[i]:g} N·m is {ratio:.0f}× its largest "
+                           f"gravity load {gravity_load[i]:.3g} N·m (unit or placeholder error?)")
+    return tuple(out)

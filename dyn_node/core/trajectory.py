@@ -1,0 +1,260 @@
+"""Joint trajectories: validation by ros2_control's rules, and interpolation as it executes them.
+
+ros2_control's joint_trajectory_controller interpolates each segment with a quintic polynomial
+when waypoints carry positions, velocities and accelerations, a cubic when they carry positions
+and velocities, and linearly when they carry positions only. Linear interpolation demands an
+unbounded acceleration at every waypoint, so for a dynamic check of a positions-only trajectory
+dyn_node assumes a C² cubic spline through the waypoints with zero velocity at both ends
+(``"spline"``); the controller-status reference and the simulator use ``"linear"`` as the
+controller would.
+
+Times are seconds from the trajectory's start (time_from_start); arrays are in model joint order.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Sequence
+
+import numpy as np
+
+from dyn_node.errors import TrajectoryError
+
+Interpolation = Literal["quintic", "cubic", "spline", "linear"]
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A validated trajectory in model order: times (N,) s; positions, velocities, accelerations N×nv."""
+
+    times: np.ndarray
+    positions: np.ndarray
+    velocities: np.ndarray | None = None
+    accelerations: np.ndarray | None = None
+
+    @property
+    def n_points(self) -> int:
+        return len(self.times)
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1])
+
+    @property
+    def jtc_interpolation(self) -> Interpolation:
+        """How ros2_control's joint_trajectory_controller interpolates it: quintic with velocities
+        and accelerations, cubic with velocities, linear with positions only."""
+        if self.velocities is not None and self.accelerations is not None:
+            return "quintic"
+        if self.velocities is not None:
+            return "cubic"
+        return "linear"
+
+    @property
+    def natural_interpolation(self) -> Interpolation:
+        """:attr:`jtc_interpolation`, except positions-only → the C² spline (linear segments would
+        demand unbounded accelerations at the waypoints)."""
+        mode = self.jtc_interpolation
+        return "spline" if mode == "linear" else mode
+
+
+def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
+                        times: Sequence[float], positions: Sequence[Sequence[float]],
+                        velocities: Sequence[Sequence[float]] | None = None,
+                        accelerations: Sequence[Sequence[float]] | None = None,
+                        min_points: int = 2, ignored_joints: Sequence[str] = ()) -> Trajectory:
+    """Check a trajectory as joint_trajectory_controller does, plus dyn_node's own rules.
+
+    ``velocities``/``accelerations`` are per-point sequences, each empty or one value per name,
+    consistently across points. Names in ``ignored_joints`` (the model's locked joints) may appear
+    and their values are dropped, as for joint_states. Raises :class:`TrajectoryError` naming the
+    first problem found.
+    """
+    names = list(names)
+    if not names:
+        raise TrajectoryError("trajectory has no joint names", code="empty_names")
+    if len(set(names)) != len(names):
+        dups = sorted({n for n in names if names.count(n) > 1})
+        raise TrajectoryError(f"duplicate joint names: {', '.join(dups)}", code="duplicate_names")
+    unknown = [n for n in names if n not in model_joints and n not in ignored_joints]
+    if unknown:
+        raise TrajectoryError(f"joints not in the model: {', '.join(unknown)}", code="unknown_joints")
+    missing = [n for n in model_joints if n not in names]
+    if missing:
+        raise TrajectoryError(f"model joints missing from the trajectory: {', '.join(missing)}",
+                              code="missing_joints")
+    n_pts = len(times)
+    if n_pts == 0:
+        raise TrajectoryError("trajectory has no points", code="empty_points")
+    if n_pts < min_points:
+        raise TrajectoryError(f"trajectory has {n_pts} point(s); at least {min_points} are needed "
+                              "to check motion", code="too_few_points")
+    if len(positions) != n_pts:
+        raise TrajectoryError(f"{len(positions)} position rows for {n_pts} times", code="length_mismatch")
+    nj = len(names)
+    order = np.array([names.index(n) for n in model_joints])
+
+    def matrix(rows: Sequence[Sequence[float]] | None, field: str, required: bool) -> np.ndarray | None:
+        if rows is None:
+            if required:
+                raise TrajectoryError(f"trajectory has no {field}", code="length_mismatch")
+            return None
+        lengths = {len(r) for r in rows}
+        if not required and lengths == {0}:
+            return None
+        for i, r in enumerate(rows):
+            if len(r) != nj:
+                raise TrajectoryError(f"point {i}: {len(r)} {field} for {nj} joints",
+                                      code="length_mismatch")
+        m = np.asarray(rows, dtype=float).reshape(n_pts, nj)
+        if not np.all(np.isfinite(m)):
+            i, j = np.argwhere(~np.isfinite(m))[0]
+            raise TrajectoryError(f"point {i}: {field} of {names[j]} is {m[i, j]}", code="non_finite")
+        return m[:, order]
+
+    t = np.asarray(times, dtype=float)
+    if not np.all(np.isfinite(t)):
+        raise TrajectoryError("time_from_start is not finite", code="non_finite")
+    if t[0] < 0:
+        raise TrajectoryError(f"first time_from_start is negative ({t[0]} s)", code="bad_times")
+    steps = np.diff(t)
+    if np.any(steps <= 0):
+        i = int(np.flatnonzero(steps <= 0)[0]) + 1
+        raise TrajectoryError(f"time_from_start not strictly increasing at point {i} "
+                              f"({t[i - 1]:.6g} s then {t[i]:.6g} s)", code="bad_times")
+    p = matrix(positions, "positions", True)
+    v = matrix(velocities, "velocities", False) if velocities is not None else None
+    a = matrix(accelerations, "accelerations", False) if accelerations is not None else None
+    if a is not None and v is None:
+        raise TrajectoryError("accelerations given without velocities", code="length_mismatch")
+    return Trajectory(times=t, positions=p, velocities=v, accelerations=a)
+
+
+@dataclass(frozen=True)
+class PiecewisePolynomial:
+    """Per-segment polynomials: ``coeffs[s, k, j]`` multiplies (t − breaks[s])**k for joint j.
+
+    Evaluation holds the first and last positions outside [breaks[0], breaks[-1]] with zero
+    derivatives, as a controller holds the last point after the trajectory ends.
+    """
+
+    breaks: np.ndarray
+    coeffs: np.ndarray
+
+    def evaluate(self, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(q, q̇, q̈, q⃛) at times t (M,), each M×nv."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        seg = np.clip(np.searchsorted(self.breaks, t, side="right") - 1, 0, len(self.coeffs) - 1)
+        s = np.clip(t - self.breaks[seg], 0.0, self.breaks[seg + 1] - self.breaks[seg])[:, None]
+        c = self.coeffs[seg]  # M × (deg+1) × nv
+        deg = c.shape[1] - 1
+        out = []
+        for d in range(4):
+            acc = np.zeros((len(t), c.shape[2]))
+            for k in range(deg, d - 1, -1):
+                fac = float(np.prod(np.arange(k - d + 1, k + 1))) if d else 1.0
+                acc = acc * s + fac * c[:, k, :]
+            out.append(acc)
+        outside = (t < self.breaks[0]) | (t > self.breaks[-1])
+        if np.any(outside):
+            for d in (1, 2, 3):
+                out[d][outside] = 0.0
+        return out[0], out[1], out[2], out[3]
+
+
+def _quintic(p0, v0, a0, p1, v1, a1, T):
+    T = T[:, None]
+    c3 = (20 * (p1 - p0) - (8 * v1 + 12 * v0) * T - (3 * a0 - a1) * T**2) / (2 * T**3)
+    c4 = (30 * (p0 - p1) + (14 * v1 + 16 * v0) * T + (3 * a0 - 2 * a1) * T**2) / (2 * T**4)
+    c5 = (12 * (p1 - p0) - 6 * (v1 + v0) * T + (a1 - a0) * T**2) / (2 * T**5)
+    return np.stack([p0, v0, a0 / 2, c3, c4, c5], axis=1)
+
+
+def _cubic(p0, v0, p1, v1, T):
+    T = T[:, None]
+    c2 = (3 * (p1 - p0) - (2 * v0 + v1) * T) / T**2
+    c3 = (2 * (p0 - p1) + (v0 + v1) * T) / T**3
+    return np.stack([p0, v0, c2, c3], axis=1)
+
+
+def clamped_spline_velocities(t: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Knot velocities of the C² cubic spline through (t, p) with zero velocity at both ends."""
+    n = len(t)
+    v = np.zeros_like(p)
+    if n <= 2:
+        return v
+    h = np.diff(t)
+    # Tridiagonal system for interior knots (Thomas algorithm: O(n), fine for 100k points).
+    lower = h[1:]                  # coefficient of v[i-1] in row i (i = 1..n-2)
+    diag = 2 * (h[:-1] + h[1:])
+    upper = h[:-1]                 # coefficient of v[i+1]
+    rhs = 3 * (h[1:, None] * (p[1:-1] - p[:-2]) / h[:-1, None]
+               + h[:-1, None] * (p[2:] - p[1:-1]) / h[1:, None])
+    m = n - 2
+    cp = np.empty(m)
+    dp = np.empty_like(rhs)
+    cp[0] = upper[0] / diag[0]
+    dp[0] = rhs[0] / diag[0]
+    for i in range(1, m):
+        den = diag[i] - lower[i] * cp[i - 1]
+        cp[i] = upper[i] / den
+        dp[i] = (rhs[i] - lower[i] * dp[i - 1]) / den
+    x = np.empty_like(rhs)
+    x[-1] = dp[-1]
+    for i in range(m - 2, -1, -1):
+        x[i] = dp[i] - cp[i] * x[i + 1]
+    v[1:-1] = x
+    return v
+
+
+def interpolate(traj: Trajectory, mode: Interpolation | None = None) -> PiecewisePolynomial:
+    """Piecewise polynomial through the waypoints; ``mode`` defaults to the natural one."""
+    mode = mode or traj.natural_interpolation
+    t, p = traj.times, traj.positions
+    if len(t) == 1:  # hold a single point
+        return PiecewisePolynomial(np.array([t[0], t[0] + 1e-9]), p[None, :1, :].copy())
+    T = np.diff(t)
+    p0, p1 = p[:-1], p[1:]
+    if mode == "linear":
+        coeffs = np.stack([p0, (p1 - p0) / T[:, None]], axis=1)
+    elif mode == "spline":
+        v = clamped_spline_velocities(t, p)
+        coeffs = _cubic(p0, v[:-1], p1, v[1:], T)
+    elif mode == "cubic":
+        if traj.velocities is None:
+            raise TrajectoryError("cubic interpolation needs velocities", code="length_mismatch")
+        v = traj.velocities
+        coeffs = _cubic(p0, v[:-1], p1, v[1:], T)
+    elif mode == "quintic":
+        if traj.velocities is None or traj.accelerations is None:
+            raise TrajectoryError("quintic interpolation needs velocities and accelerations",
+                                  code="length_mismatch")
+        v, a = traj.velocities, traj.accelerations
+        coeffs = _quintic(p0, v[:-1], a[:-1], p1, v[1:], a[1:], T)
+    else:
+        raise ValueError(f"unknown interpolation {mode!r}")
+    return PiecewisePolynomial(breaks=t.copy(), coeffs=coeffs)
+
+
+def from_current_state(traj: Trajectory, positions: np.ndarray, velocities: np.ndarray) -> Trajectory:
+    """``traj`` as joint_trajectory_controller executes it when its first point lies ahead
+    (``time_from_start`` > 0): the robot's current state prepended as a point at t = 0 with the
+    measured q and q̇ and q̈ = 0, so the first segment runs from that state to the first point.
+
+    The prepended point carries what every point carries: velocities always (cubic), and
+    accelerations (0) when the points have them (quintic). A positions-only trajectory keeps
+    the knot velocities of its own C² spline (:func:`clamped_spline_velocities`, computed
+    without the prepended point): the points after the first move exactly as without a start
+    state, and the start segment is the cubic from the measured velocity to the spline's.
+    """
+    t = traj.times
+    if not t[0] > 0:
+        raise ValueError("the first point is at t = 0: there is no segment from the current state")
+    q0 = np.asarray(positions, dtype=float).reshape(1, -1)
+    v0 = np.asarray(velocities, dtype=float).reshape(1, -1)
+    if q0.shape[1] != traj.positions.shape[1] or v0.shape != q0.shape:
+        raise ValueError(f"current state has {q0.shape[1]} positions and {v0.shape[1]} velocities "
+                         f"for {traj.positions.shape[1]} joints")
+    vel = traj.velocities if traj.velocities is not None else clamped_spline_velocities(t, traj.positions)
+    acc = None if traj.accelerations is None else np.vstack([np.zeros_like(q0), traj.accelerations])
+    return Trajectory(times=np.concatenate(([0.0], t)), positions=np.vstack([q0, traj.positions]),
+                      velocities=np.vstack([v0, vel]), accelerations=acc)

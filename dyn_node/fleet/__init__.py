@@ -1,0 +1,1 @@
+"""dyn-fleet: many bags audited as Ray tasks, fleet tables and page."""

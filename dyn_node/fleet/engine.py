@@ -1,0 +1,800 @@
+"""dyn-fleet: audit many bags as Ray tasks and answer for the fleet.
+
+Every bag is one Ray task running :func:`dyn_node.audit.bag_audit.run_audit`, the pure audit ``dyn-audit``
+runs; the driver only schedules, stops tasks that overrun, and writes the Parquet tables and
+fleet.html. Options, isolation, resume, the tables and exit codes: README "Fleet audit". This
+module never imports rclpy; Ray is imported only when the engine starts.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import re
+import shutil
+import sys
+import time
+from collections import deque
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass, field, replace
+from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Sequence
+
+from dyn_node import __version__
+from dyn_node.audit.bag_audit import LiveStats
+from dyn_node.audit.cli import add_audit_options, run_command
+from dyn_node.errors import FleetError
+from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code
+from dyn_node.core.limits import LIMIT_KINDS
+
+if TYPE_CHECKING:
+    from dyn_node.core.model_source import ModelCache
+
+#: Bumped when a row's content changes meaning: --resume then re-audits every bag.
+ROW_FORMAT = 1
+STATE_FILE = "fleet_row.json"
+LIVE_KINDS: tuple[str, ...] = tuple(LiveStats.KINDS)   # live violation kinds of the audit
+TRAJ_KINDS: tuple[str, ...] = tuple(LIMIT_KINDS)        # every limit kind the check knows
+#: One BLAS / Numba / OpenMP thread per worker: the workers are the parallelism.
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+              "NUMBA_NUM_THREADS": "1"}
+LOOPBACK = "127.0.0.1"
+HASH_BLOCK = 1 << 20
+
+# exit categories of a row
+OK, VIOLATIONS, PARTIAL, UNUSABLE, TIMEOUT, CRASHED = (
+    "ok", "violations", "partial", "unusable", "timeout", "crashed")
+_CATEGORY = {EXIT_OK: OK, EXIT_VIOLATIONS: VIOLATIONS, EXIT_PARTIAL: PARTIAL, EXIT_UNUSABLE: UNUSABLE}
+
+# --- the tables' columns: (name, Arrow type, unit, meaning); the README table is made of these ---
+ROW_COLUMNS: list[tuple[str, str, str, str]] = [
+    ("bag_id", "string", "", "directory name of the bag's outputs under DIR/bags/ (bag name + path hash)"),
+    ("path", "string", "", "absolute path of the bag (rosbag2 directory or .mcap file)"),
+    ("content_hash", "string", "", "SHA-256 of the bag's files (names, sizes and bytes); '' if unreadable"),
+    ("config_hash", "string", "", "SHA-256 of the audit configuration (options, override files, versions)"),
+    ("robot", "string", "", "model name ('' when no model could be built)"),
+    ("dof", "int32", "", "model joints"),
+    ("recording_start_ns", "int64", "ns since the Unix epoch", "first log time in the bag (null if none)"),
+    ("recording_duration_s", "float64", "s", "log-time span of the bag"),
+    ("messages", "int64", "messages", "messages read, all topics"),
+    ("joint_states", "int64", "messages", "joint_states replayed (received by the monitor)"),
+    ("joint_states_accepted", "int64", "messages", "joint_states the monitor accepted"),
+    ("trajectories", "int64", "messages", "joint_trajectory messages checked"),
+    ("trajectories_bad", "int64", "messages", "trajectories infeasible or rejected"),
+    ("verdict", "string", "", "feasible | violations | error (not audited)"),
+    ("exit_code", "int8", "", "dyn-audit's exit code for this bag: 0, 1, 3 partial, 2 unusable"),
+    ("exit_category", "string", "", "ok | violations | partial | unusable | timeout | crashed"),
+    ("partial", "bool", "", "parts of the bag were unreadable"),
+    ("error", "string", "", "why the bag was not audited ('' when it was)"),
+    ("error_code", "string", "", "machine-readable error (no_model, bag_unreadable, no_inputs, timeout, worker_died, ...)"),
+    ("worst_joint", "string", "", "joint of the largest limit ratio, live or in a trajectory"),
+    ("worst_constraint", "string", "", "limit kind of that ratio (effort, velocity, ...)"),
+    ("worst_ratio", "float64", "value / limit", "largest ratio found (NaN: none)"),
+    ("worst_source", "string", "", "live (joint_states) or trajectory"),
+    ("worst_time_s", "float64", "s from the bag's start", "when the worst ratio occurred (live) or its trajectory was received"),
+    ("worst_time_scale", "float64", "", "largest time_scale k over the checked trajectories (inf: no slowdown helps; NaN: none)"),
+    ("live_episodes_total", "int64", "episodes", "live limit-violation episodes (exact count)"),
+    *[(f"live_{k}_episodes", "int64", "episodes", f"live {k} violation episodes (of those listed)")
+      for k in LIVE_KINDS],
+    *[(f"traj_{k}_violations", "int64", "joint × trajectory", f"trajectory joints over their {k} limit")
+      for k in TRAJ_KINDS],
+    ("invalid_messages", "int64", "messages", "joint_states rejected (NaN, missing joints, undecodable ...)"),
+    ("out_of_order_messages", "int64", "messages", "joint_states whose stamp went backwards"),
+    ("zero_stamp_messages", "int64", "messages", "joint_states with a zero header stamp"),
+    ("gaps", "int64", "gaps", "joint_states gaps longer than the gap threshold"),
+    ("stale_periods", "int64", "periods", "gaps longer than stale_timeout"),
+    ("unreadable_ranges", "int64", "ranges", "time ranges that could not be read"),
+    ("chunks_damaged", "int64", "chunks", "MCAP chunks failing their CRC or decompression"),
+    ("audit_s", "float64", "s", "wall-clock time of the bag's task (hash + audit + report)"),
+    ("audited_utc", "string", "ISO 8601 UTC", "when the evidence was written"),
+    ("resumed", "bool", "", "true: evidence from an earlier run reused (--resume, bag and configuration unchanged)"),
+    ("node", "string", "", "Ray node that ran the task ('' when none did)"),
+    ("evidence", "string", "path relative to DIR", "evidence.json ('' when the bag was not audited)"),
+    ("report", "string", "path relative to DIR", "report.html ('' when none)"),
+]
+JOINT_COLUMNS: list[tuple[str, str, str, str]] = [
+    ("bag_id", "string", "", "the bag's row in fleet.parquet"),
+    ("robot", "string", "", "model name"),
+    ("joint", "string", "", "joint name"),
+    ("joint_index", "int32", "", "position in the model's joint order"),
+    ("recording_start_ns", "int64", "ns since the Unix epoch", "the bag's first log time"),
+    ("live_effort_peak", "float64", "effort / limit", "peak live effort utilisation (NaN: no accepted joint_states)"),
+    ("live_effort_peak_time_s", "float64", "s from the bag's start", "when it occurred"),
+    ("effort_limit", "float64", "N·m or N", "effort limit at the peak"),
+    *[(f"live_{k}_over_s", "float64", "s", f"time in live {k} violation episodes") for k in LIVE_KINDS],
+    ("live_episodes", "int64", "episodes", "live violation episodes of this joint (of those listed)"),
+    *[(f"traj_{k}_peak", "float64", "value / limit", f"largest {k} ratio over the checked trajectories (NaN: no limit or none)")
+      for k in TRAJ_KINDS],
+    ("traj_over_limit_s", "float64", "s", "time over a limit in the checked trajectories (violations listed)"),
+]
+
+
+# --- configuration and jobs ------------------------------------------------------------------
+@dataclass(frozen=True)
+class FleetConfig:
+    """What every bag is audited with (the part of dyn-audit's options shared by the fleet)."""
+
+    robot_model: str = ""
+    robot_description: str = ""
+    limits: str = ""
+    gap_threshold_s: float = 0.05
+    topics: tuple[str, ...] = ()
+    report: bool = True
+
+
+@dataclass(frozen=True)
+class BagJob:
+    path: str
+    bag_id: str
+    out_root: str          # DIR
+    config: FleetConfig
+    config_hash: str
+    resume: bool = False
+
+    @property
+    def out_dir(self) -> Path:
+        return Path(self.out_root) / "bags" / self.bag_id
+
+
+@dataclass
+class BagOutcome:
+    """One bag's row (ROW_COLUMNS) and joint rows (JOINT_COLUMNS)."""
+
+    row: dict
+    joints: list[dict] = field(default_factory=list)
+
+
+def _file_sha256(path: Path | None) -> str:
+    if path is None:
+        return ""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(HASH_BLOCK), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def config_hash(cfg: FleetConfig) -> str:
+    """Changes when anything that can change a bag's evidence changes: the options, the contents
+    of the override files, dyn_node's version and the row format."""
+    def content(p: str) -> str:
+        return _file_sha256(Path(p)) if p and Path(p).is_file() else p
+    doc = {"row_format": ROW_FORMAT, "dyn_node": __version__, "robot_model": cfg.robot_model,
+           "robot_description": content(cfg.robot_description), "limits": content(cfg.limits),
+           "gap_threshold_s": cfg.gap_threshold_s, "topics": sorted(cfg.topics), "report": cfg.report}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+def bag_files(path: Path) -> list[Path]:
+    """The files whose bytes make up a bag: a rosbag2 directory's regular files, or the file."""
+    if path.is_dir():
+        return sorted(f for f in path.iterdir() if f.is_file())
+    return [path]
+
+
+def content_hash(path: Path) -> str:
+    """SHA-256 over the bag's files: each file's name, size and bytes, in name order."""
+    h = hashlib.sha256()
+    for f in bag_files(path):
+        h.update(f"{f.name}\0{f.stat().st_size}\0".encode())
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(HASH_BLOCK), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+def bag_id(path: Path) -> str:
+    """The bag's name (directory or file stem, made path-safe) and a hash of its absolute path,
+    so two bags with the same name in different directories never share outputs."""
+    name = path.name[:-5] if path.name.endswith(".mcap") else path.name
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "bag"
+    return f"{safe[:80]}-{hashlib.sha1(str(path).encode()).hexdigest()[:10]}"
+
+
+# --- discovery ---------------------------------------------------------------------------------
+def _walk(root: Path, skip: Path | None) -> Iterable[Path]:
+    for d, dirs, files in os.walk(root):
+        here = Path(d)
+        if skip is not None and (here == skip or skip in here.parents):
+            dirs[:] = []
+            continue
+        if "metadata.yaml" in files:  # a rosbag2 directory: the bag, nothing inside it is another
+            dirs[:] = []
+            yield here
+            continue
+        dirs.sort()
+        yield from (here / f for f in sorted(files) if f.endswith(".mcap"))
+
+
+def discover(roots: Sequence[str], *, skip: Path | None = None) -> list[Path]:
+    """Bags under ``roots``: directories are searched recursively for rosbag2 directories (with
+    metadata.yaml) and loose .mcap files; any other file is a list of bag paths, one per line
+    (blank lines and ``#`` comments skipped; relative paths are relative to the list's directory).
+    A listed path that does not exist is kept: it becomes a row with its error."""
+    found: dict[str, Path] = {}
+    skip = skip.resolve() if skip is not None else None
+    for r in roots:
+        root = Path(r).expanduser()
+        if root.is_dir():
+            bags: Iterable[Path] = _walk(root.resolve(), skip)
+        elif root.is_file() and root.suffix == ".mcap":
+            bags = [root.resolve()]
+        elif root.is_file():
+            bags = [(root.parent / line.strip()).resolve() if not Path(line.strip()).is_absolute()
+                    else Path(line.strip())
+                    for line in root.read_text().splitlines()
+                    if line.strip() and not line.lstrip().startswith("#")]
+        else:
+            raise FleetError(f"{r} does not exist", code="not_found")
+        for b in bags:
+            found.setdefault(str(b), b)
+    return [found[k] for k in sorted(found)]
+
+
+# --- one bag (runs inside a Ray worker) --------------------------------------------------------
+def _nan(x: Any) -> float:
+    """A number of the evidence record as a float: its non-finite strings ("inf", "-inf") as
+    such, null and anything else as NaN."""
+    if isinstance(x, str) and x in ("inf", "-inf"):
+        return float(x)
+    return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else math.nan
+
+
+def _blank_row(job: BagJob) -> dict:
+    row: dict[str, Any] = {name: None for name, *_ in ROW_COLUMNS}
+    row.update(bag_id=job.bag_id, path=job.path, content_hash="", config_hash=job.config_hash,
+               robot="", dof=0, error="", error_code="", resumed=False, partial=False,
+               evidence="", report="", node="", worst_joint="", worst_constraint="", worst_source="",
+               worst_ratio=math.nan, worst_time_s=math.nan, worst_time_scale=math.nan,
+               recording_duration_s=math.nan, audit_s=0.0, audited_utc="")
+    for name, typ, *_ in ROW_COLUMNS:
+        if row[name] is None and typ.startswith("int"):
+            row[name] = 0
+    row["recording_start_ns"] = None
+    return row
+
+
+def error_outcome(job: BagJob, category: str, code: str, message: str, **extra: Any) -> BagOutcome:
+    """The row of a bag that was not audited: its error and exit category; exit code 2."""
+    row = _blank_row(job)
+    row.update(verdict="error", exit_code=EXIT_UNUSABLE, exit_category=category,
+               error=message.strip().splitlines()[0] if message.strip() else category,
+               error_code=code, **extra)
+    return BagOutcome(row)
+
+
+def _worst(rec: dict) -> tuple[str, str, float, str, float]:
+    """(joint, constraint, ratio, source, time) of the largest limit ratio in the record."""
+    best = ("", "", -math.inf, "", math.nan)
+    out = rec["outputs"]
+    for pj in out["effort"]["per_joint"]:
+        r = _nan(pj.get("peak_utilisation"))
+        if r > best[2]:
+            best = (pj["joint"], "effort", r, "live", _nan(pj.get("peak_time_s")))
+    for v in out["violations"]:
+        r = _nan(v.get("peak_ratio"))
+        if r > best[2]:
+            best = (v["joint"], v["kind"], r, "live", _nan(v.get("peak_time_s")))
+    for t in out["trajectories"]:
+        r = _nan(t.get("worst_ratio"))
+        if t.get("accepted") and r > best[2]:
+            best = (t.get("worst_joint") or "", t.get("worst_constraint") or "", r, "trajectory",
+                    _nan(t.get("time_s")))
+    return best if best[2] > -math.inf else ("", "", math.nan, "", math.nan)
+
+
+def row_from_record(job: BagJob, rec: dict, code: int, digest: str) -> BagOutcome:
+    """The fleet row and joint rows of one evidence record (all numbers come from it)."""
+    row = _blank_row(job)
+    out, iq, inp = rec["outputs"], rec["input_quality"], rec["inputs"]
+    model = rec["configuration"]["model"]
+    wj, wc, wr, ws, wt = _worst(rec)
+    scales = [_nan(t.get("time_scale")) for t in out["trajectories"] if t.get("accepted")]
+    scales = [s for s in scales if not math.isnan(s)]
+    row.update(
+        content_hash=digest, robot=model["name"], dof=int(model["dof"]),
+        recording_start_ns=inp["time_span"]["start_ns"],
+        recording_duration_s=float(inp["time_span"]["duration_s"]),
+        messages=int(sum(inp["message_counts"].values())),
+        joint_states=int(out["monitor_counts"]["received"]),
+        joint_states_accepted=int(out["monitor_counts"]["accepted"]),
+        trajectories=int(out["trajectories_total"]),
+        trajectories_bad=int(out["trajectories_infeasible_or_rejected"]),
+        verdict=rec["verdict"]["result"], exit_code=int(code), exit_category=_CATEGORY[code],
+        partial=bool(rec["verdict"]["partial"]),
+        worst_joint=wj, worst_constraint=wc, worst_ratio=wr, worst_source=ws, worst_time_s=wt,
+        worst_time_scale=max(scales) if scales else math.nan,
+        live_episodes_total=int(out["violation_episodes_total"]),
+        invalid_messages=int(iq["invalid_messages"]["count"]),
+        out_of_order_messages=int(iq["out_of_order"]["count"]),
+        zero_stamp_messages=int(iq["zero_stamp_messages"]),
+        gaps=int(iq["gaps_total"]), stale_periods=int(iq["stale_periods_total"]),
+        unreadable_ranges=len(iq["unreadable_ranges"]), chunks_damaged=int(iq["chunks_damaged"]),
+        audited_utc=rec["timestamps"]["finished_utc"],
+        evidence=f"bags/{job.bag_id}/evidence.json",
+        report=f"bags/{job.bag_id}/report.html" if job.config.report else "",
+    )
+    for k in LIVE_KINDS:
+        row[f"live_{k}_episodes"] = sum(1 for v in out["violations"] if v["kind"] == k)
+    for k in TRAJ_KINDS:
+        row[f"traj_{k}_violations"] = sum(
+            1 for t in out["trajectories"] for kinds in (t.get("per_joint") or {}).values()
+            if _nan((kinds.get(k) or {}).get("ratio")) > 1.0)
+    return BagOutcome(row, _joint_rows(job, rec, row))
+
+
+def _joint_rows(job: BagJob, rec: dict, row: dict) -> list[dict]:
+    out = rec["outputs"]
+    rows = []
+    for j, name in enumerate(rec["configuration"]["model"]["joint_names"]):
+        pj = out["effort"]["per_joint"][j]
+        jr: dict[str, Any] = {
+            "bag_id": job.bag_id, "robot": row["robot"], "joint": name, "joint_index": j,
+            "recording_start_ns": row["recording_start_ns"],
+            "live_effort_peak": _nan(pj.get("peak_utilisation")),
+            "live_effort_peak_time_s": _nan(pj.get("peak_time_s")),
+            "effort_limit": _nan(pj.get("effort_limit")),
+        }
+        eps = [v for v in out["violations"] if v["joint"] == name]
+        for k in LIVE_KINDS:
+            jr[f"live_{k}_over_s"] = float(sum(v["duration_s"] for v in eps if v["kind"] == k))
+        jr["live_episodes"] = len(eps)
+        for k in TRAJ_KINDS:
+            ratios = [_nan(((t.get("per_joint") or {}).get(name, {}).get(k) or {}).get("ratio"))
+                      for t in out["trajectories"]]
+            ratios = [r for r in ratios if not math.isnan(r)]
+            jr[f"traj_{k}_peak"] = max(ratios) if ratios else math.nan
+        jr["traj_over_limit_s"] = float(sum(
+            _nan(v.get("duration_s")) for t in out["trajectories"] for v in (t.get("violations") or [])
+            if isinstance(v, dict) and v.get("joint") == name and not math.isnan(_nan(v.get("duration_s")))))
+        rows.append(jr)
+    return rows
+
+
+def _state_path(job: BagJob) -> Path:
+    return job.out_dir / STATE_FILE
+
+
+def _load_state(job: BagJob) -> dict | None:
+    try:
+        state = json.loads(_state_path(job).read_text())
+    except (OSError, ValueError):
+        return None
+    return state if isinstance(state, dict) and state.get("row_format") == ROW_FORMAT else None
+
+
+def _save_state(job: BagJob, outcome: BagOutcome) -> None:
+    p = _state_path(job)
+    tmp = p.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps({"row_format": ROW_FORMAT, "row": outcome.row, "joints": outcome.joints},
+                              allow_nan=True))
+    tmp.replace(p)
+
+
+def _node_id() -> str:
+    try:
+        import ray
+
+        return ray.get_runtime_context().get_node_id() if ray.is_initialized() else ""
+    except Exception:  # noqa: BLE001 - informational only
+        return ""
+
+
+_MODEL_CACHE: "ModelCache | None" = None
+MODEL_CACHE_SIZE = 8  # robot variants a worker keeps built (about 50 kB each for the Panda)
+
+
+def worker_model_cache() -> "ModelCache":
+    """This process's models: a Ray worker runs task after task (one at a time), so the second
+    bag of a robot reuses the model the first one built."""
+    global _MODEL_CACHE
+    if _MODEL_CACHE is None:
+        from dyn_node.core.model_source import ModelCache
+
+        _MODEL_CACHE = ModelCache(MODEL_CACHE_SIZE)
+    return _MODEL_CACHE
+
+
+def audit_bag(job: BagJob) -> BagOutcome:
+    """Audit one bag exactly as ``dyn-audit`` does (same :func:`run_audit`, same options) and make
+    its rows. Never raises for a bad bag: every failure is a row with its error."""
+    from dyn_node.audit.bag_audit import AuditError, AuditOptions, run_audit
+    from dyn_node.bag.reader import BagError
+    from dyn_node.errors import DynNodeError
+
+    wall0 = time.perf_counter()
+    path = Path(job.path)
+    try:
+        digest = content_hash(path)
+    except OSError as exc:
+        return _finish(error_outcome(job, UNUSABLE, "bag_unreadable",
+                                     f"bag {path} is unreadable: {exc.strerror or exc}"), wall0)
+    if job.resume:
+        state = _load_state(job)
+        if (state and state["row"]["content_hash"] == digest
+                and state["row"]["config_hash"] == job.config_hash):
+            row = dict(state["row"], resumed=True)
+            return BagOutcome(row, state["joints"])
+    shutil.rmtree(job.out_dir, ignore_errors=True)  # no evidence of an earlier run survives
+    job.out_dir.mkdir(parents=True, exist_ok=True)
+    cfg = job.config
+    opts = AuditOptions(bag=job.path, robot_description=cfg.robot_description,
+                        robot_model=cfg.robot_model, limits=cfg.limits, out=str(job.out_dir),
+                        topics=cfg.topics, gap_threshold_s=cfg.gap_threshold_s, progress=False,
+                        report=cfg.report, model_cache=worker_model_cache())
+    try:
+        res = run_audit(opts)
+    except (AuditError, BagError, DynNodeError) as exc:
+        outcome = error_outcome(job, UNUSABLE, getattr(exc, "code", "") or type(exc).__name__, str(exc),
+                                content_hash=digest)
+    except OSError as exc:
+        return _finish(error_outcome(job, UNUSABLE, "os_error",
+                                     f"{exc.strerror or exc}: {exc.filename or job.path}",
+                                     content_hash=digest), wall0)
+    except Exception as exc:  # noqa: BLE001 - a crash in one bag must not end the fleet run
+        return _finish(error_outcome(job, CRASHED, "crash", f"{type(exc).__name__}: {exc}",
+                                     content_hash=digest), wall0)
+    else:
+        outcome = row_from_record(job, res.record, res.exit_code, digest)
+    _finish(outcome, wall0)
+    if not outcome.row["audited_utc"]:
+        from dyn_node.audit.evidence import utc_now
+
+        outcome.row["audited_utc"] = utc_now()
+    _save_state(job, outcome)  # only outcomes the audit decided: timeouts and crashes are redone
+    return outcome
+
+
+def _finish(outcome: BagOutcome, wall0: float) -> BagOutcome:
+    outcome.row["audit_s"] = time.perf_counter() - wall0
+    outcome.row["node"] = _node_id()
+    return outcome
+
+
+# --- the engine ----------------------------------------------------------------------------------
+def _ray_env(*, local: bool) -> None:
+    """Before Ray is imported: no usage statistics; for the local runtime, keep 127.0.0.1 as the
+    node address (Ray otherwise replaces a loopback address by the machine's routable one). A
+    driver joining a remote cluster must keep its routable address, so that stays Ray's."""
+    os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+    if local:
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+
+
+class Engine:
+    """Ray, started in-process on 127.0.0.1 (``address=""``) or joined (``auto``, ``ray://``,
+    ``host:port``); ``slots``: tasks that run at once (the cluster's CPUs)."""
+
+    def __init__(self, *, address: str = "", workers: int = 0):
+        self.address, self.workers = address, workers or usable_cores()
+        self.started_s = 0.0
+        self.slots = self.workers
+
+    def __enter__(self) -> "Engine":
+        import logging
+
+        _ray_env(local=not self.address)
+        t0 = time.perf_counter()
+        try:
+            import ray
+        except ImportError as exc:  # pragma: no cover - ray is a pinned dependency
+            raise FleetError(f"Ray is not installed ({exc}): pip install -r requirements.txt",
+                             code="ray_missing") from None
+        self.ray = ray
+        if not self.address:
+            # Ray reads this setting once, at import: refuse before anything binds elsewhere
+            from ray._private import ray_constants
+
+            if getattr(ray_constants, "ENABLE_RAY_CLUSTER", False):
+                raise FleetError("Ray was imported before dyn_node.fleet.engine could keep it on "
+                                 f"{LOOPBACK}: set RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 before "
+                                 "importing ray", code="ray_not_loopback")
+        common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
+                      configure_logging=True)
+        try:
+            if self.address:  # the workers of other nodes get the thread settings per job
+                ray.init(address=self.address, runtime_env={"env_vars": dict(WORKER_ENV)}, **common)
+            else:  # inherited by the raylet, so its pre-started workers can take the first bags
+                with _environ(WORKER_ENV):
+                    ray.init(num_cpus=self.workers, _node_ip_address=LOOPBACK, **common)
+        except Exception as exc:  # noqa: BLE001 - Ray's own errors are many; one line for the user
+            raise FleetError(f"cannot start Ray{' at ' + self.address if self.address else ''}: "
+                             f"{type(exc).__name__}: {exc}", code="ray_start") from None
+        if not self.address:
+            ip = ray.util.get_node_ip_address()
+            if ip != LOOPBACK:
+                ray.shutdown()
+                raise FleetError(f"local Ray bound to {ip}, not {LOOPBACK}: set "
+                                 "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 before Ray is imported",
+                                 code="ray_not_loopback")
+        self.slots = max(1, int(ray.cluster_resources().get("CPU", self.workers)))
+        self.started_s = time.perf_counter() - t0
+        self.remote = ray.remote(num_cpus=1, max_retries=1, retry_exceptions=False,
+                                 max_calls=0)(_run_job)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.ray.shutdown()
+
+
+@contextmanager
+def _environ(values: dict[str, str]) -> Iterator[None]:
+    """``values`` set in os.environ for the block (child processes started in it keep them)."""
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def usable_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _run_job(job: BagJob, fn: Callable[[BagJob], BagOutcome] | None = None) -> BagOutcome:
+    """The task body: ``fn`` (default :func:`audit_bag`) on one bag."""
+    return (fn or audit_bag)(job)
+
+
+def _ray_failure(job: BagJob, exc: BaseException) -> BagOutcome:
+    import ray.exceptions as rx
+
+    if isinstance(exc, (rx.WorkerCrashedError, rx.NodeDiedError, rx.ActorDiedError)):
+        return error_outcome(job, CRASHED, "worker_died",
+                             f"the worker died twice (retried once): {type(exc).__name__}")
+    if isinstance(exc, rx.OutOfMemoryError):
+        return error_outcome(job, CRASHED, "out_of_memory", f"killed for memory: {str(exc).strip()[:300]}")
+    if isinstance(exc, rx.TaskCancelledError):
+        return error_outcome(job, TIMEOUT, "timeout", "the task was cancelled")
+    return error_outcome(job, CRASHED, "task_error", f"{type(exc).__name__}: {str(exc).strip()[:300]}")
+
+
+def run_jobs(engine: Engine, jobs: Sequence[BagJob], *, bag_timeout_s: float = 0.0,
+             progress: "Progress | None" = None,
+             fn: Callable[[BagJob], BagOutcome] | None = None) -> list[BagOutcome]:
+    """Run the jobs on the engine; at most ``engine.slots`` in flight, so a task's time limit
+    counts from when a free worker takes it. Results in ``jobs`` order."""
+    ray = engine.ray
+    results: dict[int, BagOutcome] = {}
+    queue = deque(enumerate(jobs))
+    flight: dict[Any, tuple[int, float]] = {}
+    fn_ref = ray.put(fn) if fn is not None else None
+
+    def done(i: int, outcome: BagOutcome) -> None:
+        results[i] = outcome
+        if progress is not None:
+            progress.add(outcome.row)
+
+    while queue or flight:
+        while queue and len(flight) < engine.slots:
+            i, job = queue.popleft()
+            flight[engine.remote.remote(job, fn_ref)] = (i, time.monotonic())
+        wait_s = 0.5
+        if bag_timeout_s > 0:
+            first = min(t for _, t in flight.values())
+            wait_s = max(0.0, min(wait_s, first + bag_timeout_s - time.monotonic()))
+        ready, _ = ray.wait(list(flight), num_returns=1, timeout=wait_s)
+        for ref in ready:
+            i, _t = flight.pop(ref)
+            try:
+                done(i, ray.get(ref))
+            except Exception as exc:  # noqa: BLE001 - Ray's task failures become rows
+                done(i, _ray_failure(jobs[i], exc))
+        if bag_timeout_s > 0:
+            now = time.monotonic()
+            for ref, (i, t) in list(flight.items()):
+                if now - t >= bag_timeout_s:
+                    ray.cancel(ref, force=True)  # kills the worker process; Ray starts another
+                    del flight[ref]
+                    done(i, error_outcome(jobs[i], TIMEOUT, "timeout",
+                                          f"stopped after the bag time limit ({bag_timeout_s:g} s)",
+                                          audit_s=now - t))
+        if progress is not None:
+            progress.draw()
+    return [results[i] for i in range(len(jobs))]
+
+
+# --- progress ----------------------------------------------------------------------------------
+class Progress:
+    """bags done / total, ETA and failures on stderr: a redrawn line on a terminal, otherwise a
+    line every ``period_s`` and at the end."""
+
+    def __init__(self, total: int, *, stream: Any = None, enabled: bool = True, period_s: float = 5.0):
+        self.total, self.stream, self.on = total, stream or sys.stderr, enabled
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.period_s = period_s
+        self.done = self.failed = self.violations = self.resumed = 0
+        self.t0 = time.monotonic()
+        self.last = -math.inf
+
+    def add(self, row: dict) -> None:
+        self.done += 1
+        self.resumed += bool(row.get("resumed"))
+        self.failed += row["exit_category"] in (UNUSABLE, TIMEOUT, CRASHED)
+        self.violations += row["exit_category"] == VIOLATIONS
+
+    def line(self) -> str:
+        el = time.monotonic() - self.t0
+        audited = self.done - self.resumed
+        left = self.total - self.done
+        eta = (el / audited * left) if audited and left else (0.0 if not left else math.nan)
+        eta_s = "--:--" if math.isnan(eta) else f"{int(eta // 60):d}:{int(eta % 60):02d}"
+        frac = self.done / self.total if self.total else 1.0
+        bar = "#" * int(frac * 24)
+        return (f"dyn-fleet [{bar:<24}] {self.done}/{self.total} bags  ETA {eta_s}  "
+                f"{self.violations} with violations  {self.failed} failed"
+                + (f"  {self.resumed} unchanged" if self.resumed else ""))
+
+    def draw(self, final: bool = False) -> None:
+        if not self.on:
+            return
+        now = time.monotonic()
+        if self.tty:
+            if final or now - self.last >= 0.2:
+                self.stream.write("\r" + self.line() + ("\n" if final else ""))
+                self.stream.flush()
+                self.last = now
+        elif final or now - self.last >= self.period_s:
+            self.stream.write(self.line() + "\n")
+            self.stream.flush()
+            self.last = now
+
+
+# --- tables --------------------------------------------------------------------------------------
+def _arrow_schema(columns: list[tuple[str, str, str, str]]):
+    import pyarrow as pa
+
+    types = {"string": pa.string(), "int8": pa.int8(), "int32": pa.int32(), "int64": pa.int64(),
+             "float64": pa.float64(), "bool": pa.bool_()}
+    return pa.schema([pa.field(n, types[t], metadata={"unit": u, "description": d})
+                      for n, t, u, d in columns])
+
+
+def write_table(rows: list[dict], columns: list[tuple[str, str, str, str]], path: Path) -> Path:
+    """Rows to Parquet with the documented schema (column units in the field metadata)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    schema = _arrow_schema(columns)
+    table = pa.Table.from_pylist([{n: r.get(n) for n, *_ in columns} for r in rows], schema=schema)
+    tmp = path.with_suffix(".parquet.tmp")
+    pq.write_table(table, tmp)
+    tmp.replace(path)
+    return path
+
+
+def fleet_exit_code(rows: Sequence[dict]) -> int:
+    """0 all feasible, 1 violations found (wins over 3), 3 some bags not (fully) audited and no
+    violations, 2 nothing usable (no bag audited)."""
+    codes = [r["exit_code"] for r in rows]
+    return exit_code(violations=EXIT_VIOLATIONS in codes,
+                     partial=any(c in (EXIT_PARTIAL, EXIT_UNUSABLE) for c in codes),
+                     unusable=not codes or all(c == EXIT_UNUSABLE for c in codes))
+
+
+@dataclass
+class FleetResult:
+    rows: list[dict]
+    joints: list[dict]
+    exit_code: int
+    out_dir: Path
+    files: list[Path]
+    ray_start_s: float
+    wall_s: float
+
+
+def run_fleet(roots: Sequence[str], out: str | Path, *, config: FleetConfig = FleetConfig(),
+              address: str = "", workers: int = 0, resume: bool = False,
+              bag_timeout_s: float = 1800.0, progress: bool = True,
+              fn: Callable[[BagJob], BagOutcome] | None = None,
+              engine: Engine | None = None) -> FleetResult:
+    """Discover, audit every bag on Ray, write the tables and the page. ``fn`` replaces the
+    per-bag function (tests inject crashes and hangs with it); ``engine``: an engine already
+    started (left running), instead of one started and shut down here."""
+    wall0 = time.perf_counter()
+    out_dir = Path(out).resolve()
+    bags = discover(roots, skip=out_dir)
+    if not bags:
+        raise FleetError("no bags found under " + ", ".join(roots), code="no_bags")
+    for f in (config.robot_description, config.limits):
+        if f and not Path(f).is_file():
+            raise FleetError(f"{f} does not exist", code="not_found")
+    config = replace(config, robot_description=str(Path(config.robot_description).resolve())
+                     if config.robot_description else "",
+                     limits=str(Path(config.limits).resolve()) if config.limits else "")
+    chash = config_hash(config)
+    (out_dir / "bags").mkdir(parents=True, exist_ok=True)
+    jobs = [BagJob(str(b), bag_id(b), str(out_dir), config, chash, resume) for b in bags]
+    prog = Progress(len(jobs), enabled=progress)
+    with nullcontext(engine) if engine is not None else Engine(address=address, workers=workers) as eng:
+        prog.draw()
+        outcomes = run_jobs(eng, jobs, bag_timeout_s=bag_timeout_s, progress=prog, fn=fn)
+    prog.draw(final=True)
+    rows = [o.row for o in outcomes]
+    joints = [j for o in outcomes for j in o.joints]
+    files = [write_table(rows, ROW_COLUMNS, out_dir / "fleet.parquet"),
+             write_table(joints, JOINT_COLUMNS, out_dir / "fleet_joints.parquet")]
+    code = fleet_exit_code(rows)
+    from dyn_node.fleet.report import write_fleet_report
+
+    files.append(write_fleet_report(rows, joints, out_dir, exit_code=code))
+    return FleetResult(rows, joints, code, out_dir, files, eng.started_s,
+                       time.perf_counter() - wall0)
+
+
+# --- command line --------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="dyn-fleet", description="Audit many bags (each exactly as dyn-audit would) on Ray; "
+        "write DIR/fleet.parquet, DIR/fleet_joints.parquet, DIR/fleet.html and DIR/bags/<id>/. "
+        "Exit 0: all feasible, 1: violations found, 3: some bags not (fully) audited and no "
+        "violations, 2: nothing usable.")
+    p.add_argument("roots", nargs="+", metavar="ROOT",
+                   help="directory searched recursively for bags (rosbag2 directories, .mcap files), "
+                        "a .mcap file, or a text file listing bag paths")
+    p.add_argument("--out", metavar="DIR", required=True, help="output directory")
+    p.add_argument("--address", default="", metavar="ADDR",
+                   help="existing Ray cluster: auto, ray://host:port or host:port (default: start "
+                        "Ray in this process on 127.0.0.1)")
+    p.add_argument("--workers", type=int, default=0, metavar="N",
+                   help="CPUs of the local Ray (default: the usable cores); ignored with --address")
+    p.add_argument("--resume", action="store_true",
+                   help="skip bags whose content and configuration are unchanged since their evidence")
+    p.add_argument("--bag-timeout", type=float, default=1800.0, metavar="S",
+                   help="stop a bag's task after S seconds and report it (0: no limit; default 1800)")
+    add_audit_options(p, every_bag=True)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--version", action="version", version=f"dyn-fleet {__version__}")
+    return p
+
+
+def _summary(res: FleetResult) -> str:
+    n = len(res.rows)
+    by = {c: sum(r["exit_category"] == c for r in res.rows)
+          for c in (OK, VIOLATIONS, PARTIAL, UNUSABLE, TIMEOUT, CRASHED)}
+    parts = [f"{by[c]} {c}" for c in by if by[c]]
+    resumed = sum(bool(r["resumed"]) for r in res.rows)
+    word = {EXIT_OK: "FEASIBLE", EXIT_VIOLATIONS: "VIOLATIONS", EXIT_PARTIAL: "PARTIAL",
+            EXIT_UNUSABLE: "UNUSABLE"}[res.exit_code]
+    return (f"{word}: {n} bags: " + ", ".join(parts)
+            + (f" ({resumed} unchanged, not re-audited)" if resumed else ""))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.workers < 0 or args.bag_timeout < 0 or not args.gap_threshold > 0:
+        print("dyn-fleet: error: --workers and --bag-timeout must be >= 0, --gap-threshold > 0",
+              file=sys.stderr)
+        return EXIT_UNUSABLE
+    cfg = FleetConfig(robot_model=args.robot_model, robot_description=args.robot_description,
+                      limits=args.limits, gap_threshold_s=args.gap_threshold,
+                      topics=tuple(args.topics), report=not args.no_report)
+    work = partial(run_fleet, args.roots, args.out, config=cfg, address=args.address,
+                   workers=args.workers, resume=args.resume, bag_timeout_s=args.bag_timeout,
+                   progress=not args.quiet)
+    return run_command("dyn-fleet", work, _print_result)
+
+
+def _print_result(res: FleetResult) -> int:
+    print(_summary(res))
+    for r in res.rows:
+        if r["exit_category"] in (UNUSABLE, TIMEOUT, CRASHED):
+            print(f"  - {Path(r['path']).name}: {r['exit_category']}: {r['error']}")
+    for f in res.files:
+        print(f"{f.name + ':':<21} {f}")
+    return res.exit_code
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
