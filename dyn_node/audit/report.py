@@ -443,9 +443,9 @@ def _table(head: Sequence[str], rows: list[Sequence[str]], num_cols: Sequence[in
     return "".join(out)
 
 
-def render_html(record: dict, images: dict[str, bytes]) -> str:
-    v, inp, cfg, out, iq = (record["verdict"], record["inputs"], record["configuration"],
-                            record["outputs"], record["input_quality"])
+def _head(record: dict) -> list[str]:
+    """Page head, verdict banner, findings and the facts table."""
+    v, inp, cfg = record["verdict"], record["inputs"], record["configuration"]
     cls = {"feasible": "ok", "violations": "bad"}.get(v["result"], "unusable")
     title = {"feasible": "FEASIBLE — no violations", "violations": "VIOLATIONS FOUND"}.get(
         v["result"], "UNUSABLE INPUT")
@@ -474,8 +474,12 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
                       f"{record['timestamps']['duration_s']:.2f} s; seed: {_e(record['seed']['note'])}")]
     p.append("<table class='facts'>" + "".join(f"<tr><td>{k}</td><td>{val}</td></tr>" for k, val in facts)
              + "</table>")
+    return p
 
-    p.append("<h2 id='effort'>Effort vs limit</h2>")
+
+def _effort_section(out: dict, images: dict[str, bytes]) -> list[str]:
+    """Per-joint peak effort table, the effort plot and the utilisation heat map."""
+    p = ["<h2 id='effort'>Effort vs limit</h2>"]
     pj = out["effort"]["per_joint"]
     p.append(_table(["joint", "peak utilisation", "from", "at t (s)", "model effort then",
                      "measured effort then", "limit", "unit"],
@@ -492,8 +496,12 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
         p.append(_img(images["utilisation.png"], "utilisation heat map, joint by time"))
     if "effort.png" not in images:
         p.append("<p class='muted'>No accepted joint_states: no effort plots.</p>")
+    return p
 
-    p.append("<h2 id='violations'>Violations</h2>")
+
+def _violations_section(out: dict) -> list[str]:
+    """Live limit-violation episodes, or a line saying there were none."""
+    p = ["<h2 id='violations'>Violations</h2>"]
     viol = out["violations"]
     if viol:
         p.append(_table(["joint", "kind", "from (s)", "to (s)", "peak at (s)", "peak value", "limit",
@@ -508,8 +516,12 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
             p.append(f"<p class='muted'>{out['violation_episodes_total'] - len(viol)} more not listed.</p>")
     else:
         p.append("<p>No live limit violations (effort, position, velocity, deceleration).</p>")
+    return p
 
-    p.append("<h2 id='trajectories'>Trajectories</h2>")
+
+def _trajectories_section(out: dict, images: dict[str, bytes]) -> list[str]:
+    """One row per trajectory with its verdict pill, and the time-scale/payload plot."""
+    p = ["<h2 id='trajectories'>Trajectories</h2>"]
     trajs = out["trajectories"]
     if trajs:
         rows = []
@@ -527,8 +539,12 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
             p.append(_img(images["trajectories.png"], "time scale and payload margin per trajectory"))
     else:
         p.append("<p>No trajectories in the bag.</p>")
+    return p
 
-    p.append("<h2 id='input-quality'>Input quality</h2>")
+
+def _input_quality_section(iq: dict) -> list[str]:
+    """Counts of input problems and a table of each unreadable range, stale period, gap, etc."""
+    p = ["<h2 id='input-quality'>Input quality</h2>"]
     rows = []
     for u in iq["unreadable_ranges"]:
         rows.append(["unreadable", _num(u["start_s"], "{:.3f}"),
@@ -552,8 +568,12 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
     p.append(f"<p>{_e(summary)}</p>")
     if rows:
         p.append(_table(["finding", "from (s)", "to (s)", "detail"], rows, (1, 2)))
+    return p
 
-    p.append("<h2 id='recheck'>Re-check of the node's outputs</h2>")
+
+def _recheck_section(out: dict) -> list[str]:
+    """Re-check of the node's recorded outputs, then the latency table when there is one."""
+    p = ["<h2 id='recheck'>Re-check of the node's outputs</h2>"]
     if out["recheck"]:
         p.append(_table(["topic", "matched", "unmatched", "not answered by the node",
                          "largest |difference|", "identical"],
@@ -569,14 +589,26 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
                         [[_e(k), str(d["count"]), *(_num(None if d.get(q) is None else d[q] * 1e3, "{:.3f}")
                                                     for q in ("p50", "p95", "p99", "max"))]
                          for k, d in out["latency"].items()], (1, 2, 3, 4, 5)))
+    return p
+
+
+def _controller_section(out: dict) -> list[str]:
+    """Replayed time in each controller state, and the closing note and tags."""
     cs = out["controller_states"]
-    p.append("<h2 id='controller'>Controller states (replayed)</h2>")
-    p.append("<p>" + (_e(", ".join(f"{k}: {t:.3f} s" for k, t in cs.get("replayed_time_in_state_s", {}).items()))
-                      or "none") + "</p>")
-    p.append("<p class='muted'>Every number is defined in evidence.json → metric_definitions. Times are "
-             "seconds since the bag's first message (log time).</p>")
-    p.append("</main></body></html>")
-    return "\n".join(p)
+    return ["<h2 id='controller'>Controller states (replayed)</h2>",
+            "<p>" + (_e(", ".join(f"{k}: {t:.3f} s" for k, t in cs.get("replayed_time_in_state_s", {}).items()))
+                     or "none") + "</p>",
+            "<p class='muted'>Every number is defined in evidence.json → metric_definitions. Times are "
+            "seconds since the bag's first message (log time).</p>",
+            "</main></body></html>"]
+
+
+def render_html(record: dict, images: dict[str, bytes]) -> str:
+    """The self-contained report page: one line per element, sections in a fixed order."""
+    out = record["outputs"]
+    return "\n".join([*_head(record), *_effort_section(out, images), *_violations_section(out),
+                      *_trajectories_section(out, images), *_input_quality_section(record["input_quality"]),
+                      *_recheck_section(out), *_controller_section(out)])
 
 
 def write_report(record: dict, series, model, out_dir: str | Path) -> list[Path]:

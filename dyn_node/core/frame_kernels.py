@@ -208,6 +208,8 @@ def _base(root: np.ndarray, Mt: float, Sx: float, Sy: float, Sz: float, g0: floa
         com[0] = com[1] = com[2] = np.nan
 
 
+# One compiled pass per state over the joint tree: split into calls, per-state overhead
+# would break the check's time budget.
 @njit([types.void(_M, _M, _M, _I, _B, _I, _M, _M, _M, _V, _V, _V, _I, _M, _M, _M,
                   types.boolean, types.boolean, _C3, _C3, _C3, _C3, _C3, _C3, _C2, _C3, _C1,
                   _C2, _C2, _C2, _C2)], **_JIT)

@@ -587,6 +587,8 @@ def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, A: np.ndarray,
     return S, W, I, tau
 
 
+# One compiled pass per state over the joint tree: split into calls, per-state overhead
+# would break the check's time budget.
 @njit([types.void(_M, _I, _B, _I, _M, _M, _M, _V, types.Array(_f8, 2, "C"))], **_JIT)
 def gravity_rows(Q: np.ndarray, parent: np.ndarray, revolute: np.ndarray, index: np.ndarray,
                  placement: np.ndarray, axis: np.ndarray, body: np.ndarray, g: np.ndarray,

@@ -51,13 +51,7 @@ class ControllerTracker:
     def set_trajectory(self, traj: Trajectory, start_s: float) -> None:
         """Track ``traj`` (model order) starting at ``start_s`` (s). Safe to call from another
         thread: the new plan replaces the old one in a single assignment."""
-        if traj.velocities is not None and traj.accelerations is not None:
-            mode = "quintic"
-        elif traj.velocities is not None:
-            mode = "cubic"
-        else:
-            mode = "linear"
-        poly = interpolate(traj, mode) if traj.n_points > 1 else None
+        poly = interpolate(traj, traj.jtc_interpolation) if traj.n_points > 1 else None
         self._plan = (poly, traj.positions[-1], start_s, start_s + float(traj.times[0]),
                       start_s + float(traj.times[-1]), poly.breaks.tolist() if poly is not None else [])
 
