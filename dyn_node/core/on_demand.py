@@ -19,7 +19,7 @@ from dyn_node.core.dynamics import Dynamics
 from dyn_node.errors import TrajectoryError
 from dyn_node.core.settings import Settings
 from dyn_node.core.status import Status
-from dyn_node.core.trajectory import Trajectory, validate_trajectory
+from dyn_node.core.trajectory import Trajectory, check_joint_names, validate_trajectory
 
 #: ``request`` key of every verdict: what was asked.
 REQUEST_EXECUTE, REQUEST_CHECK, REQUEST_INVERSE_DYNAMICS = "execute", "check", "inverse_dynamics"
@@ -80,19 +80,7 @@ def states(model_joints: Sequence[str], names: Sequence[str], positions: Any,
     """(Q, V, A), N×nv in model order, from per-point rows in ``names`` order. A point's empty
     velocities or accelerations mean zero (so positions alone ask for gravity); anything else
     malformed raises :class:`TrajectoryError` naming the point and field."""
-    names = list(names)
-    if not names:
-        raise TrajectoryError("request has no joint names", code="empty_names")
-    if len(set(names)) != len(names):
-        dups = sorted({n for n in names if names.count(n) > 1})
-        raise TrajectoryError(f"duplicate joint names: {', '.join(dups)}", code="duplicate_names")
-    unknown = [n for n in names if n not in model_joints]
-    if unknown:
-        raise TrajectoryError(f"joints not in the model: {', '.join(unknown)}", code="unknown_joints")
-    missing = [n for n in model_joints if n not in names]
-    if missing:
-        raise TrajectoryError(f"model joints missing from the request: {', '.join(missing)}",
-                              code="missing_joints")
+    names = check_joint_names(model_joints, names, what="request")
     n_pts = len(positions)
     if n_pts == 0:
         raise TrajectoryError("request has no points", code="empty_points")

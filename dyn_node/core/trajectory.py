@@ -57,6 +57,27 @@ class Trajectory:
         return "spline" if mode == "linear" else mode
 
 
+def check_joint_names(model_joints: Sequence[str], names: Sequence[str], *,
+                      ignored_joints: Sequence[str] = (), what: str) -> list[str]:
+    """``names`` as a list, once it names every model joint exactly once and nothing but model
+    or ``ignored_joints``; otherwise :class:`TrajectoryError` naming the problem (``what``: the
+    message's kind, for the text)."""
+    names = list(names)
+    if not names:
+        raise TrajectoryError(f"{what} has no joint names", code="empty_names")
+    if len(set(names)) != len(names):
+        dups = sorted({n for n in names if names.count(n) > 1})
+        raise TrajectoryError(f"duplicate joint names: {', '.join(dups)}", code="duplicate_names")
+    unknown = [n for n in names if n not in model_joints and n not in ignored_joints]
+    if unknown:
+        raise TrajectoryError(f"joints not in the model: {', '.join(unknown)}", code="unknown_joints")
+    missing = [n for n in model_joints if n not in names]
+    if missing:
+        raise TrajectoryError(f"model joints missing from the {what}: {', '.join(missing)}",
+                              code="missing_joints")
+    return names
+
+
 def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
                         times: Sequence[float], positions: Sequence[Sequence[float]],
                         velocities: Sequence[Sequence[float]] | None = None,
@@ -69,19 +90,7 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
     and their values are dropped, as for joint_states. Raises :class:`TrajectoryError` naming the
     first problem found.
     """
-    names = list(names)
-    if not names:
-        raise TrajectoryError("trajectory has no joint names", code="empty_names")
-    if len(set(names)) != len(names):
-        dups = sorted({n for n in names if names.count(n) > 1})
-        raise TrajectoryError(f"duplicate joint names: {', '.join(dups)}", code="duplicate_names")
-    unknown = [n for n in names if n not in model_joints and n not in ignored_joints]
-    if unknown:
-        raise TrajectoryError(f"joints not in the model: {', '.join(unknown)}", code="unknown_joints")
-    missing = [n for n in model_joints if n not in names]
-    if missing:
-        raise TrajectoryError(f"model joints missing from the trajectory: {', '.join(missing)}",
-                              code="missing_joints")
+    names = check_joint_names(model_joints, names, ignored_joints=ignored_joints, what="trajectory")
     n_pts = len(times)
     if n_pts == 0:
         raise TrajectoryError("trajectory has no points", code="empty_points")
