@@ -237,3 +237,32 @@ def test_urdf_zero_effort_and_velocity_mean_unlimited():
     lim = load_model(urdf=urdf).limits
     assert lim.effort[0] == np.inf and lim.velocity[0] == np.inf
     assert lim.position_lower[0] == -np.inf and lim.position_upper[0] == np.inf
+
+
+@pytest.mark.parametrize("text, code, words", [
+    # a misspelt section would otherwise be ignored: the check it names silently off
+    ("joint_limits: {}\nframe_limit: {panda_link8: {max_linear_speed: 0.25}}\n",
+     "limits_unknown_section", ["unknown top-level key 'frame_limit'", "did you mean 'frame_limits'"]),
+    ("joint_limits: {}\njoint_limit: {}\n", "limits_unknown_section", ["'joint_limit'",
+                                                                      "did you mean 'joint_limits'"]),
+    # the force/energy/contact sections are refused until they are checked, in both forms
+    ("joint_limits: {}\nframe_limits: {panda_link8: {max_linear_speed: 0.25}}\n",
+     "limits_unsupported_section", ["'frame_limits' is not checked by this version"]),
+    ("dyn_node:\n  ros__parameters:\n    joint_limits: {}\n    grasp: {frame: panda_hand}\n",
+     "limits_unsupported_section", ["'grasp' is not checked by this version"]),
+])
+def test_top_level_keys_that_would_switch_a_check_off_are_errors(text, code, words):
+    with pytest.raises(ModelError) as err:
+        load_limits_yaml(text)
+    assert err.value.code == code
+    for w in words:
+        assert w in str(err.value), str(err.value)
+
+
+def test_moveit_scaling_factors_and_node_parameters_beside_joint_limits_are_accepted():
+    bare = load_limits_yaml("joint_limits: {j: {max_velocity: 1.0}}\n"
+                            "default_velocity_scaling_factor: 0.1\n"
+                            "default_acceleration_scaling_factor: 0.1\n")
+    nested = load_limits_yaml("dyn_node:\n  ros__parameters:\n    robot_model: panda\n"
+                              "    joint_limits: {j: {max_velocity: 1.0}}\n")
+    assert bare == nested == {"j": {"max_velocity": 1.0}}

@@ -13,7 +13,6 @@ bounds, so dyn_node accepts and ignores them (``IGNORED_YAML_KEYS``).
 """
 from __future__ import annotations
 
-import difflib
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, replace
@@ -24,6 +23,7 @@ import numpy as np
 import yaml
 
 from dyn_node.errors import ModelError
+from dyn_node.core.task_limits import TASK_SECTIONS, UNUSED_TOP_LEVEL_KEYS, did_you_mean
 
 #: Window used for the RMS (thermal) effort limit when the limits file gives none.
 DEFAULT_RMS_WINDOW_S = 1.0
@@ -176,6 +176,24 @@ def limits_from_urdf(root: ET.Element, joint_names: Sequence[str]) -> JointLimit
         effort_speed_curve=(None,) * n)
 
 
+def _check_sections(where: str, data: Mapping[str, Any], *, bare: bool) -> None:
+    """Refuse what would switch a check off silently: in a bare limits file every top-level key
+    but ``joint_limits`` (and MoveIt's two unused scaling factors) is an error with a suggestion;
+    in either form, the force/energy/contact sections are refused until this version checks them,
+    since a limit accepted and not checked is the worst outcome. Beside ``joint_limits`` in
+    ``ros__parameters`` other node parameters may stand."""
+    known = {"joint_limits", *UNUSED_TOP_LEVEL_KEYS}
+    for key in data:
+        if key in TASK_SECTIONS:
+            raise ModelError(f"{where}: '{key}' is not checked by this version of dyn_node (only "
+                             "joint_limits are); remove it rather than rely on it",
+                             code="limits_unsupported_section")
+        if bare and key not in known:
+            raise ModelError(f"{where}: unknown top-level key '{key}'"
+                             f"{did_you_mean(str(key), (*known, *TASK_SECTIONS))}",
+                             code="limits_unknown_section")
+
+
 def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     """Parse a joint_limits YAML (path, YAML text or already-parsed mapping) into per-joint dicts.
 
@@ -197,6 +215,7 @@ def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[s
             data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
             raise ModelError(f"{where}: not valid YAML: {exc}", code="limits_bad_yaml") from exc
+    nested_form = False
     if isinstance(data, Mapping) and "joint_limits" not in data:
         # A ROS parameters file: <node name or /**>: ros__parameters: joint_limits: …
         nested = [v["ros__parameters"] for v in data.values()
@@ -207,9 +226,11 @@ def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[s
                              "give a file with one", code="limits_no_joint_limits")
         if nested:
             data = nested[0]
+            nested_form = True
     if not isinstance(data, Mapping) or not isinstance(data.get("joint_limits"), Mapping):
         raise ModelError(f"{where}: expected a top-level 'joint_limits:' mapping of joint names",
                          code="limits_no_joint_limits")
+    _check_sections(where, data, bare=not nested_form)
     out: dict[str, dict[str, Any]] = {}
     for joint, entries in data["joint_limits"].items():
         if not isinstance(entries, Mapping):
@@ -218,8 +239,7 @@ def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[s
         clean: dict[str, Any] = {}
         for key, value in entries.items():
             if key not in LIMITS_YAML_KEYS:
-                close = difflib.get_close_matches(str(key), LIMITS_YAML_KEYS, n=1)
-                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                hint = did_you_mean(str(key), LIMITS_YAML_KEYS)
                 raise ModelError(f"{where}: joint_limits.{joint}: unknown key '{key}'{hint}",
                                  code="limits_unknown_key")
             clean[key] = _coerce(where, joint, key, value)
