@@ -17,6 +17,8 @@ import math
 import numpy as np
 from numba import njit, types
 
+from dyn_node.core.kernels import joint_frame
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 _f8 = types.float64
@@ -291,27 +293,8 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
             c = index[i]
             q, qd, qdd = Q[k, c], V[k, c], A[k, c]
             R = Rw[i]
-            if revolute[i]:
-                # R = B · Rot(axis, q), Rodrigues' formula
-                sn, cs = math.sin(q), math.cos(q)
-                cc = 1.0 - cs
-                e00, e01, e02 = cs + ux * ux * cc, ux * uy * cc - uz * sn, ux * uz * cc + uy * sn
-                e10, e11, e12 = uy * ux * cc + uz * sn, cs + uy * uy * cc, uy * uz * cc - ux * sn
-                e20, e21, e22 = uz * ux * cc - uy * sn, uz * uy * cc + ux * sn, cs + uz * uz * cc
-                R[0] = b00 * e00 + b01 * e10 + b02 * e20
-                R[1] = b00 * e01 + b01 * e11 + b02 * e21
-                R[2] = b00 * e02 + b01 * e12 + b02 * e22
-                R[3] = b10 * e00 + b11 * e10 + b12 * e20
-                R[4] = b10 * e01 + b11 * e11 + b12 * e21
-                R[5] = b10 * e02 + b11 * e12 + b12 * e22
-                R[6] = b20 * e00 + b21 * e10 + b22 * e20
-                R[7] = b20 * e01 + b21 * e11 + b22 * e21
-                R[8] = b20 * e02 + b21 * e12 + b22 * e22
-            else:
-                px, py, pz = px + q * zx, py + q * zy, pz + q * zz
-                R[0], R[1], R[2] = b00, b01, b02
-                R[3], R[4], R[5] = b10, b11, b12
-                R[6], R[7], R[8] = b20, b21, b22
+            px, py, pz = joint_frame(R, b00, b01, b02, b10, b11, b12, b20, b21, b22, ux, uy, uz,
+                                     zx, zy, zz, q, revolute[i], px, py, pz)
             pw[i, 0], pw[i, 1], pw[i, 2] = px, py, pz
             z[i, 0], z[i, 1], z[i, 2] = zx, zy, zz
             # motion of the joint origin from the parent's: r = p_i − p_a moves rigidly with

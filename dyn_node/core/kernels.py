@@ -587,6 +587,37 @@ def split_terms(G: np.ndarray, F: np.ndarray, V: np.ndarray, A: np.ndarray,
     return S, W, I, tau
 
 
+@njit(inline="always", **_JIT)   # inlined: a call per joint and state would cost time
+def joint_frame(R: np.ndarray, b00: float, b01: float, b02: float, b10: float, b11: float,
+                b12: float, b20: float, b21: float, b22: float, ux: float, uy: float, uz: float,
+                zx: float, zy: float, zz: float, q: float, revolute: bool, px: float, py: float,
+                pz: float) -> tuple[float, float, float]:
+    """A one-DoF joint at coordinate q: writes its world rotation into R (9, row-major) from the
+    rotation B of its frame at q = 0 (b..) and its axis (u, joint frame; z, world), and returns
+    its origin p moved by a prismatic stroke. Shared by the gravity and frame kernels."""
+    if revolute:
+        # R = B · Rot(axis, q), Rodrigues' formula
+        sn, cs = math.sin(q), math.cos(q)
+        cc = 1.0 - cs
+        e00, e01, e02 = cs + ux * ux * cc, ux * uy * cc - uz * sn, ux * uz * cc + uy * sn
+        e10, e11, e12 = uy * ux * cc + uz * sn, cs + uy * uy * cc, uy * uz * cc - ux * sn
+        e20, e21, e22 = uz * ux * cc - uy * sn, uz * uy * cc + ux * sn, cs + uz * uz * cc
+        R[0] = b00 * e00 + b01 * e10 + b02 * e20
+        R[1] = b00 * e01 + b01 * e11 + b02 * e21
+        R[2] = b00 * e02 + b01 * e12 + b02 * e22
+        R[3] = b10 * e00 + b11 * e10 + b12 * e20
+        R[4] = b10 * e01 + b11 * e11 + b12 * e21
+        R[5] = b10 * e02 + b11 * e12 + b12 * e22
+        R[6] = b20 * e00 + b21 * e10 + b22 * e20
+        R[7] = b20 * e01 + b21 * e11 + b22 * e21
+        R[8] = b20 * e02 + b21 * e12 + b22 * e22
+        return px, py, pz
+    R[0], R[1], R[2] = b00, b01, b02
+    R[3], R[4], R[5] = b10, b11, b12
+    R[6], R[7], R[8] = b20, b21, b22
+    return px + q * zx, py + q * zy, pz + q * zz
+
+
 # One compiled pass per state over the joint tree: split into calls, per-state overhead
 # would break the check's time budget.
 @njit([types.void(_M, _I, _B, _I, _M, _M, _M, _V, types.Array(_f8, 2, "C"))], **_JIT)
@@ -638,27 +669,8 @@ def gravity_rows(Q: np.ndarray, parent: np.ndarray, revolute: np.ndarray, index:
             z[i, 0], z[i, 1], z[i, 2] = zx, zy, zz
             q = Q[k, index[i]]
             R = Rw[i]
-            if revolute[i]:
-                # R = B · Rot(axis, q), Rodrigues' formula
-                sn, cs = math.sin(q), math.cos(q)
-                cc = 1.0 - cs
-                e00, e01, e02 = cs + ux * ux * cc, ux * uy * cc - uz * sn, ux * uz * cc + uy * sn
-                e10, e11, e12 = uy * ux * cc + uz * sn, cs + uy * uy * cc, uy * uz * cc - ux * sn
-                e20, e21, e22 = uz * ux * cc - uy * sn, uz * uy * cc + ux * sn, cs + uz * uz * cc
-                R[0] = b00 * e00 + b01 * e10 + b02 * e20
-                R[1] = b00 * e01 + b01 * e11 + b02 * e21
-                R[2] = b00 * e02 + b01 * e12 + b02 * e22
-                R[3] = b10 * e00 + b11 * e10 + b12 * e20
-                R[4] = b10 * e01 + b11 * e11 + b12 * e21
-                R[5] = b10 * e02 + b11 * e12 + b12 * e22
-                R[6] = b20 * e00 + b21 * e10 + b22 * e20
-                R[7] = b20 * e01 + b21 * e11 + b22 * e21
-                R[8] = b20 * e02 + b21 * e12 + b22 * e22
-            else:
-                px, py, pz = px + q * zx, py + q * zy, pz + q * zz
-                R[0], R[1], R[2] = b00, b01, b02
-                R[3], R[4], R[5] = b10, b11, b12
-                R[6], R[7], R[8] = b20, b21, b22
+            px, py, pz = joint_frame(R, b00, b01, b02, b10, b11, b12, b20, b21, b22, ux, uy, uz,
+                                     zx, zy, zz, q, revolute[i], px, py, pz)
             pw[i, 0], pw[i, 1], pw[i, 2] = px, py, pz
             m, c0, c1, c2 = body[i, 0], body[i, 1], body[i, 2], body[i, 3]
             Ms[i] = m

@@ -272,6 +272,17 @@ def _coerce(where: str, joint: str, key: str, value: Any) -> Any:
     return curve
 
 
+def _set_range(arrays: dict[str, np.ndarray], i: int, entry: Mapping[str, Any], flag: str,
+               **keys: str) -> None:
+    """A lower/upper pair of joint i from ``entry`` (``keys``: array name → YAML key, lower
+    first): both unlimited when ``flag`` is false, else each given value."""
+    for (target, key), unlimited in zip(keys.items(), (-np.inf, np.inf)):
+        if entry.get(flag) is False:
+            arrays[target][i] = unlimited
+        elif key in entry:
+            arrays[target][i] = entry[key]
+
+
 def merge_limits(base: JointLimits, overrides: Mapping[str, Mapping[str, Any]],
                  where: str = "limits") -> JointLimits:
     """Apply parsed YAML overrides on top of URDF limits; YAML wins, ``has_*: false`` removes.
@@ -303,20 +314,10 @@ def merge_limits(base: JointLimits, overrides: Mapping[str, Mapping[str, Any]],
 
     for joint, e in overrides.items():
         i = idx[joint]
-        if e.get("has_position_limits") is False:
-            arrays["position_lower"][i], arrays["position_upper"][i] = -np.inf, np.inf
-        else:
-            if "min_position" in e:
-                arrays["position_lower"][i] = e["min_position"]
-            if "max_position" in e:
-                arrays["position_upper"][i] = e["max_position"]
-        if e.get("has_soft_limits") is False:
-            arrays["soft_lower"][i], arrays["soft_upper"][i] = -np.inf, np.inf
-        else:
-            if "soft_lower_limit" in e:
-                arrays["soft_lower"][i] = e["soft_lower_limit"]
-            if "soft_upper_limit" in e:
-                arrays["soft_upper"][i] = e["soft_upper_limit"]
+        _set_range(arrays, i, e, "has_position_limits", position_lower="min_position",
+                   position_upper="max_position")
+        _set_range(arrays, i, e, "has_soft_limits", soft_lower="soft_lower_limit",
+                   soft_upper="soft_upper_limit")
         if e.get("angle_wraps") is True:
             given = [k for k in ("has_position_limits", "min_position", "max_position",
                                  "soft_lower_limit", "soft_upper_limit")
