@@ -4,6 +4,8 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.dyn_node-installed
+# compiled again whenever a kernel source changes, so no node or test stops to compile
+KERNELS := $(VENV)/.dyn_node-kernels
 PIP    := $(PY) -m pip --disable-pip-version-check -q
 # Tests bring up their own ROS 2 processes; keep them on this machine and off other domains.
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
@@ -19,21 +21,24 @@ $(STAMP): requirements.txt setup.py package.xml
 	@# setup.cfg installs the commands in $(VENV)/lib/dyn_node (the ament layout `ros2 run` needs);
 	@# linked into $(VENV)/bin too, so `source $(VENV)/bin/activate` puts them on PATH
 	@for s in $(VENV)/lib/dyn_node/*; do ln -sf "../lib/dyn_node/$${s##*/}" "$(VENV)/bin/$${s##*/}"; done
-	@echo "compiling the feasibility kernels (first run only, ~15 s; cached in dyn_node/__pycache__)"
-	$(PY) -c "import dyn_node.core.kernels"
 	@touch $@
 
-demo: $(STAMP)
+$(KERNELS): $(STAMP) $(wildcard dyn_node/core/*kernels.py)
+	@echo "compiling the Numba kernels (after an install or a kernel change, ~30 s; cached in dyn_node/__pycache__)"
+	$(PY) -c "import dyn_node.core.kernels, dyn_node.core.frame_kernels, dyn_node.core.law_kernels"
+	@touch $@
+
+demo: $(KERNELS)
 	$(PY) -m dyn_node.ros.demo
 
-test: $(STAMP)
+test: $(KERNELS)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-bench: $(STAMP)
+bench: $(KERNELS)
 	$(PY) -m benchmarks.run $(BENCH_ARGS)
 
 # Not in CI: the demo stack at 1 kHz with recording and splitting for SOAK_MINUTES (default 30).
-soak: $(STAMP)
+soak: $(KERNELS)
 	$(PY) -m benchmarks.soak $(SOAK_ARGS)
 
 lock: $(STAMP)

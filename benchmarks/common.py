@@ -107,6 +107,15 @@ def machine_info() -> dict:
     }
 
 
+def percentile(xs: list[float], p: float) -> float:
+    """The ``p``-th percentile (0-100) of ``xs`` by the nearest rank (an observed value)."""
+    xs = sorted(xs)
+    if not xs:
+        return float("nan")
+    k = min(len(xs) - 1, max(0, int(round(p / 100 * (len(xs) - 1)))))
+    return xs[k]
+
+
 def module_available(name: str) -> str | None:
     """None if ``dyn_node.<name>`` imports, else the reason it does not."""
     try:

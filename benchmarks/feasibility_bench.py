@@ -23,7 +23,7 @@ from dyn_node.core import kernels
 from dyn_node.core.dynamics import Dynamics, gravity_tables
 from dyn_node.core.model import load_model
 
-from . import frames_bench
+from . import frames_bench, task_feasibility
 from .common import NotAvailable, median_time, module_available, progress
 
 DURATION_S = 10.0
@@ -148,12 +148,34 @@ def _measure(mode: str, repeats: int) -> dict:
                 "passes_nm": rnea_passes(1, payload=False),
                 "gravity_kernel": gravity_kernel, "gravity_rnea": gravity_rnea,
                 **frames_bench.subjects(dyn.model, Q, V, A)}
+    if mode == "retain":
+        # not beside the default-heap rows: its larger arrays raise glibc's dynamic mmap
+        # threshold, which would hide the page faults those rows exist to show
+        subjects.update(_task_subjects(F, dyn, traj, options))
     times, faults = _rounds(subjects, repeats)
     return dict(mode=mode, applied=bool(applied),
                 median_s={k: statistics.median(v) for k, v in times.items()},
                 faults={k: int(statistics.median(v)) for k, v in faults.items()},
                 ratio={k: statistics.median(t / base for t, base in zip(v, times["loop"]))
                        for k, v in times.items() if k != "loop"})
+
+
+def _task(F, dyn, traj, options):
+    """Issue 18's subject (see task_feasibility): (its Dynamics, subjects) or why not available."""
+    return task_feasibility.setup(F, every_limit_kind(dyn.model), traj, options)
+
+
+def _task_subjects(F, dyn, traj, options) -> dict:
+    task = _task(F, dyn, traj, options)
+    return {} if isinstance(task, str) else task[1]
+
+
+def _task_row(F, dyn, traj, options, runs: list[dict]) -> dict:
+    task = _task(F, dyn, traj, options)
+    if isinstance(task, str):
+        return task_feasibility.row(runs, None, task)
+    result = F.check_trajectory(task[0], traj, options["check"])
+    return task_feasibility.row(runs, result, task_feasibility.coverage_gap(result))
 
 
 def _measure_in_child(mode: str, repeats: int) -> dict:
@@ -199,7 +221,8 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
     def ratio(key: str) -> float:
         return statistics.median(r["ratio"][key] for r in runs)
 
-    return dict(n_samples=int(len(Q)), nv=dyn.nv, duration_s=DURATION_S, repeats=repeats,
+    return dict(task=_task_row(F, dyn, traj, options, runs),
+                n_samples=int(len(Q)), nv=dyn.nv, duration_s=DURATION_S, repeats=repeats,
                 processes=processes,
                 check_s=med("check"), rnea_loop_s=med("loop"), ratio=ratio("check"),
                 threads=1, cores=cores,

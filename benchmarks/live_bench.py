@@ -18,6 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from . import detection
 from .common import REPO, NotAvailable, progress, read_vm
 
 
@@ -36,18 +37,23 @@ def ros_env() -> dict[str, str]:
 
 
 def _dyn_node_reason() -> str | None:
-    if not (REPO / "dyn_node" / "node.py").exists():
-        return "dyn_node/ros/node.py does not exist yet"
-    return None
+    return _missing("ros/node.py")
 
 
 def _recording_reason() -> str | None:
-    why = _dyn_node_reason()
-    if why:
-        return why
-    for mod in ("recording.py", "ros_recording.py"):
-        if not (REPO / "dyn_node" / mod).exists():
-            return f"dyn_node/{mod} does not exist yet"
+    return _missing("ros/node.py", "ros/recording.py", "bag/recorder.py")
+
+
+def _contact_reason() -> str | None:
+    # a node that does not publish the outputs yet is reported by the probe ("no publisher on")
+    return _missing("ros/node.py", "core/contact_monitor.py")
+
+
+def _missing(*paths: str) -> str | None:
+    """Why a subject cannot run: the first of ``paths`` (under dyn_node/) that does not exist."""
+    for rel in paths:
+        if not (REPO / "dyn_node" / rel).exists():
+            return f"dyn_node/{rel} does not exist"
     return None
 
 
@@ -74,6 +80,14 @@ def subjects(record_dir: str) -> list[dict]:
                   "-p", "record.enabled:=true", "-p", f"record.directory:={record_dir}"],
              output="/dyn_node/inverse_dynamics", module="dyn_node.ros.node",
              reason=_recording_reason()),
+        dict(key="dyn_node_contact", name="(e) dyn_node, contact observer on",
+             what="as (c) with joint_states carrying efforts (the model's, a free motion): the "
+                  "momentum observer, ~/external_torque (timed) and ~/external_wrench (counted), "
+                  "dyn_node: contact and energy",
+             cmd=[py, "-m", "dyn_node.ros.node", "--ros-args", "-p", "robot_model:=panda"],
+             output="/dyn_node/external_torque", module="dyn_node.ros.node",
+             probe_args=["--effort", "--also", "/dyn_node/external_wrench"],
+             reason=_contact_reason()),
     ]
 
 
@@ -107,6 +121,8 @@ def _wait_cmdline(pid: int, module: str, timeout: float = 10.0) -> None:
 
 #: runs of (c) and (d) the recording overhead is the median over (the first pair is the main rows)
 RECORDING_PAIRS = 3
+#: runs of (b) and (e) the contact observer's p99 ratio is the median over (likewise)
+CONTACT_PAIRS = 2
 
 
 def _median(xs: list[float]) -> float:
@@ -130,7 +146,7 @@ def run_subject(s: dict, rates: str, window: float, ready_timeout: float, repeat
                                     "--subject-pid", str(proc.pid), "--rates", rates,
                                     "--window", str(window), "--ready-timeout", str(ready_timeout),
                                     "--repeat-first", str(repeat_first),
-                                    "--out", out.name],
+                                    "--out", out.name, *s.get("probe_args", [])],
                                    cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                    text=True, timeout=ready_timeout + 60 + 10 * window * (len(rates.split(",")) + repeat_first))
             result = json.loads(Path(out.name).read_text() or "{}")
@@ -163,10 +179,26 @@ def run_subject(s: dict, rates: str, window: float, ready_timeout: float, repeat
                cpu_us_per_output_1k=_median([w["cpu_us_per_output"] for w in first]),
                loss_1k=1.0 - got / sent if sent else float("nan"),
                achieved_hz_1k=_median([w["achieved_hz"] for w in first]), windows_1k=len(first))
+    if all("also_received" in w for w in first):
+        also = sum(w["also_received"] for w in first)
+        row["also_loss_1k"] = 1.0 - also / sent if sent else float("nan")
     held = [w["achieved_hz"] for w in result["windows"] if w["loss"] == 0.0]
     row["max_rate_no_loss_hz"] = max(held) if held else 0.0
     row["exit_code"] = rc
     return row
+
+
+def _alternate(subj: dict, keys: tuple[str, str], runs: int, window: float, repeat_first: int,
+               label: str) -> list[tuple[dict, dict]]:
+    """``runs`` more runs of two subjects one after the other at 1 kHz: the pairs (both ok)."""
+    out = []
+    for n in range(runs):
+        progress("live", f"{label}: pair {n + 2}/{runs + 1} of {' and '.join(keys)} at 1 kHz")
+        a, b = (run_subject(subj[k], "1000", window, ready_timeout=30.0,
+                            repeat_first=repeat_first) for k in keys)
+        if a.get("status") == "ok" and b.get("status") == "ok":
+            out.append((a, b))
+    return out
 
 
 def run(quick: bool = False, smoke: bool = False) -> dict:
@@ -186,19 +218,18 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
             progress("live", f"{s['name']}: {row['status']}")
             out["rows"].append(row)
         by = {r["key"]: r for r in out["rows"] if r.get("status") == "ok"}
+        # Recording's cost is a few percent of a process CPU share that itself drifts by more
+        # than that between runs minutes apart, and (e) runs minutes after (b) on a shared
+        # machine, so those pairs run again, alternately, at 1 kHz only, and their figures are
+        # medians over the pairs.
+        subj = {s["key"]: s for s in every}
         if "dyn_node" in by and "dyn_node_record" in by:
-            pairs.append((by["dyn_node"], by["dyn_node_record"]))
-            # Recording's cost is a few percent of a process CPU share that itself drifts by more
-            # than that between runs minutes apart, so (c) and (d) run again, alternately, at
-            # 1 kHz only, and the overhead is the median over the pairs.
-            subj = {s["key"]: s for s in every}
-            for n in range(1, 1 if quick or smoke else RECORDING_PAIRS):
-                progress("live", f"recording overhead: pair {n + 1}/{RECORDING_PAIRS} of (c) and (d) "
-                                 "at 1 kHz")
-                c, d = (run_subject(subj[k], "1000", window, ready_timeout=30.0,
-                                    repeat_first=repeat_first) for k in ("dyn_node", "dyn_node_record"))
-                if c.get("status") == "ok" and d.get("status") == "ok":
-                    pairs.append((c, d))
+            pairs = [(by["dyn_node"], by["dyn_node_record"])] + _alternate(
+                subj, ("dyn_node", "dyn_node_record"), 0 if quick else RECORDING_PAIRS - 1,
+                window, repeat_first, "recording overhead")
+        contact = [(by["minimal"], by["dyn_node_contact"])] + _alternate(
+            subj, ("minimal", "dyn_node_contact"), 0 if quick else CONTACT_PAIRS - 1, window,
+            repeat_first, "contact observer cost") if {"minimal", "dyn_node_contact"} <= set(by) else []
     cmp: dict = {}
     if "dyn_node" in by and "minimal" in by:
         cmp["p99_dyn_node_over_minimal_1k"] = by["dyn_node"]["p99_us_1k"] / by["minimal"]["p99_us_1k"]
@@ -206,6 +237,16 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
         cmp["max_rate_dyn_node_over_minimal"] = (
             by["dyn_node"]["max_rate_no_loss_hz"] / by["minimal"]["max_rate_no_loss_hz"]
             if by["minimal"]["max_rate_no_loss_hz"] else float("nan"))
+    if contact:
+        ratios = [e["p99_us_1k"] / b["p99_us_1k"] for b, e in contact]
+        cmp["p99_contact_over_minimal_1k"] = _median(ratios)
+        out["p99_contact_over_minimal_1k_by_pair"] = ratios
+        # "no loss" has to hold in every run, so the worst run's loss is the figure
+        cmp["loss_contact_1k"] = max(e["loss_1k"] for _, e in contact)
+        cmp["loss_contact_wrench_1k"] = max(e.get("also_loss_1k", float("nan")) for _, e in contact)
+        if "dyn_node" in by:
+            cmp["p99_contact_over_dyn_node_1k"] = (by["dyn_node_contact"]["p99_us_1k"]
+                                                   / by["dyn_node"]["p99_us_1k"])
     if "minimal" in by and "bare" in by:
         cmp["p99_minimal_over_bare_1k"] = by["minimal"]["p99_us_1k"] / by["bare"]["p99_us_1k"]
     pairs = [(c, d) for c, d in pairs if c["cpu_share_1k"] > 0 and c["cpu_us_per_output_1k"] > 0]
@@ -217,4 +258,8 @@ def run(quick: bool = False, smoke: bool = False) -> dict:
         cmp["recording_cpu_per_output_overhead_1k"] = _median(per_output)
         out["recording_cpu_overhead_1k_by_pair"] = share
     out["comparisons"] = cmp
+    if not smoke:   # the simulated stack's pushes take minutes: not in the harness smoke test
+        progress("live", "detection latency (benchmarks.contact_bench)")
+        out["detection"] = detection.run(quick=quick, smoke=smoke)
+        progress("live", f"detection latency: {out['detection']['status']}")
     return out

@@ -36,7 +36,14 @@ _COMPARISON_LABELS = {
     "p99_minimal_over_bare_1k": "live: minimal node p99 ÷ bare republisher p99 at 1 kHz",
     "recording_cpu_overhead_1k": "live: CPU added by recording, whole process (target ≤ 10%)",
     "recording_cpu_per_output_overhead_1k": "live: CPU added by recording, per output answered",
+    "p99_contact_over_minimal_1k": "live: dyn_node with the contact observer (e) p99 ÷ minimal node "
+                                   "p99 at 1 kHz (target ≤ 1.0)",
+    "p99_contact_over_dyn_node_1k": "live: (e) p99 ÷ dyn_node (c) p99 at 1 kHz",
+    "loss_contact_1k": "live: (e) ~/external_torque lost at 1 kHz (target 0)",
+    "loss_contact_wrench_1k": "live: (e) ~/external_wrench lost at 1 kHz (target 0)",
 }
+#: comparisons that are fractions (shown as percentages)
+_FRACTION_KEYS = ("overhead", "loss_")
 
 
 def _table(header: list[str], rows: list[list[str]]) -> str:
@@ -137,8 +144,52 @@ def live_md(sec: dict) -> str:
                      f"(target ≤ 10%{how})")
     else:
         lines.append("- recording CPU overhead: not measured (row (c) or (d) not available)")
+    lines.append(_contact_md(d))
     text.append("\n".join(lines))
+    if d.get("detection"):
+        text.append(_detection_md(d["detection"]))
     return "\n\n".join(text)
+
+
+def _contact_md(d: dict) -> str:
+    """Issue 19's cost lines: (e) against the minimal node in the same run, and its loss."""
+    c = d.get("comparisons", {})
+    if "p99_contact_over_minimal_1k" not in c:
+        why = next((r["status"] for r in d["rows"] if r.get("key") == "dyn_node_contact"),
+                   "row (e) not run")
+        return f"- contact observer on ((e) ÷ minimal node): not measured ({why})"
+    by_pair = d.get("p99_contact_over_minimal_1k_by_pair", [])
+    how = (f"median of {len(by_pair)} runs of (b) and (e) one after the other: "
+           + ", ".join(f"{x:.2f}" for x in by_pair) + "; ") if len(by_pair) > 1 else ""
+    return (f"- contact observer on: (e) p99 ÷ minimal node p99 at 1 kHz: "
+            f"**{c['p99_contact_over_minimal_1k']:.2f}** ({how}target ≤ 1.0; (e) ÷ (c): "
+            f"{_ratio(c.get('p99_contact_over_dyn_node_1k'))}); lost at 1 kHz: ~/external_torque "
+            f"**{_pct(c['loss_contact_1k'])}**, ~/external_wrench "
+            f"{_pct(c.get('loss_contact_wrench_1k'))} (the worst run; target none)")
+
+
+def _detection_line(det: dict) -> str:
+    if det.get("status") != "ok":
+        return det.get("status", "")
+    return (f"median {_f(det['median_ms'])} ms, p95 {_f(det['p95_ms'])} ms over "
+            f"{det['detected']} of {det['pushes']} pushes; 1/K = {_f(det['one_over_k_ms'])} ms, "
+            f"3/K = {_f(det['three_over_k_ms'])} ms")
+
+
+def _detection_md(det: dict) -> str:
+    head = ("Contact detection latency (issue 19): from the first sample a push moved (dyn_sim's "
+            "MuJoCo simulator at 1 kHz) to the first `contact` state of the node's ContactMonitor "
+            "fed every sample (no DDS: the rows above are the transport), measured by "
+            "benchmarks/contact_bench.py")
+    if det.get("status") != "ok":
+        return f"{head}: {det.get('status')}"
+    few = "" if det.get("enough", True) else " (fewer pushes than the 20 the figure needs)"
+    return (f"{head}{': ' + det['what'] if det.get('what') else ''}.\n\n" + _table(
+        ["pushes (detected / applied)", "force (N)", "median (ms)", "p95 (ms)", "max (ms)",
+         "1/K (ms)", "3/K, 95 % rise (ms)", "contact_min_duration (ms, included)"],
+        [[f"{det['detected']} / {det['pushes']}{few}", _f(det.get("force_n")),
+          _f(det["median_ms"]), _f(det["p95_ms"]), _f(det["max_ms"]), _f(det["one_over_k_ms"]),
+          _f(det["three_over_k_ms"]), _f(det.get("min_duration_ms"))]]))
 
 
 def feasibility_md(sec: dict) -> str:
@@ -177,6 +228,7 @@ def _feasibility_rows(d: dict) -> list[list[str]]:
     else:
         rows.append(row(d["what"], d["check_s"], d["ratio"], "≤ 1.0× (issue 8), ≤ 1.5× (issue 4)",
                         True))
+    rows += _task_rows(d.get("task"), row, loop)
     if "check_all_cores_s" in d:
         rows.append(row(d["what_all_cores"], d["check_all_cores_s"], d["ratio_all_cores"]))
         if "check_no_margin_all_cores_s" in d:
@@ -207,6 +259,22 @@ def _feasibility_rows(d: dict) -> list[list[str]]:
                          "check", _f(h["check_s"] * 1e3), _f(h["loop_s"] * 1e3),
                          f"{h.get('ratio', h['check_s'] / h['loop_s']):.2f}×", ""])
     return rows
+
+
+def _task_rows(t: dict | None, row, loop: float) -> list[list[str]]:
+    """Issue 18's rows: every joint kind and every task kind configured."""
+    if not t:
+        return []
+    target = "≤ 2.0× (issue 18)"
+    if t.get("status") != "ok":
+        return [[t["what"], t["status"], _f(loop * 1e3), "—", target]]
+    by = ", ".join(f"{r:.2f}×" for r in t["ratio_no_margin_by_process"])
+    w = t["worst_task"]
+    return [row(f"{t['what']}, without the payload margin (by process: {by}; the joint kinds "
+                f"alone {t['joint_kinds_ratio_no_margin']:.2f}× in the same rounds; worst task "
+                f"kind {w['kind']} at {w['place']} {w['ratio']:.2f} of its limit)",
+                t["check_no_margin_s"], t["ratio_no_margin"], target, bold=True),
+            row(f"{t['what']}, with the payload margin", t["check_s"], t["ratio"])]
 
 
 def recording_md(sec: dict) -> str:
@@ -326,7 +394,12 @@ def summary_md(doc: dict) -> str:
                          if r.get("status") == "ok" else r["status"]])
         for k, v in live.get("comparisons", {}).items():
             # the recording overheads are fractions of the process CPU: shown as percentages
-            rows.append([_COMPARISON_LABELS.get(k, k), _pct(v) if "overhead" in k else _ratio(v)])
+            rows.append([_COMPARISON_LABELS.get(k, k),
+                         _pct(v) if any(f in k for f in _FRACTION_KEYS) else _ratio(v)])
+        det = live.get("detection")
+        if det:
+            rows.append(["live: contact detection latency (simulated push → first `contact`)",
+                         _detection_line(det)])
     feas = doc["sections"].get("feasibility", {})
     if feas.get("result"):
         f = feas["result"]
@@ -336,6 +409,12 @@ def summary_md(doc: dict) -> str:
                          f"{_f(f['check_no_margin_s'] * 1e3)} ms = {f['ratio_no_margin']:.2f}× the loop; "
                          f"its torque passes alone "
                          f"{f.get('ratio_passes_no_margin', f['rnea_passes_no_margin_s'] / f['rnea_loop_s']):.2f}×"])
+        t = f.get("task")
+        if t:
+            rows.append(["feasibility, 10,000 samples, every joint kind + every force/energy/"
+                         "contact kind (target ≤ 2.0×)",
+                         f"{_f(t['check_no_margin_s'] * 1e3)} ms = {t['ratio_no_margin']:.2f}× "
+                         "the loop" if t.get("status") == "ok" else t["status"]])
     elif feas:
         rows.append(["feasibility", feas.get("status", "")])
     rec = doc["sections"].get("recording", {})

@@ -4,6 +4,8 @@
 --out result.json``: per rate, stamp-to-receipt latency p50/p99, loss and the subject's CPU share;
 it stops after the first rate that loses more than 1%. Outputs are subscribed raw and only the
 stamp is read, so the probe keeps up at high rates. Definitions: docs/BENCHMARK_METHODS.md.
+``--effort``: the publisher sends efforts too; ``--also TOPIC``: a second output
+(geometry_msgs/WrenchStamped) whose messages of each window are counted (``also_loss``).
 """
 from __future__ import annotations
 
@@ -19,18 +21,22 @@ import time
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from geometry_msgs.msg import WrenchStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from .common import read_proc_cpu
+from .common import percentile as _percentile, read_proc_cpu
 
 
 class Receiver(Node):
-    def __init__(self, topic: str, reliability: ReliabilityPolicy) -> None:
-        super().__init__("bench_probe")
+    def __init__(self, topic: str, reliability: ReliabilityPolicy, msg_type: type = JointState,
+                 name: str = "bench_probe") -> None:
+        super().__init__(name)
+        self.reliability = reliability
         self.stamps: list[int] = []
         self.receipts: list[int] = []
-        self.create_subscription(JointState, topic, self.on_message,
+        # both types start with a std_msgs/Header, so the stamp is at the same offset
+        self.create_subscription(msg_type, topic, self.on_message,
                                  QoSProfile(depth=1000, reliability=reliability), raw=True)
 
     def on_message(self, data: bytes) -> None:
@@ -41,12 +47,21 @@ class Receiver(Node):
         self.receipts.append(now)
 
 
-def _percentile(xs: list[float], p: float) -> float:
-    xs = sorted(xs)
-    if not xs:
-        return float("nan")
-    k = min(len(xs) - 1, max(0, int(round(p / 100 * (len(xs) - 1)))))
-    return xs[k]
+def _receiver(discover: Node, topic: str, deadline: float, timeout: float,
+              msg_type: type = JointState, name: str = "bench_probe") -> Receiver:
+    """A Receiver on ``topic`` with its publisher's reliability, once that publisher exists."""
+    infos = []
+    while time.monotonic() < deadline and not infos:
+        infos = discover.get_publishers_info_by_topic(topic)
+        if not infos:
+            time.sleep(0.05)
+    if not infos:
+        raise RuntimeError(f"no publisher on {topic} within {timeout:.0f} s")
+    return Receiver(topic, infos[0].qos_profile.reliability, msg_type, name)
+
+
+def _count_between(stamps: list[int], first: int, last: int) -> int:
+    return len({s for s in stamps if first <= s <= last})
 
 
 def main() -> None:
@@ -59,10 +74,13 @@ def main() -> None:
                     help="windows at the first rate (the figures at that rate are medians)")
     ap.add_argument("--ready-timeout", type=float, default=30.0)
     ap.add_argument("--out", required=True)
+    ap.add_argument("--effort", action="store_true", help="joint_states carry efforts")
+    ap.add_argument("--also", default="", help="a second output (WrenchStamped) to count")
     args = ap.parse_args()
     result: dict = {"output_topic": args.output, "windows": []}
 
-    pub = subprocess.Popen([sys.executable, "-m", "benchmarks.ros_publisher"], stdin=subprocess.PIPE,
+    pub = subprocess.Popen([sys.executable, "-m", "benchmarks.ros_publisher"]
+                           + (["--effort"] if args.effort else []), stdin=subprocess.PIPE,
                            stdout=subprocess.PIPE, text=True, bufsize=1)
 
     def command(line: str) -> str:
@@ -75,18 +93,14 @@ def main() -> None:
     discover = Node("bench_probe_discovery")
     try:
         deadline = time.monotonic() + args.ready_timeout
-        infos = []
-        while time.monotonic() < deadline and not infos:
-            infos = discover.get_publishers_info_by_topic(args.output)
-            if not infos:
-                time.sleep(0.05)
-        if not infos:
-            raise RuntimeError(f"no publisher on {args.output} within {args.ready_timeout:.0f} s")
-        reliability = infos[0].qos_profile.reliability
-        result["output_reliability"] = reliability.name
-        receiver = Receiver(args.output, reliability)
+        receiver = _receiver(discover, args.output, deadline, args.ready_timeout)
+        result["output_reliability"] = receiver.reliability.name
+        also = (_receiver(discover, args.also, deadline, args.ready_timeout, WrenchStamped,
+                          "bench_probe_also") if args.also else None)
         executor = SingleThreadedExecutor()
         executor.add_node(receiver)
+        if also:
+            executor.add_node(also)
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
         if command("match 1") != "matched":
@@ -131,6 +145,10 @@ def main() -> None:
                           cpu_share=(c1 - c0) / (w1 - w0),
                           cpu_us_per_output=(c1 - c0) / got * 1e6 if got else float("nan"),
                           step=step)
+            if also:
+                n_also = _count_between(list(also.stamps), first, last)
+                window.update(also_received=n_also,
+                              also_loss=max(0.0, 1.0 - n_also / sent) if sent else float("nan"))
             result["windows"].append(window)
             print(json.dumps(window), file=sys.stderr, flush=True)
             if last_of_rate and any(w["loss"] > 0.01 for w in result["windows"]

@@ -57,3 +57,25 @@ def two_link_terms(q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray
     C = np.array([[h * v[1], h * (v[0] + v[1])], [-h * v[0], 0.0]])
     g = np.array([(M1 + M2) * G * L1 * c1 + M2 * G * L2 * c12, M2 * G * L2 * c12])
     return M, C, g
+
+
+def with_friction_urdf(text: str) -> str:
+    """The URDF with distinct damping and Coulomb friction on every moving joint's <dynamics>."""
+    import xml.etree.ElementTree as ET
+    root = ET.fromstring(text)
+    for i, j in enumerate(root.findall("joint")):
+        if j.get("type") in ("revolute", "continuous", "prismatic"):
+            for d in j.findall("dynamics"):
+                j.remove(d)
+            ET.SubElement(j, "dynamics", damping=str(0.1 + 0.02 * i), friction=str(0.3 + 0.05 * i))
+    return ET.tostring(root, encoding="unicode")
+
+
+def fast_panda_points(limits, ready: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(times, positions) of a fast Panda motion: 0.6 s segments out, back and the other way, at
+    90 % of the speed limits when interpolated as quintics (a quintic's peak speed is 1.875·Δ/T)."""
+    sign = np.array([1.0, -0.6, -1.0, 1.0, 1.0, -1.0, 1.0])
+    seg = 0.6
+    big = 0.9 * limits.velocity * seg / 1.875 * sign
+    times = np.array([0.1, 0.1 + seg, 0.1 + 2 * seg, 0.1 + 3 * seg])
+    return times, np.vstack([ready, ready + big, ready, ready - 0.5 * big])

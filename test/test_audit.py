@@ -22,7 +22,8 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_bag_reader import T0, BagWriter, joint_state  # noqa: E402
 
-from dyn_node.audit.bag_audit import AuditOptions, SeriesBins, main, run_audit, MAX_BINS  # noqa: E402
+from dyn_node.audit.bag_audit import AuditOptions, main, run_audit  # noqa: E402
+from dyn_node.audit.replay_common import MAX_BINS, SeriesBins  # noqa: E402
 from dyn_node.bag.reader import BagReader, decode_joint_state  # noqa: E402
 from dyn_node.audit.evidence import schema  # noqa: E402
 from dyn_node.core.model import load_model  # noqa: E402
@@ -530,10 +531,10 @@ def test_cli_module_runs_and_reports_progress_only_on_a_tty(tmp_path):
 
 
 def record_node_run(ros_context, tmp_path: Path, n: int, *, trajectories_at: Sequence[int] = (150,),
-                    at: dict | None = None) -> str:
+                    at: dict | None = None, params: Sequence = ()) -> str:
     """A real DynNode recording its inputs and outputs (record.enabled): n joint_states at
-    ~300 Hz, a trajectory at each of ``trajectories_at``; ``at[i](node)`` runs before input i.
-    Returns the bag path once every output is recorded."""
+    ~300 Hz, a trajectory at each of ``trajectories_at``; ``at[i](node)`` runs before input i;
+    ``params``: more parameter overrides. Returns the bag path once every output is recorded."""
     from rclpy.node import Node
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import JointState
@@ -544,7 +545,7 @@ def record_node_run(ros_context, tmp_path: Path, n: int, *, trajectories_at: Seq
 
     node = DynNode(context=ros_context, parameter_overrides=[
         Parameter("robot_model", value="panda"), Parameter("record.enabled", value=True),
-        Parameter("record.directory", value=str(tmp_path / "bags"))])
+        Parameter("record.directory", value=str(tmp_path / "bags")), *params])
     bridge = node.recording
     pub_node = Node("audit_test_publisher", context=ros_context)
     js_pub = pub_node.create_publisher(JointState, "joint_states", 1000)

@@ -22,6 +22,7 @@ from benchmarks.common import SYSTEM_PYTHON, read_proc_cpu, read_vm, system_pykd
 from benchmarks.dynamics_bench import random_states
 from benchmarks.mujoco_ref import MujocoInverse
 from benchmarks.numpy_rnea import NumpyRNEA
+from benchmarks.task_feasibility import TASK_KINDS
 from dyn_node.core.model import load_model
 from robots import BRANCHED_URDF
 
@@ -104,11 +105,15 @@ def test_kdl_worker_matches_pinocchio_or_reports_why() -> None:
         np.testing.assert_allclose(tau, _pin_loop(model.pin_model, Q, V, A), rtol=0, atol=1e-9)
 
 
+@pytest.mark.timeout(60)
 def test_proc_readers_see_this_process() -> None:
     t0 = read_proc_cpu(os.getpid())
     x = 0.0
-    for i in range(300_000):  # burn a little CPU so utime must move
-        x += i * 0.5
+    # burn CPU until our own CPU time moves (the kernel counts in clock ticks); a reader that never
+    # sees it move fails by the timeout
+    while read_proc_cpu(os.getpid()) == t0:
+        for i in range(100_000):
+            x += i * 0.5
     assert read_proc_cpu(os.getpid()) > t0
     assert read_vm(os.getpid(), "VmHWM") >= read_vm(os.getpid(), "VmRSS") > 1.0
 
@@ -172,7 +177,97 @@ def test_bench_harness_smoke(tmp_path, ros_domain: int) -> None:
     if f["heap_retained"]:
         assert f["heap"]["retain"]["faults"] < f["heap"]["default"]["faults"] // 10, f["heap"]
     assert set(f["heap"]) == {"default", "retain"} and f["heap"]["default"]["check_s"] > 0
+    task = f["task"]     # issue 18's row: measured, or saying why not
+    assert task["status"] == "ok", task
+    assert task["check_no_margin_s"] > 0 and task["ratio_no_margin"] > 0
+    assert task["worst_task"]["kind"] in TASK_KINDS
+    assert "detection" not in live["result"]   # the pushes are not part of the smoke run
     text = (tmp_path / "BENCH.md").read_text()
     assert "## Dynamics" in text and "pinocchio.rnea Python loop" in text and "SMOKE" in text
     readme_text = readme.read_text()
     assert readme_text.startswith("# x\n" + report.BEGIN) and "docs/BENCHMARKS.md" in readme_text
+
+
+def test_publisher_efforts_are_the_free_motion_torque() -> None:
+    """`ros_publisher --effort` sends τ = RNEA(q, q̇, q̈) of the sample it sends (checked against
+    MuJoCo), so the live bench's observer row runs on a robot in free motion."""
+    from benchmarks.ros_publisher import HOME, NAMES, model_effort
+
+    model = load_model(builtin="panda")
+    assert list(model.joint_names) == NAMES
+    effort, mj = model_effort(), MujocoInverse(model)
+    for t in (0.0, 0.37, 2.5):
+        q = [h + 0.3 * np.sin(t + i) for i, h in enumerate(HOME)]
+        v = [0.3 * np.cos(t + i) for i in range(7)]
+        a = [-0.3 * np.sin(t + i) for i in range(7)]
+        np.testing.assert_allclose(effort(q, v, a), mj.rnea(np.array(q), np.array(v), np.array(a)),
+                                   rtol=0, atol=1e-9)
+
+
+def test_detection_summary_median_p95_and_time_constant() -> None:
+    from benchmarks import detection
+
+    lat = [float(x) for x in np.random.default_rng(4).permutation(np.arange(1.0, 26.0))]
+    s = detection.summarise(dict(latencies_ms=lat, pushes=26, missed=1, observer_gain=[50.0],
+                                 contact_min_duration_ms=20.0))
+    assert s["status"] == "ok" and s["detected"] == 25 and s["pushes"] == 26 and s["enough"]
+    assert s["median_ms"] == 13.0 and s["p95_ms"] == 24.0 and s["max_ms"] == 25.0
+    assert (s["one_over_k_ms"], s["three_over_k_ms"]) == (20.0, 60.0)
+    assert detection.summarise(dict(latencies_ms=[]))["status"].startswith("not available")
+    assert not detection.summarise(dict(latencies_ms=[5.0], observer_gain=10.0))["enough"]
+    text = report._detection_md(s)
+    assert "| 25 / 26 | — | 13 | 24 | 25 | 20 | 60 | 20 |" in text, text
+
+
+def test_task_row_covers_every_issue18_kind() -> None:
+    """The #18 row's configuration names every kind issue 18 settles, and a result missing a
+    place or kind is reported as not covering it (so the row never times a partial check)."""
+    from types import SimpleNamespace
+
+    from benchmarks import task_feasibility as T
+
+    places = T.expected_places()
+    assert set().union(*places.values()) == set(T.TASK_KINDS)
+    sections = T.task_sections()
+    assert set(sections["frame_limits"]) | {"robot_limits", "base_limits", "grasp"} == set(places)
+    full = {p: {k: {} for k in kinds} for p, kinds in places.items()}
+    assert T.coverage_gap(SimpleNamespace(per_frame=full)) is None
+    del full["base_limits"]["tipping"]
+    assert T.coverage_gap(SimpleNamespace(per_frame=full)) == \
+        "the check did not report base_limits: tipping"
+    row = T.row([], None, "why")
+    assert row["status"] == "not available: why"
+    assert report._task_rows(row, None, 0.01) == [[T.WHAT, "not available: why", "10", "—",
+                                                   "≤ 2.0× (issue 18)"]]
+
+
+def test_live_pairs_and_contact_comparisons(monkeypatch) -> None:
+    """The live section's ratios from fake subject rows: the contact row's p99 ratio is the
+    median over the (b)/(e) pairs, its loss the worst run's, the recording overhead over (c)/(d)."""
+    from benchmarks import detection, live_bench
+
+    p99 = {"bare": [100.0], "minimal": [200.0, 400.0], "dyn_node": [100.0, 100.0, 100.0],
+           "dyn_node_record": [100.0] * 3, "dyn_node_contact": [100.0, 800.0]}
+    loss = {"dyn_node_contact": [0.0, 0.02]}
+    calls: list[str] = []
+
+    def fake(s, rates, window, ready_timeout, repeat_first):
+        k = s["key"]
+        n = calls.count(k)
+        calls.append(k)
+        return dict(key=k, subject=s["name"], what="", status="ok", p99_us_1k=p99[k][n],
+                    p50_us_1k=50.0, cpu_share_1k=0.2 + 0.02 * (k == "dyn_node_record"),
+                    cpu_us_per_output_1k=200.0, loss_1k=loss.get(k, [0.0] * 3)[n],
+                    also_loss_1k=0.0, max_rate_no_loss_hz=1000.0, windows=[])
+
+    monkeypatch.setattr(live_bench, "run_subject", fake)
+    monkeypatch.setattr(live_bench, "_contact_reason", lambda: None)
+    monkeypatch.setattr(detection, "run", lambda **kw: dict(status="not available: test"))
+    out = live_bench.run()
+    c = out["comparisons"]
+    assert calls.count("minimal") == 2 and calls.count("dyn_node_contact") == 2
+    assert out["p99_contact_over_minimal_1k_by_pair"] == [0.5, 2.0]
+    assert c["p99_contact_over_minimal_1k"] == 1.25 and c["loss_contact_1k"] == 0.02
+    assert c["p99_contact_over_dyn_node_1k"] == 1.0
+    assert out["recording_cpu_overhead_1k_by_pair"] == pytest.approx([0.1] * 3, abs=1e-12)
+    assert out["detection"] == {"status": "not available: test"}

@@ -201,3 +201,43 @@ def test_console_scripts_are_on_the_venvs_path():
     assert [n for n in names if not (bin_dir / n).is_file()] == []
     r = subprocess.run([str(bin_dir / "dyn-check"), "--help"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.startswith("usage: dyn-check")
+
+
+def test_task_limits_give_a_row_per_place_evidence_and_a_retime_that_passes(tmp_path, capsys):
+    """The demo's TCP limit (250 mm/s at panda_hand's TCP) on the reach example: the place row
+    carries the core's numbers, the record its per_frame and task_limits, and --retime fixes it."""
+    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.model import load_model
+    from dyn_node.core.trajectory import validate_trajectory
+
+    limits = REPO / "config" / "demo_task_limits.yaml"
+    tf = read_trajectory(REACH[0])
+    model = load_model(builtin="panda", limits_yaml=str(limits))
+    res = check_trajectory(Dynamics(model), validate_trajectory(
+        model.joint_names, tf.joint_names, tf.times, tf.positions, tf.velocities, tf.accelerations))
+    e = res.per_frame["panda_hand"]["frame_speed"]
+    assert e["ratio"] > 1 and res.worst_joint == "panda_hand"
+    out_file = tmp_path / "slow.yaml"
+    code, out, _ = run(capsys, REACH[0], "--limits", limits, "--out", tmp_path, "--retime", out_file)
+    assert code == 1
+    lines = out.splitlines()
+    assert lines[1] == (f"  panda_hand: frame_speed {e['value']:.4g} of 0.25 m/s "
+                        f"({e['ratio'] * 100:.0f}%) at t = {e['time_s']:.2f} s")
+    rec = json.loads((tmp_path / "panda_reach" / "evidence.json").read_text())
+    validate(rec)
+    assert rec["configuration"]["task_limits"]["frame_limits"]["panda_hand"]["max_linear_speed"] == 0.25
+    pf = rec["outputs"]["trajectories"][0]["per_frame"]["panda_hand"]["frame_speed"]
+    assert pf == {"unit": "m/s", "ratio": e["ratio"], "time_s": e["time_s"], "value": e["value"],
+                  "limit": 0.25}
+    assert (tmp_path / "panda_reach" / "task_limits.png").is_file()
+    assert "id='task-limits'" in (tmp_path / "panda_reach" / "report.html").read_text()
+    code, out, _ = run(capsys, out_file, "--limits", limits)
+    assert code == 0
+    # speed ÷ k: the retimed peak is the limit ÷ (1 + margin), up to the moved sample grid
+    again = read_trajectory(out_file)
+    res2 = check_trajectory(Dynamics(model), validate_trajectory(
+        model.joint_names, again.joint_names, again.times, again.positions, again.velocities,
+        again.accelerations))
+    assert res2.per_frame["panda_hand"]["frame_speed"]["ratio"] == pytest.approx(
+        1 / (1 + RETIME_MARGIN), rel=1e-5)

@@ -147,3 +147,15 @@ def test_an_infinite_limit_never_triggers_and_bad_options_are_refused():
         ContactDetector(("a",), [1.0], options=ContactOptions(release_fraction=0.0))
     with pytest.raises(ValueError, match="effort_limit"):
         ContactDetector(("a",), [np.nan])
+
+
+def test_history_limit_keeps_the_latest_episodes_and_counts_all():
+    """A long-running node keeps only the latest ended episodes; ``ended`` counts every one."""
+    d = ContactDetector(["j"], [10.0], options=ContactOptions(min_duration_s=0.0, history_limit=2))
+    t = 0.0
+    for k in range(5):
+        for tau in (1.0, 0.0):  # over 5 % of 10, then below half of it: one episode each
+            d.update(t, np.array([tau]))
+            t += 0.001
+    assert d.ended == 5 and len(d.history) == 2
+    assert [e.start_s for e in d.history] == pytest.approx([0.006, 0.008])

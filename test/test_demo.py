@@ -61,6 +61,55 @@ def test_tracking_error_and_residual_statistics(panda):
     assert rms == pytest.approx(np.sqrt(9.0 / 70.0))
 
 
+def test_task_transfer_is_within_joint_limits_but_over_the_tcp_speed(panda):
+    """The TCP's speed against finite differences of Pinocchio's forward kinematics."""
+    import pinocchio as pin
+
+    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.trajectory import interpolate
+    from dyn_node.ros.demo import DEMO_TASK_LIMITS, SAFETY_FACTOR, task_checks, task_transfer
+
+    fast = task_transfer()
+    traj = fast.validated(panda.joint_names)
+    free = check_trajectory(Dynamics(panda), traj)
+    limited = load_model(builtin="panda", limits_yaml=str(DEMO_TASK_LIMITS))
+    res = check_trajectory(Dynamics(limited), traj)
+    e = res.per_frame["panda_hand"]["frame_speed"]
+    pm, data = panda.pin_model, panda.pin_model.createData()
+    fid = pm.getFrameId("panda_hand")
+    point = np.array([0.0, 0.0, 0.1034])
+    t = np.linspace(0.0, fast.duration, 4001)
+    q = interpolate(traj, "quintic").evaluate(t)[0]
+
+    def tcp(qi):
+        pin.framesForwardKinematics(pm, data, qi)
+        return data.oMf[fid].act(point)
+
+    x = np.array([tcp(qi) for qi in q])
+    v_fd = np.linalg.norm(np.gradient(x, t, axis=0, edge_order=2), axis=1)
+    assert free.feasible and not res.feasible
+    assert e["value"] == pytest.approx(v_fd.max(), rel=1e-4)
+    assert res.time_scale == pytest.approx(e["value"] / 0.25, rel=1e-12)
+    slowed = check_trajectory(Dynamics(limited), fast.scaled(res.time_scale * SAFETY_FACTOR, "s", "")
+                              .validated(panda.joint_names))
+    assert slowed.feasible
+    # speed ÷ k exactly; the 1 ms sample grid does not stretch with it (peak found to ~1e-6)
+    assert slowed.per_frame["panda_hand"]["frame_speed"]["ratio"] == pytest.approx(
+        1 / SAFETY_FACTOR, rel=1e-5)
+    # the scene's PASS/FAIL lines
+    from types import SimpleNamespace as NS
+
+    bad = NS(feasible=False, worst_joint="panda_hand", worst_constraint="frame_speed",
+             time_scale=res.time_scale, message=res.message)
+    good = NS(feasible=True, message="feasible")
+    place = {"frame_speed_peak": repr(e["value"])}
+    assert [ok for ok, _ in task_checks(free, bad, place, good, 2.7)] == [True, True, True]
+    assert [ok for ok, _ in task_checks(free, NS(**{**bad.__dict__, "worst_constraint": "effort"}),
+                                        place, good, 2.7)] == [True, False, True]
+    assert [ok for ok, _ in task_checks(free, bad, None, None, 2.7)] == [True, False, False]
+    assert [ok for ok, _ in task_checks(res, None, None, None, 2.7)] == [False, False]
+
+
 def _leftovers(marker: str) -> list[int]:
     """PIDs of live processes whose environment carries the demo's DYN_DEMO_RUN marker."""
     found = []
@@ -107,6 +156,20 @@ def test_demo_short_end_to_end(tmp_path):
     assert text.count("  ~/check_trajectory: ") == 3, text[-3000:]
     assert re.search(r"live effort residual .* RMS [0-9.]+ N·m", summary), summary
     assert re.search(r"^aggressive\s+\S+\s+ERROR\s+panda_joint", summary, re.M)
+    # the push scene: contact reported while the 30 N push lasted, its force estimated
+    assert re.search(r"\[PASS\] push: dyn_node reported (contact|collision) \d+ ms after", summary), summary
+    assert re.search(r"\[PASS\] push: estimated force [0-9.]+ N vs 30 N applied at panda_link8", summary)
+    # the audit replays the contact outputs of a node that took its model from /robot_description
+    # (a fresh observer at its first core, no recording_start reset) identically
+    for topic in ("external_torque", "external_wrench", "observer_events"):
+        assert re.search(rf"/dyn_node/{topic}\s+matched [1-9]\d*, unmatched 0, not answered live 0, "
+                         r"max \|difference\| 0\.0, identical True", text), text[-3000:]
+    assert re.search(r"- (contact|collision) from [0-9.]+ s to [0-9.]+ s: peak [0-9.]+ N at panda_link8", text)
+    # 3b: the TCP speed limit, before execution with its time_scale, and the slowed transfer
+    assert re.search(r"\[PASS\] fast transfer: infeasible before execution on the TCP speed "
+                     r"\(worst panda_hand frame_speed, peak 0\.64\d* m/s of 0\.25 m/s\), "
+                     r"time_scale 2\.56", summary), summary
+    assert re.search(r"\[PASS\] slowed transfer \(× 2\.69\d*\): feasible", summary), summary
     left = _leftovers(str(out.resolve()))
     assert left == [], [(pid, Path(f"/proc/{pid}/cmdline").read_bytes()) for pid in left]
 
@@ -146,3 +209,31 @@ def test_a_partial_audit_of_the_demos_own_bag_is_a_failure_not_a_missing_stage()
                                                EXIT_UNUSABLE, -9)] == [
         "audited", "audited", "partial", "failed", "failed"]
     assert audit_outcome(EXIT_OK, False) == "failed"
+
+
+def test_push_checks_against_the_applied_force_and_the_push_time():
+    """The push scene's PASS lines: reported within the push (0.3 s) after it was sent, and the
+    settled estimate within 10 % + 1 N of the applied force (vector difference)."""
+    from dyn_node.ros.demo_push import PushOutcome, push_checks, settle_estimate
+
+    F = np.array([0.0, 0.0, -30.0])
+    o = PushOutcome("panda_link8", F, sent_s=100.0, reported_s=100.035, reported_state="contact")
+    # stamps 1 ms apart; the push reached the simulator 0.1 s late (its onset: the first
+    # |F̂| > 1 N), rising until 0.1 s after it; only 0.1–0.3 s after the onset count; another
+    # frame never does
+    def f(k):
+        return np.zeros(3) if k < 100 else (0.5 * F if k < 200 else F + (0.0, 3.9, 0.0))
+    o.wrenches = [(100.0 + k * 1e-3, "panda_link8", f(k)) for k in range(500)] + [
+        (100.25, "panda_hand", np.zeros(3))]
+    settle_estimate(o)
+    assert o.estimate_samples == 200 and np.allclose(o.estimate, F + (0.0, 3.9, 0.0))
+    (ok_t, t_text), (ok_f, f_text) = push_checks(o)
+    assert ok_t and "reported contact 35 ms after the 30 N push" in t_text
+    assert ok_f and "|F̂ − F| 3.90 N ≤ 4.0 N" in f_text
+    o.wrenches = [(t, fid, w + (0.0, 0.2, 0.0)) for t, fid, w in o.wrenches]  # 4.1 N off: fails
+    settle_estimate(o)
+    assert not push_checks(o)[1][0]
+    o.reported_s = 100.31  # after the push ended
+    assert not push_checks(o)[0][0]
+    o.reported_s = None
+    assert not push_checks(o)[0][0]

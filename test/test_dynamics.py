@@ -7,7 +7,7 @@ import pytest
 
 from dyn_node.core.dynamics import Dynamics, DynamicsOptions
 from dyn_node.core.model import Payload, load_model
-from robots import G, L1, L2, M1, M2, two_link_terms
+from robots import G, L1, L2, M1, M2, two_link_terms, with_friction_urdf
 
 TOL = 1e-9
 
@@ -20,18 +20,6 @@ def two_link():
 def friction_limits(model):
     """A limits mapping giving every joint a distinct armature (kg·m²)."""
     return {"joint_limits": {n: {"armature": 0.05 + 0.01 * i} for i, n in enumerate(model.joint_names)}}
-
-
-def with_friction_urdf(text: str) -> str:
-    """The URDF with nonzero damping and Coulomb friction on every joint's <dynamics>."""
-    import xml.etree.ElementTree as ET
-    root = ET.fromstring(text)
-    for i, j in enumerate(root.findall("joint")):
-        if j.get("type") in ("revolute", "continuous", "prismatic"):
-            for d in j.findall("dynamics"):
-                j.remove(d)
-            ET.SubElement(j, "dynamics", damping=str(0.1 + 0.02 * i), friction=str(0.3 + 0.05 * i))
-    return ET.tostring(root, encoding="unicode")
 
 
 @pytest.fixture(scope="module", params=["panda", "ur5"])

@@ -125,6 +125,8 @@ def test_frame_terms_match_pinocchio(name):
             vel = pin.getFrameVelocity(pm, data, fid, pin.LOCAL_WORLD_ALIGNED)
             acc = pin.getFrameClassicalAcceleration(pm, data, fid, pin.LOCAL_WORLD_ALIGNED)
             diff("position", f.position[k], data.oMf[fid].translation)
+            worst["rotation"] = max(worst.get("rotation", 0.0), float(np.abs(
+                f.rotation[k] - data.oMf[fid].rotation).max()))
             diff("velocity", f.linear_velocity[k], vel.linear)
             diff("angular velocity", f.angular_velocity[k], vel.angular)
             diff("acceleration", f.linear_acceleration[k], acc.linear)
@@ -141,6 +143,7 @@ def test_frame_terms_match_pinocchio(name):
             else:
                 assert f.effective_mass[k] == 0.0
     assert max(worst.values()) < TOL, worst
+    assert worst["rotation"] < 1e-12, worst
     assert set(worst) >= {"m_u rel", "M", "task torque", "g(q)"}
     assert np.abs(out.inertia.gravity_torque).max() > 1.0
     # the states move the points and load the wrench: the comparisons are not of zeros
@@ -487,3 +490,41 @@ def test_layouts_and_threads_give_the_same_numbers():
             np.testing.assert_array_equal(f.effective_mass, g.effective_mass)
         np.testing.assert_array_equal(ref.base.dynamic, got.base.dynamic)
         np.testing.assert_array_equal(ref.inertia.kinetic_energy, got.inertia.kinetic_energy)
+
+
+@pytest.mark.parametrize("name", ["panda", "tree"])
+def test_couple_point_gives_the_effective_mass_with_more_payload(name):
+    """J_c·M⁻¹ products at the payload point: m_u with Δm more payload by Woodbury's identity
+    equals m_u of the model re-loaded with that payload (its own CRBA and factor), for added
+    and removed mass; Λ = J_cM⁻¹J_cᵀ against Pinocchio's Jacobian and a dense solve."""
+    model, points = robot(name)
+    p = model.payload
+    pts = [*points, FramePoint(model.payload_frame, p.com)]
+    Q, V, A = states(model.nv, 50, 8)
+    out = FrameKinematics(model, pts, couple_point=len(points)).compute(Q, V, A)
+    pm = model.pin_model.copy()
+    ids = point_frames(pm, pts)
+    data = pm.createData()
+    for n in range(0, len(Q), 7):
+        pin.computeJointJacobians(pm, data, Q[n])
+        pin.updateFramePlacements(pm, data)
+        Jc = pin.getFrameJacobian(pm, data, ids[-1], pin.LOCAL_WORLD_ALIGNED)[:3]
+        M = pin.crba(pm, data, Q[n])
+        M = np.triu(M) + np.triu(M, 1).T
+        np.testing.assert_allclose(out.inertia.couple_inertia[n], Jc @ np.linalg.solve(M, Jc.T),
+                                   rtol=1e-9, atol=1e-12)
+    for dm in (2.5, -0.5 * p.mass):
+        heavy = model.with_payload(Payload(p.mass + dm, p.com, p.frame))
+        ref = FrameKinematics(heavy, pts).compute(Q, V, A)
+        checked = 0
+        for f, r in zip(out.frames[:-1], ref.frames[:-1]):
+            got = f.effective_mass_with(dm, out.inertia.couple_inertia)
+            moving = r.effective_mass > 0
+            checked += int(moving.sum())
+            np.testing.assert_allclose(got[moving], r.effective_mass[moving], rtol=1e-9)
+            assert np.all(got[~moving] == 0.0)
+            # the added mass matters: the comparison is not of equal numbers
+            assert not moving.any() or np.abs(got[moving] / f.effective_mass[moving] - 1).max() > 1e-3
+        assert checked > 80
+    with pytest.raises(ValueError):
+        FrameKinematics(model, pts, couple_point=len(pts))

@@ -9,7 +9,7 @@ import yaml
 
 from dyn_node.errors import ModelError
 from dyn_node.core.limits import IGNORED_YAML_KEYS, LIMIT_KINDS, LIMITS_YAML_KEYS, load_limits_yaml
-from dyn_node.core.model import load_model
+from dyn_node.core.model import Payload, load_model
 
 FULL = """
 joint_limits:
@@ -245,11 +245,6 @@ def test_urdf_zero_effort_and_velocity_mean_unlimited():
      "limits_unknown_section", ["unknown top-level key 'frame_limit'", "did you mean 'frame_limits'"]),
     ("joint_limits: {}\njoint_limit: {}\n", "limits_unknown_section", ["'joint_limit'",
                                                                       "did you mean 'joint_limits'"]),
-    # the force/energy/contact sections are refused until they are checked, in both forms
-    ("joint_limits: {}\nframe_limits: {panda_link8: {max_linear_speed: 0.25}}\n",
-     "limits_unsupported_section", ["'frame_limits' is not checked by this version"]),
-    ("dyn_node:\n  ros__parameters:\n    joint_limits: {}\n    grasp: {frame: panda_hand}\n",
-     "limits_unsupported_section", ["'grasp' is not checked by this version"]),
 ])
 def test_top_level_keys_that_would_switch_a_check_off_are_errors(text, code, words):
     with pytest.raises(ModelError) as err:
@@ -257,6 +252,43 @@ def test_top_level_keys_that_would_switch_a_check_off_are_errors(text, code, wor
     assert err.value.code == code
     for w in words:
         assert w in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("text", [
+    "joint_limits: {}\nframe_limits: {panda_link8: {max_linear_speed: 0.25}}\n",
+    "dyn_node:\n  ros__parameters:\n    joint_limits: {}\n    grasp: {frame: panda_hand}\n",
+])
+def test_task_sections_beside_joint_limits_are_accepted_and_left_to_task_limits(text):
+    # the joint-limit parser accepts them in both forms; their keys are task_limits' to check
+    assert load_limits_yaml(text) == {}
+
+
+def test_task_sections_reach_the_model_and_bad_ones_are_named():
+    y = ("joint_limits: {}\nframe_limits: {panda_link8: {max_linear_speed: 0.25}}\n"
+         "task_wrench: {frame: panda_link8, force: [0, 0, 20]}\n")
+    m = load_model(builtin="panda", limits_yaml=y)
+    assert m.task_limits.frame_limits[0].max_linear_speed == 0.25
+    assert m.task_limits.task_wrench.force.tolist() == [0.0, 0.0, 20.0]
+    # kept by every derived model
+    for d in (m.with_payload(Payload(1.0)), m.with_gravity((0.0, 0.0, -9.0))):
+        assert d.task_limits is m.task_limits
+    assert load_model(builtin="panda").task_limits.frame_limits == ()
+    assert m.with_limits(None).task_limits.task_wrench is None
+    assert m.with_limits(y.replace("0.25", "0.5")).task_limits.frame_limits[0].max_linear_speed == 0.5
+    with pytest.raises(ModelError) as err:
+        load_model(builtin="panda", limits_yaml=y.replace("panda_link8: {max", "panda_link9: {max"))
+    assert err.value.code == "limits_unknown_frame" and "'panda_link9'" in str(err.value)
+    with pytest.raises(ModelError) as err:
+        load_model(builtin="panda", limits_yaml=y.replace("0.25", ".nan"))
+    assert "frame_limits.panda_link8.max_linear_speed" in str(err.value)
+    tip = ("joint_limits: {}\nbase_limits: {support_polygon: [[-1, -1], [1, -1], [1, 1], "
+           "[-1, 1]]}\n")
+    tipping = load_model(builtin="panda", limits_yaml=tip)
+    with pytest.raises(ModelError) as err:
+        tipping.with_gravity((9.81, 0.0, 0.0))
+    assert err.value.code == "tipping_gravity"
+    with pytest.raises(ModelError):
+        load_model(builtin="panda", limits_yaml=tip, gravity=(0.0, 9.81, 0.0))
 
 
 def test_moveit_scaling_factors_and_node_parameters_beside_joint_limits_are_accepted():

@@ -584,3 +584,55 @@ def test_feasibility_verdict_and_live_status_give_a_prismatic_joint_the_same_uni
     mon.process(names, np.zeros(6), v, [], 1.0, 1.0)
     lim = by_name(mon.statuses(1.1, "b"), "limits")
     assert lim.message == f"j2 velocity 1.5 {units[('j2', 'velocity')]} beyond its limit 1 m/s"
+
+
+def test_last_inputs_are_the_measured_arrays_in_model_order():
+    """What the contact monitor is fed: q, v (None without velocities) and the effort (NaN
+    joints kept, None when absent or all NaN), reordered to the model's joints."""
+    mon = Monitor(PANDA, Settings())
+    order = list(reversed(range(7)))
+    e = np.arange(7.0)
+    e[2] = math.nan
+    mon.process([NAMES[i] for i in order], Q0[order], [], e[order], 1.0, 1.0)
+    q, v, eff = mon.last_inputs
+    assert q.tolist() == Q0.tolist() and v is None
+    assert np.array_equal(eff, e, equal_nan=True)
+    mon.process(NAMES, Q0, np.ones(7), [math.nan] * 7, 1.1, 1.1)
+    assert mon.last_inputs[1].tolist() == [1.0] * 7 and mon.last_inputs[2] is None
+    mon.process(NAMES, Q0, [], [], 1.2, 1.2)
+    assert mon.last_inputs[2] is None
+
+
+def test_contact_and_collision_rank_below_fault_and_stale_above_saturated():
+    s = Settings(stale_timeout=0.5)
+    mon, tr = Monitor(PANDA, s), ControllerTracker(PANDA, s)
+    effort = np.zeros(7)
+    effort[0] = 90.0  # saturated
+    r = mon.process(NAMES, Q0, [], effort, 1.0, 1.0)
+    tr.note_contact("contact")
+    assert tr.update(r, 1.0) and tr.state == "contact"
+    st = tr.status(1.0, "p")
+    assert st.level == WARN and st.values["failure_label"] == CONTROL_ERROR
+    tr.note_contact("collision")
+    assert tr.update(r, 1.01) and tr.state == "collision" and tr.status(1.01, "p").level == ERROR
+    bad = mon.process(NAMES[:3], Q0[:3], [], [], 1.02, 1.02)
+    assert tr.update(bad, 1.02) and tr.state == "fault"
+    assert tr.update(r, 1.03) and tr.state == "collision"
+    assert tr.tick(1.6) and tr.state == "stale"
+    tr.note_contact("none")
+    assert tr.update(r, 1.7) and tr.state == "saturated"
+
+
+def test_contact_state_message_is_the_episode_on_the_stamp_clock():
+    """The controller status names the episode as dyn_node: contact does, its duration counted
+    on the samples' stamps (here 100 s behind the receipt clock)."""
+    from dyn_node.core.contact import ContactEpisode, JointPeak
+
+    s = Settings()
+    mon, tr = Monitor(PANDA, s), ControllerTracker(PANDA, s)
+    ep = ContactEpisode(start_s=1.0, level="contact", joints=(JointPeak("panda_joint4", 9.0, 0.1, 87.0, "N·m"),),
+                        frame="panda_link8", peak_force_n=20.0)
+    r = mon.process(NAMES, Q0, [], [], 1.25, 101.25)
+    tr.note_contact("contact", ep)
+    tr.update(r, 101.25)
+    assert tr.status(101.3, "p").message == "contact: 20 N at panda_link8 (panda_joint4 9 N·m of 87), 0.25 s"

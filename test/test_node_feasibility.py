@@ -66,8 +66,8 @@ def trajectory(names, times, positions, velocities=None, accelerations=None) -> 
 class Harness(NodeHarness):
     default_timeout = 15.0
 
-    def __init__(self, ctx: Context, namespace: str):
-        super().__init__(ctx, namespace, [Parameter("robot_model", value="planar_2link")])
+    def __init__(self, ctx: Context, namespace: str, extra: tuple = ()):
+        super().__init__(ctx, namespace, [Parameter("robot_model", value="planar_2link"), *extra])
         self.traj_pub = self.probe.create_publisher(JointTrajectory, "joint_trajectory", 10)
         self.js_pub = self.probe.create_publisher(JointState, "joint_states", RELIABLE)
         self.sub("feas", DiagnosticArray, "dyn_node/feasibility", LATCHED)
@@ -403,3 +403,71 @@ def test_check_request_starts_from_the_last_joint_states_too(harness):
     values = kv(arr.status[0])
     assert values["start_segment"] == "checked"
     assert values["feasible"] == "false" and values["time_scale_start_segment"] == "true"
+
+
+# --- task limits (#18): frame_limits and robot_limits statuses on ~/feasibility -----------------
+TASK_LIMITS = """\
+joint_limits: {}
+frame_limits:
+  tool: {max_linear_speed: 1.0}
+robot_limits: {max_kinetic_energy: 1.0}
+"""
+Q2 = 0.3  # joint2 held: the tool circles joint1's axis at r = |l1 + l2·e^(i·q2)|
+R_TOOL = math.sqrt(0.5 ** 2 + 0.4 ** 2 + 2 * 0.5 * 0.4 * math.cos(Q2))
+I_AXIS = 1.5 * 0.5 ** 2 + 1.0 * R_TOOL ** 2  # point masses: m1 at l1, m2 at the tool
+
+
+@pytest.fixture(scope="module")
+def task_harness(module_ros_context, tmp_path_factory):
+    path = tmp_path_factory.mktemp("task") / "limits.yaml"
+    path.write_text(TASK_LIMITS)
+    h = Harness(module_ros_context, "/feas_task", (Parameter("limits_file", value=str(path)),))
+    yield h
+    h.close()
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("duration", [2.0, 4.0])
+def test_task_place_statuses_reach_feasibility_with_closed_form_peaks(task_harness, duration):
+    """joint1 0 → 2 rad quintic, joint2 still: peak q̇1 = 1.875·2/D at t = D/2 (a sample), so the
+    tool's peak speed is R·q̇1 and the kinetic energy ½·I·q̇1² (point masses about joint1's axis)."""
+    times, P = [0.0, duration], [[0.0, Q2], [2.0, Q2]]
+    Z = [[0.0, 0.0], [0.0, 0.0]]
+    msg = trajectory(NAMES, times, P, Z, Z)
+    task_harness.traj_pub.publish(msg)
+    arr = task_harness.verdict(msg)
+    names = [s.name for s in arr.status]
+    assert names == [STATUS_NAME, *(f"{STATUS_NAME}/{n}" for n in NAMES),
+                     f"{STATUS_NAME}/tool", f"{STATUS_NAME}/robot_limits"]
+    qd = 1.875 * 2 / duration
+    speed, energy = R_TOOL * qd, 0.5 * I_AXIS * qd ** 2
+    tool, robot = kv(arr.status[3]), kv(arr.status[4])
+    assert float(tool["frame_speed_peak"]) == pytest.approx(speed, rel=1e-9)
+    assert float(tool["frame_speed_ratio"]) == pytest.approx(speed / 1.0, rel=1e-9)
+    assert float(tool["frame_speed_time_s"]) == pytest.approx(duration / 2, abs=1e-12)
+    assert float(robot["kinetic_energy_peak"]) == pytest.approx(energy, rel=1e-9)
+    assert float(robot["kinetic_energy_limit"]) == 1.0
+    top = kv(arr.status[0])
+    # speed scales as 1/k, energy as 1/k²: the tool's speed sets k when it binds
+    want_k = max(speed, math.sqrt(energy), qd / 3.0)
+    assert float(top["time_scale"]) == pytest.approx(want_k, rel=1e-9)
+    if duration == 2.0:
+        # the worst ratio is the energy's (≈ 2.05 > 1.67), the time scale the speed's
+        assert top["feasible"] == "false" and top["worst_joint"] == "robot_limits"
+        assert top["worst_constraint"] == "kinetic_energy"
+        assert float(top["worst_ratio"]) == pytest.approx(energy, rel=1e-9)
+        assert (top["time_scale_joint"], top["time_scale_constraint"]) == ("tool", "frame_speed")
+        assert arr.status[3].level == bytes([ERROR]) and arr.status[4].level == bytes([ERROR])
+        assert tool["failure_label"] == PLANNING_ERROR
+    else:
+        assert top["feasible"] == "true"
+        assert arr.status[3].level in (bytes([OK]), bytes([WARN]))
+    # the node publishes exactly the core's statuses for the same model and trajectory
+    model = load_model(builtin="planar_2link", limits_yaml=TASK_LIMITS)
+    want = check_trajectory(Dynamics(model), validate_trajectory(NAMES, NAMES, times, P, Z, Z))
+    for st, ref in zip(arr.status, want.statuses(model.name)):
+        assert st.name == ref.name and st.message == ref.message
+        got = kv(st)
+        for key, value in ref.values.items():
+            if "compute_time" not in key:
+                assert got[key] == format_value(value), (st.name, key)

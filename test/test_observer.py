@@ -17,11 +17,11 @@ import pytest
 from dyn_node.core.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import InputError
 from dyn_node.core.model import load_model
-from dyn_node.core.observer import (RESET_BACKWARDS, RESET_GAP, RESET_INVALID, RESET_REQUESTED, RESET_START,
+from dyn_node.core.observer import (RESET_BACKWARDS, RESET_INVALID, RESET_STAMP_GAP, RESET_REQUESTED, RESET_START,
                                MomentumObserver, ObserverOptions, WrenchEstimator, WrenchOptions,
                                damped_wrench)
 from dyn_node.sim.simulator import SimConfig, Simulator
-from robots import two_link_terms
+from robots import fast_panda_points, two_link_terms
 
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 
@@ -201,7 +201,7 @@ def test_gap_backwards_duplicate_and_requested_reset(two_link):
     assert a.reset is None
     np.testing.assert_allclose(a.tau_ext, tau_ext * (1 - math.exp(-25.0)), atol=1e-12)
     gap = obs.update(1.0000001, q, v, e)
-    assert gap.reset.code == RESET_GAP and "gap of 0.5000001 s > 0.5 s" == gap.reset.detail
+    assert gap.reset.code == RESET_STAMP_GAP and "stamp gap of 0.5000001 s > 0.5 s" == gap.reset.detail
     dup = obs.update(1.0000001, q, v, e)         # the same instant: same answer, no restart
     assert dup.reset is None and dup.since_reset_s == 0.0
     np.testing.assert_array_equal(dup.tau_ext, gap.tau_ext)
@@ -245,8 +245,8 @@ def mujoco_jacobian(sim: Simulator, body: str, point: np.ndarray) -> np.ndarray:
 
 def test_wrench_from_mujoco_torque_is_exact(panda):
     """τ = J_mujocoᵀ·[R f; R m] at the flange's origin (MuJoCo's Jacobian, world axes): the
-    estimator recovers [f; m] in the flange's axes to 1e-9 at random poses away from
-    singularities."""
+    estimator recovers [f; m] in the flange's axes to 1e-9 at random poses outside the damping
+    band (σ_min ≥ β)."""
     sim = Simulator(panda)
     est = WrenchEstimator(panda, "panda_link8")
     rng = np.random.default_rng(11)
@@ -259,7 +259,7 @@ def test_wrench_from_mujoco_torque_is_exact(panda):
         w = rng.normal(size=6) * np.array([20, 20, 20, 2, 2, 2])
         tau = mujoco_jacobian(sim, "panda_link8", p).T @ np.concatenate([R @ w[:3], R @ w[3:]])
         got = est.estimate(q, tau)
-        if got.singular:
+        if got.sigma_min < est.options.damping_band:
             continue
         done += 1
         np.testing.assert_allclose(got.wrench, w, atol=1e-9)
@@ -282,14 +282,14 @@ def test_singular_frame_is_damped_and_bounded(panda):
 
 
 def test_damping_grows_as_the_smallest_singular_value_falls():
-    """λ² = (1 − (σ_min/ε)²)·λ_max² below ε, 0 above: checked on a 6×7 matrix with chosen
-    singular values, against numpy's least squares above ε and the damped normal equations
-    below it."""
+    """λ² = (1 − (σ_min/β)²)·λ_max² below the damping band β, 0 above: checked on a 6×7 matrix
+    with chosen singular values, against numpy's least squares above β and the damped normal
+    equations below it."""
     rng = np.random.default_rng(2)
     U, _ = np.linalg.qr(rng.normal(size=(6, 6)))
     V, _ = np.linalg.qr(rng.normal(size=(7, 7)))
     tau = rng.normal(size=7)
-    opts = WrenchOptions(singular_value=0.1, max_damping=0.05)
+    opts = WrenchOptions(singular_value=0.01, damping_band=0.1, max_damping=0.05)
     for smin, lam2 in ((0.2, 0.0), (0.1, 0.0), (0.05, 0.75 * 0.05**2), (0.0, 0.05**2)):
         s = np.array([2.0, 1.5, 1.0, 0.7, 0.4, smin])
         J = U @ np.diag(s) @ V[:, :6].T
@@ -299,6 +299,41 @@ def test_damping_grows_as_the_smallest_singular_value_falls():
         if lam2 == 0.0:
             np.testing.assert_allclose(F, np.linalg.lstsq(J.T, tau, rcond=None)[0], atol=1e-9)
         np.testing.assert_allclose((J @ J.T + lam2 * np.eye(6)) @ F, J @ tau, atol=1e-9)
+
+
+def test_damping_starts_above_the_refusal_threshold(panda):
+    """Between ε and β the estimate is damped but not singular: F̂ = Σ σᵢ/(σᵢ² + λ²)·(vᵢᵀτ)·uᵢ
+    (J = Σ σᵢ uᵢ vᵢᵀ) with λ² = (1 − (σ_min/β)²)·λ_max², to 1e-12, on a 6×7 matrix with
+    σ_min = 2ε; below ε singular; the options refuse β ≤ ε. On the Panda, a pose on the way to
+    the q = 0 singularity with ε < σ_min < β is damped and not singular."""
+    rng = np.random.default_rng(4)
+    U, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    V, _ = np.linalg.qr(rng.normal(size=(7, 7)))
+    tau = rng.normal(size=7)
+    o = WrenchOptions()
+    eps, beta, lmax = o.singular_value, o.damping_band, o.max_damping
+    assert eps < beta
+    s = np.array([2.0, 1.5, 1.0, 0.7, 0.4, 2 * eps])
+    J = U @ np.diag(s) @ V[:, :6].T
+    lam2 = (1 - (2 * eps / beta) ** 2) * lmax**2
+    want = sum(s[i] / (s[i] ** 2 + lam2) * (V[:, i] @ tau) * U[:, i] for i in range(6))
+    F, sigma_min, lam = damped_wrench(J, tau)
+    np.testing.assert_allclose(F, want, rtol=0, atol=1e-12)
+    assert lam == pytest.approx(math.sqrt(lam2), rel=1e-12)
+    with pytest.raises(ValueError, match="damping_band must exceed singular_value"):
+        WrenchEstimator(panda, "panda_link8", options=WrenchOptions(singular_value=0.05, damping_band=0.05))
+    est = WrenchEstimator(panda, "panda_link8")
+    q1 = np.array([0.0, -0.6, 0.0, -2.0, 0.0, 1.6, 0.8])
+    found = []
+    for k in range(1, 200):
+        q = q1 * (k / 200)
+        got = est.estimate(q, tau)
+        if eps < got.sigma_min < beta:
+            found.append(got)
+            assert not got.singular and got.damping > 0
+        elif got.sigma_min < eps:
+            assert got.singular
+    assert found, "no pose in the damping band"
 
 
 def test_fewer_joints_than_six_gives_the_minimum_norm_wrench(two_link):
@@ -414,11 +449,7 @@ def test_no_false_contact_over_a_fast_trajectory(panda):
     saturating) and the same points interpolated linearly (velocity jumps at the waypoints, the
     torque saturating with them): |τ̂_ext| stays below 0.05 × the effort limit on every joint at
     every sample (measured: ≤ 0.001 and ≤ 0.0015 of it)."""
-    sign = np.array([1.0, -0.6, -1.0, 1.0, 1.0, -1.0, 1.0])
-    seg = 0.6
-    big = 0.9 * panda.limits.velocity * seg / 1.875 * sign  # a quintic's peak speed is 1.875·Δ/T
-    times = np.array([0.1, 0.1 + seg, 0.1 + 2 * seg, 0.1 + 3 * seg])
-    pos = np.vstack([READY, READY + big, READY, READY - 0.5 * big])
+    times, pos = fast_panda_points(panda.limits, READY)
     for mode in ("quintic", "linear"):
         sim = panda_sim(panda)
         if mode == "quintic":

@@ -82,4 +82,21 @@ def test_locked_joints_parse_and_every_spec_has_description():
     for spec in PARAMETERS:
         assert spec.description
         if spec.low is not None:
-            assert spec.low <= spec.default <= spec.high
+            for value in (spec.default if spec.kind == "double_array" else [spec.default]):
+                assert spec.low <= value <= spec.high
+
+
+def test_per_joint_arrays_and_contact_thresholds():
+    """observer_gain and the thresholds take one value or several, each within its range;
+    collision_threshold must be ≥ contact_threshold where the two pair up."""
+    s = settings_from_mapping({"observer_gain": [10.0, 20.0], "contact_threshold": [0.1],
+                               "collision_threshold": [0.3, 0.4]})
+    assert s.observer_gain == (10.0, 20.0) and s.collision_threshold == (0.3, 0.4)
+    for bad, why in (({"observer_gain": []}, "one or more numbers"),
+                     ({"observer_gain": [50.0, -1.0]}, "has a value outside"),
+                     ({"contact_threshold": [0.3]}, "must be ≥ contact_threshold"),
+                     ({"contact_threshold": [0.1, 0.1], "collision_threshold": [0.3, 0.3, 0.3]},
+                      "give one value or one per joint"),
+                     ({"gravity": [0.0, -9.81]}, "must be 3 numbers")):
+        with pytest.raises(SettingsError, match=why):
+            settings_from_mapping(bad)

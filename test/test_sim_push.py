@@ -8,6 +8,7 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 import pytest
+from robots import fast_panda_points
 
 from dyn_node.errors import InputError
 from dyn_node.core.model import load_model
@@ -201,3 +202,51 @@ def test_bad_push_is_refused_and_the_current_one_continues(panda):
     assert sim.wrench is before
     sim.step(1)
     assert np.any(sim.data.xfrc_applied[sim.mj.body("panda_link8").id])
+
+
+def test_no_false_contact_through_the_contact_monitor_over_a_fast_trajectory(panda):
+    """No push, the Panda at 90 % of its speed limits (quintic, 0.6 s segments) and the same
+    points interpolated linearly (velocity steps, torques saturating): the node's own
+    ContactMonitor (default thresholds) never leaves ``none`` and records no episode, while
+    estimating at every sample."""
+    from dyn_node.core.contact_monitor import ContactMonitor, ContactSettings
+    from dyn_node.core.dynamics import Dynamics
+
+    times, pos = fast_panda_points(panda.limits, READY)
+    for mode in ("quintic", "linear"):
+        sim = Simulator(panda, SimConfig(initial_positions=tuple(READY)))
+        if mode == "quintic":
+            zero = np.zeros_like(pos)
+            sim.execute(panda.joint_names, times, pos, zero, zero)
+        else:
+            sim.execute(panda.joint_names, times, pos)
+        mon = ContactMonitor(Dynamics(panda), ContactSettings())
+        states, speed, saturated = set(), 0.0, 0
+        for k, st in enumerate(sim.run(times[-1] + 0.3)):
+            t_ns = (k + 1) * 1_000_000
+            states.add(mon.update(t_ns, t_ns, st.q, st.v, st.effort).state)
+            speed = max(speed, float((np.abs(st.v) / panda.limits.velocity).max()))
+            saturated += int(st.saturated.any())
+        assert states == {"none"} and mon.episodes == [] and mon.estimates == k + 1, (mode, states)
+        assert speed > 0.85 if mode == "quintic" else saturated > 0
+
+
+@pytest.mark.parametrize("force", [(0.0, 30.0, 0.0), (30.0, 0.0, 0.0), (0.0, 0.0, -30.0)])
+def test_detection_latency_is_the_minimum_duration_after_the_first_order_crossing(panda, force):
+    """benchmarks.contact_bench's latency for a push from standstill against the closed form:
+    τ̂ rises as Jᵀ·F·(1 − e^(−K t)) (a constant torque at rest), so joint i crosses its
+    threshold c_i at t_i = −ln(1 − c_i/|τ_i|)/K; the state turns ``contact`` once the earliest
+    crossing has held contact_min_duration (0.02 s). The measured latency is that, rounded up
+    to the 1 ms sample, plus at most one sample (the observer starts on the first pushed one)."""
+    import math
+
+    from benchmarks.contact_bench import FRAME, one_push
+
+    force = np.array(force)
+    lat_ns = one_push(panda, force, 0.0)  # the motion starts 0.05 s later: ~at rest until then
+    J = pin.computeFrameJacobian(panda.pin_model, panda.pin_model.createData(), READY,
+                                 panda.pin_model.getFrameId(FRAME), pin.ReferenceFrame.LOCAL)
+    tau = np.abs(J.T @ np.concatenate([force, np.zeros(3)]))
+    c = 0.05 * panda.limits.effort
+    t_cross = min(-math.log(1 - ci / ti) / 50.0 for ci, ti in zip(c, tau) if ti > ci)
+    assert 0.0 < lat_ns * 1e-9 - (t_cross + 0.02) <= 0.002, (lat_ns, t_cross)

@@ -196,7 +196,13 @@ def test_a_frame_with_no_close_match_lists_the_links():
 @pytest.mark.parametrize("section,key,value,message", [
     ("grasp", "friction_coefficient", -0.5, "grasp.friction_coefficient must be a finite number ≥ 0"),
     ("grasp", "friction_coefficient", math.nan, "must be a finite number ≥ 0"),
+    ("grasp", "friction_coefficient", "0.5",
+     "grasp.friction_coefficient must be a finite number ≥ 0"),
     ("grasp", "grip_force", 0.0, "grasp.grip_force must be a finite number > 0"),
+    ("grasp", "grip_force", math.nan, "grasp.grip_force must be a finite number > 0"),
+    ("grasp", "normal_axis", [0, math.nan, 1], "grasp.normal_axis must be 3 finite numbers"),
+    ("base_limits", "max_force", math.nan, "base_limits.max_force must be a finite number > 0"),
+    ("base_limits", "base_com", [0, math.inf, 0], "base_limits.base_com must be 3 finite numbers"),
     ("grasp", "faces", 0, "grasp.faces must be a whole number ≥ 1"),
     ("grasp", "faces", 2.0, "grasp.faces must be a whole number ≥ 1"),
     ("grasp", "faces", True, "grasp.faces must be a whole number ≥ 1"),
@@ -320,3 +326,58 @@ def test_tipping_needs_gravity_along_minus_z(panda_links):
 def test_did_you_mean():
     assert did_you_mean("grasps", LIMITS_FILE_KEYS) == " (did you mean 'grasp'?)"
     assert did_you_mean("zzzz", LIMITS_FILE_KEYS) == ""
+
+
+@pytest.mark.parametrize("section,entries,message", [
+    ("grasp", {"friction_coefficient": -0.5},
+     "grasp.friction_coefficient must be a finite number ≥ 0"),
+    ("grasp", {"frame": "panda_hnd"}, "grasp.frame: frame 'panda_hnd' is not a link of the URDF"),
+    ("base_limits", {"support_polygon": [[0, 0], [1, 0]]},
+     "base_limits.support_polygon must be a list of at least 3 [x, y] points"),
+    ("base_limits", {"support_polygon": [[0, 0], [2, 0], [2, 2], [1, 0.5], [0, 2]]},
+     "base_limits.support_polygon is not convex"),
+    ("base_limits", {"max_moment": math.nan}, "base_limits.max_moment must be a finite number > 0"),
+])
+def test_a_bad_limits_file_is_refused_by_the_model_naming_file_and_key(tmp_path, section,
+                                                                       entries, message):
+    """The same errors through load_model and with_limits from a file on disk: the message
+    starts with the file's path and names the section and key."""
+    path = tmp_path / "limits.yaml"
+    path.write_text(yaml.safe_dump(_with(section, **entries)))
+    for load in (lambda: load_model(builtin="panda", limits_yaml=path),
+                 lambda: load_model(builtin="panda").with_limits(path)):
+        with pytest.raises(ModelError) as e:
+            load()
+        assert str(path) in str(e.value) and message in str(e.value), str(e.value)
+
+
+def test_the_model_refuses_tipping_under_tilted_gravity(tmp_path):
+    """load_model, with_limits and with_gravity all run the tipping-gravity check; without a
+    support polygon the base limits stay under any gravity."""
+    tilted = [2.0, 0.0, -9.6]
+    data = yaml.safe_load(ISSUE_EXAMPLE)
+    with pytest.raises(ModelError, match="tipping needs gravity along the root's −z"):
+        load_model(builtin="panda", limits_yaml=data, gravity=tilted)
+    with pytest.raises(ModelError, match="tipping needs gravity along the root's −z"):
+        load_model(builtin="panda", gravity=tilted).with_limits(data)
+    upright = load_model(builtin="panda", limits_yaml=data)
+    assert upright.task_limits.tipping
+    with pytest.raises(ModelError, match="tipping needs gravity along the root's −z"):
+        upright.with_gravity(tilted)
+    del data["base_limits"]["support_polygon"], data["base_limits"]["base_mass"], \
+        data["base_limits"]["base_com"]
+    bolted = load_model(builtin="panda", limits_yaml=data, gravity=tilted)
+    assert not bolted.task_limits.tipping and bolted.task_limits.base_limits.max_force == 400.0
+
+
+def test_every_base_and_grasp_key_and_kind_is_in_the_readme():
+    from pathlib import Path
+
+    from dyn_node.core.task_limits import BASE_LIMIT_KEYS, GRASP_KEYS
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    for section, keys in (("base_limits", BASE_LIMIT_KEYS), ("grasp", GRASP_KEYS)):
+        for key in keys:
+            assert f"| `{section}.{key}` |" in readme, (section, key)
+    for kind in ("base_force", "base_moment", "tipping", "grasp_slip"):
+        assert f"kind `{kind}`" in readme and f"| `{kind}` | yes, exact |" in readme, kind

@@ -23,11 +23,17 @@ import yaml
 from dyn_node import __version__
 from dyn_node.core.allocator import retain_freed_memory
 from dyn_node.bag.reader import BagMessage, BagReader, MessageDecoder
+from dyn_node.bag.metadata import LIMITS_SHA256_KEY, LIMITS_YAML_KEY
 from dyn_node.bag.cdr import decode_joint_state, decode_joint_state_batch
 from dyn_node.audit.cli import add_audit_options, run_command
 from dyn_node.errors import (CONTROL_ERROR, EVALUATION_ERROR, PLANNING_ERROR, STATE_ERROR, DynNodeError,
                      InputError, TrajectoryError)
-from dyn_node.audit.evidence import EvidenceRecord, jsonable, utc_now
+from dyn_node.audit.evidence import (EvidenceRecord, add_per_frame, jsonable, task_limits_key,
+                                     task_limits_section, utc_now)
+from dyn_node.audit.replay_common import (MAX_PENDING, Pending, Recheck, SeriesBins, output_stamp_ns,
+                                          worst_status_difference)
+from dyn_node.audit.contact_replay import (CONTACT_ROLES, ContactRecheck, ContactReplay, contact_findings,
+                                           contact_role, contact_section)
 from dyn_node.core.units import joint_units
 
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code  # noqa: F401
@@ -35,14 +41,12 @@ from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT
 if TYPE_CHECKING:
     from dyn_node.core.model_source import ModelCache
 
-MAX_BINS = 1024          # time bins kept for plots (adaptive width: memory flat in bag length)
 MAX_EPISODES = 1000      # violation episodes listed (the rest are counted)
 MAX_EXAMPLES = 50        # invalid / out-of-order examples and gaps listed
 MAX_TRAJECTORIES = 1000  # per-trajectory verdicts listed (the rest are counted)
-MAX_PENDING = 20_000     # recomputed outputs waiting for their recorded counterpart (20 s at 1 kHz)
 MIN_BATCH = 16           # shorter runs of joint_states are replayed message by message
 MAX_RUN = 2048           # joint_states replayed per batch (bounds memory)
-RECHECK_EXCLUDED_KEYS = ("compute_time",)  # wall-clock figures cannot be reproduced
+MAX_CURVE_TRAJECTORIES = 50  # trajectory entries that carry per_frame_curves (≤ 400 points each)
 
 ROLE_JOINT_STATES, ROLE_TRAJECTORY = "joint_states", "joint_trajectory"
 ROLE_CHECK = "check_trajectory"  # ~/check_trajectory: checked like joint_trajectory, never tracked
@@ -110,6 +114,9 @@ def parameters_from_yaml(text: str) -> dict[str, Any]:
 
 
 def _role(topic: str, schema: str) -> str | None:
+    contact = contact_role(topic, schema)  # ~/external_torque, ~/external_wrench, ~/observer_events
+    if contact is not None:
+        return contact
     last = topic.rstrip("/").rsplit("/", 1)[-1]
     if schema == "sensor_msgs/msg/JointState":
         if last == ROLE_GRAVITY:
@@ -131,77 +138,6 @@ def _role(topic: str, schema: str) -> str | None:
 
 
 # --- streaming aggregates (memory independent of bag length) -------------------------------
-class SeriesBins:
-    """Per-joint min/max torque, max utilisation and min limit in time bins over log time.
-
-    The bin width doubles (pairs merge) whenever the bag outgrows :data:`MAX_BINS` bins."""
-
-    def __init__(self, nv: int, t0_ns: int, width_ns: int = 10_000_000):
-        self.t0, self.width, self.nv = t0_ns, width_ns, nv
-        self.n = 0
-        self.tau_min = np.full((MAX_BINS, nv), np.inf)
-        self.tau_max = np.full((MAX_BINS, nv), -np.inf)
-        self.util = np.zeros((MAX_BINS, nv))
-        self.limit = np.full((MAX_BINS, nv), np.inf)
-        self.measured = np.full((MAX_BINS, nv), np.nan)  # max |measured effort| (NaN: none)
-        self.count = np.zeros(MAX_BINS, dtype=np.int64)
-
-    def _merge(self) -> None:
-        half = MAX_BINS // 2
-        for arr, red in ((self.tau_min, np.minimum), (self.tau_max, np.maximum),
-                         (self.util, np.maximum), (self.limit, np.minimum)):
-            arr[:half] = red(arr[0::2], arr[1::2])
-            arr[half:] = np.inf if red is np.minimum else (-np.inf if arr is self.tau_max else 0.0)
-        self.measured[:half] = np.fmax(self.measured[0::2], self.measured[1::2])
-        self.measured[half:] = np.nan
-        self.count[:half] = self.count[0::2] + self.count[1::2]
-        self.count[half:] = 0
-        self.width *= 2
-        self.n = (self.n + 1) // 2
-
-    def add(self, t_ns: int, tau: np.ndarray, util: np.ndarray, limit: np.ndarray,
-            measured: np.ndarray | None = None) -> None:
-        i = max((t_ns - self.t0) // self.width, 0)
-        while i >= MAX_BINS:
-            self._merge()
-            i = max((t_ns - self.t0) // self.width, 0)
-        np.minimum(self.tau_min[i], tau, out=self.tau_min[i])
-        np.maximum(self.tau_max[i], tau, out=self.tau_max[i])
-        np.fmax(self.util[i], util, out=self.util[i])
-        np.minimum(self.limit[i], limit, out=self.limit[i])
-        if measured is not None:
-            np.fmax(self.measured[i], np.abs(measured), out=self.measured[i])
-        self.count[i] += 1
-        if i >= self.n:
-            self.n = i + 1
-
-
-    def add_batch(self, t_ns: np.ndarray, tau: np.ndarray, util: np.ndarray, limit: np.ndarray,
-                  measured: np.ndarray) -> None:
-        """Rows of :meth:`add` at once (same result; ``measured`` NaN where not measured)."""
-        idx = np.maximum((t_ns - self.t0) // self.width, 0)
-        while idx.max() >= MAX_BINS:
-            self._merge()
-            idx = np.maximum((t_ns - self.t0) // self.width, 0)
-        if np.all(idx[1:] >= idx[:-1]):
-            starts = np.flatnonzero(np.r_[True, idx[1:] != idx[:-1]])
-            b = idx[starts]
-            self.tau_min[b] = np.minimum(self.tau_min[b], np.minimum.reduceat(tau, starts))
-            self.tau_max[b] = np.maximum(self.tau_max[b], np.maximum.reduceat(tau, starts))
-            self.util[b] = np.fmax(self.util[b], np.fmax.reduceat(util, starts))
-            self.limit[b] = np.minimum(self.limit[b], np.minimum.reduceat(limit, starts))
-            self.measured[b] = np.fmax(self.measured[b], np.fmax.reduceat(np.abs(measured), starts))
-            self.count[b] += np.diff(np.r_[starts, len(idx)])
-        else:  # log time went backwards inside the batch: slower unbuffered path
-            np.minimum.at(self.tau_min, idx, tau)
-            np.maximum.at(self.tau_max, idx, tau)
-            np.fmax.at(self.util, idx, util)
-            np.minimum.at(self.limit, idx, limit)
-            np.fmax.at(self.measured, idx, np.abs(measured))
-            np.add.at(self.count, idx, 1)
-        self.n = max(self.n, int(idx.max()) + 1)
-
-
 class LiveStats:
     """Time bins, per-joint peaks and violation episodes of the accepted joint states.
 
@@ -451,60 +387,6 @@ class Episodes:
             self._close(key)
 
 
-class _Pending:
-    """Recomputed outputs keyed by header stamp, waiting for the recorded one (bounded FIFO)."""
-
-    def __init__(self) -> None:
-        self.d: OrderedDict[int, list] = OrderedDict()
-        self.evicted = 0
-
-    def put(self, key: int, value: Any) -> None:
-        self.d.setdefault(key, []).append(value)
-        if len(self.d) > MAX_PENDING:
-            self.evicted += len(self.d.popitem(last=False)[1])
-
-    def left(self) -> int:
-        """Values never taken: evicted ones and those still waiting."""
-        return self.evicted + sum(len(v) for v in self.d.values())
-
-    def take(self, key: int) -> Any:
-        lst = self.d.get(key)
-        if not lst:
-            return None
-        v = lst.pop(0)
-        if not lst:
-            del self.d[key]
-        return v
-
-
-class Recheck:
-    def __init__(self) -> None:
-        self.matched = 0
-        self.unmatched = 0
-        self.max_diff = 0.0
-        self.mismatched_values = 0
-        self.worst: dict | None = None
-
-    def diff(self, d: float, where: dict) -> None:
-        self.matched += 1
-        if not d <= self.max_diff:  # also catches NaN
-            self.max_diff = d if not math.isnan(d) else math.inf
-            self.worst = where
-
-    def to_dict(self, unanswered: int = 0) -> dict:
-        """``unmatched``: recorded outputs with no recomputed counterpart (a real discrepancy);
-        ``unanswered``: recomputed outputs the bag has no recorded output for (inputs the node
-        did not answer: taken before it had a model, or after the recording stopped)."""
-        out = {"matched": self.matched, "unmatched": self.unmatched, "unanswered": unanswered,
-               "max_abs_difference": self.max_diff if self.matched else None,
-               "identical": bool(self.matched and self.max_diff == 0.0 and not self.mismatched_values)}
-        if self.mismatched_values:
-            out["mismatched_non_numeric_values"] = self.mismatched_values
-        if self.worst:
-            out["worst"] = self.worst
-        return out
-
-
 @dataclass
 class _Config:
     """One configuration of the recording node, as replayed: from ``since_ns`` (log time; None:
@@ -515,6 +397,47 @@ class _Config:
     parameters: dict
     since_ns: int | None
     not_comparable: list[str]
+
+
+def recorded_limits(meta: dict, path: str, findings: list[str]) -> str:
+    """The limits text a metadata record carries (the node's model was built from it); a
+    finding when its sha256 does not match the record's or the file at ``path`` differs."""
+    from dyn_node.core.limits_file import limits_sha256
+
+    text = meta[LIMITS_YAML_KEY]
+    sha = limits_sha256(text)
+    if meta.get(LIMITS_SHA256_KEY, sha) != sha:
+        findings.append(f"the bag's limits text has sha256 {sha}, its record says "
+                        f"{meta[LIMITS_SHA256_KEY]}: the text is used")
+    try:
+        disk = limits_sha256(Path(path).read_bytes()) if path else sha
+    except OSError:  # moved or deleted since: the recorded text is all that is needed
+        disk = sha
+    if disk != sha:
+        findings.append(f"the limits file {path} on this machine (sha256 {disk}) differs from the "
+                        f"text the node read (sha256 {sha}): the bag's recorded text is used")
+    return text
+
+
+def limits_source(settings: Any, overrides: dict[str, Any], recorded: bool, missing: str) -> str:
+    """Where the replayed limits come from, as the evidence's configuration.model names it."""
+    if "limits" in overrides:
+        return f"override:{overrides['limits']}"
+    if recorded:
+        return "bag:limits_yaml"
+    if missing:
+        return f"urdf ({missing} not recorded, not on this machine)"
+    if settings.limits_file:
+        return f"file:{settings.limits_file} (not recorded: older recorder)"
+    return "urdf"
+
+
+def task_limits_differences(recorded: Any, used: Any) -> list[str]:
+    """The task sections (frame_limits, …, grasp) that differ between the two models' limits."""
+    a, b = task_limits_section(recorded) or {}, task_limits_section(used) or {}
+    changed = sorted(k for k in set(a) | set(b) if k != "unused_keys"
+                     and jsonable(a.get(k)) != jsonable(b.get(k)))
+    return ["task limits: " + ", ".join(changed)] if changed else []
 
 
 def model_differences(recorded: Any, used: Any) -> list[str]:
@@ -537,6 +460,7 @@ def model_differences(recorded: Any, used: Any) -> list[str]:
         changed = sorted(k for k in set(a) | set(b) if jsonable(a.get(k)) != jsonable(b.get(k)))
         if changed:
             out.append("limits: " + ", ".join(changed))
+    out += task_limits_differences(recorded, used)
     if recorded.payload.mass != used.payload.mass:
         out.append(f"payload mass: recorded {recorded.payload.mass:g} kg, here {used.payload.mass:g} kg")
     if list(recorded.gravity) != list(used.gravity):
@@ -596,8 +520,8 @@ class Audit:
         untimed = 0
         prev = first_meta
         for meta in records:
-            changed = (meta.get("parameters"), meta.get("robot_description")) != (
-                prev.get("parameters"), prev.get("robot_description"))
+            keys = ("parameters", "robot_description", LIMITS_YAML_KEY)
+            changed = tuple(map(meta.get, keys)) != tuple(map(prev.get, keys))
             prev = meta
             since = _effective_ns(meta)
             if since is None:
@@ -622,9 +546,10 @@ class Audit:
         return out
 
     def _bag_settings(self, meta: dict, topic_desc: str, findings: list[str], *,
-                      overrides_on: bool) -> tuple[Any, dict[str, Any], str]:
-        """(settings, overrides applied, the bag's limits_file when it is not on this machine)
-        for one metadata record; ``overrides_on=False``: what the node itself used."""
+                      overrides_on: bool) -> tuple[Any, dict[str, Any], str, str | None]:
+        """(settings, overrides applied, the bag's limits_file when it is not on this machine,
+        the limits text the record carries) for one metadata record; ``overrides_on=False``:
+        what the node itself used."""
         from dataclasses import replace
 
         from dyn_node.errors import SettingsError
@@ -674,12 +599,17 @@ class Audit:
                 raise AuditError(f"limits file {self.opts.limits} does not exist", code="no_limits")
             settings = replace(settings, limits_file=self.opts.limits)
             overrides["limits"] = self.opts.limits
+        elif LIMITS_YAML_KEY in meta:  # the text the node's model was built from
+            return settings, overrides, missing, recorded_limits(meta, settings.limits_file, findings)
         elif settings.limits_file and not Path(settings.limits_file).is_file():
             findings.append(f"the bag's limits_file {settings.limits_file} is not on this "
                             "machine: URDF limits used (pass --limits)")
             missing = settings.limits_file
             settings = replace(settings, limits_file="")
-        return settings, overrides, missing
+        elif settings.limits_file:
+            findings.append(f"the bag does not record the limits file's text (older recorder): "
+                            f"{settings.limits_file} as it is on this machine is used")
+        return settings, overrides, missing, None
 
     def _resolve(self, meta: dict, topic_desc: str, *, first: bool,
                  since_ns: int | None = None) -> "_Config":
@@ -687,13 +617,14 @@ class Audit:
         from dyn_node.core.model_source import build_model
 
         findings: list[str] = []
-        settings, overrides, missing = self._bag_settings(meta, topic_desc, findings, overrides_on=True)
+        settings, overrides, missing, limits = self._bag_settings(meta, topic_desc, findings,
+                                                                  overrides_on=True)
         if not settings.has_model_source:
             raise AuditError("no robot model: the bag has no robot description (no dyn_node "
                              "metadata, no /robot_description); pass --robot-model or "
                              "--robot-description", code="no_model")
         try:
-            model = build_model(settings, cache=self.opts.model_cache)
+            model = build_model(settings, cache=self.opts.model_cache, limits_yaml=limits)
         except DynNodeError as exc:
             raise AuditError(f"robot model unusable: {exc}", code="no_model") from None
         differs: list[str] = []
@@ -701,11 +632,12 @@ class Audit:
             differs.append(f"limits: the node read {missing}, which is not on this machine "
                            "(URDF limits used here)")
         if overrides:
-            node_settings, _, node_missing = self._bag_settings(meta, topic_desc, [], overrides_on=False)
+            node_settings, _, node_missing, node_limits = self._bag_settings(
+                meta, topic_desc, [], overrides_on=False)
             if node_settings.has_model_source and not node_missing:
                 try:
-                    differs += model_differences(
-                        build_model(node_settings, cache=self.opts.model_cache), model)
+                    differs += model_differences(build_model(
+                        node_settings, cache=self.opts.model_cache, limits_yaml=node_limits), model)
                 except DynNodeError as exc:
                     differs.append(f"the recorded model cannot be rebuilt here ({exc})")
         for f in findings:
@@ -723,6 +655,7 @@ class Audit:
                 self.model_source = "bag:metadata" if settings.robot_description == desc_in_bag else "bag:topic"
             else:
                 self.model_source = "bag:parameters"
+            self.limits_source = limits_source(settings, overrides, limits is not None, missing)
         return cfg
 
     def _peek_description(self, reader: BagReader) -> BagMessage | None:
@@ -738,7 +671,7 @@ class Audit:
         reader = open_bag(self.opts.bag)
         self._configure(reader)
         return AuditSource(reader, self.configurations, self.overrides, self.model_source,
-                           self.bag_metadata_version, self.findings)
+                           self.bag_metadata_version, self.findings, self.limits_source)
 
     def run(self) -> tuple[dict, int, "SeriesBins | None"]:
         """read → replay (with the re-check of the recorded outputs alongside) → evidence →
@@ -751,10 +684,13 @@ class Audit:
         recheck = Rechecker(reader.known_topics(), self.decoder)
         replay = Replay(source.configurations, gap_threshold_s=opts.gap_threshold_s,
                         decoder=self.decoder, sink=recheck)
+        if source.model_source == "bag:topic" and len(source.configurations) > 1:
+            replay.contact.without_model()  # the node's first core came with a later configuration
         roles = Roles(opts.topics)
         self.n_msgs = stream(reader, roles, replay, recheck, _Progress(reader, opts.progress))
         result = replay.finish()
         self.settings, self.model = result.settings, result.model
+        self.contact_series = result.contact.series if result.contact is not None else None
         require_inputs(opts.bag, reader, result, source.first.model)
         rec = build_evidence(opts, source, roles, result, recheck.result())
         rec.started_utc = started
@@ -775,6 +711,7 @@ class AuditSource:
     model_source: str
     bag_metadata_version: Any
     findings: list[str]  # shared with the later stages, which append theirs
+    limits_source: str = ""  # where the first configuration's limits came from (limits_source)
 
     @property
     def first(self) -> _Config:
@@ -890,6 +827,7 @@ class ReplayResult:
     trajectories_bad: int       # executed trajectories infeasible or rejected
     trajectory_failure_labels: set[str]
     controller: ControllerTimeline
+    contact: Any = None         # audit.contact_replay.ContactResult
 
 
 class Replay:
@@ -906,6 +844,7 @@ class Replay:
                               lim.deceleration)
         self.monitor: Any = None
         self.tracker: Any = None
+        self.contact: ContactReplay | None = None
         self._use(first)
         self.decoder = decoder or MessageDecoder()
         self.sink = sink
@@ -926,6 +865,7 @@ class Replay:
         # run and replayed in one batch (decoded at once, Monitor.process_batch); anything else,
         # and any run the batch path declines, goes message by message. Both give the same numbers.
         self._run_topic, self._run_len, self._run_t, self._run_d = "", -1, [], []
+        self.contact = ContactReplay(first, self.monitor.dynamics, sink=sink.contact if sink is not None else None)
 
     def feed(self, role: str, m: BagMessage) -> bool:
         """Replay one message; False when its role is not an input (a recorded output)."""
@@ -945,6 +885,9 @@ class Replay:
             self._states_request(m)
         elif role == ROLE_CTRL:
             self._recorded_status(m)
+        elif role in CONTACT_ROLES:
+            self.contact.recorded_output(role, m, self.decoder)
+            return False  # a recorded output: the re-check compares it
         else:
             return False
         return True
@@ -956,7 +899,8 @@ class Replay:
         return ReplayResult(self.live, self.monitor.counts, self.model, self.settings,
                             self.js_topics, self.prev_log, self.gaps, self.stale, self.invalid,
                             self.invalid_by_reason, self.out_of_order, self.trajectories,
-                            self.trajectories_bad, self.trajectory_failure_labels, self.controller)
+                            self.trajectories_bad, self.trajectory_failure_labels, self.controller,
+                            contact=self.contact.finish())
 
     def _switch(self, cfg: _Config) -> None:
         """What the node does when a parameter is set: a new core from now on."""
@@ -983,6 +927,8 @@ class Replay:
         live = self.live
         live.lo, live.hi, live.vel = cl.position_lower, cl.position_upper, cl.velocity
         live.dec = cl.deceleration
+        if self.contact is not None:
+            self.contact.use(cfg, self.monitor.dynamics)
 
     # joint_states --------------------------------------------------------------------------
     def _queue(self, topic: str, t_ns: int, data: bytes) -> None:
@@ -1048,6 +994,7 @@ class Replay:
             stamp_key = output_stamp_ns(r.stamp_s) if r.zero_stamp else js.stamp_ns
             self.sink.expect_state(stamp_key, t_ns, r.gravity, r.tau)
         tau = r.tau
+        self.contact.sample_result(t_ns, js, r, self.monitor.last_inputs)
         self.live.add(t_ns, tau, r.utilisation, r.effort_limit, r.q, r.v,
                       None if r.residual is None else r.residual + tau, r.a_hat)
 
@@ -1080,6 +1027,7 @@ class Replay:
                 self.sink.expect_state(key, ts[k], b.gravity[k], b.tau[k])
         meas = (b.residual + b.tau if b.residual is not None
                 else np.full(b.tau.shape, np.nan))
+        self.contact.sample_batch(ts, jb, b)
         self.live.add_arrays(T, b.tau, b.utilisation, b.effort_limit, b.q, b.v, meas, b.a_hat)
         return True
 
@@ -1201,6 +1149,8 @@ def _verdict_entry(entry: dict[str, Any], res: Any) -> dict[str, Any]:
         entry["violations"] = d["violations"][:50] if isinstance(d["violations"], list) else d["violations"]
     if "per_joint" in d:
         entry["per_joint"] = d["per_joint"]
+    # curves for the report's plot; only the first trajectories', to keep the record small
+    add_per_frame(entry, res, curves=entry["index"] < MAX_CURVE_TRAJECTORIES, result_dict=d)
     if not isinstance(entry.get("level"), str):
         from dyn_node.core.status import LEVEL_NAMES
         entry["level"] = LEVEL_NAMES.get(entry.get("level"), str(entry.get("level")))
@@ -1233,11 +1183,13 @@ class Rechecker:
                      or any(t.rstrip("/").rsplit("/", 1)[-1] == r for t in known_topics)
                      for r in OUTPUT_ROLES}
         self.decoder = decoder or MessageDecoder()
-        self.pending = {r: _Pending() for r in OUTPUT_ROLES}
+        self.pending = {r: Pending() for r in OUTPUT_ROLES}
         self.checks = {r: Recheck() for r in OUTPUT_ROLES}
         self.topics: dict[str, str] = {}
         self.lat_stamp, self.lat_receipt = Histogram(), Histogram()
         self.input_log: OrderedDict[int, int] = OrderedDict()  # stamp → input log time (for latency)
+        self.known_topics = known_topics
+        self.contact = ContactRecheck(self)  # its roles join want/pending/checks above
 
     # what the replay recomputed ------------------------------------------------------------
     @property
@@ -1265,6 +1217,9 @@ class Rechecker:
     # what the node recorded ----------------------------------------------------------------
     def output(self, role: str, m: BagMessage, model: Any) -> None:
         """Compare one recorded output with its recomputed value (``model``: the one replayed)."""
+        if role in CONTACT_ROLES:
+            self.contact.output(role, m, model)
+            return
         if role not in OUTPUT_ROLES:
             return
         self.topics[role] = m.topic
@@ -1325,7 +1280,7 @@ class Rechecker:
         arr, key, res = found
         if any(st.message.startswith(("rejected: busy", "rejected: no robot model yet")) for st in arr.status):
             return  # a request the node could not take (queue full, no model yet): nothing to compare
-        worst, where, mismatched = _worst_status_difference(arr.status, _statuses(res, model.name))
+        worst, where, mismatched = worst_status_difference(arr.status, _statuses(res, model.name))
         chk = self.checks[ROLE_FEAS]
         chk.mismatched_values += mismatched
         chk.diff(worst, {"stamp_ns": key, "t_ns": m.log_time_ns, **(where or {})})
@@ -1357,32 +1312,6 @@ def _statuses(res: Any, model_name: str) -> dict[str, dict[str, str]]:
     else:
         statuses = res.statuses(model_name)
     return {s.name: {k: format_value(v) for k, v in s.values.items()} for s in statuses}
-
-
-def _worst_status_difference(recorded: Any, mine: dict[str, dict[str, str]]
-                             ) -> tuple[float, dict | None, int]:
-    """(largest numeric difference, where it is, number of differing non-numeric values) between
-    recorded DiagnosticStatus values and the recomputed ones (wall-clock keys excluded)."""
-    worst, where, mismatched = 0.0, None, 0
-    for st in recorded:
-        ref = mine.get(st.name)
-        if ref is None:
-            continue
-        for kv in st.values:
-            if kv.key not in ref or any(x in kv.key for x in RECHECK_EXCLUDED_KEYS):
-                continue
-            a, b = kv.value, ref[kv.key]
-            try:
-                fa, fb = float(a), float(b)
-            except ValueError:
-                mismatched += a != b
-                continue
-            if fa == fb or (math.isnan(fa) and math.isnan(fb)):
-                continue
-            d = abs(fa - fb) if math.isfinite(fa) and math.isfinite(fb) else math.inf
-            if d > worst:
-                worst, where = d, {"status": st.name, "key": kv.key, "recorded": a, "recomputed": b}
-    return worst, where, mismatched
 
 
 # --- stage 4: evidence --------------------------------------------------------------------
@@ -1428,6 +1357,9 @@ def build_evidence(opts: AuditOptions, source: AuditSource, roles: Roles, replay
     rec.inputs = _inputs_section(opts.bag, source.reader, roles, start_ns, end_ns)
     rec.configuration = _configuration_section(opts, source, replay, rel)
     rec.outputs = _outputs_section(source, replay, recheck, rel)
+    contact = contact_section(replay.contact, start_ns or 0)
+    if contact is not None:
+        rec.outputs["contact"] = contact
     rec.input_quality = _input_quality_section(source.reader, replay, source.first.settings, rel)
     return rec
 
@@ -1456,8 +1388,9 @@ def _configuration_section(opts: AuditOptions, source: AuditSource, replay: Repl
         "model": {"name": model.name, "source": source.model_source, "urdf_sha256": model.urdf_hash,
                   "joint_names": list(model.joint_names), "dof": model.nv,
                   "total_mass_kg": model.total_mass, "payload_mass_kg": model.payload.mass,
-                  "gravity_m_s2": list(model.gravity)},
+                  "gravity_m_s2": list(model.gravity), "limits_source": source.limits_source},
         "limits": model.limits.to_dict(),
+        **task_limits_key(model),
         "parameters": source.first.parameters,
         "settings_used": _settings_dict(replay.settings, replay.model),
         "overrides": source.overrides,
@@ -1465,10 +1398,9 @@ def _configuration_section(opts: AuditOptions, source: AuditSource, replay: Repl
         "gap_threshold_s": opts.gap_threshold_s,
         "changes": [{"time_s": rel(c.since_ns), "effective_log_time_ns": c.since_ns,
                      "parameters": _changed(prev.parameters, c.parameters),
-                     "payload_mass_kg": c.model.payload.mass}
+                     "payload_mass_kg": c.model.payload.mass, **task_limits_key(c.model)}
                     for prev, c in zip(cfgs, cfgs[1:])],
     }
-
 
 def _settings_dict(settings: Any, model: Any) -> dict:
     d = settings.to_parameters()
@@ -1615,6 +1547,7 @@ def add_verdict(rec: EvidenceRecord, source: AuditSource, replay: ReplayResult, 
     bad = bool(episodes_total or n_traj_bad)
     code = exit_code(violations=bad, partial=bool(unreadable))
     findings += _quality_findings(replay, unreadable, gap_threshold_s)
+    findings += contact_findings(out.get("contact"))
     rec.verdict = {"result": "violations" if bad else "feasible", "exit_code": code,
                    "summary": "; ".join(_summary(replay, violations, episodes_total, unreadable)),
                    "partial": bool(unreadable), "findings": findings}
@@ -1656,16 +1589,6 @@ def _quality_findings(replay: ReplayResult, unreadable: list[dict], gap_threshol
     if replay.counts.out_of_order:
         out.append(f"{replay.counts.out_of_order} out-of-order joint_states stamps")
     return out
-
-
-def output_stamp_ns(t_s: float) -> int:
-    """The header stamp (ns) the node gives an output whose input had a zero stamp: the receipt
-    time in seconds, split into sec/nanosec exactly as ``ros_convert.s_to_stamp`` does."""
-    sec = int(t_s // 1)
-    nanosec = int(round((t_s - sec) * 1e9))
-    if nanosec >= 1_000_000_000:
-        sec, nanosec = sec + 1, nanosec - 1_000_000_000
-    return sec * 1_000_000_000 + nanosec
 
 
 def _effective_ns(meta: dict) -> int | None:
@@ -1734,7 +1657,7 @@ def run_audit(opts: AuditOptions) -> AuditResult:
     if opts.report:
         from dyn_node.audit.report import write_report
 
-        files += write_report(record, series, audit.model, out)
+        files += write_report(record, series, audit.model, out, contact_series=audit.contact_series)
     return AuditResult(record, code, out, files, audit.n_msgs, time.perf_counter() - wall0)
 
 

@@ -137,9 +137,32 @@ def _g(x: float) -> str:
     return "inf" if x == math.inf else f"{x:.4g}"
 
 
+def place_lines(v: FileVerdict) -> list[str]:
+    """One row per task place (frame_limits link, robot_limits, base_limits, grasp) of a checked
+    file: ``  <place>: <kind> <peak> of <limit> <unit> (<ratio>%) at t = <s> s; …`` (empty when
+    no task kind is configured)."""
+    from dyn_node.audit.evidence import TASK_KIND_UNITS
+
+    r = v.outcome.result if v.outcome is not None else None
+    per_frame = getattr(r, "per_frame", None) or {}
+    rows = []
+    for place, kinds in per_frame.items():
+        cells = []
+        for kind, e in kinds.items():
+            unit = e.get("unit", TASK_KIND_UNITS.get(kind, ""))
+            ratio = e.get("ratio")
+            pct = "—" if ratio is None else ("inf" if ratio == math.inf else f"{ratio * 100:.0f}")
+            t = e.get("time_s")
+            at = f" at t = {t:.2f} s" if isinstance(t, float) and math.isfinite(t) else ""
+            cells.append(f"{kind} {_g(e['value'])} of {_g(e['limit'])}{(' ' + unit) if unit else ''} "
+                         f"({pct}%){at}")
+        rows.append(f"  {place}: " + "; ".join(cells))
+    return rows
+
+
 def evidence_record(checker: Checker, v: FileVerdict, started_utc: str) -> dict:
     """The file's EvidenceRecord (kind ``check``), shaped like the audit's so its report renders."""
-    from dyn_node.audit.evidence import EvidenceRecord, utc_now
+    from dyn_node.audit.evidence import EvidenceRecord, task_limits_key, utc_now
     from dyn_node.core.units import joint_units
 
     model = checker.model
@@ -159,7 +182,7 @@ def evidence_record(checker: Checker, v: FileVerdict, started_utc: str) -> dict:
                   "joint_names": list(model.joint_names), "dof": model.nv,
                   "total_mass_kg": model.total_mass, "payload_mass_kg": model.payload.mass,
                   "gravity_m_s2": list(model.gravity)},
-        "limits": model.limits.to_dict(), "parameters": {},
+        "limits": model.limits.to_dict(), **task_limits_key(model), "parameters": {},
         "settings_used": _settings_dict(checker), "overrides": dict(checker.overrides)}
     per_joint = []
     for j, name in enumerate(model.joint_names):
@@ -204,6 +227,8 @@ def _settings_dict(checker: Checker) -> dict:
 
 def _entry(v: FileVerdict) -> dict:
     """The trajectory entry of the record, with the audit's keys (and the waypoint torques)."""
+    from dyn_node.audit.evidence import add_per_frame
+
     tf, o = v.trajectory, v.outcome
     entry: dict[str, Any] = {"index": 0, "topic": v.path, "time_s": 0.0,
                              "stamp_ns": tf.stamp_ns if tf else 0, "accepted": False, "feasible": False,
@@ -223,6 +248,7 @@ def _entry(v: FileVerdict) -> dict:
               "worst_constraint", "worst_ratio", "first_violation_time_s", "n_points", "duration_s",
               "interpolation", "violations", "per_joint", "waypoint_effort", "warnings"):
         entry[k] = d[k]
+    add_per_frame(entry, o.result, curves=True, result_dict=d)
     entry["failure_label"] = entry["failure_label"] or None
     return entry
 
@@ -330,6 +356,8 @@ def run(args: argparse.Namespace, out: Any = None) -> int:
         verdicts.append(v)
         # an unreadable file's line is an error message: stderr, like every other error
         print(verdict_line(v), file=out if v.readable else sys.stderr, flush=True)
+        for row in place_lines(v):
+            print(row, file=out)
         if args.out:
             d = write_evidence(checker, v, Path(args.out), started)
             print(f"  evidence: {d / 'evidence.json'}, report: {d / 'report.html'}", file=out)

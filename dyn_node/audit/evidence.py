@@ -20,6 +20,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from dyn_node import __version__
+from dyn_node.core.kinds import KINDS
+from dyn_node.core.task_motion import configured
 from dyn_node.errors import FAILURE_LABELS, EVALUATION_ERROR, DynNodeError
 
 SCHEMA_PATH = Path(__file__).resolve().parents[1] / "schemas" / "evidence_record.schema.json"
@@ -72,8 +74,105 @@ METRIC_DEFINITIONS: dict[str, dict[str, str]] = {
     "unreadable_range": {"unit": "s", "description": "log-time range relative to start_ns that could "
                          "not be read (CRC mismatch, damaged or truncated file); end_s null: to the "
                          "end of the recording"},
+    "contact.episode": {"unit": "s", "description": "a contact (|τ̂_ext| over contact_threshold × the "
+                        "effort limit on some joint for contact_min_duration) or collision (over "
+                        "collision_threshold); start_s/end_s: input header stamps relative to "
+                        "inputs.time_span.start_ns, from the first sample over the contact threshold to "
+                        "the first with every joint below half of it"},
+    "contact.peak_force_n": {"unit": "N", "description": "largest |F̂| of the wrench estimate at the contact "
+                             "frame during the episode; peak_wrench: that estimate [N, N, N, N·m, N·m, N·m]"},
+    "contact.peak_torque": {"unit": "N·m | N", "description": "largest |τ̂_ext| of the joint during the "
+                            "episode (momentum observer, friction of the model subtracted)"},
+    "contact.resets": {"unit": "s", "description": "observer restarts (recording start, joint_states gap > "
+                       "stale_timeout, model or parameter change, invalid input): stamp of the sample"},
     "throughput_msgs_per_s": {"unit": "1/s", "description": "messages read per second of wall time"},
+    "per_frame": {"unit": "the kind's (entry.unit)", "description": "trajectory entry: place (a "
+                  "frame_limits link, robot_limits, base_limits or grasp) → task kind → {ratio, "
+                  "time_s, value, limit, unit}: peak value over its limit, at time_s from the "
+                  "trajectory start; only the configured kinds of each place"},
+    "task_limits": {"unit": "SI (m, m/s, rad/s, m/s², J, N, N·m, kg)", "description": "the limits "
+                    "file's task sections as applied (vectors in the named frame's axes, base "
+                    "quantities in the URDF root frame); null: section absent or not limited"},
+    "frame_speed": {"unit": "m/s", "description": "|v| of the frame_limits point (root axes); "
+                    "time-scale law 1/k"},
+    "frame_angular_speed": {"unit": "rad/s", "description": "|ω| of the frame; law 1/k"},
+    "frame_acceleration": {"unit": "m/s²", "description": "|J·q̈ + J̇·q̇| of the point, gravity "
+                           "excluded; law 1/k²"},
+    "transferred_energy": {"unit": "J", "description": "½·m_u·|v|² at the point, m_u the effective "
+                           "mass along the motion; an upper bound of ISO/TS 15066's transferred "
+                           "energy: advisory, not a certification; law 1/k²"},
+    "kinetic_energy": {"unit": "J", "description": "½ q̇ᵀM(q)q̇ of the whole robot; law 1/k²"},
+    "base_force": {"unit": "N", "description": "|force| of the mounting on the robot at the root "
+                   "origin, root axes: |f_static + f_dynamic/k²|"},
+    "base_moment": {"unit": "N·m", "description": "|moment| at the root origin, root axes"},
+    "tipping": {"unit": "1", "description": "tipping_ratio: centre of pressure's distance from the "
+                "support polygon's centroid over the centroid-to-edge distance on that ray (1 on "
+                "the edge, inf at lift-off)"},
+    "grasp_slip": {"unit": "N", "description": "force the grasp supplies to the payload, component "
+                   "perpendicular to the normal axis, against μ·grip_force·faces"},
 }
+
+#: The task kinds' units, as the per_frame entries and ~/feasibility messages give them (the
+#: kind classes' own ``unit``).
+TASK_KIND_UNITS: dict[str, str] = {c.kind: c.unit for c in KINDS if c.scope == "task"}
+
+
+def task_limits_section(model: Any) -> dict[str, Any] | None:
+    """``configuration.task_limits``: the model's TaskLimits as applied (None: none configured)."""
+    tl = getattr(model, "task_limits", None)
+    if tl is None:
+        return None
+    return tl.to_dict() if configured(tl) else None
+
+
+def task_limits_key(model: Any) -> dict[str, Any]:
+    """``{"task_limits": …}`` for a configuration section when the model has task limits."""
+    tl = task_limits_section(model)
+    return {} if tl is None else {"task_limits": tl}
+
+
+def per_frame_curves(result: Any, max_points: int = 400) -> dict[str, Any] | None:
+    """A trajectory entry's ``per_frame_curves``: place → kind → {t_s, value} per sample at the
+    given timing (the result's ``task_curves``), at most ``max_points`` kept per curve by each
+    bin's largest value so the peak survives (None: none available)."""
+    curves = getattr(result, "task_curves", None)
+    if not curves:
+        return None
+    out: dict[str, Any] = {}
+    for place, kinds in curves.items():
+        for kind, (t, v) in kinds.items():
+            t, v = np.asarray(t, dtype=float), np.asarray(v, dtype=float)
+            if t.size > max_points:
+                edges = np.linspace(0, t.size, max_points + 1).astype(int)
+                pick = np.array([a + int(np.nanargmax(v[a:b])) if np.isfinite(v[a:b]).any() else a
+                                 for a, b in zip(edges[:-1], edges[1:])])
+                t, v = t[pick], v[pick]
+            out.setdefault(place, {})[kind] = {"t_s": t, "value": v}
+    return out
+
+
+def per_frame_section(result_dict: Mapping[str, Any]) -> dict[str, Any] | None:
+    """A trajectory entry's ``per_frame`` from ``FeasibilityResult.to_dict()`` (None: no task
+    kind configured), each entry with its unit."""
+    pf = result_dict.get("per_frame")
+    if not pf:
+        return None
+    return {place: {kind: {"unit": TASK_KIND_UNITS.get(kind, ""), **dict(e)}
+                    for kind, e in kinds.items()} for place, kinds in pf.items()}
+
+
+def add_per_frame(entry: dict[str, Any], result: Any, *, curves: bool,
+                  result_dict: Mapping[str, Any] | None = None) -> None:
+    """Sets a trajectory entry's ``per_frame`` (and, when ``curves``, its ``per_frame_curves``)
+    from a FeasibilityResult; nothing when no task kind is configured. ``result_dict``: the
+    result's ``to_dict()`` when the caller has it already."""
+    per_frame = per_frame_section(result.to_dict() if result_dict is None else result_dict)
+    if not per_frame:
+        return
+    entry["per_frame"] = per_frame
+    c = per_frame_curves(result) if curves else None
+    if c:
+        entry["per_frame_curves"] = c
 
 
 class EvidenceError(DynNodeError):

@@ -1,7 +1,8 @@
 """report.html for an audit: one self-contained page (no network fetches) plus the plots as PNGs.
 
 Verdict at the top; per-joint effort vs limit over time with the ±limit envelope; utilisation heat
-map (joint × time); violations table; each trajectory's time scale and margins; input-quality
+map (joint × time); violations table; each trajectory's time scale and margins; with task limits
+(#18) each place and kind against its limit (``task_limits.png``); input-quality
 findings; re-check and latency. Plots are drawn with Pillow (anti-aliased by drawing at twice the
 size) and embedded as base64 ``data:`` URIs; matplotlib is not imported, since importing and laying
 out a matplotlib figure took longer than auditing a minute of 1 kHz joint states.
@@ -319,6 +320,57 @@ def effort_plot(series, joint_names: Sequence[str], start_ns: int, violations: l
     return cv.png()
 
 
+def contact_plot(series, joint_names: Sequence[str], start_ns: int, contact_level: Sequence[float],
+                 episodes: list[dict], units: Sequence[str] | None = None) -> bytes:
+    """Per joint the external-torque estimate τ̂_ext (min..max per time bin) with the ±contact
+    threshold, then the wrench estimate's force ‖F̂‖ (max per bin); contact episodes shaded
+    (orange: contact, red: collision). ``series``: SeriesBins over nv + 1 columns."""
+    nv = len(joint_names)
+    W, row, top, left, right = 1100, 110, 62, 110, 16
+    H = top + (nv + 1) * row + 40
+    cv = _Canvas(W, H)
+    cv.text(W / 2, 16, "External torque and contact force over input stamp time (shaded: contact episodes)", 11, "ma")
+    _legend(cv, left, 44, [("τ̂_ext (min–max per bin)", _blend(_BLUE, 0.55), "area"),
+                           ("±contact threshold", _RED, "line"), ("contact", _blend(_ORANGE, 0.25), "area"),
+                           ("collision", _blend(_RED, 0.22), "area")])
+    t = _centres(series, start_ns)
+    n = series.n
+    have = series.count[:n] > 0
+    w_s = series.width * 1e-9
+    xlim = (float(t[0] - w_s / 2), float(t[-1] + w_s / 2)) if n else (0.0, 1.0)
+    xticks = _nice_ticks(*xlim, n=10)
+    for j in range(nv + 1):
+        lo = np.where(have, series.tau_min[:n, j], np.nan)
+        hi = np.where(have, series.tau_max[:n, j], np.nan)
+        level = float(contact_level[j]) if j < nv else math.nan
+        vals = np.concatenate([lo[np.isfinite(lo)], hi[np.isfinite(hi)],
+                               [level, -level] if math.isfinite(level) else []])
+        big = float(np.max(np.abs(vals))) if vals.size else 1.0
+        ylim = (-1.15 * big, 1.15 * big) if j < nv else (0.0, 1.15 * big)
+        y_top = top + j * row
+        ax = _Axes(cv, (left, y_top, W - right, y_top + row - 14), xlim, ylim)
+        for e in episodes:
+            end = e["end_s"] if e["end_s"] is not None else xlim[1]
+            ax.vspan(e["start_s"], max(end, e["start_s"] + w_s),
+                     _blend(_RED, 0.22) if e["level"] == "collision" else _blend(_ORANGE, 0.25))
+        ax.grid(xticks, _nice_ticks(*ylim, n=4), xlabels=j == nv)
+        if j < nv:
+            ax.bars(t - w_s / 2, t + w_s / 2, lo, hi, _blend(_BLUE, 0.55))
+            ax.line(t, (lo + hi) / 2, _DARK_BLUE, 0.7)
+            if math.isfinite(level):
+                ax.hline(level, _RED, 1.0, dash=True)
+                ax.hline(-level, _RED, 1.0, dash=True)
+        else:
+            ax.steps(t, w_s, hi, _DARK_BLUE, 1.2)
+        ax.frame()
+        label = str(joint_names[j]) if j < nv else "‖F̂‖ at the frame"
+        unit = (units[j] if units else "N·m") if j < nv else "N"
+        cv.text(8, y_top + (row - 14) / 2 - 7, label, 8, "lm")
+        cv.text(8, y_top + (row - 14) / 2 + 7, unit, 8, "lm")
+    cv.text(left + (W - right - left) / 2, H - 14, "time since bag start (s)", 9, "ms")
+    return cv.png()
+
+
 def _colormap(u: np.ndarray, vmax: float) -> np.ndarray:
     """RGB (uint8) of utilisation values on the reversed RdYlGn scale 0..vmax; NaN: light grey."""
     stops = np.array([_rgb(c) for c in _RDYLGN_R], dtype=float)
@@ -428,6 +480,89 @@ def trajectories_plot(trajs: list[dict]) -> bytes:
 
 def _finite(x: Any) -> float | None:
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else None
+
+
+#: How the task kinds' plot rows are titled (value against limit; unit from the entry).
+_TASK_ROW_TITLE = {
+    "frame_speed": "linear speed", "frame_angular_speed": "angular speed",
+    "frame_acceleration": "linear acceleration",
+    "transferred_energy": "transferred energy ½·m_u·v² (advisory)",
+    "kinetic_energy": "kinetic energy ½ q̇ᵀMq̇", "base_force": "base force |f|",
+    "base_moment": "base moment |m|", "tipping": "tipping gauge (1 = edge)",
+    "grasp_slip": "grasp tangential force vs μ·F·faces"}
+
+
+def task_rows(trajs: list[dict]) -> list[tuple[str, str]]:
+    """The (place, kind) pairs the trajectories' ``per_frame`` tables hold, first seen first."""
+    rows: dict[tuple[str, str], None] = {}
+    for t in trajs:
+        for place, kinds in (t.get("per_frame") or {}).items():
+            for kind in kinds:
+                rows[(place, kind)] = None
+    return list(rows)
+
+
+def _task_points(trajs: list[dict], place: str, kind: str, curves: bool) -> list[tuple[dict, np.ndarray, np.ndarray]]:
+    """Per trajectory: (entry, x, value). ``curves``: the per-sample curve over the trajectory's
+    own time (``per_frame_curves``); else its peak at its time in the bag."""
+    out = []
+    for t in trajs:
+        e = (t.get("per_frame") or {}).get(place, {}).get(kind)
+        if e is None:
+            continue
+        c = (t.get("per_frame_curves") or {}).get(place, {}).get(kind) if curves else None
+        if c is not None:
+            out.append((t, np.asarray(c["t_s"], dtype=float), np.asarray(
+                [np.nan if v is None or isinstance(v, str) else v for v in c["value"]], dtype=float)))
+        elif not curves:
+            v = _finite(e.get("value"))
+            out.append((t, np.array([float(t["time_s"] or 0.0)]), np.array([np.nan if v is None else v])))
+    return out
+
+
+def task_plot(trajs: list[dict]) -> bytes:
+    """One row per task place and kind: the value against its limit (red). With per-sample
+    curves (``per_frame_curves``), each trajectory's value over its own time; otherwise each
+    trajectory's peak at its time in the bag (green feasible, red not)."""
+    rows = task_rows(trajs)
+    curves = any(t.get("per_frame_curves") for t in trajs)
+    W, row, top, left, right = 1100, 130, 40, 150, 16
+    H = top + len(rows) * row + 40
+    cv = _Canvas(W, H)
+    cv.text(W / 2, 14, ("Task limits: value over each trajectory's time" if curves else
+                        "Task limits: each trajectory's peak over the bag's time") + " (red: limit)", 11, "ma")
+    data = [_task_points(trajs, p, k, curves) for p, k in rows]
+    xs = [x for d in data for _, x, _ in d if x.size]
+    xlim = (float(min(x.min() for x in xs)), float(max(x.max() for x in xs))) if xs else (0.0, 1.0)
+    pad_x = 0.03 * (xlim[1] - xlim[0]) or 0.5
+    xlim = (xlim[0] - pad_x, xlim[1] + pad_x)
+    xticks = _nice_ticks(*xlim, n=10)
+    for r, ((place, kind), pts) in enumerate(zip(rows, data)):
+        limits = {v for t, _, _ in pts if (v := _finite(t["per_frame"][place][kind].get("limit"))) is not None}
+        vals = np.concatenate([v[np.isfinite(v)] for _, _, v in pts] + [np.array(sorted(limits))])
+        hi = float(vals.max()) if vals.size else 1.0
+        ylim = (0.0, 1.15 * hi if hi > 0 else 1.0)
+        y_top = top + r * row
+        ax = _Axes(cv, (left, y_top, W - right, y_top + row - 16), xlim, ylim)
+        ax.grid(xticks, _nice_ticks(*ylim, n=4), xlabels=r == len(rows) - 1)
+        for t, x, v in pts:
+            color = _GREEN if t["feasible"] else _RED
+            if curves:  # orange, not red, beside the red limit line
+                ax.line(x, v, _GREEN if t["feasible"] else _ORANGE, 1.2)
+            else:
+                w = pad_x * 0.5
+                ax.bars(x - w / 2, x + w / 2, np.zeros(1), v, color)
+        for lim in sorted(limits):
+            ax.hline(lim, _RED, 1.3, dash=True)
+        ax.frame()
+        unit = next((t["per_frame"][place][kind].get("unit", "") for t, _, _ in pts), "")
+        cv.text(8, y_top + (row - 16) / 2 - 16, place, 8, "lm")
+        cv.text(8, y_top + (row - 16) / 2, kind, 8, "lm")
+        cv.text(8, y_top + (row - 16) / 2 + 16, unit or "1", 8, "lm")
+        cv.text(left + 6, y_top + 8, _TASK_ROW_TITLE.get(kind, kind), 7.5, "lm")
+    cv.text(left + (W - right - left) / 2, H - 14, "time from the trajectory's start (s)" if curves
+            else "time since bag start (s)", 9, "ms")
+    return cv.png()
 
 
 def _img(data: bytes, alt: str) -> str:
@@ -542,6 +677,30 @@ def _trajectories_section(out: dict, images: dict[str, bytes]) -> list[str]:
     return p
 
 
+def _task_section(out: dict, images: dict[str, bytes]) -> list[str]:
+    """Per trajectory and task place (frame_limits link, robot_limits, base_limits, grasp): the
+    peak of each configured kind against its limit, and their plot."""
+    trajs = [t for t in out["trajectories"] if t.get("per_frame")]
+    if not trajs:
+        return []
+    p = ["<h2 id='task-limits'>Task limits (force, energy, contact)</h2>",
+         "<p class='muted'>Transferred energy ½·m_u·v² is an upper bound of ISO/TS 15066's "
+         "(which uses the reduced mass of robot and body region): advisory, not a certification.</p>"]
+    rows = []
+    for t in trajs:
+        for place, kinds in t["per_frame"].items():
+            for kind, e in kinds.items():
+                rows.append([str(t["index"]), _e(place), _e(kind), _num(e.get("value")),
+                             _num(e.get("limit")), _e(e.get("unit", "")),
+                             _num(None if _finite(e.get("ratio")) is None else e["ratio"] * 100, "{:.1f}%")
+                             if e.get("ratio") != "inf" else "∞", _num(e.get("time_s"), "{:.3f}")])
+    p.append(_table(["#", "place", "kind", "peak", "limit", "unit", "peak / limit", "at t (s)"],
+                    rows, (3, 4, 6, 7)))
+    if "task_limits.png" in images:
+        p.append(_img(images["task_limits.png"], "task kinds against their limits"))
+    return p
+
+
 def _input_quality_section(iq: dict) -> list[str]:
     """Counts of input problems and a table of each unreadable range, stale period, gap, etc."""
     p = ["<h2 id='input-quality'>Input quality</h2>"]
@@ -568,6 +727,32 @@ def _input_quality_section(iq: dict) -> list[str]:
     p.append(f"<p>{_e(summary)}</p>")
     if rows:
         p.append(_table(["finding", "from (s)", "to (s)", "detail"], rows, (1, 2)))
+    return p
+
+
+def _contact_section(out: dict, images: dict[str, bytes]) -> list[str]:
+    """Contact episodes from the momentum observer (replayed), their plot and the resets."""
+    c = out.get("contact")
+    if not c:
+        return []
+    p = ["<h2 id='contact'>Contact and collision (replayed)</h2>",
+         f"<p>Observer gain {_e(', '.join(f'{k:g}' for k in sorted(set(c['observer_gain_per_s']))))} 1/s "
+         f"(1/K = {c['time_constant_s'] * 1e3:.1f} ms); wrench at {_e(c['frame'])}; "
+         f"{c['estimated']} of {c['samples']} joint states estimated; {c['resets_total']} observer reset(s).</p>"]
+    if "contact.png" in images:
+        p.append(_img(images["contact.png"], "external torque and contact force"))
+    eps = c["episodes"]
+    if eps:
+        p.append(_table(["level", "from (s)", "to (s)", "duration (s)", "peak force (N)", "joints"],
+                        [[_e(e["level"]), _num(e["start_s"], "{:.3f}"), _num(e["end_s"], "{:.3f}"),
+                          _num(e["duration_s"], "{:.3f}"), _num(e["peak_force_n"], "{:.3g}"),
+                          _e(", ".join(f"{j['joint']} {j['peak_torque']:.3g} {j['unit']}" for j in e["joints"]))]
+                         for e in eps], (1, 2, 3, 4)))
+    else:
+        p.append("<p>No contact episodes.</p>")
+    if c["resets"]:
+        p.append("<p class='muted'>Observer resets: " + _e("; ".join(
+            f"{r['time_s']:.3f} s {r['code']}" for r in c["resets"][:20])) + "</p>")
     return p
 
 
@@ -607,12 +792,15 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
     """The self-contained report page: one line per element, sections in a fixed order."""
     out = record["outputs"]
     return "\n".join([*_head(record), *_effort_section(out, images), *_violations_section(out),
-                      *_trajectories_section(out, images), *_input_quality_section(record["input_quality"]),
+                      *_trajectories_section(out, images), *_task_section(out, images),
+                      *_input_quality_section(record["input_quality"]),
+                      *_contact_section(out, images),
                       *_recheck_section(out), *_controller_section(out)])
 
 
-def write_report(record: dict, series, model, out_dir: str | Path) -> list[Path]:
-    """Write report.html and the PNG plots into ``out_dir``; returns the paths written."""
+def write_report(record: dict, series, model, out_dir: str | Path, *, contact_series=None) -> list[Path]:
+    """Write report.html and the PNG plots into ``out_dir``; returns the paths written
+    (``contact_series``: the contact replay's SeriesBins, for contact.png)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     images: dict[str, bytes] = {}
@@ -621,8 +809,16 @@ def write_report(record: dict, series, model, out_dir: str | Path) -> list[Path]
     if series is not None and series.n:
         images["effort.png"] = effort_plot(series, names, start_ns, record["outputs"]["violations"])
         images["utilisation.png"] = utilisation_plot(series, names, start_ns)
+    contact = record["outputs"].get("contact")
+    if contact and contact_series is not None and contact_series.n:
+        from dyn_node.core.units import joint_units
+
+        images["contact.png"] = contact_plot(contact_series, names, start_ns, contact["contact_level"],
+                                             contact["episodes"], joint_units(model)["effort"])
     if record["outputs"]["trajectories"]:
         images["trajectories.png"] = trajectories_plot(record["outputs"]["trajectories"])
+        if task_rows(record["outputs"]["trajectories"]):
+            images["task_limits.png"] = task_plot(record["outputs"]["trajectories"])
     files = []
     for name, data in images.items():
         (out / name).write_bytes(data)

@@ -13,12 +13,23 @@ import yaml
 
 from dyn_node.errors import RecordingError
 from dyn_node.bag.msgdefs import type_description_hash
+from dyn_node.core.limits_file import limits_sha256
 
 ROSBAG2_VERSION = 9
 ROS_DISTRO = "jazzy"
 METADATA_RECORD = "dyn_node"  # the MCAP metadata record and metadata.yaml key of the node's own
 # rmw's "infinite" duration as rosbag2 Jazzy writes it.
 _INFINITE = {"sec": 9223372036, "nsec": 854775807}
+
+#: keys of the metadata record holding the limits file's text and the sha256 of its bytes
+LIMITS_YAML_KEY, LIMITS_SHA256_KEY = "limits_yaml", "limits_sha256"
+
+
+def limits_record(text: str) -> dict[str, str]:
+    """The metadata record's limits fields for the limits file text the node's model was built
+    from: the text, and the sha256 (hex) of its UTF-8 bytes (the file's bytes)."""
+    return {LIMITS_YAML_KEY: text, LIMITS_SHA256_KEY: limits_sha256(text)}
+
 
 def qos_profile_dict(reliability: str = "reliable", durability: str = "volatile",
                      history: str = "keep_last", depth: int = 10,

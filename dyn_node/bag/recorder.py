@@ -20,7 +20,8 @@ from pathlib import Path
 from typing import BinaryIO, Callable, Mapping
 
 from dyn_node import __version__
-from dyn_node.bag.metadata import (METADATA_RECORD, FileInfo, TopicInfo, bag_metadata, new_bag_directory,
+from dyn_node.bag.metadata import (METADATA_RECORD, FileInfo, TopicInfo, bag_metadata, limits_record,
+                                   new_bag_directory,
                            qos_profile_dict, qos_yaml, write_metadata_yaml)
 from dyn_node.bag.cdr import cdr_string, cdr_string_value, header_stamp_ns
 from dyn_node.errors import RecordingError
@@ -167,7 +168,7 @@ class Recorder:
 
     def __init__(self, config: RecorderConfig = RecorderConfig(), *,
                  robot_description: str = "", parameters_yaml: str = "",
-                 effective_log_time_ns: int | None = None,
+                 effective_log_time_ns: int | None = None, limits_yaml: str | None = None,
                  opener: Callable[[str], BinaryIO] | None = None,
                  on_state: Callable[[RecorderStats], None] | None = None,
                  clock_ns: Callable[[], int] = time.time_ns):
@@ -200,8 +201,9 @@ class Recorder:
         self._description_raw: bytes | None = None
         self._parameters_yaml = parameters_yaml
         self._effective_ns = effective_log_time_ns
+        self._limits_yaml = limits_yaml
         # the configuration the writer has reached in queue order (what each file's record says)
-        self._w_parameters = (parameters_yaml, effective_log_time_ns)
+        self._w_parameters = (parameters_yaml, effective_log_time_ns, limits_yaml)
         self._description_copies = 0
         self._files: list[FileInfo] = []
         # Writer-thread state.
@@ -276,19 +278,22 @@ class Recorder:
             self._queue.append((None, _DESC, urdf))
             self._wake.notify()
 
-    def set_parameters_yaml(self, text: str, *, effective_log_time_ns: int | None = None) -> None:
+    def set_parameters_yaml(self, text: str, *, effective_log_time_ns: int | None = None,
+                            limits_yaml: str | None = None) -> None:
         """New parameter snapshot: a new ``dyn_node`` metadata record is written if it (or the
-        log time from which it applies, ``effective_log_time_ns``) changed. The record follows
+        log time from which it applies, ``effective_log_time_ns``, or the limits file text the
+        model was built from, ``limits_yaml``; None: no limits file) changed. The record follows
         the messages queued before this call, so every file's record is the configuration in
         force at that point of the recording."""
         with self._lock:
             if effective_log_time_ns is None:
                 effective_log_time_ns = self._effective_ns
-            if (text, effective_log_time_ns) == (self._parameters_yaml, self._effective_ns):
+            new = (text, effective_log_time_ns, limits_yaml)
+            if new == (self._parameters_yaml, self._effective_ns, self._limits_yaml):
                 return
-            self._parameters_yaml, self._effective_ns = text, effective_log_time_ns
+            self._parameters_yaml, self._effective_ns, self._limits_yaml = new
             if self._accepting:
-                self._queue.append((None, _META, (text, effective_log_time_ns)))
+                self._queue.append((None, _META, new))
                 self._wake.notify()
 
     def stats(self) -> RecorderStats:
@@ -557,11 +562,13 @@ class Recorder:
         assert self._mcap is not None
         with self._lock:
             desc = self._description
-        params, effective_ns = self._w_parameters
+        params, effective_ns, limits = self._w_parameters
         self._meta_desc = desc
         values = {"robot_description": desc, "parameters": params, "version": __version__}
         if effective_ns is not None:
             values["effective_log_time_ns"] = str(effective_ns)
+        if limits is not None:  # the bag alone then rebuilds the limits (dyn-audit)
+            values.update(limits_record(limits))
         self._mcap.add_metadata(METADATA_RECORD, values)
 
     def _maybe_split(self, log_ns: int, size: int) -> None:

@@ -11,13 +11,17 @@ import math
 import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 
 from dyn_node.core import kernels
 from dyn_node.core.dynamics import Dynamics
 from dyn_node.core.limits import JointLimits
+
+if TYPE_CHECKING:
+    from dyn_node.core.model import RobotModel
+    from dyn_node.core.task_motion import TaskMotion
 
 Band = tuple[float, float]
 
@@ -60,6 +64,8 @@ class Motion:
     r0: int
     parallel: bool
     units: Mapping[str, list[str]]
+    #: the frame terms the task kinds read (None: no task section configured)
+    task: "TaskMotion | None" = None
 
     @property
     def limits(self) -> JointLimits:
@@ -96,11 +102,16 @@ class Violation:
     limit: float
     duration_s: float
     unit: str
+    #: what the kind's message adds (task kinds: e.g. the grasp frame); "" for joint kinds
+    detail: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: _json(getattr(self, k)) for k in (
+        out = {k: _json(getattr(self, k)) for k in (
             "joint", "kind", "first_time_s", "peak_time_s", "peak_value", "limit", "duration_s",
             "unit")}
+        if self.detail:
+            out["detail"] = self.detail
+        return out
 
 
 @dataclass(frozen=True)
@@ -153,8 +164,14 @@ class Constraint(ABC):
 
     @classmethod
     @abstractmethod
-    def applies(cls, limits: JointLimits) -> bool:
-        """Whether any limit of this kind is set."""
+    def applies(cls, model: "RobotModel") -> bool:
+        """Whether any limit of this kind is set (joint kinds: in model.limits, task kinds: in
+        model.task_limits)."""
+
+    @classmethod
+    def describe(cls, v: Violation) -> str:
+        """The message text of a violation after "infeasible: " (its place, kind and peak)."""
+        return f"{v.joint} {cls.label or cls.kind} {percent_text(v)}"
 
     @abstractmethod
     def values(self) -> np.ndarray:
@@ -211,8 +228,8 @@ class JointConstraint(LimitedConstraint):
         return getattr(limits, cls.kind)
 
     @classmethod
-    def applies(cls, limits: JointLimits) -> bool:
-        return bool(np.any(np.isfinite(cls.limit_array(limits))))
+    def applies(cls, model: "RobotModel") -> bool:
+        return bool(np.any(np.isfinite(cls.limit_array(model.limits))))
 
     def __init__(self, motion: Motion, cols: np.ndarray | None = None):
         self.cols = np.flatnonzero(np.isfinite(self.limit_array(motion.limits))) \
@@ -314,8 +331,8 @@ class EffortSpeed(JointConstraint):
     kind, label, payload_dependent = "effort_speed", "torque-speed envelope", True
 
     @classmethod
-    def applies(cls, limits: JointLimits) -> bool:
-        return any(c is not None for c in limits.effort_speed_curve)
+    def applies(cls, model: "RobotModel") -> bool:
+        return any(c is not None for c in model.limits.effort_speed_curve)
 
     def __init__(self, motion: Motion):
         curves_all = motion.limits.effort_speed_curve
@@ -483,8 +500,14 @@ class Position(Constraint):
     order = 0
 
     @classmethod
-    def applies(cls, limits: JointLimits) -> bool:
-        return bool(np.any(np.isfinite(limits.position_lower) | np.isfinite(limits.position_upper)))
+    def applies(cls, model: "RobotModel") -> bool:
+        lim = model.limits
+        return bool(np.any(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper)))
+
+    @classmethod
+    def describe(cls, v: Violation) -> str:
+        return (f"{v.joint} {cls.kind} {_fmt(v.peak_value)} {v.unit} beyond limit "
+                f"{_fmt(v.limit)} {v.unit} at t = {v.peak_time_s:.2f} s")
 
     def __init__(self, motion: Motion):
         lim, names = motion.limits, motion.names
@@ -554,15 +577,18 @@ class Position(Constraint):
         return self._blocked
 
 
-#: Every kind, in the order the time scale breaks ties and warnings are listed.
-KINDS: tuple[type[Constraint], ...] = (Velocity, Acceleration, Deceleration, Jerk, Effort,
-                                       EffortSpeed, Power, EffortRate, RmsEffort, Position)
+#: The joint kinds, in the order the time scale breaks ties and warnings are listed.
+JOINT_KINDS: tuple[type[Constraint], ...] = (Velocity, Acceleration, Deceleration, Jerk, Effort,
+                                             EffortSpeed, Power, EffortRate, RmsEffort, Position)
 
 
-def build(motion: Motion, kinds: Sequence[type[Constraint]] = KINDS) -> list[Constraint]:
-    """The constraints that apply to ``motion``, in ``kinds`` order (those with background work
-    are built first, so that work runs beside the others')."""
-    todo = [cls for cls in kinds if cls.applies(motion.limits)]
+def build(motion: Motion, kinds: Sequence[type[Constraint]] | None = None) -> list[Constraint]:
+    """The constraints that apply to ``motion``, in ``kinds`` order (None: every registered kind,
+    :data:`dyn_node.core.kinds.KINDS`; those with background work are built first, so that work
+    runs beside the others')."""
+    if kinds is None:
+        from dyn_node.core.kinds import KINDS as kinds
+    todo = [cls for cls in kinds if cls.applies(motion.dynamics.model)]
     built = {cls: cls(motion) for cls in sorted(todo, key=lambda cls: not cls.background)}
     return [built[cls] for cls in todo]
 
@@ -678,11 +704,24 @@ def _fmt(x: float) -> str:
     return f"{x:.3g}"
 
 
+def percent_text(v: Violation) -> str:
+    """"NN% of L unit at t = T s" of a violation."""
+    return (f"{abs(v.peak_value) / v.limit * 100 if v.limit > 0 else math.inf:.0f}% of "
+            f"{with_unit(v.limit, v.unit)} at t = {v.peak_time_s:.2f} s")
+
+
+def with_unit(x: float, unit: str) -> str:
+    """"x unit" (just "x" for a gauge without a unit)."""
+    return f"{_fmt(x)} {unit}" if unit else _fmt(x)
+
+
 def _static_block(motion: Motion, j: int, n: int, need: float, limit: float) -> Blocked:
     """Gravity and friction alone exceed the limit at sample n: no slowdown helps."""
     qtxt = "[" + ", ".join(f"{x:.3g}" for x in motion.Q[n]) + "]"
     names = motion.names
-    return Blocked(names[j], f"gravity and friction alone need {_fmt(need)} "
+    alone = "gravity and friction" if motion.task is None or motion.task.task_torque is None \
+        else "gravity, friction and the task wrench"
+    return Blocked(names[j], f"{alone} alone need {_fmt(need)} "
                              f"{motion.units['effort'][j]} of {_fmt(limit)} at q = {qtxt} "
                              f"(t = {motion.smp.t[n]:.2f} s); no slowdown helps")
 

@@ -29,6 +29,8 @@ class ContactOptions:
     collision_threshold: float | Sequence[float] = 0.20
     min_duration_s: float = 0.02
     release_fraction: float = 0.5
+    #: ended episodes kept in ``history`` (None: all; a long-running node keeps the latest)
+    history_limit: int | None = None
 
 
 @dataclass(frozen=True)
@@ -138,14 +140,16 @@ class ContactDetector:
         self._collision_at = self.collision * self.limit
         self._release_at = options.release_fraction * self._contact_at
         self._zero_limit = self.limit == 0
+        self._any_zero_limit = bool(self._zero_limit.any())
         with np.errstate(divide="ignore"):
             self._inv_limit = np.where(self._zero_limit, 0.0, 1.0 / self.limit)  # inf limit → 0
         self._over_contact = _Run()
         self._over_collision = _Run()
         self._candidate: ContactEpisode | None = None  # peaks since the current over-threshold run began
         self.episode: ContactEpisode | None = None
-        #: episodes that ended, oldest first
+        #: episodes that ended, oldest first (the latest ``history_limit``), and how many ended
         self.history: list[ContactEpisode] = []
+        self.ended = 0
 
     @property
     def state(self) -> str:
@@ -156,6 +160,10 @@ class ContactDetector:
         if self.episode is not None:
             ended = replace(self.episode, end_s=t, end_reason=reason)
             self.history.append(ended)
+            self.ended += 1
+            limit = self.options.history_limit
+            if limit is not None and len(self.history) > limit:
+                del self.history[:len(self.history) - limit]
         self.episode = self._candidate = None
         self._over_contact.since = self._over_collision.since = None
         return ended
@@ -187,15 +195,16 @@ class ContactDetector:
         tau = np.abs(np.asarray(tau_ext, dtype=float))
         if tau.shape != self.limit.shape:
             raise ValueError(f"tau_ext needs {len(self.names)} values in model order, got shape {tau.shape}")
-        if not np.all(np.isfinite(tau)):
+        # a sum of |τ| is NaN or inf iff an element is (or it overflows: then each element decides)
+        if not math.isfinite(float(tau.sum())) and not np.all(np.isfinite(tau)):
             return self.unavailable(t, "external-torque estimate not finite")
         ratios = tau * self._inv_limit
-        if self._zero_limit.any():
+        if self._any_zero_limit:
             ratios[self._zero_limit] = np.where(tau[self._zero_limit] > 0, np.inf, 0.0)
         over = tau > self._contact_at
         min_d = self.options.min_duration_s - STAMP_RESOLUTION_S
         contact_for = self._over_contact.update(t, bool(over.any()))
-        collision_for = self._over_collision.update(t, bool(np.any(tau > self._collision_at)))
+        collision_for = self._over_collision.update(t, bool((tau > self._collision_at).any()))
         ended = None
         if self.episode is None:
             if contact_for < 0:

@@ -149,10 +149,12 @@ class Dynamics:
         momentum observer needs; C(q, v)v is the Coriolis and centrifugal torque."""
         return pin.computeCoriolisMatrix(self._pm, self._data, q, v).copy()
 
-    def momentum_terms(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def momentum_terms(self, q: np.ndarray, v: np.ndarray, *,
+                       gravity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(p, C(q, v)ᵀv, g(q)) for the momentum observer: p = M(q)v (armature included) as
-        RNEA(q, 0, v) − g(q), which forms no mass matrix (three Pinocchio passes in all)."""
-        g = pin.computeGeneralizedGravity(self._pm, self._data, q).copy()
+        RNEA(q, 0, v) − g(q), which forms no mass matrix (three Pinocchio passes in all; two
+        when ``gravity``, :meth:`gravity` at this q, is passed in)."""
+        g = self.gravity(q) if gravity is None else gravity
         p = pin.rnea(self._pm, self._data, q, self._zero, v) - g
         ctv = pin.computeCoriolisMatrix(self._pm, self._data, q, v).T @ v
         return p, ctv, g
@@ -226,6 +228,15 @@ class Dynamics:
             # computeGeneralizedGravity to 1e-11 N·m (test_kernels)
             G = np.empty((self.nv, len(Q)), order="F")
             kernels.gravity_rows(Q, *self._gravity_tables, G.T)
-        F = self._rigid_columns(Q, V, A, threads)
+        return self.split_terms(G, self._rigid_columns(Q, V, A, threads), V, A)
+
+    def split_terms(self, G: np.ndarray, F: np.ndarray, V: np.ndarray,
+                    A: np.ndarray) -> TorqueTerms:
+        """:class:`TorqueTerms` from rigid-body gravity G and RNEA F (nv×N, armature·a in F)
+        of states with velocities V and accelerations A (N×nv), this instance's friction
+        added (:func:`dyn_node.core.kernels.split_terms`): the one split whichever pass gave
+        G and F."""
+        from dyn_node.core import kernels
+
         S, W, I, full = kernels.split_terms(G, F, V, A, self._damping, self._coulomb)
         return TorqueTerms(static=S, viscous=W, inertial=I, full=full)

@@ -16,9 +16,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from dyn_node.core import constraints, kernels
-from dyn_node.core.constraints import (KINDS, Blocked, Constraint, Motion, PayloadTerms, Samples, Violation,
-                          _fmt, _Job, _json)
+from dyn_node.core import constraints, kernels, task_motion
+from dyn_node.core.constraints import (Blocked, Constraint, Motion, PayloadTerms, Samples,
+                                       Violation, _fmt, _Job, _json, percent_text, with_unit)
+from dyn_node.core.kinds import KIND_CLASS, KINDS
 # reached here by the tests of the helpers they name
 from dyn_node.core.constraints import _take, rms_time_scale as _rms_time_scale  # noqa: F401
 from dyn_node.core.dynamics import Dynamics
@@ -44,7 +45,8 @@ class FeasibilityOptions:
     trajectory whose peak ratio to any non-position limit exceeds this is WARN;
     ``max_samples``: the sample period is raised (with a warning) so that at most about this many
     samples are used, bounding memory for very long trajectories; ``threads``: OpenMP threads
-    for the batched RNEA passes (None: the Dynamics' own setting, one unless built otherwise).
+    for the batched RNEA passes (None: the Dynamics' own setting, one unless built otherwise;
+    with two or more and a task section configured, one of them runs the frame pass instead).
     Every state is computed by the same sequential RNEA whatever the count, so the result does
     not depend on it; more threads only help when cores are free (a live node's joint_states
     path needs one)."""
@@ -83,6 +85,13 @@ class FeasibilityResult:
     effort_step: Mapping[str, float]
     waypoint_effort: np.ndarray = field(repr=False)
     compute_time_s: float = 0.0
+    #: the task kinds' peaks: place (a frame, "robot_limits", "base_limits", "grasp") → kind →
+    #: {ratio, time_s, value, limit, unit}, only the configured kinds of each place
+    per_frame: Mapping[str, Mapping[str, Mapping[str, Any]]] = field(default_factory=dict)
+    #: place → kind → (t (s), |value|) of the task kinds at the given timing, each bin's
+    #: largest of at most :data:`CURVE_POINTS` bins (peaks survive): for plots, not published
+    task_curves: Mapping[str, Mapping[str, tuple[np.ndarray, np.ndarray]]] = field(
+        default_factory=dict, repr=False)
     warnings: tuple[str, ...] = ()
     effort_warn_ratio: float = 0.9
     #: the segment from the robot's current state to the first point: START_CHECKED,
@@ -133,7 +142,32 @@ class FeasibilityResult:
                        f"at t = {kinds[worst_kind]['time_s']:.2f} s" if worst_kind else "no limits")
             values["failure_label"] = PLANNING_ERROR if level != OK else ""
             out.append(Status(f"{STATUS_NAME}/{joint}", level, msg, hardware_id, values))
+        out += [self._place_status(place, kinds, hardware_id)
+                for place, kinds in self.per_frame.items()]
         return out
+
+    def _place_status(self, place: str, kinds: Mapping[str, Mapping[str, Any]],
+                      hardware_id: str) -> Status:
+        """``<name>/<place>``: each configured task kind's ratio, time, peak, limit and the unit
+        of those two (a key beside them: the status values carry no unit otherwise)."""
+        values: dict[str, Any] = {}
+        worst_kind, worst = next(iter(kinds)), -1.0
+        for kind, e in kinds.items():
+            values.update({f"{kind}_ratio": e["ratio"], f"{kind}_time_s": e["time_s"],
+                           f"{kind}_peak": e["value"], f"{kind}_limit": e["limit"],
+                           f"{kind}_unit": e["unit"]})
+            if e["ratio"] > worst:
+                worst, worst_kind = e["ratio"], kind
+        bad = [v for v in self.violations if v.joint == place]
+        level = ERROR if bad else WARN if worst > self.effort_warn_ratio else OK
+        if bad:
+            msg = "; ".join(KIND_CLASS[v.kind].describe(v) for v in bad)
+        else:
+            e = kinds[worst_kind]
+            msg = (f"worst {_kind_text(worst_kind)} {worst * 100:.0f}% of "
+                   f"{with_unit(e['limit'], e['unit'])} at t = {e['time_s']:.2f} s")
+        values["failure_label"] = PLANNING_ERROR if level != OK else ""
+        return Status(f"{STATUS_NAME}/{place}", level, msg, hardware_id, values)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: NaN (undefined) → null, ±inf → "inf"/"-inf"."""
@@ -145,6 +179,8 @@ class FeasibilityResult:
             "violations": [v.to_dict() for v in self.violations],
             "per_joint": {j: {k: {kk: _json(vv) for kk, vv in e.items()} for k, e in kinds.items()}
                           for j, kinds in self.per_joint.items()},
+            "per_frame": {p: {k: {kk: _json(vv) for kk, vv in e.items()} for k, e in kinds.items()}
+                          for p, kinds in self.per_frame.items()},
             "effort_step": {j: _json(v) for j, v in self.effort_step.items()},
             "waypoint_effort": [[_json(float(x)) for x in row] for row in self.waypoint_effort],
             "warnings": list(self.warnings),
@@ -207,8 +243,7 @@ def _describe_violation(v: Violation) -> str:
     if v.kind == "position":
         return (f"{_fmt(v.peak_value)} {v.unit} beyond limit {_fmt(v.limit)} {v.unit} "
                 f"at t = {v.peak_time_s:.2f} s")
-    return (f"{abs(v.peak_value) / v.limit * 100 if v.limit > 0 else math.inf:.0f}% of "
-            f"{_fmt(v.limit)} {v.unit} at t = {v.peak_time_s:.2f} s")
+    return percent_text(v)
 
 
 def _fmt_factor(f: float) -> str:
@@ -357,7 +392,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
     margin_job = None if tau1 is None else _Job(
         _payload_margin, (kinds, motion, PayloadTerms(tau1, _unit_payload_dynamics(dynamics))),
         background=motion.parallel)
-    per_joint, violations = _report(kinds, motion)
+    per_joint, per_frame, violations = _report(kinds, motion)
     scale = _time_scale(kinds, fixed_start)
     if fixed_start and search_start and scale.blocked is None and math.isfinite(scale.k):
         search = StartSegment(_check, dynamics, traj, work, start, start_unknown, options,
@@ -365,8 +400,8 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
         _search_start(scale, search, feasible=not violations)
     _exact(scale, not violations, warnings)
     margin = math.inf if margin_job is None else margin_job.result()
-    verdict = _verdict(per_joint, violations, warnings, scale, options, motion.units,
-                       start_segment)
+    verdict = _verdict(per_joint, per_frame, violations, warnings, scale, options,
+                       motion.units, start_segment)
     return FeasibilityResult(
         **verdict, time_scale=float(scale.k), time_scale_joint=scale.where,
         time_scale_constraint=scale.kind, time_scale_by_kind=scale.by_kind,
@@ -376,7 +411,8 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
         waypoint_effort=waypoint_effort, compute_time_s=time.perf_counter() - t_start,
         warnings=tuple(warnings), effort_warn_ratio=options.effort_warn_ratio,
         start_segment=start_segment, start_state_age_s=start_age,
-        time_scale_start_segment=scale.start_binds)
+        time_scale_start_segment=scale.start_binds, per_frame=per_frame,
+        task_curves=_task_curves(kinds, motion.smp.t))
 
 
 def _validate(traj: Trajectory, options: FeasibilityOptions) -> None:
@@ -417,11 +453,16 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
     if smp.period > options.sample_period * (1 + 1e-9):
         warnings.append(f"sample period raised from {options.sample_period * 1e3:.3g} ms to "
                         f"{smp.period * 1e3:.3g} ms to bound memory")
-    applicable = [cls for cls in KINDS if cls.applies(model.limits)]
+    applicable = [cls for cls in KINDS if cls.applies(model)]
     n_derivatives = 1 + max((cls.order for cls in applicable), default=2)
     Q, V, A, *rest = _evaluate(pp.coeffs, pp.breaks, smp, max(3, n_derivatives))
     J = rest[0] if rest else np.zeros((0, nv))
-    terms = dynamics.terms_batch(Q, V, A, options.threads)
+    margin = options.compute_payload_margin and any(c.payload_dependent for c in applicable)
+    parallel = _batch_threads(dynamics, options.threads) > 1
+    # with a task section the frame kernel's pass gives the torque terms too (and τ1 with the
+    # margin): one compiled pass, no Pinocchio RNEA; on_demand.inverse_dynamics takes the same
+    task = task_motion.build(dynamics, Q, V, A, payload_torque=margin, rnea=True)
+    terms = dynamics.terms_batch(Q, V, A, options.threads) if task is None else task.terms
     S, W, I, tau = terms.static, terms.viscous, terms.inertial, terms.full
     with np.errstate(invalid="ignore"):
         # |X|.max() < _HUGE without forming |X| (NaN fails either comparison, as it should)
@@ -430,9 +471,13 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
     if huge:
         raise TrajectoryError("the interpolated motion or its torque is not finite (values too "
                               "large for the time steps)", code="non_finite")
-    tau1 = _payload_torque(dynamics, Q, V, A, tau, options.threads) \
-        if options.compute_payload_margin and any(c.payload_dependent for c in applicable) \
-        else None
+    tau1 = None
+    if margin:
+        tau1 = _payload_torque(dynamics, Q, V, A, tau, options.threads) if task is None \
+            else task.payload_torque
+    if task is not None and task.task_torque is not None:
+        # the environment's −W on the tool: J_frameᵀ·W more, static (it does not scale with k)
+        S, tau = (np.add(X, task.task_torque, out=np.empty_like(X)) for X in (S, tau))
     # From here on the per-sample arrays are column-major (each joint's samples contiguous,
     # as the torque terms already are): per-joint reductions and per-joint limits then run
     # along contiguous memory. Q stays row-major (single states go to Pinocchio).
@@ -444,9 +489,9 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
         if dynamics.options.include_friction else np.zeros(nv)
     G = S - coulomb * np.sign(V) if np.any(coulomb) else S
     return Motion(dynamics=dynamics, smp=smp, Q=Q, V=V, A=A, J=J, S=S, W=W, I=I, tau=tau, G=G,
-                  coulomb=coulomb, hold=dynamics.gravity(Q[0]),
+                  coulomb=coulomb, hold=dynamics.gravity(Q[0]), task=task,
                   r0=int(smp.first[1]) if fixed_start else 0,
-                  parallel=_batch_threads(dynamics, options.threads) > 1,
+                  parallel=parallel,
                   units=joint_units(model)), tau1
 
 
@@ -471,22 +516,49 @@ def _effort_steps(motion: Motion, work: Trajectory, warnings: list[str]) -> dict
 
 
 def _report(kinds: list[Constraint], motion: Motion
-            ) -> tuple[dict[str, dict[str, dict[str, Any]]], list[Violation]]:
-    """Every kind's peak per joint (None where a kind has no limit) and the violations, in
-    :data:`LIMIT_KINDS` order."""
+            ) -> tuple[dict[str, dict[str, dict[str, Any]]], dict[str, dict[str, dict[str, Any]]],
+                       list[Violation]]:
+    """Every kind's peak per joint (None where a kind has no limit), the task kinds' per place
+    (with the unit), and the violations, in :data:`KINDS` order (joint kinds first)."""
     per_joint: dict[str, dict[str, dict[str, Any]]] = {
         n: {k: {"ratio": None, "time_s": None, "value": None, "limit": None} for k in LIMIT_KINDS}
         for n in motion.names}
-    tables = {"joint": per_joint}
+    per_frame: dict[str, dict[str, dict[str, Any]]] = {}
     violations: list[Violation] = []
     for c in kinds:
         peaks, bad = c.report(motion)
         for p in peaks:
-            tables[c.scope][p.where][c.kind] = p.entry()
+            if c.scope == "joint":
+                per_joint[p.where][c.kind] = p.entry()
+            else:
+                unit = c.units[c.where.index(p.where)]
+                per_frame.setdefault(p.where, {})[c.kind] = {**p.entry(), "unit": unit}
         violations += bad
-    order = {kind: n for n, kind in enumerate(LIMIT_KINDS)}
+    order = {kind: n for n, kind in enumerate((*LIMIT_KINDS, *KIND_CLASS))}
     violations.sort(key=lambda v: order.get(v.kind, len(order)))
-    return per_joint, violations
+    return per_joint, per_frame, violations
+
+
+#: Points per curve of :attr:`FeasibilityResult.task_curves` at most.
+CURVE_POINTS = 400
+
+
+def _task_curves(kinds: list[Constraint], tt: np.ndarray
+                 ) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Each task kind's |value| per place, the largest sample of each of ≤ CURVE_POINTS equal
+    bins of samples (with its time)."""
+    out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    M = len(tt)
+    edges = np.unique(np.linspace(0, M, min(M, CURVE_POINTS) + 1).astype(np.int64))
+    for c in kinds:
+        if c.scope != "task":
+            continue
+        val = c.values()
+        first = kernels.bin_peaks(val, edges)   # each bin's first sample at its largest |val|
+        for col, where in enumerate(c.where):
+            at = first[:, col]
+            out.setdefault(where, {})[c.kind] = (tt[at], np.abs(val[at, col]))
+    return out
 
 
 def _time_scale(kinds: list[Constraint], fixed_start: bool) -> _Scale:
@@ -533,12 +605,13 @@ def _exact(scale: _Scale, feasible: bool, warnings: list[str]) -> None:
 
 
 def _verdict(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
+             per_frame: Mapping[str, Mapping[str, Mapping[str, Any]]],
              violations: list[Violation], warnings: list[str], scale: _Scale,
              options: FeasibilityOptions, units: Mapping[str, list[str]],
              start_segment: str) -> dict[str, Any]:
-    """The level, label, message and worst joint and kind."""
+    """The level, label, message and worst joint (or place) and kind."""
     worst_joint, worst_kind, worst_ratio = "", "", 0.0
-    for jn, kinds in per_joint.items():
+    for jn, kinds in (*per_joint.items(), *per_frame.items()):
         for kind, e in kinds.items():
             if kind != "position" and e["ratio"] is not None and e["ratio"] > worst_ratio:
                 worst_joint, worst_kind, worst_ratio = jn, kind, e["ratio"]
@@ -548,11 +621,19 @@ def _verdict(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
     else:
         warn = worst_ratio > options.effort_warn_ratio or bool(warnings)
         level = WARN if warn else OK
-        if worst_kind:
+        what = f"{worst_joint} {_kind_text(worst_kind)}"
+        if worst_kind in per_frame.get(worst_joint, {}):
+            e = per_frame[worst_joint][worst_kind]
+            u = e["unit"]
+            # "grasp slip" at the place "grasp": named once
+            if _kind_text(worst_kind).startswith(worst_joint):
+                what = _kind_text(worst_kind)
+        elif worst_kind:
             e = per_joint[worst_joint][worst_kind]
             u = units[worst_kind][list(per_joint).index(worst_joint)]
-            head = (f"feasible: worst {worst_joint} {_kind_text(worst_kind)} "
-                    f"{worst_ratio * 100:.0f}% of {_fmt(e['limit'])} {u} at t = {e['time_s']:.2f} s")
+        if worst_kind:
+            head = (f"feasible: worst {what} {worst_ratio * 100:.0f}% of "
+                    f"{with_unit(e['limit'], u)} at t = {e['time_s']:.2f} s")
         else:
             head = "feasible: no limits apply"
         k = scale.k
@@ -577,7 +658,7 @@ def _infeasible_message(violations: list[Violation], warnings: list[str], scale:
     pos = [v for v in violations if v.kind == "position"]
     v0 = pos[0] if pos else max(violations, key=lambda v: abs(v.peak_value) / v.limit
                                  if v.limit > 0 else math.inf)
-    head = f"infeasible: {v0.joint} {_kind_text(v0.kind)} {_describe_violation(v0)}"
+    head = f"infeasible: {KIND_CLASS[v0.kind].describe(v0)}"
     blocked = scale.blocked
     if pos and blocked is not None and blocked.timing_free:
         tail = "; position limits do not depend on timing, no slowdown helps"

@@ -1,17 +1,20 @@
-"""Per-sample laws of the frame, energy, base-wrench, tipping and grasp constraints (NumPy).
+"""Per-sample laws of the frame, energy, base-wrench, tipping and grasp constraints.
 
 Each law takes per-sample arrays (kinematics and wrenches computed elsewhere) and returns a
 :class:`LawResult`: the value at the given timing (k = 1), its ratio to the limit, and the
 per-sample ``time_scale`` k: the smallest k such that the sample is feasible at every k′ ≥ k
 (s = 1/k²; k′ ≥ k ⇔ s′ ∈ (0, s]). 0: feasible at any timing; inf: no slowdown helps. A
 trajectory's share of ``time_scale`` for a kind is the largest per-sample k. Non-finite inputs
-give NaN values, ratios and k (never a silent "feasible").
+give NaN values, ratios and k (never a silent "feasible"). The per-sample loops of the power,
+norm, grasp and tipping laws are compiled (:mod:`dyn_node.core.law_kernels`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from dyn_node.core import law_kernels
 
 
 @dataclass(frozen=True)
@@ -84,15 +87,12 @@ class SupportPolygon:
         """|p − c| / |boundary point on the ray from the centroid c through p − c| per point
         (…×2): 1 on the edge, < 1 inside, 0 at the centroid."""
         d = np.asarray(points, dtype=float) - self.centroid
-        reach = self.offsets - self.normals @ self.centroid       # > 0: c is inside
-        return np.maximum((d @ self.normals.T / reach).max(axis=-1), 0.0)
+        return np.maximum((d @ self.normals.T / self.reach).max(axis=-1), 0.0)
 
-
-def _finite_rows(*arrays: np.ndarray) -> np.ndarray:
-    ok = np.ones(len(arrays[0]), dtype=bool)
-    for a in arrays:
-        ok &= np.isfinite(a).reshape(len(a), -1).all(axis=1)
-    return ok
+    @property
+    def reach(self) -> np.ndarray:
+        """Per edge, offset − normal·centroid: the centroid's distance to it (> 0: inside)."""
+        return self.offsets - self.normals @ self.centroid
 
 
 def _limit(limit: float, *, positive: bool) -> float:
@@ -106,11 +106,10 @@ def power_law(value: np.ndarray, limit: float, *, power: int) -> LawResult:
     """A magnitude ≥ 0 that goes as k^−power under time scaling: k = (value / limit)^(1/power)."""
     L = _limit(limit, positive=True)
     v = np.asarray(value, dtype=float).reshape(-1)
-    if np.any(v < 0):
+    ratio, k, negative = law_kernels.power_rows(v, L, int(power))
+    if negative:
         raise ValueError("power_law: values are magnitudes (≥ 0)")
-    ratio = v / L
-    return LawResult(value=v, static_value=np.zeros_like(v), ratio=ratio,
-                     time_scale=ratio ** (1.0 / power), limit=L)
+    return LawResult(value=v, static_value=np.zeros_like(v), ratio=ratio, time_scale=k, limit=L)
 
 
 def speed_law(speed: np.ndarray, limit: float) -> LawResult:
@@ -124,29 +123,6 @@ def acceleration_law(value: np.ndarray, limit: float) -> LawResult:
     return power_law(value, limit, power=2)
 
 
-def _norm_time_scale(a: np.ndarray, b: np.ndarray, L: float) -> np.ndarray:
-    """Per row, smallest k with |a + s·b| ≤ L for every s ∈ (0, 1/k²].
-
-    |a + s·b|² − L² = A s² + 2B s + C (A = |b|², B = a·b, C = |a|² − L²) is convex in s, so the
-    feasible s form one interval; it contains (0, ε] only if C ≤ 0 (and B < 0 when C = 0). Then
-    s_max is the larger root, in the cancellation-free form for the sign of B.
-    """
-    A = np.einsum("ij,ij->i", b, b)
-    B = np.einsum("ij,ij->i", a, b)
-    an = np.linalg.norm(a, axis=1)
-    C = (an - L) * (an + L)
-    k = np.full(len(a), np.inf)
-    k[(C <= 0) & (A == 0)] = 0.0
-    m = (C <= 0) & (A > 0)
-    Am, Bm, Cm = A[m], B[m], C[m]
-    sq = np.sqrt(Bm * Bm - Am * Cm)                   # C ≤ 0: no cancellation under the root
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_max = np.where(Bm <= 0, (sq - Bm) / Am, -Cm / (Bm + sq))
-    # s_max = 0 (C = 0: tangent, or leaving at once; also −0.0): no s > 0 is feasible
-    k[m] = np.where(s_max > 0, 1.0 / np.sqrt(np.where(s_max > 0, s_max, 1.0)), np.inf)
-    return k
-
-
 def norm_law(static: np.ndarray, dynamic: np.ndarray, limit: float) -> LawResult:
     """|static + s·dynamic| ≤ limit per sample (N×d vectors): the base force and moment, the
     grasp's tangential force. At k = 1, s = 1; the still pose is s → 0. A sample already over the
@@ -157,14 +133,10 @@ def norm_law(static: np.ndarray, dynamic: np.ndarray, limit: float) -> LawResult
     b = np.atleast_2d(np.asarray(dynamic, dtype=float))
     if a.shape != b.shape or a.ndim != 2:
         raise ValueError(f"norm_law: static {a.shape} and dynamic {b.shape} must be equal N×d")
-    ok = _finite_rows(a, b)
-    value = np.linalg.norm(a + b, axis=1)
-    static_value = np.linalg.norm(a, axis=1)
-    k = np.full(len(a), np.nan)
-    k[ok] = _norm_time_scale(a[ok], b[ok], L)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(value == 0, 0.0, value / L)
-    value[~ok] = static_value[~ok] = ratio[~ok] = np.nan
+    # one compiled pass per row. |a + s·b|² − L² = A s² + 2B s + C (A = |b|², B = a·b,
+    # C = |a|² − L²) is convex in s, so the feasible s form one interval; it contains (0, ε] only
+    # if C ≤ 0 (and B < 0 when C = 0); then s_max is the larger root, cancellation-free
+    value, static_value, ratio, k = law_kernels.norm_rows(a, b, L)
     return LawResult(value=value, static_value=static_value, ratio=ratio, time_scale=k, limit=L)
 
 
@@ -182,7 +154,8 @@ class GraspForce:
 def gravity_in_frame(rotation: np.ndarray, gravity: np.ndarray) -> np.ndarray:
     """Gravity (3, root axes, m/s²) in each sample's frame axes: Rᵀ·g for frame-to-root rotations
     ``rotation`` (N×3×3)."""
-    return np.einsum("nji,j->ni", np.asarray(rotation, dtype=float), np.asarray(gravity, float))
+    R = np.asarray(rotation, dtype=float)
+    return law_kernels.rotate_back(R.reshape(len(R), 9), np.asarray(gravity, float).reshape(1, 3))
 
 
 def payload_grasp_force(mass: float, com_acceleration: np.ndarray,
@@ -211,27 +184,25 @@ def grasp_slip_law(force: GraspForce, *, normal_axis: np.ndarray, limit: float) 
     if n.shape != (3,) or not (np.all(np.isfinite(n)) and np.any(n)):
         raise ValueError(f"grasp_slip_law: normal_axis must be a finite nonzero 3-vector, got {n}")
     n = n / np.linalg.norm(n)
+    return norm_law(tangential(force.static, n), tangential(force.dynamic, n), limit)
 
-    def tangential(f: np.ndarray) -> np.ndarray:
-        f = np.atleast_2d(np.asarray(f, dtype=float))
-        return f - np.outer(f @ n, n)
 
-    return norm_law(tangential(force.static), tangential(force.dynamic), limit)
+def tangential(force: np.ndarray, normal_axis: np.ndarray) -> np.ndarray:
+    """The component of each force (N×3) perpendicular to the unit ``normal_axis``."""
+    f = np.atleast_2d(np.asarray(force, dtype=float))
+    return law_kernels.tangential(f, np.asarray(normal_axis, dtype=float))
 
 
 # --- tipping -------------------------------------------------------------------------------------
 
-def _tipping_time_scale(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
-    """Per row, smallest k with alpha + s·beta ≥ 0 (> 0 in column 0, the normal force) in every
-    column for every s ∈ (0, 1/k²]: each column holds near s = 0⁺ iff alpha > 0 or (alpha = 0 and
-    beta ≥ 0; beta > 0 for the strict column); then it bounds s by alpha / −beta where beta < 0."""
-    near0 = (alpha > 0) | ((alpha == 0) & (beta >= 0))
-    near0[:, 0] = (alpha[:, 0] > 0) | ((alpha[:, 0] == 0) & (beta[:, 0] > 0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = np.where(beta < 0, alpha / -beta, np.inf)
-        s_max = bound.min(axis=1)
-        k = np.where(np.isinf(s_max), 0.0, 1.0 / np.sqrt(s_max))
-    return np.where(near0.all(axis=1), k, np.inf)
+def base_weight(*, base_mass: float, base_com: np.ndarray, gravity: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The base's weight m_b·g (N) and its moment c_b × m_b·g about the root origin (N·m)."""
+    w = float(base_mass) * np.asarray(gravity, dtype=float)
+    c = np.asarray(base_com, dtype=float)
+    # np.cross's formula, written out: np.cross costs more than the check's use of it
+    return w, np.array([c[1] * w[2] - c[2] * w[1], c[2] * w[0] - c[0] * w[2],
+                        c[0] * w[1] - c[1] * w[0]])
 
 
 def tipping_law(reaction: ScaledWrench, *, polygon: SupportPolygon, base_mass: float,
@@ -251,32 +222,11 @@ def tipping_law(reaction: ScaledWrench, *, polygon: SupportPolygon, base_mass: f
         reaction.moment_dynamic))
     if not Fs.shape == Fd.shape == Ms.shape == Md.shape or Fs.shape[1:] != (3,):
         raise ValueError("tipping_law: the reaction's four parts must be N×3 each")
-    weight = float(base_mass) * np.asarray(gravity, dtype=float)
-    Fs = Fs - weight
-    Ms = Ms - np.cross(np.asarray(base_com, dtype=float), weight)
-    ok = _finite_rows(Fs, Fd, Ms, Md)
-
-    def normal_and_moment(F: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return F[:, 2], np.column_stack([-M[:, 1], M[:, 0]])      # N, P = N·p
-
-    Ns, Ps = normal_and_moment(Fs, Ms)
-    Nd, Pd = normal_and_moment(Fd, Md)
-    alpha = np.column_stack([Ns, Ns[:, None] * polygon.offsets - Ps @ polygon.normals.T])
-    beta = np.column_stack([Nd, Nd[:, None] * polygon.offsets - Pd @ polygon.normals.T])
-    k = np.full(len(Fs), np.nan)
-    k[ok] = _tipping_time_scale(alpha[ok], beta[ok])
-
-    def gauge(N: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        up = N > 0
-        cop = np.full(P.shape, np.nan)
-        cop[up] = P[up] / N[up, None]
-        g = np.full(len(N), np.inf)
-        g[up] = polygon.gauge(cop[up])
-        g[~ok] = np.nan
-        return g, cop
-
-    ratio, cop = gauge(Ns + Nd, Ps + Pd)
-    static_ratio, _ = gauge(Ns, Ps)
-    normal = np.where(ok, Ns + Nd, np.nan)
+    weight, weight_moment = base_weight(base_mass=base_mass, base_com=base_com, gravity=gravity)
+    p = polygon
+    # one compiled pass: the edge columns [N, b_i·N − n_i·P], their time scale and the gauge per sample
+    k, ratio, static_ratio, normal = law_kernels.tipping_rows(
+        Fs, Fd, Ms, Md, weight, weight_moment, p.normals, p.offsets, p.centroid, p.reach)
+    cop = law_kernels.centre_of_pressure(Fs, Fd, Ms, Md, weight, weight_moment)
     return TippingResult(value=ratio, static_value=static_ratio, ratio=ratio.copy(), time_scale=k,
                          limit=1.0, centre_of_pressure=cop, normal_force=normal)

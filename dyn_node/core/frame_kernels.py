@@ -29,6 +29,7 @@ _I = types.Array(types.int64, 1, "A", readonly=True)
 _C1 = types.Array(_f8, 1, "C")
 _C2 = types.Array(_f8, 2, "C")
 _C3 = types.Array(_f8, 3, "C")
+_A2 = types.Array(_f8, 2, "A")
 
 
 @njit(**_JIT)
@@ -187,6 +188,40 @@ def _effective_mass(L: np.ndarray, inv: np.ndarray, b: np.ndarray, y: np.ndarray
 
 
 @njit(**_JIT)
+def _couple(L: np.ndarray, inv: np.ndarray, Jc: np.ndarray, Yf: np.ndarray, positive: bool,
+            out: np.ndarray, lam: np.ndarray, fmass: np.ndarray) -> None:
+    """Y = L⁻¹·J_cᵀ in place of Jc (forward substitution per column), lam = YᵀY (6) and
+    out[f] = Yᵀ·Yf[f] (F×3) for the frames with ``fmass``; NaN for a factor that failed."""
+    nv = Jc.shape[0]
+    if not positive:
+        out[:, :] = np.nan
+        lam[:] = np.nan
+        return
+    for a in range(3):
+        for r in range(nv):
+            t = Jc[r, a]
+            for p in range(r):
+                t -= L[r, p] * Jc[p, a]
+            Jc[r, a] = t * inv[r]
+    t = 0
+    for a in range(3):
+        for b in range(a, 3):
+            s = 0.0
+            for r in range(nv):
+                s += Jc[r, a] * Jc[r, b]
+            lam[t] = s
+            t += 1
+    for f in range(Yf.shape[0]):
+        if not fmass[f]:
+            continue
+        for a in range(3):
+            s = 0.0
+            for r in range(nv):
+                s += Jc[r, a] * Yf[f, r]
+            out[f, a] = s
+
+
+@njit(**_JIT)
 def _base(root: np.ndarray, Mt: float, Sx: float, Sy: float, Sz: float, g0: float, g1: float,
           g2: float, fx: float, fy: float, fz: float, nx: float, ny: float, nz: float,
           ws: np.ndarray, wd: np.ndarray, com: np.ndarray) -> None:
@@ -210,36 +245,82 @@ def _base(root: np.ndarray, Mt: float, Sx: float, Sy: float, Sz: float, g0: floa
         com[0] = com[1] = com[2] = np.nan
 
 
+@njit(**_JIT)
+def _rnea_backward(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.ndarray,
+                   z: np.ndarray, armature: np.ndarray, a: np.ndarray, bm: np.ndarray,
+                   bg: np.ndarray, tau: np.ndarray, g: np.ndarray) -> None:
+    """RNEA's backward pass in world axes at the world origin: each joint carries its
+    subtree's momentum rate minus its weight (bm, bg: per body, [force; moment], overwritten by
+    the subtree sums); τ = S·(ḣ − w) + armature·a, g = −S·w, with S·(f; n) = z·(n − p × f)
+    revolute, z·f prismatic."""
+    for i in range(len(parent) - 1, 0, -1):
+        c = index[i]
+        zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
+        fx, fy, fz = bm[i, 0] - bg[i, 0], bm[i, 1] - bg[i, 1], bm[i, 2] - bg[i, 2]
+        wx, wy, wz = bg[i, 0], bg[i, 1], bg[i, 2]
+        if revolute[i]:
+            px, py, pz = pw[i, 0], pw[i, 1], pw[i, 2]
+            tx, ty, tz = _cross(px, py, pz, fx, fy, fz)
+            tau[c] = (zx * (bm[i, 3] - bg[i, 3] - tx) + zy * (bm[i, 4] - bg[i, 4] - ty)
+                      + zz * (bm[i, 5] - bg[i, 5] - tz)) + armature[c] * a[c]
+            ux, uy, uz = _cross(px, py, pz, wx, wy, wz)
+            g[c] = -(zx * (bg[i, 3] - ux) + zy * (bg[i, 4] - uy) + zz * (bg[i, 5] - uz))
+        else:
+            tau[c] = (zx * fx + zy * fy + zz * fz) + armature[c] * a[c]
+            g[c] = -(zx * wx + zy * wy + zz * wz)
+        j = parent[i]
+        if j > 0:
+            for r in range(6):
+                bm[j, r] += bm[i, r]
+                bg[j, r] += bg[i, r]
+
+
 # One compiled pass per state over the joint tree: split into calls, per-state overhead
 # would break the check's time budget.
-@njit([types.void(_M, _M, _M, _I, _B, _I, _M, _M, _M, _V, _V, _V, _I, _M, _M, _M,
-                  types.boolean, types.boolean, _C3, _C3, _C3, _C3, _C3, _C3, _C2, _C3, _C1,
-                  _C2, _C2, _C2, _C2)], **_JIT)
+@njit([types.void(_M, _M, _M, _I, _B, _I, _M, _M, _M, _V, _V, _V, _I, _M, _M, _M, _B, _I,
+                  types.int64, types.int64, types.boolean, types.boolean, _C3, _C3, _C3, _C3,
+                  _C3, _C3, _C3, _C2, _C3, _C2, _C3, _C1, _C2, _C2, _C2, _C2, _A2, _C2,
+                  _C2)], **_JIT)
 def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
                revolute: np.ndarray, index: np.ndarray, placement: np.ndarray, axis: np.ndarray,
                inertia: np.ndarray, armature: np.ndarray, gravity: np.ndarray,
                root: np.ndarray, fjoint: np.ndarray, fplace: np.ndarray, fpoint: np.ndarray,
-               fwrench: np.ndarray, with_inertia: bool, with_base: bool,
+               fwrench: np.ndarray, fmass: np.ndarray, ftau: np.ndarray, fcouple: int,
+               funit: int, with_inertia: bool, with_base: bool,
                pos: np.ndarray, vel: np.ndarray, omega: np.ndarray, acc: np.ndarray,
-               alpha: np.ndarray, tau: np.ndarray, mu: np.ndarray, Mout: np.ndarray,
+               alpha: np.ndarray, rot: np.ndarray, tau: np.ndarray, mu: np.ndarray,
+               couple: np.ndarray, couple_inertia: np.ndarray, Mout: np.ndarray,
                ke: np.ndarray, gq: np.ndarray, wstatic: np.ndarray, wdynamic: np.ndarray,
-               com: np.ndarray) -> None:
+               com: np.ndarray, unit: np.ndarray, rnea: np.ndarray, grav: np.ndarray) -> None:
     """Per state k of Q, V, A (N×nv) and per frame f (F of them):
 
     * ``pos[f, k]``, ``vel``, ``acc`` (F×N×3, world axes): the frame point's position, linear
       velocity J_v·q̇ and classical acceleration J_v·q̈ + J̇_v·q̇ (no gravity); ``omega``,
-      ``alpha``: the frame's angular velocity and acceleration;
-    * ``tau[f, k]`` (F×N×nv): J_localᵀ·W for the frame's wrench W = ``fwrench[f]`` ([force;
-      torque] in the frame's axes, at its origin: Pinocchio's LOCAL Jacobian);
+      ``alpha``: the frame's angular velocity and acceleration; ``rot[f, k]`` (F×N×9) the
+      frame-to-world rotation, row-major (Pinocchio's oMf rotation);
+    * ``tau[ftau[f], k]`` (·×N×nv) for the frames with ``ftau[f]`` ≥ 0: J_localᵀ·W for the
+      frame's wrench W = ``fwrench[f]`` ([force; torque] in the frame's axes, at its origin:
+      Pinocchio's LOCAL Jacobian);
     * with ``with_inertia``: ``Mout[k]`` = M(q) (CRBA, ``armature`` on the diagonal; Mout may
       be sized 0 when M itself is not wanted), ``ke[k]`` = ½·q̇ᵀMq̇, ``gq[k]`` = g(q) (the
-      generalized gravity, from the same subtree sums), ``mu[f, k]`` = 1/(uᵀJ_vM⁻¹J_vᵀu) with u = vel/|vel| (by the Cholesky factor of
-      M); 0 where |vel| = 0, NaN where M is not positive definite;
+      generalized gravity, from the same subtree sums), ``mu[f, k]`` = 1/(uᵀJ_vM⁻¹J_vᵀu)
+      with u = vel/|vel| (by the Cholesky factor of M) for the frames with ``fmass[f]`` (the
+      other rows are not written); 0 where |vel| = 0, NaN where M is not positive definite;
+      with ``fcouple`` ≥ 0 (a
+      frame index c) also ``couple[f, k]`` = J_c·M⁻¹·J_vᵀu (3; 0 where |vel| = 0) and
+      ``couple_inertia[k]`` = J_c·M⁻¹·J_cᵀ (xx, xy, xz, yy, yz, zz), J_c the linear Jacobian
+      of frame c's point: what a point mass added there does to m_u (Woodbury);
     * with ``with_base``: the wrench [force; moment] the mounting exerts on the robot at the
       origin of a frame fixed to the world (``root``) in its axes, split into ``wstatic[k]``
       (gravity: q̇ = q̈ = 0) and ``wdynamic[k]`` (the momentum rate dh/dt, quadratic in q̇ and
       linear in q̈), and ``com[k]``, the centre of mass of every body (root link's included),
-      in that frame.
+      in that frame;
+    * with ``funit`` ≥ 0 (a frame index u) and ``unit`` sized N: ``unit[k]`` (N×nv) =
+      J_uᵀ·(a_u − g), the joint torque 1 kg more at frame u's point adds (a point mass: its
+      force m·(a_u − g), J_u the point's linear Jacobian);
+    * with ``rnea`` and ``grav`` sized N: ``rnea[k]`` = the rigid-body inverse dynamics
+      M(q)q̈ + C(q, q̇)q̇ + g(q) + armature·q̈ and ``grav[k]`` = g(q) (N×nv), by a backward pass
+      over the bodies' momentum rates and weights (:func:`_rnea_backward`).
 
     Model tables (rows 0..n−1, row 0 the world and the bodies fixed to it): ``parent``,
     ``revolute``, ``index``, ``placement``, ``axis`` as :func:`dyn_node.core.kernels.gravity_rows`;
@@ -270,7 +351,16 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
     b = np.zeros(nv)
     y = np.zeros(nv)
     inv = np.zeros(nv)         # 1 / diagonal of L
+    coupled = with_inertia and fcouple >= 0
+    # M's factor only for the effective masses (the kinetic energy needs M alone)
+    factor = with_inertia and (coupled or np.any(fmass))
+    Yf = np.zeros((F, nv))     # L⁻¹·J_vᵀu per frame
+    Jc = np.zeros((nv, 3))     # J_cᵀ, then L⁻¹·J_cᵀ
     positive = False
+    with_rnea = len(rnea) > 0
+    momentum = with_base or with_rnea
+    bm = np.zeros((n, 6))      # each body's momentum rate and weight about the world origin
+    bg = np.zeros((n, 6))
     Rw[0, 0] = Rw[0, 4] = Rw[0, 8] = 1.0
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
     # bodies fixed to the world: in the static sums only (they never move)
@@ -321,13 +411,13 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
                 az_ += zz * qdd + 2 * hz * qd
             vo[i, 0], vo[i, 1], vo[i, 2] = vx, vy, vz
             ao[i, 0], ao[i, 1], ao[i, 2] = ax_, ay_, az_
-            if not (with_inertia or with_base):
+            if not (with_inertia or momentum):
                 continue
             m = inertia[i, 0]
             lx, ly, lz = _rot(R, inertia[i, 1], inertia[i, 2], inertia[i, 3])
             cwx, cwy, cwz = px + lx, py + ly, pz + lz
             _world_inertia(R, inertia[i, 4:], Icw)
-            if with_base:
+            if momentum:
                 Mt += m
                 Sx, Sy, Sz = Sx + m * cwx, Sy + m * cwy, Sz + m * cwz
                 # the body's momentum rate about the world origin: m·a_c and
@@ -345,6 +435,12 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
                 jx, jy, jz = _sym_mul(Icw, wix, wiy, wiz)
                 ox, oy, oz = _cross(wix, wiy, wiz, jx, jy, jz)
                 nx, ny, nz = nx + kx + ix + ox, ny + ky + iy + oy, nz + kz + iz + oz
+                if with_rnea:
+                    bm[i, 0], bm[i, 1], bm[i, 2] = mx, my, mz
+                    bm[i, 3], bm[i, 4], bm[i, 5] = kx + ix + ox, ky + iy + oy, kz + iz + oz
+                    gfx, gfy, gfz = m * g0, m * g1, m * g2
+                    bg[i, 0], bg[i, 1], bg[i, 2] = gfx, gfy, gfz
+                    bg[i, 3], bg[i, 4], bg[i, 5] = _cross(cwx, cwy, cwz, gfx, gfy, gfz)
             if with_inertia:
                 cm[i] = m
                 ch[i, 0], ch[i, 1], ch[i, 2] = m * cwx, m * cwy, m * cwz
@@ -366,7 +462,11 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
                     t += Mk[r, s] * V[k, s]
                 e += V[k, r] * t
             ke[k] = 0.5 * e
-            positive = _cholesky(Mk, L, inv)
+            if factor:
+                positive = _cholesky(Mk, L, inv)
+        if with_rnea:
+            _rnea_backward(parent, revolute, index, pw, z, armature, A[k], bm, bg, rnea[k],
+                           grav[k])
         if with_base:
             _base(root, Mt, Sx, Sy, Sz, g0, g1, g2, fx, fy, fz, nx, ny, nz, wstatic[k],
                   wdynamic[k], com[k])
@@ -374,6 +474,8 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
             j = fjoint[f]
             Rj, P = Rw[j], fplace[f]
             Rf[0], Rf[1], Rf[2], Rf[3], Rf[4], Rf[5], Rf[6], Rf[7], Rf[8] = _mul9(Rj, P)
+            for r in range(9):
+                rot[f, k, r] = Rf[r]
             tx, ty, tz = _rot(Rj, P[9], P[10], P[11])
             ox, oy, oz = pw[j, 0] + tx, pw[j, 1] + ty, pw[j, 2] + tz
             qx, qy, qz = _rot(Rf, fpoint[f, 0], fpoint[f, 1], fpoint[f, 2])
@@ -391,27 +493,51 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
             acc[f, k, 1] = ao[j, 1] + dy + ey
             acc[f, k, 2] = ao[j, 2] + dz + ez
             alpha[f, k, 0], alpha[f, k, 1], alpha[f, k, 2] = al[j, 0], al[j, 1], al[j, 2]
+            # the Jacobian walk only for the frames whose torque, effective mass or coupling
+            # is wanted (what the configured kinds read)
+            wrenched, massed = ftau[f] >= 0, with_inertia and fmass[f]
+            couples = coupled and f == fcouple
+            unitmass = f == funit and len(unit) > 0
+            if not (wrenched or massed or couples or unitmass):
+                continue
+            gx, gy, gz = acc[f, k, 0] - g0, acc[f, k, 1] - g1, acc[f, k, 2] - g2
             Fx, Fy, Fz = _rot(Rf, fwrench[f, 0], fwrench[f, 1], fwrench[f, 2])
             Tx, Ty, Tz = _rot(Rf, fwrench[f, 3], fwrench[f, 4], fwrench[f, 5])
             speed = math.sqrt(vx * vx + vy * vy + vz * vz)
             uxx, uyy, uzz = (vx / speed, vy / speed, vz / speed) if speed > 0 else (0.0, 0.0, 0.0)
-            row = tau[f, k]
+            t = ftau[f]
             for c in range(nv):
-                row[c] = 0.0
+                if wrenched:
+                    tau[t, k, c] = 0.0
                 b[c] = 0.0
+                if couples:
+                    Jc[c, 0] = Jc[c, 1] = Jc[c, 2] = 0.0
+                if unitmass:
+                    unit[k, c] = 0.0
             i = j
             while i > 0:
                 c = index[i]
                 zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
                 if revolute[i]:
                     # J column: [z × (o − p_i); z]; its product with the world wrench
-                    mx, my, mz = _cross(ox - pw[i, 0], oy - pw[i, 1], oz - pw[i, 2], Fx, Fy, Fz)
-                    row[c] = zx * (mx + Tx) + zy * (my + Ty) + zz * (mz + Tz)
+                    if wrenched:
+                        mx, my, mz = _cross(ox - pw[i, 0], oy - pw[i, 1], oz - pw[i, 2],
+                                            Fx, Fy, Fz)
+                        tau[t, k, c] = zx * (mx + Tx) + zy * (my + Ty) + zz * (mz + Tz)
                     jx, jy, jz = _cross(zx, zy, zz, px - pw[i, 0], py - pw[i, 1], pz - pw[i, 2])
                 else:
-                    row[c] = zx * Fx + zy * Fy + zz * Fz
+                    if wrenched:
+                        tau[t, k, c] = zx * Fx + zy * Fy + zz * Fz
                     jx, jy, jz = zx, zy, zz
                 b[c] = jx * uxx + jy * uyy + jz * uzz
+                if couples:
+                    Jc[c, 0], Jc[c, 1], Jc[c, 2] = jx, jy, jz
+                if unitmass:
+                    unit[k, c] = jx * gx + jy * gy + jz * gz
                 i = parent[i]
-            if with_inertia:
+            if massed:
                 mu[f, k] = _effective_mass(L, inv, b, y, speed, positive)
+                for c in range(nv):
+                    Yf[f, c] = y[c] if speed > 0 else 0.0
+        if coupled:
+            _couple(L, inv, Jc, Yf, positive, couple[:, k], couple_inertia[k], fmass)

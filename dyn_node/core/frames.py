@@ -40,7 +40,8 @@ class FrameTerms:
 
     ``linear_velocity`` J_v·q̇ (m/s) and ``linear_acceleration`` J_v·q̈ + J̇_v·q̇ (m/s², the
     classical acceleration, no gravity) are the point's; ``angular_velocity`` (rad/s) and
-    ``angular_acceleration`` (rad/s²) the frame's. ``task_torque`` (N×nv, N·m|N) is
+    ``angular_acceleration`` (rad/s²) the frame's; ``rotation`` (N×3×3) the frame-to-world
+    rotation (Pinocchio's oMf). ``task_torque`` (N×nv, N·m|N) is
     J_localᵀ·wrench. ``effective_mass`` (N, kg) is m_u = 1/(uᵀJ_vM⁻¹J_vᵀu) along the direction
     of motion u = v/|v|, defined as 0 where the point is still (|v| = 0: the energy ½·m_u·v²
     is then 0 whatever the direction, and stays 0 under any time scaling), NaN only where M(q)
@@ -54,8 +55,25 @@ class FrameTerms:
     angular_velocity: np.ndarray
     linear_acceleration: np.ndarray
     angular_acceleration: np.ndarray
+    rotation: np.ndarray
     task_torque: np.ndarray
     effective_mass: np.ndarray | None
+    #: J_c·M⁻¹·J_vᵀu (N×3, 1/kg; 0 where the point is still) with J_c the linear Jacobian of
+    #: the kinematics' ``couple_point``: with :attr:`InertiaTerms.couple_inertia` it gives m_u
+    #: for a point mass added there (:meth:`effective_mass_with`); None unless asked for
+    coupling: np.ndarray | None = None
+
+    def effective_mass_with(self, mass: float, couple_inertia: np.ndarray) -> np.ndarray:
+        """m_u (N, kg) with ``mass`` kg more at the couple point: Woodbury's identity,
+        1/m_u' = 1/m_u − Δm·cᵀ(I + Δm·Λ)⁻¹c (c = :attr:`coupling`, Λ = J_cM⁻¹J_cᵀ)."""
+        if self.coupling is None or self.effective_mass is None:
+            raise ValueError("effective_mass_with needs the inertia terms and a couple_point")
+        c, m_u = self.coupling, self.effective_mass
+        A = np.eye(3) + mass * couple_inertia
+        x = np.linalg.solve(A, c[..., None])[..., 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / m_u - mass * np.einsum("ij,ij->i", c, x)
+            return np.where(m_u > 0, 1.0 / inv, m_u)
 
     @property
     def speed(self) -> np.ndarray:
@@ -81,6 +99,8 @@ class InertiaTerms:
     kinetic_energy: np.ndarray
     gravity_torque: np.ndarray
     mass_matrix: np.ndarray | None
+    #: J_c·M⁻¹·J_cᵀ (N×3×3, 1/kg) at the couple point (see FrameTerms.coupling), or None
+    couple_inertia: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -115,6 +135,14 @@ class FrameBatch:
     frames: tuple[FrameTerms, ...]
     inertia: InertiaTerms | None
     base: BaseWrench | None
+    #: every frame's ``rotation`` in one F×N×3×3 array (the frames' are views of it)
+    rotations: np.ndarray | None = None
+    #: J_uᵀ·(a_u − g) (N×nv column-major, N·m|N per kg): the joint torque of 1 kg more at the
+    #: kinematics' ``unit_mass_point`` u; None unless asked for
+    unit_mass_torque: np.ndarray | None = None
+    #: (rigid-body RNEA τ incl. armature·q̈, g(q)), each N×nv row-major (N·m|N), from the same
+    #: pass; None unless asked for (``rnea=True``)
+    rnea: tuple[np.ndarray, np.ndarray] | None = None
 
     def frame(self, name: str) -> FrameTerms:
         """The first terms of frame ``name``."""
@@ -139,6 +167,16 @@ class JointTables:
     root: np.ndarray
 
 
+def _sym33(x: np.ndarray) -> np.ndarray:
+    """N×3×3 symmetric matrices from their (xx, xy, xz, yy, yz, zz) rows."""
+    return x[:, [[0, 1, 2], [1, 3, 4], [2, 4, 5]]]
+
+
+def _inertia_row(Y: pin.Inertia) -> list[float]:
+    I = np.asarray(Y.inertia)
+    return [Y.mass, *np.asarray(Y.lever), I[0, 0], I[0, 1], I[0, 2], I[1, 1], I[1, 2], I[2, 2]]
+
+
 def _se3_row(M: pin.SE3) -> np.ndarray:
     return np.concatenate([np.asarray(M.rotation).reshape(9), np.asarray(M.translation)])
 
@@ -154,10 +192,7 @@ def joint_tables(pm: pin.Model, root_frame: str) -> JointTables:
     axis = np.zeros((n, 3))
     inertia = np.zeros((n, 10))
     for i in range(n):
-        Y = pm.inertias[i]
-        I = np.asarray(Y.inertia)
-        inertia[i] = [Y.mass, *np.asarray(Y.lever), I[0, 0], I[0, 1], I[0, 2], I[1, 1], I[1, 2],
-                      I[2, 2]]
+        inertia[i] = _inertia_row(pm.inertias[i])
         if i == 0:
             continue
         found = joint_axis(pm.joints[i])
@@ -220,12 +255,16 @@ class FrameKinematics:
     ``include_armature``: armature (limits' reflected rotor inertia) on M's diagonal, so in the
     kinetic energy and the effective masses, as :class:`~dyn_node.core.dynamics.DynamicsOptions`.
     ``base_frame``: where the base wrench is given (None: the URDF root link; else a frame
-    fixed to it, e.g. a mounting flange).
+    fixed to it, e.g. a mounting flange). ``mass_points``: the indices of the points whose
+    effective mass (and coupling) is computed (None: every point; the others' are None).
+    ``unit_mass_point``: the point whose per-kg payload torque :meth:`compute` can give.
     Stateless after construction: :meth:`compute` may run in several threads at once.
     """
 
     def __init__(self, model: RobotModel, frames: Sequence[FramePoint] = (), *,
-                 include_armature: bool = True, base_frame: str | None = None):
+                 include_armature: bool = True, base_frame: str | None = None,
+                 couple_point: int | None = None, mass_points: Sequence[int] | None = None,
+                 unit_mass_point: int | None = None):
         pm = model.pin_model.copy()
         if not include_armature:
             pm.armature = np.zeros(pm.nv)
@@ -233,9 +272,18 @@ class FrameKinematics:
         self.base_frame = self.root_link if base_frame is None else base_frame
         _frame_id(pm, self.base_frame)
         self._tables = joint_tables(pm, self.base_frame)
+        self._pm = pm
         self.nv = pm.nv
         self.points = tuple(frames)
         F = len(self.points)
+        if couple_point is not None and not 0 <= couple_point < F:
+            raise ValueError(f"couple_point {couple_point} is not one of the {F} frame points")
+        self.couple_point = couple_point
+        if unit_mass_point is not None and not 0 <= unit_mass_point < F:
+            raise ValueError(f"unit_mass_point {unit_mass_point} is not one of the {F} points")
+        self.unit_mass_point = unit_mass_point
+        self._fmass = np.ones(F, dtype=bool) if mass_points is None else \
+            np.isin(np.arange(F), np.asarray(mass_points, dtype=np.int64))
         self._fjoint = np.zeros(F, dtype=np.int64)
         self._fplace = np.zeros((F, 12))
         self._fpoint = np.zeros((F, 3))
@@ -246,11 +294,22 @@ class FrameKinematics:
             self._fplace[f] = _se3_row(fr.placement)
             self._fpoint[f] = _vector(spec.point, 3, f"point of frame '{spec.frame}'")
             self._fwrench[f] = _vector(spec.wrench, 6, f"wrench at frame '{spec.frame}'")
-        for x in (self._fjoint, self._fplace, self._fpoint, self._fwrench):
+        # a point without a wrench has no task torque: no row, no Jacobian product
+        wrenched = np.flatnonzero(np.any(self._fwrench != 0.0, axis=1))
+        self._ftau = np.full(F, -1, dtype=np.int64)
+        self._ftau[wrenched] = np.arange(len(wrenched))
+        for x in (self._fjoint, self._fplace, self._fpoint, self._fwrench, self._fmass,
+                  self._ftau):
             x.setflags(write=False)   # shared by concurrent compute() calls
         # every body's mass: the root link's and payload's included (Pinocchio keeps bodies
         # fixed to the world on joint 0)
         self.mass = float(self._tables.inertia[:, 0].sum())
+
+    @property
+    def base_placement(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, r): the base frame's rotation (3×3) and origin (3) in world axes."""
+        root = self._tables.root
+        return root[:9].reshape(3, 3), root[9:]
 
     def _states(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, ...]:
         out = []
@@ -270,40 +329,61 @@ class FrameKinematics:
         return tuple(out)
 
     def compute(self, Q: np.ndarray, V: np.ndarray, A: np.ndarray, *, inertia: bool = True,
-                base: bool = True, mass_matrix: bool = False) -> FrameBatch:
+                base: bool = True, mass_matrix: bool = False,
+                unit_mass: bool = False, rnea: bool = False,
+                couple: bool = True) -> FrameBatch:
         """Every frame point's terms over the N states Q, V, A (N×nv, model joint order);
         ``inertia``: also the kinetic energy and the effective masses (M(q) is formed per
         state either way; ``mass_matrix`` keeps it, N×nv×nv, and needs ``inertia``); ``base``:
-        also the base wrench. Raises :class:`InputError` for wrong shapes or non-finite
-        states."""
+        also the base wrench; ``unit_mass``: also :attr:`FrameBatch.unit_mass_torque` (needs
+        a ``unit_mass_point``); ``rnea``: also :attr:`FrameBatch.rnea`; ``couple``: the
+        ``couple_point``'s terms when it has one (only a payload margin reads them). Raises
+        :class:`InputError` for wrong shapes or non-finite states."""
         from dyn_node.core import frame_kernels  # here, not at import: Numba only for batched checks
 
         if mass_matrix and not inertia:
             raise ValueError("mass_matrix=True needs inertia=True")
+        if unit_mass and self.unit_mass_point is None:
+            raise ValueError("unit_mass=True needs a unit_mass_point")
 
         Q, V, A = self._states(Q, V, A)
         N, nv, F = len(Q), self.nv, len(self.points)
         Ni, Nb = (N if inertia else 0), (N if base else 0)
         pos, vel, omega, acc, alpha = (np.empty((F, N, 3)) for _ in range(5))
-        tau = np.empty((F, N, nv))
+        rot = np.empty((F, N, 9))
+        Nc = Ni if self.couple_point is not None and couple else 0
+        couple, couple_inertia = np.empty((F, Nc, 3)), np.empty((Nc, 6))
+        tau = np.empty((int(np.count_nonzero(self._ftau >= 0)), N, nv))
+        zero = np.broadcast_to(np.zeros(nv), (N, nv))
         mu = np.empty((F, Ni))
         M = np.empty((Ni if mass_matrix else 0, nv, nv))
         ke = np.empty(Ni)
         gq = np.empty((Ni, nv))
         ws, wd, com = np.empty((Nb, 6)), np.empty((Nb, 6)), np.empty((Nb, 3))
+        unit = np.empty((nv, N if unit_mass else 0)).T      # column-major, as the torque terms
+        trq, grv = (np.empty((N if rnea else 0, nv)) for _ in range(2))
         t = self._tables
         frame_kernels.frame_rows(Q, V, A, t.parent, t.revolute, t.index, t.placement, t.axis,
                                  t.inertia, t.armature, t.gravity, t.root, self._fjoint,
-                                 self._fplace, self._fpoint, self._fwrench, inertia, base, pos,
-                                 vel, omega, acc, alpha, tau, mu, M, ke, gq, ws, wd, com)
+                                 self._fplace, self._fpoint, self._fwrench, self._fmass,
+                                 self._ftau, -1 if Nc == 0 else self.couple_point,
+                                 -1 if self.unit_mass_point is None else self.unit_mass_point,
+                                 inertia, base, pos, vel, omega, acc, alpha, rot, tau, mu, couple,
+                                 couple_inertia, M, ke, gq, ws, wd, com, unit, trq, grv)
         frames = tuple(FrameTerms(frame=p.frame, point=self._fpoint[f].copy(), position=pos[f],
                                   linear_velocity=vel[f], angular_velocity=omega[f],
                                   linear_acceleration=acc[f], angular_acceleration=alpha[f],
-                                  task_torque=tau[f], effective_mass=mu[f] if inertia else None)
+                                  rotation=rot[f].reshape(N, 3, 3),
+                                  task_torque=tau[self._ftau[f]] if self._ftau[f] >= 0 else zero,
+                                  effective_mass=mu[f] if inertia and self._fmass[f] else None,
+                                  coupling=couple[f] if Nc and self._fmass[f] else None)
                        for f, p in enumerate(self.points))
         return FrameBatch(
             frames=frames,
             inertia=InertiaTerms(kinetic_energy=ke, gravity_torque=gq,
-                                 mass_matrix=M if mass_matrix else None) if inertia else None,
+                                 mass_matrix=M if mass_matrix else None,
+                                 couple_inertia=_sym33(couple_inertia) if Nc else None)
+            if inertia else None,
             base=BaseWrench(frame=self.base_frame, static=ws, dynamic=wd, mass=self.mass,
-                            com=com) if base else None)
+                            com=com) if base else None, rotations=rot.reshape(F, N, 3, 3),
+            unit_mass_torque=unit if unit_mass else None, rnea=(trq, grv) if rnea else None)

@@ -731,6 +731,25 @@ _IC = types.Array(_i8, 1, "C")
 _FC = types.Array(_f8, 1, "C")
 
 
+@njit([types.Array(_i8, 2, "C")(_M, _I)], **_JIT)
+def bin_peaks(val: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Per bin b of samples [edges[b], edges[b + 1]) (edges strictly increasing) and per column
+    of ``val`` (M×m): the first sample of the bin's largest |val| (NaN counts as inf), B×m."""
+    m = val.shape[1]
+    out = np.empty((len(edges) - 1, m), dtype=np.int64)
+    for c in range(m):
+        for b in range(len(edges) - 1):
+            best, where = -1.0, edges[b]
+            for n in range(edges[b], edges[b + 1]):
+                v = abs(val[n, c])
+                if v != v:
+                    v = np.inf
+                if v > best:
+                    best, where = v, n
+            out[b, c] = where
+    return out
+
+
 @njit([types.Tuple((_IC, _FC, _IC, _FC))(_M, _M, _V)], **_JIT)
 def limit_peaks(val: np.ndarray, L: np.ndarray, weight: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -23,7 +23,8 @@ import numpy as np
 import yaml
 
 from dyn_node.errors import ModelError
-from dyn_node.core.task_limits import TASK_SECTIONS, UNUSED_TOP_LEVEL_KEYS, did_you_mean
+from dyn_node.core.limits_file import read_limits_file
+from dyn_node.core.task_limits import check_top_level_keys, did_you_mean, locate_limits
 
 #: Window used for the RMS (thermal) effort limit when the limits file gives none.
 DEFAULT_RMS_WINDOW_S = 1.0
@@ -176,22 +177,32 @@ def limits_from_urdf(root: ET.Element, joint_names: Sequence[str]) -> JointLimit
         effort_speed_curve=(None,) * n)
 
 
-def _check_sections(where: str, data: Mapping[str, Any], *, bare: bool) -> None:
-    """Refuse what would switch a check off silently: in a bare limits file every top-level key
-    but ``joint_limits`` (and MoveIt's two unused scaling factors) is an error with a suggestion;
-    in either form, the force/energy/contact sections are refused until this version checks them,
-    since a limit accepted and not checked is the worst outcome. Beside ``joint_limits`` in
-    ``ros__parameters`` other node parameters may stand."""
-    known = {"joint_limits", *UNUSED_TOP_LEVEL_KEYS}
-    for key in data:
-        if key in TASK_SECTIONS:
-            raise ModelError(f"{where}: '{key}' is not checked by this version of dyn_node (only "
-                             "joint_limits are); remove it rather than rely on it",
-                             code="limits_unsupported_section")
-        if bare and key not in known:
-            raise ModelError(f"{where}: unknown top-level key '{key}'"
-                             f"{did_you_mean(str(key), (*known, *TASK_SECTIONS))}",
-                             code="limits_unknown_section")
+@dataclass(frozen=True)
+class LimitsText:
+    """A limits file's text as read once, reported as ``where`` (its path): the node builds its
+    model from these characters and records them in the bag, so no second read can differ."""
+
+    text: str
+    where: str
+
+
+def read_limits_source(source: "str | Path | Mapping[str, Any] | LimitsText") -> tuple[Any, str]:
+    """(the parsed YAML, where to say it is) of a limits path, YAML text, parsed mapping or
+    :class:`LimitsText`."""
+    where = "limits"
+    if isinstance(source, Mapping):
+        return source, where
+    if isinstance(source, LimitsText):
+        where, text = source.where, source.text
+    else:
+        text = str(source)
+        p = Path(text)
+        if "\n" not in text and (p.suffix in (".yaml", ".yml") or p.exists()):
+            where, text = str(p), read_limits_file(p)
+    try:
+        return yaml.safe_load(text), where
+    except yaml.YAMLError as exc:
+        raise ModelError(f"{where}: not valid YAML: {exc}", code="limits_bad_yaml") from exc
 
 
 def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[str, Any]]:
@@ -201,38 +212,18 @@ def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[s
     ``<node>: ros__parameters:``. Unknown keys and wrong types raise :class:`ModelError` naming the
     joint and key (with a suggestion for likely typos).
     """
-    where = "limits"
-    if isinstance(source, Mapping):
-        data: Any = source
-    else:
-        text = str(source)
-        p = Path(text)
-        if "\n" not in text and (p.suffix in (".yaml", ".yml") or p.exists()):
-            if not p.is_file():
-                raise ModelError(f"limits file {p} does not exist", code="limits_file_missing")
-            where, text = str(p), p.read_text()
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ModelError(f"{where}: not valid YAML: {exc}", code="limits_bad_yaml") from exc
-    nested_form = False
-    if isinstance(data, Mapping) and "joint_limits" not in data:
-        # A ROS parameters file: <node name or /**>: ros__parameters: joint_limits: …
-        nested = [v["ros__parameters"] for v in data.values()
-                  if isinstance(v, Mapping) and isinstance(v.get("ros__parameters"), Mapping)
-                  and "joint_limits" in v["ros__parameters"]]
-        if len(nested) > 1:
-            raise ModelError(f"{where}: several nodes' ros__parameters carry joint_limits; "
-                             "give a file with one", code="limits_no_joint_limits")
-        if nested:
-            data = nested[0]
-            nested_form = True
-    if not isinstance(data, Mapping) or not isinstance(data.get("joint_limits"), Mapping):
+    return parse_joint_limits(*read_limits_source(source))
+
+
+def parse_joint_limits(data: Any, where: str) -> dict[str, dict[str, Any]]:
+    """:func:`load_limits_yaml` of a parsed limits file reported as ``where``."""
+    mapping, where, node_parameters = locate_limits(data, source=where)
+    if not isinstance(mapping.get("joint_limits"), Mapping):
         raise ModelError(f"{where}: expected a top-level 'joint_limits:' mapping of joint names",
                          code="limits_no_joint_limits")
-    _check_sections(where, data, bare=not nested_form)
+    check_top_level_keys(mapping, source=where, node_parameters=node_parameters)
     out: dict[str, dict[str, Any]] = {}
-    for joint, entries in data["joint_limits"].items():
+    for joint, entries in mapping["joint_limits"].items():
         if not isinstance(entries, Mapping):
             raise ModelError(f"{where}: joint_limits.{joint} must be a mapping of limit keys",
                              code="limits_bad_entry")

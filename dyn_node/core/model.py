@@ -21,7 +21,10 @@ import numpy as np
 import pinocchio as pin
 
 from dyn_node.errors import InputError, ModelError
-from dyn_node.core.limits import JointLimits, check_limits, limits_from_urdf, load_limits_yaml, merge_limits
+from dyn_node.core.limits import (JointLimits, check_limits, limits_from_urdf,
+                                  merge_limits, parse_joint_limits, read_limits_source)
+from dyn_node.core.task_limits import (TASK_SECTIONS, TaskLimits, check_tipping_gravity,
+                                       locate_limits, parse_task_limits)
 
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
 _PACKAGE_URDF_DIR = Path(__file__).resolve().parents[1] / "urdf"
@@ -205,6 +208,8 @@ class RobotModel:
     base_model: pin.Model = field(repr=False)  # reduced model without payload
     urdf_warnings: tuple[str, ...] = ()
     _index: Mapping[str, int] = field(repr=False, default_factory=dict)
+    #: the limits file's frame_limits, robot_limits, task_wrench, base_limits and grasp
+    task_limits: TaskLimits = field(default_factory=lambda: TaskLimits(source=""))
 
     @property
     def nv(self) -> int:
@@ -241,12 +246,15 @@ class RobotModel:
 
     def with_gravity(self, gravity: Sequence[float]) -> "RobotModel":
         g = _gravity_vector(gravity)
+        check_tipping_gravity(self.task_limits, g, source=self.task_limits.source)
         return replace(self, gravity=g, pin_model=_apply(self.base_model, self.payload, g, self.limits))
 
     def with_limits(self, limits_yaml: str | Path | Mapping[str, Any] | None) -> "RobotModel":
         """Same robot with URDF limits merged with ``limits_yaml`` (None: URDF limits only)."""
-        limits = _build_limits(ET.fromstring(self.urdf), self.joint_names, limits_yaml, self.base_model)
-        return replace(self, limits=limits,
+        parsed = None if limits_yaml is None else read_limits_source(limits_yaml)
+        limits = _build_limits(ET.fromstring(self.urdf), self.joint_names, parsed, self.base_model)
+        task = _task_limits(parsed, self.base_model, self.gravity)
+        return replace(self, limits=limits, task_limits=task,
                        pin_model=_apply(self.base_model, self.payload, self.gravity, limits))
 
     # --- joint bookkeeping -------------------------------------------------------------------
@@ -400,15 +408,30 @@ def _gravity_load(model: pin.Model, limits: JointLimits, samples: int = 32) -> n
 
 
 def _build_limits(root: ET.Element, joint_names: Sequence[str],
-                  limits_yaml: str | Path | Mapping[str, Any] | None, model: pin.Model) -> JointLimits:
+                  parsed: tuple[Any, str] | None, model: pin.Model) -> JointLimits:
+    """URDF limits merged with the parsed limits file (``read_limits_source``'s (data, where))."""
     limits = limits_from_urdf(root, joint_names)
-    if limits_yaml is not None:
-        where = str(limits_yaml) if isinstance(limits_yaml, (str, Path)) and "\n" not in str(limits_yaml) else "limits"
-        limits = merge_limits(limits, load_limits_yaml(limits_yaml), where=where)
+    if parsed is not None:
+        limits = merge_limits(limits, parse_joint_limits(*parsed), where=parsed[1])
     m = model.copy()
     m.armature = np.zeros(m.nv)
     # merge notes (what the YAML asked for and was not applied) first, then suspicious values
     return replace(limits, warnings=limits.warnings + check_limits(limits, _gravity_load(m, limits)))
+
+
+def _task_limits(parsed: tuple[Any, str] | None, model: pin.Model, gravity: np.ndarray) -> TaskLimits:
+    """The task sections of the parsed limits file (frames: the model's), tipping's gravity
+    checked. A file without any keeps loading as before: node parameters may stand beside
+    joint_limits in ros__parameters (a bare file's unknown keys are refused by the joint-limit
+    parser, which runs first)."""
+    if parsed is None:
+        return TaskLimits(source="")
+    data, where = parsed
+    if not any(k in TASK_SECTIONS for k in locate_limits(data, source=where)[0]):
+        return TaskLimits(source="")
+    task = parse_task_limits(data, frames=[f.name for f in model.frames], source=where)
+    check_tipping_gravity(task, gravity, source=task.source)
+    return task
 
 
 def load_model(*, urdf: str | None = None, urdf_file: str | Path | None = None,
@@ -467,12 +490,13 @@ def load_model(*, urdf: str | None = None, urdf_file: str | Path | None = None,
         raise ModelError("only single-DoF joints are supported", code="urdf_joint_type")
     names = tuple(base.names[i] for i in range(1, base.njoints))
     g = _gravity_vector(gravity)
-    limits = _build_limits(root, names, limits_yaml, base)
+    parsed = None if limits_yaml is None else read_limits_source(limits_yaml)
+    limits = _build_limits(root, names, parsed, base)
     model = RobotModel(
         name=root.get("name") or "robot", urdf=text, source=src, urdf_hash=urdf_hash(text),
         joint_names=names, locked_joints=dict(locks), limits=limits, payload=Payload(), gravity=g,
         pin_model=base, base_model=base, urdf_warnings=(),
-        _index={n: i for i, n in enumerate(names)})
+        _index={n: i for i, n in enumerate(names)}, task_limits=_task_limits(parsed, base, g))
     payload = _validate_payload(payload, base, model.last_link)
     return model.with_payload(payload)
 

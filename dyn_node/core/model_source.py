@@ -5,22 +5,46 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
+import weakref
 from collections import OrderedDict
 from pathlib import Path
 
 from dyn_node.errors import SettingsError
+from dyn_node.core.limits import LimitsText
+from dyn_node.core.limits_file import limits_sha256, read_limits_file
 from dyn_node.core.model import Payload, RobotModel, builtin_urdf, load_model
 from dyn_node.core.settings import Settings
 
+# model -> the limits file text it was built from (identity keys: RobotModel has eq=False)
+_LIMITS_TEXT: "weakref.WeakKeyDictionary[RobotModel, str]" = weakref.WeakKeyDictionary()
+
+
+def limits_text(model: RobotModel | None) -> str | None:
+    """The limits file text ``model`` was built from by :func:`build_model`; None: no limits
+    file (or a model built elsewhere)."""
+    return None if model is None else _LIMITS_TEXT.get(model)
+
 
 def build_model(settings: Settings, topic_description: str = "", *,
-                cache: "ModelCache | None" = None) -> RobotModel:
+                cache: "ModelCache | None" = None, limits_yaml: str | None = None) -> RobotModel:
     """The model variant the settings ask for; ``topic_description`` is the URDF received on the
     robot_description topic, used when no model parameter is set. Raises ModelError/SettingsError.
-    ``cache``: reuse a model built earlier in this process from the same inputs (ModelCache)."""
+    ``cache``: reuse a model built earlier in this process from the same inputs (ModelCache).
+    ``limits_yaml``: the limits file's text (a bag's record) instead of reading
+    ``settings.limits_file``, which then only names it; the text used is :func:`limits_text`."""
+    if settings.limits_file and limits_yaml is None:
+        limits_yaml = read_limits_file(settings.limits_file)
     if cache is not None:
-        return cache.build(settings, topic_description)
-    kw = dict(locked_joints=dict(settings.locked_joints), limits_yaml=settings.limits_file or None,
+        return cache.build(settings, topic_description, limits_yaml=limits_yaml)
+    model = _load(settings, topic_description,
+                  None if limits_yaml is None else LimitsText(limits_yaml, settings.limits_file or "limits"))
+    if limits_yaml is not None:
+        _LIMITS_TEXT[model] = limits_yaml
+    return model
+
+
+def _load(settings: Settings, topic_description: str, limits: LimitsText | None) -> RobotModel:
+    kw = dict(locked_joints=dict(settings.locked_joints), limits_yaml=limits,
               payload=Payload(settings.payload_mass, settings.payload_com, settings.payload_frame),
               gravity=settings.gravity)
     if settings.robot_description:
@@ -43,17 +67,23 @@ def _file_sha256(path: str) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def model_cache_key(settings: Settings, topic_description: str = "") -> str:
+def model_cache_key(settings: Settings, topic_description: str = "", *,
+                    limits_yaml: str | None = None) -> str:
     """Everything :func:`build_model` reads, contents included: the settings' model fields (paths
     too: they appear in the model's source and limit warnings), and the hashes of the URDF text
-    and of the bytes of the URDF, limits and built-in files. Raises OSError/ValueError when a
-    file cannot be read (the build then reports it)."""
+    and of the bytes of the URDF, limits (``limits_yaml`` when given) and built-in files. Raises
+    OSError/ValueError when a file cannot be read (the build then reports it)."""
     fields = list(settings.model_key())
     fields[0] = _sha256(fields[0])  # the URDF text itself: its hash keeps the key small
     files = {"robot_description_file": settings.robot_description_file,
              "limits_file": settings.limits_file}
+    hashes = {k: _file_sha256(v) for k, v in files.items() if v and k != "limits_file"}
+    if limits_yaml is not None:
+        hashes["limits_file"] = limits_sha256(limits_yaml)
+    elif settings.limits_file:
+        hashes["limits_file"] = limits_sha256(Path(settings.limits_file).read_bytes())
     doc = {"settings": fields, "topic": _sha256(topic_description) if topic_description else "",
-           "files": {k: _file_sha256(v) for k, v in files.items() if v},
+           "files": hashes,
            "builtin": _sha256(builtin_urdf(settings.robot_model)) if settings.robot_model else ""}
     # JSON text, not a tuple: -0.0 and 0.0 (or 1 and 1.0) are equal tuple keys, not equal texts
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
@@ -92,25 +122,29 @@ class ModelCache:
             while len(self._models) > self.size:
                 self._models.popitem(last=False)
 
-    def build(self, settings: Settings, topic_description: str = "") -> RobotModel:
-        """The cached model for these inputs, else a fresh build, cached (a failure never is)."""
+    def build(self, settings: Settings, topic_description: str = "", *,
+              limits_yaml: str | None = None) -> RobotModel:
+        """The cached model for these inputs, else a fresh build, cached (a failure never is).
+        ``limits_yaml``: as :func:`build_model` (read here from the file when not given)."""
+        if settings.limits_file and limits_yaml is None:
+            limits_yaml = read_limits_file(settings.limits_file)
         try:
-            key = model_cache_key(settings, topic_description)
+            key = model_cache_key(settings, topic_description, limits_yaml=limits_yaml)
         except (OSError, ValueError):  # a file that cannot be read: the build says so
-            return build_model(settings, topic_description)
+            return build_model(settings, topic_description, limits_yaml=limits_yaml)
         model = self.get(key)
         if model is None:
-            model = build_model(settings, topic_description)
-            if _same_key(key, settings, topic_description):  # no file changed during the build
+            model = build_model(settings, topic_description, limits_yaml=limits_yaml)
+            if _same_key(key, settings, topic_description, limits_yaml):  # no file changed meanwhile
                 self.put(key, model)
         return model
 
 
-def _same_key(key: str, settings: Settings, topic_description: str) -> bool:
+def _same_key(key: str, settings: Settings, topic_description: str, limits_yaml: str | None) -> bool:
     try:
-        return model_cache_key(settings, topic_description) == key
+        return model_cache_key(settings, topic_description, limits_yaml=limits_yaml) == key
     except (OSError, ValueError):
         return False
 
 
-__all__ = ["ModelCache", "build_model", "model_cache_key"]
+__all__ = ["ModelCache", "build_model", "limits_text", "model_cache_key"]

@@ -102,6 +102,7 @@ class Monitor:
         self.last_receipt_s: float | None = None
         self.last_error: InputError | None = None
         self.last_result: SampleResult | None = None
+        self.last_inputs: tuple[np.ndarray, np.ndarray | None, np.ndarray | None] | None = None
         self._prev_t: float | None = None
         self._prev_v: np.ndarray | None = None
         self._a = self._zero
@@ -187,6 +188,8 @@ class Monitor:
         if not math.isfinite(t):
             return self._reject(InputError(f"header stamp is not finite ({stamp_s})", code="bad_stamp"))
         a, ooo = self._accel(t, v)
+        # model order as measured (v, e None: not in the message), for the contact monitor
+        self.last_inputs = (q, v, e)
         if v is None:
             v = self._zero
         g, tau = self._gravity_and_rnea(q, v, a)

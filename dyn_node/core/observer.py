@@ -24,10 +24,14 @@ from dyn_node.core.model import RobotModel
 RESET_START = "start"
 RESET_REQUESTED = "requested"
 RESET_GAP = "gap"
+#: a step between header stamps longer than ``max_gap_s`` (RESET_GAP: the monitor's receipt-time gap)
+RESET_STAMP_GAP = "stamp_gap"
 RESET_BACKWARDS = "backwards"
 RESET_INVALID = "after_invalid_input"
 #: how the measured effort is integrated over a step (:class:`ObserverOptions`)
 EFFORT_TIMINGS = ("held", "sampled")
+#: the no-estimate code of a joint state without effort
+EFFORT_MISSING = "effort_missing"
 
 
 def per_joint(values: float | Sequence[float], nv: int, what: str, *,
@@ -82,6 +86,8 @@ class ObserverEstimate:
     reset: ObserverReset | None = None
     since_reset_s: float = math.nan
     settled: bool = False
+    #: the reason's code when there is no estimate (``effort_missing``, ``non_finite_effort``…)
+    code: str | None = None
 
 
 def _bad_joints(names: Sequence[str], x: np.ndarray) -> str:
@@ -123,10 +129,10 @@ class MomentumObserver:
         """1/K per joint (s)."""
         return 1.0 / self.gain
 
-    def reset(self, reason: str = "reset requested") -> ObserverReset:
+    def reset(self, reason: str = "reset requested", *, code: str = RESET_REQUESTED) -> ObserverReset:
         """Forget the history; the next valid sample restarts the observer and reports this
-        reason (also returned)."""
-        self._pending = ObserverReset(RESET_REQUESTED, reason)
+        reason and ``code`` (also returned)."""
+        self._pending = ObserverReset(code, reason)
         self._p = None
         return self._pending
 
@@ -138,11 +144,11 @@ class MomentumObserver:
         if self._p is not None:
             self._pending = ObserverReset(RESET_INVALID, f"restarted after a sample without an estimate ({why})")
             self._p = None
-        return ObserverEstimate(t=t, tau_ext=None, unavailable=why)
+        return ObserverEstimate(t=t, tau_ext=None, unavailable=why, code=code)
 
     def _check(self, t: float, q, v, effort) -> tuple[tuple[str, str] | None, tuple]:
         if effort is None:
-            return ("effort_missing", "effort not measured"), ()
+            return (EFFORT_MISSING, "effort not measured"), ()
         arrays = [np.array(x, dtype=float) for x in (q, v, effort)]  # copies: the previous sample is kept
         for label, a in zip(("position", "velocity", "effort"), arrays):
             if a.shape != (self._nv,):
@@ -158,10 +164,11 @@ class MomentumObserver:
         return None, tuple(arrays)
 
     def update(self, t: float, q: Sequence[float], v: Sequence[float] | None,
-               effort: Sequence[float] | None) -> ObserverEstimate:
+               effort: Sequence[float] | None, *, gravity: np.ndarray | None = None) -> ObserverEstimate:
         """One joint state at time ``t`` (s), arrays in model order: position (rad|m), velocity
-        (rad/s|m/s; None: not measured) and measured effort (N·m|N; None: not measured).
-        Raises ValueError only for arrays of the wrong length (a caller bug)."""
+        (rad/s|m/s; None: not measured) and measured effort (N·m|N; None: not measured);
+        ``gravity``: g(q) already computed by this Dynamics at this q (the Monitor's), else
+        computed here. Raises ValueError only for arrays of the wrong length (a caller bug)."""
         if v is None:
             return self._no_estimate(t, "velocity_missing", "velocity not measured")
         bad, arrays = self._check(t, q, v, effort)
@@ -169,7 +176,7 @@ class MomentumObserver:
             return self._no_estimate(t, *bad)
         q, v, e = arrays
         d = self.dynamics
-        p, ctv, g = d.momentum_terms(q, v)
+        p, ctv, g = d.momentum_terms(q, v, gravity=gravity)
         s = ctv - g - d.friction(v)
         restart = self._pending
         if restart is None:
@@ -177,7 +184,7 @@ class MomentumObserver:
             if dt < 0:
                 restart = ObserverReset(RESET_BACKWARDS, f"stamp went back {-dt:.9g} s")
             elif dt > self.options.max_gap_s:
-                restart = ObserverReset(RESET_GAP, f"gap of {dt:.9g} s > {self.options.max_gap_s:g} s")
+                restart = ObserverReset(RESET_STAMP_GAP, f"stamp gap of {dt:.9g} s > {self.options.max_gap_s:g} s")
             elif dt == 0.0:  # the same instant again: nothing to integrate
                 return self._estimate(t, None)
         if restart is not None:
@@ -204,11 +211,14 @@ class MomentumObserver:
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
 class WrenchOptions:
-    """Damping of the least-squares wrench (see the module docstring): ``singular_value`` ε,
-    below which damping starts, and ``max_damping`` λ_max, reached at σ_min = 0; both in the
-    units of J's singular values (m/rad along the linear rows, which dominate at a flange)."""
+    """Damping of the least-squares wrench (docs/OBSERVER.md): below ``damping_band`` β the
+    solution is damped, λ² = (1 − (σ_min/β)²)·λ_max², reaching ``max_damping`` λ_max at
+    σ_min = 0; below ``singular_value`` ε (< β) the frame is singular and its wrench refused.
+    So between ε and β an estimate is published, damped. All in the units of J's singular
+    values (m/rad along the linear rows, which dominate at a flange)."""
 
     singular_value: float = 0.02
+    damping_band: float = 0.06
     max_damping: float = 0.02
 
 
@@ -216,8 +226,8 @@ class WrenchOptions:
 class WrenchEstimate:
     """The wrench the environment exerts on the robot at ``frame``'s origin, in its axes:
     ``wrench`` = [fx, fy, fz (N), mx, my, mz (N·m)]. ``sigma_min``: J's smallest singular
-    value; ``damping`` λ used (0 away from singularities); ``singular``: σ_min < ε (the
-    estimate is damped along the direction J barely sees); ``misfit`` ‖JᵀF̂ − τ̂_ext‖ (N·m):
+    value; ``damping`` λ used (0 for σ_min ≥ β); ``singular``: σ_min < ε (the direction J
+    barely sees is not trusted: the monitor publishes no wrench); ``misfit`` ‖JᵀF̂ − τ̂_ext‖ (N·m):
     the part of τ̂_ext no wrench at this frame explains (a contact elsewhere, or noise);
     ``determined``: nv ≥ 6, else the minimum-norm solution."""
 
@@ -247,10 +257,10 @@ def damped_wrench(J: np.ndarray, tau: np.ndarray, *, options: WrenchOptions = Wr
     """(F̂, σ_min, λ) for a 6×nv Jacobian J and torque τ (see the module docstring)."""
     U, s, Vt = np.linalg.svd(J, full_matrices=False)
     sigma_min = float(s.min()) if s.size else 0.0
-    eps = options.singular_value
-    lam2 = 0.0 if sigma_min >= eps else (1.0 - (sigma_min / eps) ** 2) * options.max_damping ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gain = np.where(s > 0, s / (s * s + lam2), 0.0)
+    band = options.damping_band
+    lam2 = 0.0 if sigma_min >= band else (1.0 - (sigma_min / band) ** 2) * options.max_damping ** 2
+    # no zero denominator: λ² = 0 only while every s ≥ σ_min ≥ β > 0, and λ² > 0 otherwise
+    gain = s / (s * s + lam2)
     return U @ (gain * (Vt @ tau)), sigma_min, math.sqrt(lam2)
 
 
@@ -258,9 +268,11 @@ class WrenchEstimator:
     """F̂ at one frame of ``model`` (a URDF link or any Pinocchio frame) from τ̂_ext."""
 
     def __init__(self, model: RobotModel, frame: str, *, options: WrenchOptions = WrenchOptions()):
-        if not (options.singular_value > 0 and options.max_damping > 0
-                and math.isfinite(options.singular_value) and math.isfinite(options.max_damping)):
-            raise ValueError("singular_value and max_damping must be finite and > 0")
+        o = options
+        if not all(x > 0 and math.isfinite(x) for x in (o.singular_value, o.damping_band, o.max_damping)):
+            raise ValueError("singular_value, damping_band and max_damping must be finite and > 0")
+        if o.damping_band <= o.singular_value:
+            raise ValueError("damping_band must exceed singular_value: damping starts before refusal")
         pm = model.pin_model
         if not pm.existFrame(frame):
             raise InputError(f"contact frame '{frame}' is not a frame of the model", code="unknown_frame")
@@ -281,4 +293,9 @@ class WrenchEstimator:
         F, sigma_min, lam = damped_wrench(J, tau, options=self.options)
         return WrenchEstimate(frame=self.frame, wrench=F, sigma_min=sigma_min, damping=lam,
                               singular=sigma_min < self.options.singular_value,
-                              misfit=float(np.linalg.norm(J.T @ F - tau)), determined=J.shape[1] >= 6)
+                              misfit=_norm(J.T @ F - tau), determined=J.shape[1] >= 6)
+
+
+def _norm(x: np.ndarray) -> float:
+    """‖x‖ as np.linalg.norm computes a real vector's (√(x·x)), without its call overhead."""
+    return math.sqrt(float(x @ x))

@@ -14,7 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from dyn_node.core import feasibility
+from dyn_node.core import feasibility, task_motion
 from dyn_node.core.dynamics import Dynamics
 from dyn_node.errors import TrajectoryError
 from dyn_node.core.settings import Settings
@@ -106,10 +106,13 @@ def states(model_joints: Sequence[str], names: Sequence[str], positions: Any,
 
 def inverse_dynamics(dynamics: Dynamics, Q: np.ndarray, V: np.ndarray, A: np.ndarray) -> np.ndarray:
     """τ for N states (N×nv, model order), computed exactly as the feasibility check computes its
-    sample torques (:meth:`Dynamics.terms_batch`: friction and payload included), so a state that
-    is also a check sample gets the same bits."""
+    sample torques (friction and payload included; with a task section, by the frame pass,
+    plus J_frameᵀ·W of a task wrench, else :meth:`Dynamics.terms_batch`), so a state that is
+    also a check sample gets the same bits."""
     try:
-        tau = np.ascontiguousarray(dynamics.terms_batch(Q, V, A).full)
+        tau = task_motion.inverse_dynamics(dynamics, Q, V, A)
+        if tau is None:
+            tau = np.ascontiguousarray(dynamics.terms_batch(Q, V, A).full)
     except (ArithmeticError, ValueError, RuntimeError) as exc:
         raise TrajectoryError(f"torques could not be evaluated: {type(exc).__name__}: {exc}",
                               code="evaluation_failed") from exc

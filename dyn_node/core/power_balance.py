@@ -114,7 +114,9 @@ class PowerBalance:
             self.restart()
             return False
         q, v, e = (np.array(x, dtype=float) for x in (q, v, effort))  # copies: samples are kept
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(e))):
+        # a sum is NaN or ±inf iff an element is, or it overflows (then each array decides)
+        if not math.isfinite(float(q.sum() + v.sum() + e.sum())) and not (
+                np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(e))):
             self.restart()
             return False
         if self._last is not None and t <= self._last.t:

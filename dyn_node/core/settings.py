@@ -30,6 +30,8 @@ class ParamSpec:
     low: float | None = None
     high: float | None = None
     affects_model: bool = False
+    #: a double_array's length (None: one value for every joint or one per joint, ≥ 1)
+    size: int | None = 3
 
 
 def parse_locked_joints(text: str) -> tuple[tuple[str, float], ...]:
@@ -57,14 +59,15 @@ def parse_locked_joints(text: str) -> tuple[tuple[str, float], ...]:
 
 def _param(kind: str, default: Any, description: str, low: float | None = None,
            high: float | None = None, *, affects_model: bool = False, name: str = "",
-           parse: Callable[[Any], Any] | None = None) -> Any:
+           parse: Callable[[Any], Any] | None = None, size: int | None = 3) -> Any:
     """A :class:`Settings` field that declares its ROS parameter (the one place its default is
     written). ``default`` is the parameter's value; the field holds it as settings do (arrays as
     tuples, ``parse(default)`` for a parsed text). ``name``: the ROS name where it is not the
-    field's ('payload.mass' for payload_mass)."""
+    field's ('payload.mass' for payload_mass); ``size``: a double_array's length (None: any
+    length ≥ 1, each value within [low, high])."""
     value = tuple(default) if kind == "double_array" else parse(default) if parse else default
     spec = dict(name=name, kind=kind, default=default, description=description, low=low, high=high,
-                affects_model=affects_model)
+                affects_model=affects_model, size=size)
     return field(default=value, metadata={"parameter": spec})
 
 
@@ -125,6 +128,23 @@ class Settings:
     check_queue_depth: int = _param(
         "integer", 8, "check-only and inverse-dynamics requests waiting to be answered; one arriving "
         "when this many wait is answered 'rejected: busy' (requests)", 1, 10000)
+    # the momentum observer and contact detection (docs/OBSERVER.md): one value applies to every
+    # joint, or one per joint in model order (the length is checked against the model)
+    observer_gain: tuple[float, ...] = _param(
+        "double_array", [50.0], "gain K of the momentum observer behind ~/external_torque (1/s; "
+        "time constant 1/K; one value or one per joint)", 1.0e-3, 1.0e5, size=None)
+    contact_threshold: tuple[float, ...] = _param(
+        "double_array", [0.05], "|τ̂_ext| / effort limit above which a joint is in contact (held "
+        "contact_min_duration; one value or one per joint)", 1.0e-6, 10.0, size=None)
+    collision_threshold: tuple[float, ...] = _param(
+        "double_array", [0.20], "|τ̂_ext| / effort limit above which a contact is a collision "
+        "(one value or one per joint, each ≥ contact_threshold)", 1.0e-6, 10.0, size=None)
+    contact_min_duration: float = _param(
+        "double", 0.02, "how long a threshold must be exceeded on every sample before contact or "
+        "collision is reported (s)", 0.0, 60.0)
+    contact_frame: str = _param(
+        "string", "", "frame (link) of ~/external_wrench, the wrench that best explains τ̂_ext; "
+        "empty: the flange (last link)")
 
     @property
     def has_model_source(self) -> bool:
@@ -185,14 +205,19 @@ def _check(spec: ParamSpec, value: Any) -> Any:
         if not math.isfinite(value):
             raise SettingsError(f"{where} must be finite, got {value}", code="bad_parameter")
     elif spec.kind == "double_array":
+        what = f"{spec.size} numbers" if spec.size is not None else "one or more numbers"
         try:
             vals = tuple(float(v) for v in value if not isinstance(v, (bool, str)))
         except TypeError:
-            raise SettingsError(f"{where} must be 3 numbers, got {value!r}", code="bad_parameter") from None
-        if len(vals) != 3 or len(vals) != len(value):
-            raise SettingsError(f"{where} must be 3 numbers, got {list(value)!r}", code="bad_parameter")
+            raise SettingsError(f"{where} must be {what}, got {value!r}", code="bad_parameter") from None
+        if len(vals) != len(value) or (len(vals) != spec.size if spec.size is not None else not vals):
+            raise SettingsError(f"{where} must be {what}, got {list(value)!r}", code="bad_parameter")
         if not all(math.isfinite(v) for v in vals):
             raise SettingsError(f"{where} must be finite, got {list(vals)}", code="bad_parameter")
+        if any(spec.low is not None and v < spec.low or spec.high is not None and v > spec.high
+               for v in vals):
+            raise SettingsError(f"{where} = {list(vals)} has a value outside [{spec.low}, {spec.high}]",
+                                code="bad_parameter")
         return vals
     if spec.low is not None and value < spec.low or spec.high is not None and value > spec.high:
         raise SettingsError(f"{where} = {value} is outside [{spec.low}, {spec.high}]", code="bad_parameter")
@@ -217,5 +242,20 @@ def settings_from_mapping(values: Mapping[str, Any], base: Settings | None = Non
             raise SettingsError(f"parameter 'acceleration_source' must be one of "
                                 f"{', '.join(ACCELERATION_SOURCES)}, got '{value}'", code="bad_parameter")
         kw[_FIELDS[name]] = value
-    return replace(base or Settings(), **kw)
+    out = replace(base or Settings(), **kw)
+    _check_contact_thresholds(out)
+    return out
+
+
+def _check_contact_thresholds(s: Settings) -> None:
+    """collision_threshold ≥ contact_threshold joint by joint, where the lengths pair up (one
+    value, or the same count); per-joint lengths against the model are the ContactMonitor's."""
+    a, b = s.contact_threshold, s.collision_threshold
+    if len(a) != len(b) and len(a) != 1 and len(b) != 1:
+        raise SettingsError(f"contact_threshold has {len(a)} values and collision_threshold {len(b)}: "
+                            "give one value or one per joint for each", code="bad_parameter")
+    n = max(len(a), len(b))
+    if any(c > d for c, d in zip(a * n if len(a) == 1 else a, b * n if len(b) == 1 else b)):
+        raise SettingsError(f"collision_threshold {list(b)} must be ≥ contact_threshold {list(a)} "
+                            "on every joint", code="bad_parameter")
 

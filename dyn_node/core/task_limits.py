@@ -151,26 +151,30 @@ class TaskLimits:
 
 # --- locating the limits mapping -----------------------------------------------------------------
 
-def check_top_level_keys(mapping: Mapping[str, Any], *, source: str) -> None:
-    """Unknown top-level keys are errors (a misspelt section would switch a check off)."""
+def check_top_level_keys(mapping: Mapping[str, Any], *, source: str,
+                         node_parameters: bool = False) -> None:
+    """Unknown top-level keys are errors (a misspelt section would switch a check off), with a
+    suggestion. ``node_parameters``: the mapping is a node's ``ros__parameters``, where the
+    joint-limit parser lets other node parameters stand beside the limits sections."""
     for key, value in mapping.items():
         if key not in LIMITS_FILE_KEYS:
+            if node_parameters:
+                continue
             raise ModelError(f"{source}: unknown top-level key '{key}'"
-                             f"{did_you_mean(key, LIMITS_FILE_KEYS)}; a limits file holds "
+                             f"{did_you_mean(str(key), LIMITS_FILE_KEYS)}; a limits file holds "
                              f"{', '.join(sorted(LIMITS_FILE_KEYS))}",
                              code="limits_unknown_section")
         if key in UNUSED_TOP_LEVEL_KEYS:
             _number(value, f"{source}: {key}", minimum=0.0, strict=True)
 
 
-def limits_mapping(data: Any, *, source: str) -> tuple[Mapping[str, Any], str]:
-    """(the mapping holding the limits sections, where to say it is) for a parsed limits file:
-    the bare mapping, or the one node's ``<node>: ros__parameters:`` carrying a limits key. Its
-    top-level keys are checked (:func:`check_top_level_keys`)."""
+def locate_limits(data: Any, *, source: str) -> tuple[Mapping[str, Any], str, bool]:
+    """(the mapping holding the limits sections, where to say it is, whether it is a node's
+    ``ros__parameters``) for a parsed limits file: the bare mapping, or the one node's
+    ``<node>: ros__parameters:`` carrying a limits key. Its keys are not checked here."""
     if not isinstance(data, Mapping):
         raise ModelError(f"{source}: expected a mapping with a 'joint_limits:' or another limits "
                          "section at its top level", code="limits_no_joint_limits")
-    where, mapping = source, data
     if not set(data) & LIMITS_FILE_KEYS:
         nested = [(str(name), v["ros__parameters"]) for name, v in data.items()
                   if isinstance(v, Mapping) and isinstance(v.get("ros__parameters"), Mapping)
@@ -180,7 +184,14 @@ def limits_mapping(data: Any, *, source: str) -> tuple[Mapping[str, Any], str]:
                              f"({', '.join(n for n, _ in nested)}); give a file with one",
                              code="limits_no_joint_limits")
         if nested:
-            where, mapping = f"{source}: {nested[0][0]}.ros__parameters", nested[0][1]
+            return nested[0][1], f"{source}: {nested[0][0]}.ros__parameters", True
+    return data, source, False
+
+
+def limits_mapping(data: Any, *, source: str) -> tuple[Mapping[str, Any], str]:
+    """(the limits mapping, where it is) as :func:`locate_limits`, its top-level keys checked
+    (:func:`check_top_level_keys`: no node parameters beside the task sections)."""
+    mapping, where, _ = locate_limits(data, source=source)
     if not mapping:
         raise ModelError(f"{source}: the limits file is empty", code="limits_no_joint_limits")
     check_top_level_keys(mapping, source=where)

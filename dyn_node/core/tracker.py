@@ -17,14 +17,15 @@ from dyn_node.core.units import joint_units, unit_key
 
 CONTROLLER = NAME_PREFIX + "controller"
 
-CONTROLLER_STATES = ("idle", "tracking", "deviating", "saturated", "stale", "fault")
+CONTROLLER_STATES = ("idle", "tracking", "deviating", "saturated", "contact", "collision", "stale", "fault")
 
 
 class ControllerTracker:
     """State of execution for ~/controller_status.
 
     States, first match wins: ``fault`` (the last joint_states was rejected), ``stale`` (nothing
-    within stale_timeout), ``saturated`` (worst measured |effort| / limit ≥ 1), ``deviating``
+    within stale_timeout), ``collision`` and ``contact`` (the contact monitor's open episode, fed
+    by :meth:`note_contact`), ``saturated`` (worst measured |effort| / limit ≥ 1), ``deviating``
     (a trajectory is active and some |q − reference| > tracking_tolerance), ``tracking`` (active
     and within tolerance), ``idle``. A trajectory is active from its start time (header stamp, or
     receipt for a zero stamp) plus its first time_from_start until its last point; the reference is
@@ -47,6 +48,9 @@ class ControllerTracker:
         self._last_receipt: float | None = None
         self._fault: str = ""
         self._active = False
+        self._contact: str = "none"
+        self._stamp: float | None = None  # the last accepted sample's stamp (s)
+        self._episode = None  # the open ContactEpisode behind contact / collision
 
     def set_trajectory(self, traj: Trajectory, start_s: float) -> None:
         """Track ``traj`` (model order) starting at ``start_s`` (s). Safe to call from another
@@ -75,6 +79,11 @@ class ControllerTracker:
             acc = acc * s + c[k]
         return acc if c.shape[0] > 1 else acc.copy()
 
+    def note_contact(self, state: str, episode=None) -> None:
+        """The contact monitor's state after the sample about to be fed to :meth:`update`
+        (``none``, ``contact``, ``collision`` or ``unavailable``) and its open episode."""
+        self._contact, self._episode = state, episode
+
     def update(self, result: SampleResult, receipt_s: float) -> bool:
         """Feed one monitor result; returns True when the state changed."""
         self._last_receipt = receipt_s
@@ -82,6 +91,7 @@ class ControllerTracker:
             self._fault = str(result.error)
         else:
             self._fault = ""
+            self._stamp = result.stamp_s
             ref = self.reference(result.stamp_s)
             self._active = ref is not None
             self._error = result.q - ref if ref is not None else self._nan
@@ -139,6 +149,8 @@ class ControllerTracker:
             return "stale"
         if self._fault:
             return "fault"
+        if self._contact in ("collision", "contact"):
+            return self._contact
         # A clamped actuator reports exactly its limit, so reaching it (to rounding) is saturation.
         if self._ratio >= 1.0 - 1e-9:
             return "saturated"
@@ -173,6 +185,11 @@ class ControllerTracker:
             level, msg, label = STALE, "no joint_states within stale_timeout", STATE_ERROR
         elif st == "fault":
             level, msg, label = ERROR, f"joint_states rejected: {self._fault}", STATE_ERROR
+        elif st in ("collision", "contact"):
+            ep = self._episode
+            level, label = (ERROR if st == "collision" else WARN), CONTROL_ERROR
+            # the episode runs on the samples' clock (stamps), not the receipt clock of now_s
+            msg = ep.message(self._stamp) if ep is not None else st
         elif st == "saturated":
             level, msg, label = ERROR, f"measured effort at {self._ratio * 100:.0f}% of the limit", CONTROL_ERROR
         elif st == "deviating":

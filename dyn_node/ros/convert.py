@@ -86,6 +86,25 @@ class JointStateOut:
                          np.asarray(effort, dtype="<f8").tobytes()))
 
 
+class WrenchStampedOut:
+    """An outgoing geometry_msgs/WrenchStamped in one frame (set once), encoded per message as
+    :class:`JointStateOut` does: header stamp, frame_id, force (N) then torque (N·m)."""
+
+    def __init__(self, frame_id: str):
+        self.frame_id = frame_id
+        body = bytearray(8)  # the stamp's place
+        name = frame_id.encode() + b"\0"
+        body += _U32.pack(len(name)) + name
+        body += b"\0" * ((-len(body)) % 8)  # the first double is 8-aligned
+        self._head = b"\x00\x01\x00\x00"
+        self._frame = bytes(body[8:])
+
+    def encode(self, sec: int, nanosec: int, wrench: np.ndarray) -> bytes:
+        """The CDR bytes (little endian) for ``publish(bytes)``; ``wrench`` = [fx, fy, fz, mx, my, mz]."""
+        return b"".join((self._head, _TIME.pack(sec, nanosec), self._frame,
+                         np.asarray(wrench, dtype="<f8").tobytes()))
+
+
 def _joint_state_segments(names: list[str]) -> tuple[bytes, bytes, bytes, bytes]:
     """Constant parts of a JointState's CDR with ``names`` and len(names) values per array:
     (encapsulation header, stamp → first double, between arrays 1 and 2, between 2 and 3).

@@ -25,6 +25,7 @@ from dyn_node.core.dynamics import Dynamics
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_VIOLATIONS
 from dyn_node.core.model import RobotModel, load_model
 from dyn_node.core.trajectory import Trajectory, interpolate, validate_trajectory
+from dyn_node.ros.demo_push import PUSH_S, push_checks, run_push
 
 READY = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
 #: Named Panda poses (rad): the 'ready' pose of franka_ros, the arm stretched forward
@@ -136,6 +137,43 @@ def demo_trajectories(short: bool = False) -> tuple[DemoTrajectory, DemoTrajecto
                                 tuple(tuple(p) for p in shakes),
                                 f"joint2/joint4 shake, {T:g} s segments")
     return comfortable, aggressive
+
+
+#: The task-limits scene's limits file: the URDF's joint limits plus a 250 mm/s TCP speed limit.
+DEMO_TASK_LIMITS = Path(__file__).resolve().parents[2] / "config" / "demo_task_limits.yaml"
+TASK_PLACE = "panda_hand"
+
+
+def task_transfer() -> DemoTrajectory:
+    """ready → a 1 rad swing of joint1 (with joint2/4/6) → ready in 1 s segments: inside every
+    joint limit (joint1 at 86% of its speed, efforts lower) but the TCP moves at 0.64 m/s."""
+    r = np.array(READY)
+    target = r + np.array([1.0, 0.2, 0.0, 0.3, 0.0, -0.1, 0.0])
+    return DemoTrajectory("fast transfer", (0.0, 1.0, 2.0), tuple(tuple(p) for p in (r, target, r)),
+                          "ready → joint1 +1 rad → ready, 2 s")
+
+
+def task_checks(unlimited: Any, fast: Any, fast_place: dict[str, str] | None, slowed: Any,
+                k: float) -> list[tuple[bool, str]]:
+    """The task-limits scene's acceptance: ``unlimited``, the local check of the transfer without
+    the TCP limit (FeasibilityResult); ``fast`` / ``slowed``, dyn_node's verdicts (client.Verdict
+    or None) before and after slowing by ``k``; ``fast_place``: the values of its
+    ``…/panda_hand`` status on ~/feasibility."""
+    out = [(unlimited.feasible, f"fast transfer: within every joint limit without the TCP limit "
+                                f"(local check: {unlimited.message})")]
+    if fast is None:
+        return out + [(False, "fast transfer: no verdict from dyn_node on ~/check_trajectory")]
+    peak = (_f(_num(fast_place, "frame_speed_peak"), ".3g") + " m/s" if fast_place
+            else "no panda_hand status")
+    out.append((not fast.feasible and fast.worst_joint == TASK_PLACE
+                and fast.worst_constraint == "frame_speed" and 1.0 < fast.time_scale < math.inf
+                and fast_place is not None,
+                f"fast transfer: infeasible before execution on the TCP speed (worst {fast.worst_joint} "
+                f"{fast.worst_constraint}, peak {peak} of 0.25 m/s), time_scale {_f(fast.time_scale, '.4g')}"))
+    if slowed is None:
+        return out + [(False, "slowed transfer: no verdict from dyn_node on ~/check_trajectory")]
+    out.append((slowed.feasible, f"slowed transfer (× {_f(k, '.4g')}): feasible ({slowed.message})"))
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -415,6 +453,35 @@ class Stack:
                 time_from_start=Duration(sec=ns // 10**9, nanosec=ns % 10**9)))
         return msg
 
+    def set_node_parameters(self, timeout: float = 10.0, **values: Any) -> str:
+        """Set dyn_node's parameters; "" when it took them, else why not."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        cli = self.node.create_client(SetParameters, "/dyn_node/set_parameters")
+        try:
+            if not cli.wait_for_service(timeout_sec=timeout):
+                return "no /dyn_node/set_parameters service"
+            req = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
+                                                    for k, v in values.items()])
+            fut = cli.call_async(req)
+            self.spin_until(fut.done, timeout)
+            if not fut.done() or fut.result() is None:
+                return "no answer"
+            bad = [r.reason for r in fut.result().results if not r.successful]
+            return "; ".join(bad)
+        finally:
+            self.node.destroy_client(cli)
+
+    def place_status(self, start_ns: int, place: str) -> dict[str, str] | None:
+        """The values of the ``…/<place>`` status in the ~/feasibility answer stamped ``start_ns``."""
+        for _, arr in self.verdicts:
+            if arr.header.stamp.sec * 10**9 + arr.header.stamp.nanosec == start_ns:
+                for st in arr.status:
+                    if st.name.endswith(f"trajectory feasibility/{place}"):
+                        return {kv.key: kv.value for kv in st.values}
+        return None
+
     def verdict_for(self, start_ns: int) -> tuple[float, dict[str, str], int, str] | None:
         for recv, arr in self.verdicts:
             if arr.header.stamp.sec * 10**9 + arr.header.stamp.nanosec != start_ns:
@@ -562,6 +629,9 @@ class DemoRun:
     checks: list[tuple[bool, str]] = field(default_factory=list)
     unavailable: list[str] = field(default_factory=list)
     bag_path: str | None = None
+    task_checks: list[tuple[bool, str]] = field(default_factory=list)  # the task-limits scene's
+    extra_verdicts: int = 0  # ~/feasibility answers of the scenes beyond the three trajectories
+    push_checks: list[tuple[bool, str]] = field(default_factory=list)  # the push scene's
 
     @property
     def logs(self) -> Path:
@@ -592,6 +662,8 @@ def run_demo(args: argparse.Namespace) -> int:
     try:
         _scene_stack(run, model, args.domain)
         _scene_trajectories(run, args.short)
+        _scene_task_limits(run)
+        _scene_push(run, args.short)
         if len(run.children) > 1 and run.children[1].alive():
             run.bag_path = run.stack.call_stop_recording()
         _save_samples(run.stack, run.out)
@@ -613,7 +685,8 @@ def _scene_stack(run: DemoRun, model: RobotModel, domain: int) -> None:
     run.env.pop("ROS_LOCALHOST_ONLY", None)
     children = run.children
     children.append(Child("dyn_sim", [sys.executable, "-m", "dyn_node.ros.sim_node", "--ros-args",
-                                      "-p", f"initial_positions:={list(READY)}"],
+                                      "-p", f"initial_positions:={list(READY)}",
+                                      "-p", f"apply_wrench_hold:={PUSH_S}"],
                           run.env, run.logs / "dyn_sim.log"))
     node_ok = _module_available("dyn_node.ros.node")
     if node_ok:
@@ -664,6 +737,65 @@ def _scene_trajectories(run: DemoRun, short: bool) -> None:
         run.outcomes.append(run_trajectory(run.stack, slowed, _say))
 
 
+def _scene_task_limits(run: DemoRun) -> None:
+    """3b. a transfer inside every joint limit but over the 250 mm/s TCP speed: dyn_node (given
+    config/demo_task_limits.yaml as limits_file for this scene) says so before execution with its
+    time_scale, and the transfer slowed by it passes. Check-only requests: nothing moves."""
+    _say("")
+    _banner("3b. task limits: a TCP speed limit of 250 mm/s (config/demo_task_limits.yaml)")
+    stack = run.stack
+    if len(run.children) < 2 or not run.children[1].alive() or not DEMO_TASK_LIMITS.is_file():
+        run.missing("task-limits scene (no dyn_node, or config/demo_task_limits.yaml missing)")
+        return
+    from dyn_node.core.feasibility import check_trajectory
+
+    t0 = time.monotonic()
+    fast = task_transfer()
+    unlimited = check_trajectory(Dynamics(stack.model), fast.validated(stack.model.joint_names))
+    why = stack.set_node_parameters(limits_file=str(DEMO_TASK_LIMITS))
+    if why:
+        run.missing(f"task-limits scene (limits_file not taken: {why})")
+        return
+    try:
+        start = stack.now_ns() + int(LEAD_S * 1e9)
+        v_fast = stack.check(fast, start)
+        if v_fast is not None:  # the demo's own ~/feasibility subscription hears it too
+            stack.spin_until(lambda: stack.place_status(start, TASK_PLACE) is not None, 3.0)
+        place = stack.place_status(start, TASK_PLACE)
+        k = v_fast.time_scale if v_fast is not None else math.nan
+        _say(f"  {fast.name} ({fast.description}), checked before execution: "
+             + (f"{v_fast.message} [time_scale {_f(k, '.4g')}]" if v_fast else "no verdict"))
+        slowed = fast.scaled(k * SAFETY_FACTOR, "slowed transfer", f"× {k:.3f} × {SAFETY_FACTOR:g}") \
+            if math.isfinite(k) and k > 0 else None
+        v_slow = stack.check(slowed, stack.now_ns() + int(LEAD_S * 1e9)) if slowed else None
+        if v_slow is not None:
+            _say(f"  {slowed.name} ({slowed.description}): {v_slow.message}")
+        run.extra_verdicts += (v_fast is not None) + (v_slow is not None)
+        run.task_checks = task_checks(unlimited, v_fast, place, v_slow, k * SAFETY_FACTOR)
+    finally:
+        stack.set_node_parameters(limits_file="")  # the scenes after this one run without it
+    for ok, text in run.task_checks:
+        _say(f"  [{'PASS' if ok else 'FAIL'}] {text}")
+    _say(f"  (scene 3b: {time.monotonic() - t0:.1f} s)")
+
+
+def _scene_push(run: DemoRun, short: bool) -> None:
+    """3c. dyn_sim pushes the flange during the comfortable trajectory (ros/demo_push.py)."""
+    _say("")
+    _banner("3c. a push: 30 N at the flange for 0.3 s during the comfortable trajectory")
+    if len(run.children) < 2:
+        run.missing("push scene (no dyn_node)")
+        return
+    o = run_push(run.stack, demo_trajectories(short)[0], _say)
+    if o is None:
+        run.missing("push scene (dyn_node publishes no ~/external_wrench)")
+        return
+    run.extra_verdicts += o.verdict_seen
+    run.push_checks = push_checks(o)
+    for _, text in run.push_checks:
+        _say("  " + text.removeprefix("push: "))
+
+
 def _save_samples(stack: Stack, out: Path) -> None:
     """Raw observations, for looking into any figure of the summary afterwards."""
     js_k = sorted(stack.js)
@@ -690,7 +822,7 @@ def _scene_summary(run: DemoRun) -> None:
     _banner("4. summary")
     outcomes = run.outcomes
     _say(summary_table(outcomes))
-    run.checks = acceptance(outcomes)
+    run.checks = acceptance(outcomes) + run.task_checks + run.push_checks
     _say("")
     for ok, text in run.checks:
         _say(f"  [{'PASS' if ok else 'FAIL'}] {text}")
@@ -736,7 +868,7 @@ def _scene_audit(run: DemoRun) -> None:
         for line in audit_recheck_lines(evidence):
             _say(line)
         live = sum(o.verdict_source == "dyn_node" for o in run.outcomes) + sum(
-            o.check_feasible is not None for o in run.outcomes)  # check-only verdicts too
+            o.check_feasible is not None for o in run.outcomes) + run.extra_verdicts  # check-only verdicts too
         check = audit_check(evidence, live)
         run.checks.append(check)
         _say(f"  [{'PASS' if check[0] else 'FAIL'}] {check[1]}")

@@ -31,6 +31,7 @@ from typing import Any, Callable, NoReturn
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from diagnostic_msgs.srv import SelfTest
+from geometry_msgs.msg import WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
@@ -47,16 +48,19 @@ from trajectory_msgs.msg import JointTrajectory
 # 0.7 s, which then stalled joint_states handling by up to 170 ms (seen in make demo)
 from dyn_node.core import feasibility, on_demand
 from dyn_node.core.allocator import retain_freed_memory
+from dyn_node.core.contact_monitor import (RESET_MODEL, RESET_PARAMETERS, RESET_RECORDING, ContactMonitor,
+                                           Observed, contact_settings)
 from dyn_node.core.drops import DropCounter
 from dyn_node.core.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import DynNodeError, EVALUATION_ERROR, InputError, STATE_ERROR, SettingsError, TrajectoryError
 from dyn_node.core.model import RobotModel
-from dyn_node.core.model_source import build_model
+from dyn_node.core.model_source import build_model, limits_text
 from dyn_node.core.model_status import model_error_status, model_status, waiting_model_status
 from dyn_node.core.monitor import JOINT_STATES, Monitor
 from dyn_node.core.monitor_results import Counts
 from dyn_node.ros.main import end_process, spin_until_signalled
-from dyn_node.ros.convert import (JointStateOut, RawTrajectory, diagnostic_array, encode_joint_trajectory_cdr,
+from dyn_node.ros.convert import (JointStateOut, RawTrajectory, WrenchStampedOut, diagnostic_array,
+                          encode_joint_trajectory_cdr,
                           fill_trajectory_effort, parse_joint_state_cdr, parse_joint_trajectory_cdr,
                           s_to_stamp, status_to_msg, stamp_to_s, to_byte, trajectory_arrays,
                           trajectory_header_cdr, verdict_array)
@@ -94,6 +98,9 @@ class _Core:
     tracker: ControllerTracker
     out_gravity: JointStateOut
     out_inverse: JointStateOut
+    contact: ContactMonitor
+    out_external: JointStateOut
+    out_wrench: WrenchStampedOut
 
 
 class DynNode(Node):
@@ -158,6 +165,13 @@ class DynNode(Node):
         self._pub_controller = self.create_publisher(DiagnosticStatus, "~/controller_status", 10, **quiet)
         self._pub_feasibility = self.create_publisher(DiagnosticArray, "~/feasibility", FEASIBILITY_QOS, **quiet)
         self._pub_traj_effort = self.create_publisher(JointTrajectory, "~/trajectory_effort", 10, **quiet)
+        self._pub_external_torque = self.create_publisher(JointState, "~/external_torque", 10, **quiet)
+        self._pub_external_wrench = self.create_publisher(WrenchStamped, "~/external_wrench", 10, **quiet)
+        # reliable, deep: a replay checks every reset and period boundary, none may be lost
+        self._pub_observer_events = self.create_publisher(
+            DiagnosticStatus, "~/observer_events",
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST),
+            **quiet)
 
     def _create_joint_states_io(self) -> None:
         # joint_states run on a node of their own, spun by their own executor on a dedicated
@@ -217,7 +231,8 @@ class DynNode(Node):
         from dyn_node.ros.recording import RecordingBridge
         self.recording = RecordingBridge(self, lambda: self.model.urdf if self.model else "",
                                          autostart=False,
-                                         configuration_since=lambda: self._core_since_ns)
+                                         configuration_since=lambda: self._core_since_ns,
+                                         limits_yaml=lambda: limits_text(self.model))
         self.status_providers.append(self.recording.status)
         # Topics the node itself takes or publishes are recorded from their own callbacks and
         # publish calls, with the bytes the node saw and said (subscriptions' QoS is recorded
@@ -225,9 +240,11 @@ class DynNode(Node):
         for endpoint in (self._sub_js, self._sub_traj, self._sub_check, self._sub_id_request,
                          self._pub_inverse, self._pub_gravity,
                          self._pub_diag, self._pub_controller, self._pub_feasibility,
-                         self._pub_traj_effort):
+                         self._pub_traj_effort, self._pub_external_torque, self._pub_external_wrench,
+                         self._pub_observer_events):
             self.recording.add_publisher(endpoint)
         self.recording.guard = self._io_lock
+        self.recording.on_start = self._on_recording_start
         self.recording.start_if_enabled()
 
     # --- model and settings ----------------------------------------------------------------
@@ -236,10 +253,21 @@ class DynNode(Node):
 
     def _make_core(self, settings: Settings, model: RobotModel) -> _Core:
         tracker = ControllerTracker(model, settings)
-        core = _Core(model, settings, Monitor(model, settings, self._counts), tracker,
-                     JointStateOut(model.joint_names), JointStateOut(model.joint_names))
+        monitor = Monitor(model, settings, self._counts)
+        try:
+            # the Monitor's Dynamics: both run on the joint_states thread, statuses under its lock
+            contact = ContactMonitor(monitor.dynamics, contact_settings(settings), history_limit=100)
+        except ValueError as exc:  # a gain list of the wrong length, an unknown contact frame
+            raise SettingsError(f"contact monitor: {exc}", code="bad_parameter") from exc
+        core = _Core(model, settings, monitor, tracker,
+                     JointStateOut(model.joint_names), JointStateOut(model.joint_names), contact,
+                     JointStateOut(model.joint_names), WrenchStampedOut(contact.frame))
         core.monitor.drop_counting = self._drops.method
         old = self._core
+        if old is not None:  # the new observer starts from scratch: said so in the bag
+            changed = old.model is not model
+            contact.reset(self.get_clock().now().nanoseconds, RESET_MODEL if changed else RESET_PARAMETERS,
+                          "model changed" if changed else "parameters changed")
         if old is not None and old.model.joint_names == model.joint_names and old.tracker._plan is not None:
             tracker._plan = old.tracker._plan
         return core
@@ -511,6 +539,7 @@ class DynNode(Node):
                 r = core.monitor.reject_message(fields, receipt)
             else:
                 sec, nsec, names, position, velocity, effort = fields
+                stamp_ns = sec * 1_000_000_000 + nsec
                 r = core.monitor.process(names, position, velocity, effort, sec + nsec * 1e-9, receipt)
             if r.accepted:
                 self._last_state = (core.model, receipt_ns, r.q, r.v)
@@ -522,6 +551,8 @@ class DynNode(Node):
                 # the very bytes that went out.
                 self._publish(self._pub_inverse, core.out_inverse.encode(sec, nsec, r.q, r.v, r.tau))
                 self._publish(self._pub_gravity, core.out_gravity.encode(sec, nsec, r.q, r.v, r.gravity))
+                observed = self._contact_observe(core, r, sec, nsec, stamp_ns, receipt_ns)
+                self._contact_finish(core, observed, sec, nsec)
             else:
                 self.get_logger().warn(f"joint_states rejected: {r.error}", throttle_duration_sec=5.0)
             if core.tracker.update(r, receipt):
@@ -529,9 +560,44 @@ class DynNode(Node):
         except Exception:  # a bug must not kill the executor; it is counted and logged
             self._callback_failed("joint_states callback")
 
+    def _contact_observe(self, core: _Core, r: Any, sec: int, nsec: int, stamp_ns: int,
+                         receipt_ns: int) -> Observed:
+        """The observer on the message whose ~/inverse_dynamics just went out, and
+        ~/external_torque when there is an estimate (none is ever published from bad input);
+        the wrench and the episodes follow in :meth:`_contact_finish`, off this output's latency."""
+        observed = core.contact.observe(receipt_ns, stamp_ns, *core.monitor.last_inputs, gravity=r.gravity)
+        tau = observed.estimate.tau_ext
+        if tau is not None:
+            self._publish(self._pub_external_torque, core.out_external.encode(sec, nsec, r.q, r.v, tau))
+        return observed
+
+    def _contact_finish(self, core: _Core, observed: Observed, sec: int, nsec: int) -> None:
+        """~/external_wrench (none while the frame is singular), the controller's contact state
+        and ~/observer_events on a reset."""
+        contact = core.contact
+        cs = contact.finish(observed)
+        core.tracker.note_contact(cs.state, contact.detector.episode)
+        if cs.reset is not None:
+            self._publish_events(core)
+        if cs.wrench is not None:
+            self._publish(self._pub_external_wrench, core.out_wrench.encode(sec, nsec, cs.wrench.wrench))
+
+    def _publish_events(self, core: _Core) -> None:
+        for ev in core.contact.pop_events():
+            self._publish(self._pub_observer_events, status_to_msg(ev.status(core.model.name)))
+
+    def _on_recording_start(self) -> None:
+        """Under the io lock, before the new bag's first message (RecordingBridge.on_start)."""
+        core = self._core
+        if core is not None:
+            core.contact.reset(self.get_clock().now().nanoseconds, RESET_RECORDING, "recording started")
+
     # --- periodic outputs ----------------------------------------------------------------
-    def current_statuses(self, now_s: float | None = None) -> list[Status]:
-        """The statuses of one /diagnostics array (resets the monitor's worst-case window)."""
+    def current_statuses(self, now_s: float | None = None, *, now_ns: int | None = None) -> list[Status]:
+        """The statuses of one /diagnostics array (resets the monitor's worst-case window);
+        ``now_ns``: the same instant exactly (the array's stamp), for the contact statuses."""
+        if now_ns is not None:
+            now_s = now_ns * 1e-9
         now = self._now_s() if now_s is None else now_s
         core = self._core
         hid = self.hardware_id
@@ -544,6 +610,13 @@ class DynNode(Node):
         if core is not None:
             with self._io_lock:
                 out += core.monitor.statuses(now, hid)
+                if now_ns is None:
+                    now_ns = int(round(now * 1e9))
+                out.append(core.contact.contact_status(now_ns, hid))
+                energy = core.contact.close_energy_period(now_ns)
+                self._publish_events(core)  # the period just closed
+            # the frame kernel over the period's states: off the joint_states lock
+            out.append(energy.status(hid))
         else:
             out.append(Status(JOINT_STATES, STALE, "no robot model yet: joint_states cannot be used", hid,
                               {"received_messages": self._counts.received,
@@ -568,7 +641,7 @@ class DynNode(Node):
                                               time.time_ns()):
                         self._report_dropped()
             now = self.get_clock().now()
-            self._publish(self._pub_diag, diagnostic_array(self.current_statuses(now.nanoseconds * 1e-9),
+            self._publish(self._pub_diag, diagnostic_array(self.current_statuses(now_ns=now.nanoseconds),
                                                     now.to_msg()))
         except Exception:
             self._callback_failed("diagnostics")

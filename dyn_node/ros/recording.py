@@ -32,7 +32,8 @@ STATUS_NAME = NAME_PREFIX + "recorder"
 DEFAULT_TOPICS = ["joint_states", "joint_trajectory", "~/check_trajectory", "~/inverse_dynamics_request",
                   "robot_description", "/diagnostics",
                   "~/gravity_torque", "~/inverse_dynamics", "~/trajectory_effort",
-                  "~/feasibility", "~/controller_status"]
+                  "~/feasibility", "~/controller_status",
+                  "~/external_torque", "~/external_wrench", "~/observer_events"]
 # Subscriber history: deep enough that a busy executor does not lose 1 kHz messages in DDS.
 SUBSCRIBER_DEPTH = 1000
 
@@ -54,11 +55,15 @@ class RecordingBridge:
     def __init__(self, node: Node, robot_description: Callable[[], str] | None = None, *,
                  discovery_period_s: float = 1.0, flush_period_s: float = 0.5,
                  opener: Callable[[str], Any] | None = None, autostart: bool = True,
-                 configuration_since: Callable[[], int | None] | None = None):
+                 configuration_since: Callable[[], int | None] | None = None,
+                 limits_yaml: Callable[[], str | None] | None = None):
         """``configuration_since() -> ns``: the log time from which the owner's current
-        configuration applies (written as ``effective_log_time_ns`` in each metadata record)."""
+        configuration applies (written as ``effective_log_time_ns`` in each metadata record).
+        ``limits_yaml() -> text``: the limits file text the owner's model was built from (None:
+        none), recorded with its sha256 beside each parameter snapshot."""
         self.node = node
         self._configuration_since = configuration_since
+        self._limits_fn = limits_yaml
         self._clock = node.get_clock()
         self._clock_handle = self._clock.handle
         self._ros_clock = self._clock.clock_type == ClockType.ROS_TIME
@@ -66,6 +71,9 @@ class RecordingBridge:
         # thread (the node's joint_states thread) sets its own lock here and holds it around
         # each message, so a message and its outputs are recorded together or not at all.
         self.guard: Any = threading.Lock()
+        #: called under ``guard`` as a recording starts, before its first message (the node
+        #: resets its momentum observer there, so a bag replays from its own first sample)
+        self.on_start: Callable[[], None] | None = None
         self._description_fn = robot_description
         self._flush_period_s = flush_period_s
         self._opener = opener  # tests inject a failing file here
@@ -218,7 +226,7 @@ class RecordingBridge:
                 description_topic=self.node.resolve_topic_name("robot_description"))
             rec = Recorder(config, robot_description=self._current_description(),
                            parameters_yaml=self.parameters_yaml(),
-                           effective_log_time_ns=self._since(),
+                           effective_log_time_ns=self._since(), limits_yaml=self._limits(),
                            opener=self._opener, on_state=self._on_state)
         except (RecordingError, OSError) as exc:
             return False, str(exc)
@@ -229,6 +237,8 @@ class RecordingBridge:
         with self.guard:  # between two messages of the owner's recording thread
             self._topics, self._direct, self._recorder = topics, direct, rec
             self._update_live()
+            if self.on_start is not None:
+                self.on_start()
         self._discover()
         self.node.get_logger().info(f"recording to {self._recorder.path}")
         return True, str(self._recorder.path)
@@ -343,7 +353,7 @@ class RecordingBridge:
         self._ticks += 1
         if self._parameters_changed or self._ticks % self._PARAMETERS_REFRESH == 0:
             self._parameters_changed = False
-            rec.set_parameters_yaml(self.parameters_yaml(), effective_log_time_ns=self._since())
+            self._snapshot(rec)
         missing = [t for t in self._topics if t not in self._subs and t not in self._direct]
         if not missing:
             return
@@ -385,12 +395,19 @@ class RecordingBridge:
     def _since(self) -> int | None:
         return self._configuration_since() if self._configuration_since is not None else None
 
+    def _limits(self) -> str | None:
+        return self._limits_fn() if self._limits_fn is not None else None
+
+    def _snapshot(self, rec: Recorder) -> None:
+        rec.set_parameters_yaml(self.parameters_yaml(), effective_log_time_ns=self._since(),
+                                limits_yaml=self._limits())
+
     def _on_parameters_set(self, _parameters: list) -> None:
         # Snapshot now, not at the next discovery tick: two changes within one tick would
         # otherwise leave the first configuration unrecorded, and the audit could not replay it.
         rec = self._recorder
         if rec is not None and self._configuration_since is not None:
-            rec.set_parameters_yaml(self.parameters_yaml(), effective_log_time_ns=self._since())
+            self._snapshot(rec)
         else:
             self._parameters_changed = True
 
