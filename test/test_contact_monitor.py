@@ -130,7 +130,7 @@ def test_resets_gap_recording_and_events(panda):
     late = cm.update(rows[50][0] + 60_000_000, rows[50][0] + 60_000_000, *rows[50][1:4])
     assert late.reset.code == RESET_GAP and "(> stale_timeout 0.05 s)" in late.reset.detail
     np.testing.assert_array_equal(late.tau_ext, np.zeros(7))
-    said = cm.reset(0, RESET_RECORDING, "recording started")
+    said = cm.reset(RESET_RECORDING, "recording started")
     nxt = cm.update(rows[51][0] + 60_000_000, rows[51][0] + 60_000_000, *rows[51][1:4])
     assert nxt.reset == said
     events = cm.pop_events()

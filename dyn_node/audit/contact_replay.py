@@ -103,7 +103,7 @@ class ContactReplay:
         self._at_start = False
         if prev is not None:
             model = prev.settings.model_key() != cfg.settings.model_key()
-            self.monitor.reset(cfg.since_ns, RESET_MODEL if model else RESET_PARAMETERS,
+            self.monitor.reset(RESET_MODEL if model else RESET_PARAMETERS,
                                "model changed" if model else "parameters changed")
 
     def sample(self, t_ns: int, stamp_ns: int, key: int, q: np.ndarray, v: np.ndarray | None,
@@ -118,7 +118,7 @@ class ContactReplay:
 
             self._started = True
             if self._at_start:  # a core that ran before the recording: the node reset it
-                self.monitor.reset(t_ns, RESET_RECORDING, "recording started")
+                self.monitor.reset(RESET_RECORDING, "recording started")
         s = self.monitor.update(t_ns, stamp_ns, q, v, effort, gravity=gravity)
         self.samples += 1
         self._events()

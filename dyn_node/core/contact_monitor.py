@@ -158,7 +158,7 @@ class ContactMonitor:
         d = self.detector
         return d.history + ([d.episode] if d.episode is not None else [])
 
-    def reset(self, t_ns: int, code: str, reason: str) -> ObserverReset:
+    def reset(self, code: str, reason: str) -> ObserverReset:
         """Forget the observer's history (recording start, model or parameter change): the next
         valid sample restarts it, and that sample carries this reset (and its event)."""
         self.power.restart()
@@ -181,8 +181,8 @@ class ContactMonitor:
         prev = self._last_receipt_ns
         self._last_receipt_ns = t_ns
         if prev is not None and t_ns - prev > self._gap_ns:
-            self.reset(t_ns, RESET_GAP, f"no joint_states for {(t_ns - prev) * 1e-9:.9g} s "
-                                        f"(> stale_timeout {self.settings.stale_timeout:g} s)")
+            self.reset(RESET_GAP, f"no joint_states for {(t_ns - prev) * 1e-9:.9g} s "
+                                  f"(> stale_timeout {self.settings.stale_timeout:g} s)")
         stamp = stamp_ns if stamp_ns != 0 else t_ns
         est = self.observer.update(stamp * 1e-9, q, v, effort, gravity=gravity)
         return Observed(stamp, est, q, v, effort)

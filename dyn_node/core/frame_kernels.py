@@ -38,6 +38,19 @@ def _cross(ax: float, ay: float, az: float, bx: float, by: float,
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
 
+@njit(inline="always", **_JIT)
+def _carried(w: np.ndarray, al: np.ndarray, vo: np.ndarray, ao: np.ndarray, a: int, rx: float,
+             ry: float, rz: float) -> tuple[float, float, float, float, float, float]:
+    # velocity and classical acceleration of a point at r from body a's origin, moving with it:
+    # v = v_a + ω×r, a = a_a + α×r + ω×(ω×r)
+    wx, wy, wz = w[a, 0], w[a, 1], w[a, 2]
+    cx, cy, cz = _cross(wx, wy, wz, rx, ry, rz)
+    dx, dy, dz = _cross(al[a, 0], al[a, 1], al[a, 2], rx, ry, rz)
+    ex, ey, ez = _cross(wx, wy, wz, cx, cy, cz)
+    return (vo[a, 0] + cx, vo[a, 1] + cy, vo[a, 2] + cz,
+            ao[a, 0] + dx + ex, ao[a, 1] + dy + ey, ao[a, 2] + dz + ez)
+
+
 @njit(**_JIT)
 def _rot(R: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
     # R (row-major 9) times a vector
@@ -389,13 +402,9 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
             z[i, 0], z[i, 1], z[i, 2] = zx, zy, zz
             # motion of the joint origin from the parent's: r = p_i − p_a moves rigidly with
             # the parent, plus the prismatic stroke along z
-            rx, ry, rz = px - pw[a, 0], py - pw[a, 1], pz - pw[a, 2]
             wax, way, waz = w[a, 0], w[a, 1], w[a, 2]
-            cx, cy, cz = _cross(wax, way, waz, rx, ry, rz)
-            dx, dy, dz = _cross(al[a, 0], al[a, 1], al[a, 2], rx, ry, rz)
-            ex, ey, ez = _cross(wax, way, waz, cx, cy, cz)
-            vx, vy, vz = vo[a, 0] + cx, vo[a, 1] + cy, vo[a, 2] + cz
-            ax_, ay_, az_ = ao[a, 0] + dx + ex, ao[a, 1] + dy + ey, ao[a, 2] + dz + ez
+            vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, a, px - pw[a, 0], py - pw[a, 1],
+                                                 pz - pw[a, 2])
             hx, hy, hz = _cross(wax, way, waz, zx, zy, zz)
             if revolute[i]:
                 w[i, 0], w[i, 1], w[i, 2] = wax + zx * qd, way + zy * qd, waz + zz * qd
@@ -480,18 +489,12 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
             ox, oy, oz = pw[j, 0] + tx, pw[j, 1] + ty, pw[j, 2] + tz
             qx, qy, qz = _rot(Rf, fpoint[f, 0], fpoint[f, 1], fpoint[f, 2])
             px, py, pz = ox + qx, oy + qy, oz + qz
-            rx, ry, rz = px - pw[j, 0], py - pw[j, 1], pz - pw[j, 2]
-            wjx, wjy, wjz = w[j, 0], w[j, 1], w[j, 2]
-            cx, cy, cz = _cross(wjx, wjy, wjz, rx, ry, rz)
-            dx, dy, dz = _cross(al[j, 0], al[j, 1], al[j, 2], rx, ry, rz)
-            ex, ey, ez = _cross(wjx, wjy, wjz, cx, cy, cz)
-            vx, vy, vz = vo[j, 0] + cx, vo[j, 1] + cy, vo[j, 2] + cz
+            vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, j, px - pw[j, 0], py - pw[j, 1],
+                                                 pz - pw[j, 2])
             pos[f, k, 0], pos[f, k, 1], pos[f, k, 2] = px, py, pz
             vel[f, k, 0], vel[f, k, 1], vel[f, k, 2] = vx, vy, vz
-            omega[f, k, 0], omega[f, k, 1], omega[f, k, 2] = wjx, wjy, wjz
-            acc[f, k, 0] = ao[j, 0] + dx + ex
-            acc[f, k, 1] = ao[j, 1] + dy + ey
-            acc[f, k, 2] = ao[j, 2] + dz + ez
+            omega[f, k, 0], omega[f, k, 1], omega[f, k, 2] = w[j, 0], w[j, 1], w[j, 2]
+            acc[f, k, 0], acc[f, k, 1], acc[f, k, 2] = ax_, ay_, az_
             alpha[f, k, 0], alpha[f, k, 1], alpha[f, k, 2] = al[j, 0], al[j, 1], al[j, 2]
             # the Jacobian walk only for the frames whose torque, effective mass or coupling
             # is wanted (what the configured kinds read)

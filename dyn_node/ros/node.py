@@ -266,7 +266,7 @@ class DynNode(Node):
         old = self._core
         if old is not None:  # the new observer starts from scratch: said so in the bag
             changed = old.model is not model
-            contact.reset(self.get_clock().now().nanoseconds, RESET_MODEL if changed else RESET_PARAMETERS,
+            contact.reset(RESET_MODEL if changed else RESET_PARAMETERS,
                           "model changed" if changed else "parameters changed")
         if old is not None and old.model.joint_names == model.joint_names and old.tracker._plan is not None:
             tracker._plan = old.tracker._plan
@@ -590,7 +590,7 @@ class DynNode(Node):
         """Under the io lock, before the new bag's first message (RecordingBridge.on_start)."""
         core = self._core
         if core is not None:
-            core.contact.reset(self.get_clock().now().nanoseconds, RESET_RECORDING, "recording started")
+            core.contact.reset(RESET_RECORDING, "recording started")
 
     # --- periodic outputs ----------------------------------------------------------------
     def current_statuses(self, now_s: float | None = None, *, now_ns: int | None = None) -> list[Status]:

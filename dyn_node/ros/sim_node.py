@@ -24,13 +24,12 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import rclpy
 from builtin_interfaces.msg import Time as TimeMsg
 from geometry_msgs.msg import WrenchStamped
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -43,7 +42,8 @@ from dyn_node.errors import DynNodeError
 from dyn_node.core.model import DEFAULT_MODEL, model_from_source
 from dyn_node.sim.simulator import DEFAULT_DAMPING_RATIO, DEFAULT_NATURAL_FREQUENCY, DEFAULT_TIMESTEP, SimConfig, Simulator
 from dyn_node.ros.main import spin_until_signalled
-from dyn_node.ros.params import parameter_descriptor
+from dyn_node.core.settings import ParamSpec
+from dyn_node.ros.params import KINDS, parameter_descriptor
 
 #: Largest backlog (s) a real-time run catches up. When the process was starved of CPU (a loaded
 #: machine), the steps that were due are computed in a burst with their own evenly spaced stamps,
@@ -56,55 +56,45 @@ MAX_CATCH_UP_S = 5.0
 JOINT_STATES_DEPTH = 1000
 
 
-@dataclass(frozen=True)
-class SimParam:
-    name: str
-    kind: int
-    default: Any
-    description: str
-    low: float | None = None
-    high: float | None = None
-
-
-_D, _B, _S, _DA = (ParameterType.PARAMETER_DOUBLE, ParameterType.PARAMETER_BOOL,
-                   ParameterType.PARAMETER_STRING, ParameterType.PARAMETER_DOUBLE_ARRAY)
+_D, _B, _S, _DA = "double", "bool", "string", "double_array"
 
 #: Every dyn_sim parameter (all read at start-up; change them by restarting the node).
-PARAMETERS: tuple[SimParam, ...] = (
-    SimParam("robot_model", _S, DEFAULT_MODEL,
+PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec("robot_model", _S, DEFAULT_MODEL,
              "built-in robot (panda, ur5, planar_2link); used when robot_description and "
              "robot_description_file are empty"),
-    SimParam("robot_description", _S, "", "URDF XML of the robot (wins over the other sources)"),
-    SimParam("robot_description_file", _S, "", "path to a URDF file"),
-    SimParam("timestep", _D, DEFAULT_TIMESTEP, "MuJoCo integration step (s)", 1e-4, 0.01),
-    SimParam("publish_rate_hz", _D, 500.0,
+    ParamSpec("robot_description", _S, "", "URDF XML of the robot (wins over the other sources)"),
+    ParamSpec("robot_description_file", _S, "", "path to a URDF file"),
+    ParamSpec("timestep", _D, DEFAULT_TIMESTEP, "MuJoCo integration step (s)", 1e-4, 0.01),
+    ParamSpec("publish_rate_hz", _D, 500.0,
              "joint_states rate (Hz); rounded to a whole number of steps", 1.0, 1000.0),
-    SimParam("real_time", _B, True,
+    ParamSpec("real_time", _B, True,
              "true: paced by the wall clock; false: as fast as possible, publishing /clock"),
-    SimParam("kp", _DA, None,
+    ParamSpec("kp", _DA, None,
              "PD stiffness per joint (N·m/rad, model order); unset: M_ii(q0)·natural_frequency²"),
-    SimParam("kd", _DA, None,
+    ParamSpec("kd", _DA, None,
              "PD damping per joint (N·m·s/rad); unset: 2·damping_ratio·M_ii(q0)·natural_frequency"),
-    SimParam("natural_frequency", _D, DEFAULT_NATURAL_FREQUENCY,
+    ParamSpec("natural_frequency", _D, DEFAULT_NATURAL_FREQUENCY,
              "closed-loop bandwidth for automatic gains (rad/s)", 1.0, 500.0),
-    SimParam("damping_ratio", _D, DEFAULT_DAMPING_RATIO, "damping ratio for automatic gains",
+    ParamSpec("damping_ratio", _D, DEFAULT_DAMPING_RATIO, "damping ratio for automatic gains",
              0.05, 10.0),
-    SimParam("feedforward", _B, True,
+    ParamSpec("feedforward", _B, True,
              "add MuJoCo inverse dynamics of the reference to the PD torque"),
-    SimParam("initial_positions", _DA, None,
+    ParamSpec("initial_positions", _DA, None,
              "start pose per joint (rad|m, model order); unset: middle of each joint's range "
              "(Panda: the 'ready' pose of the demo is passed explicitly)"),
-    SimParam("publish_locked_joints", _B, True,
+    ParamSpec("publish_locked_joints", _B, True,
              "also publish locked joints (Panda fingers) at their locked position, as "
              "joint_state_broadcaster does for every joint of the robot"),
-    SimParam("apply_wrench_hold", _D, 0.5,
+    ParamSpec("apply_wrench_hold", _D, 0.5,
              "how long (s) each ~/apply_wrench message pushes the robot, unless a newer one "
              "replaces it", 0.001, 3600.0),
 )
 
 
-def _descriptor(p: SimParam) -> ParameterDescriptor:
-    return parameter_descriptor(p.name, p.kind, p.description, low=p.low, high=p.high, read_only=True)
+def _descriptor(p: ParamSpec) -> ParameterDescriptor:
+    return parameter_descriptor(p.name, KINDS[p.kind], p.description, low=p.low, high=p.high,
+                                read_only=True)
 
 
 class SimNode(Node):
