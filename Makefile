@@ -25,7 +25,7 @@ $(STAMP): requirements.txt setup.py package.xml
 
 $(KERNELS): $(STAMP) $(wildcard dyn_node/core/*kernels.py)
 	@echo "compiling the Numba kernels (after an install or a kernel change, ~30 s; cached in dyn_node/__pycache__)"
-	$(PY) -c "import dyn_node.core.kernels, dyn_node.core.frame_kernels, dyn_node.core.law_kernels"
+	$(PY) -c "import dyn_node.core.kernels, dyn_node.core.frame_kernels, dyn_node.core.law_kernels, dyn_node.core.observer_kernels"
 	@touch $@
 
 demo: $(KERNELS)

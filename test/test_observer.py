@@ -78,22 +78,6 @@ def test_two_link_closed_form_terms_are_the_models(two_link):
         np.testing.assert_allclose(d.gravity(q), g, atol=1e-12)
 
 
-def test_momentum_terms_are_mass_matrix_and_coriolis_products():
-    """p = M(q)v by RNEA(q, 0, v) − g(q), armature included, equals the mass matrix product;
-    Cᵀv and g are Pinocchio's matrices' (1e-12)."""
-    model = load_model(builtin="panda",
-                       limits_yaml={"joint_limits": {f"panda_joint{i}": {"armature": 0.1 * i} for i in range(1, 8)}})
-    d = Dynamics(model)
-    rng = np.random.default_rng(9)
-    for _ in range(20):
-        q, v = rng.uniform(-2, 2, 7), rng.uniform(-2, 2, 7)
-        p, ctv, g = d.momentum_terms(q, v)
-        np.testing.assert_allclose(p, d.mass_matrix(q) @ v, atol=1e-12)
-        np.testing.assert_allclose(ctv, d.coriolis_matrix(q, v).T @ v, atol=1e-12)
-        np.testing.assert_array_equal(g, d.gravity(q))
-    assert np.abs(d.mass_matrix(q) - Dynamics(load_model(builtin="panda")).mass_matrix(q)).max() > 0.1
-
-
 def test_observer_is_second_order_for_sampled_effort(two_link):
     """Constant τ_ext on an analytic motion: after settling, the error is the trapezoid's on the
     state terms, O(dt²): halving dt divides it by ~4 (3 … 5), and at 1 kHz it is below 1e-3 N·m."""
@@ -294,7 +278,8 @@ def test_damping_grows_as_the_smallest_singular_value_falls():
         s = np.array([2.0, 1.5, 1.0, 0.7, 0.4, smin])
         J = U @ np.diag(s) @ V[:, :6].T
         F, sigma_min, lam = damped_wrench(J, tau, options=opts)
-        assert sigma_min == pytest.approx(smin, abs=1e-12)
+        # from the Gram matrix JJᵀ: a zero σ reads as ~√ε·‖J‖ (1e-8), far below ε = 0.01
+        assert sigma_min == pytest.approx(smin, abs=1e-8 if smin == 0 else 1e-12)
         assert lam**2 == pytest.approx(lam2, abs=1e-15)
         if lam2 == 0.0:
             np.testing.assert_allclose(F, np.linalg.lstsq(J.T, tau, rcond=None)[0], atol=1e-9)

@@ -107,19 +107,13 @@ class ContactReplay:
                                "model changed" if model else "parameters changed")
 
     def sample(self, t_ns: int, stamp_ns: int, key: int, q: np.ndarray, v: np.ndarray | None,
-               effort: np.ndarray | None, *, gravity: np.ndarray | None = None) -> None:
+               effort: np.ndarray | None) -> None:
         """One accepted joint_states (model order; v, effort None: not in the message) at log
         time ``t_ns``, header stamp ``stamp_ns`` (0: zero-stamped, the receipt is used as the
         node does); ``key``: the stamp (ns) the node's outputs for it carry."""
-        if self.monitor is None:
+        if not self._start():
             return  # the node had no core yet
-        if not self._started:
-            from dyn_node.core.contact_monitor import RESET_RECORDING
-
-            self._started = True
-            if self._at_start:  # a core that ran before the recording: the node reset it
-                self.monitor.reset(RESET_RECORDING, "recording started")
-        s = self.monitor.update(t_ns, stamp_ns, q, v, effort, gravity=gravity)
+        s = self.monitor.update(t_ns, stamp_ns, q, v, effort)
         self.samples += 1
         self._events()
         if s.tau_ext is None:
@@ -127,6 +121,18 @@ class ContactReplay:
         if self.sink is not None:
             self.sink.expect_estimate(key, s.tau_ext, s.wrench)
         self._plot(s.stamp_ns, s.tau_ext, s.wrench)  # on the episodes' clock: the stamps
+
+    def _start(self) -> bool:
+        """False while the node had no core; the recording-start reset before the first sample."""
+        if self.monitor is None:
+            return False
+        if not self._started:
+            from dyn_node.core.contact_monitor import RESET_RECORDING
+
+            self._started = True
+            if self._at_start:  # a core that ran before the recording: the node reset it
+                self.monitor.reset(RESET_RECORDING, "recording started")
+        return True
 
     def _events(self) -> None:
         for ev in self.monitor.pop_events():
@@ -159,7 +165,7 @@ class ContactReplay:
         """An accepted message of the per-message path: decoded ``js``, Monitor result ``r``
         and the Monitor's ``last_inputs`` (q, v, effort in model order), which the node hands on."""
         key = output_stamp_ns(r.stamp_s) if r.zero_stamp else js.stamp_ns
-        self.sample(t_ns, js.stamp_ns, key, *inputs, gravity=r.gravity)
+        self.sample(t_ns, js.stamp_ns, key, *inputs)
 
     def sample_batch(self, ts: Sequence[int], jb: Any, b: Any) -> None:
         """Every row of a batch the Monitor accepted (decoded ``jb``, BatchResult ``b``). The
@@ -170,13 +176,25 @@ class ContactReplay:
             idx, _ = self.cfg.model.mapping(jb.names)
             E = jb.effort[:, idx]
         V = b.v if jb.velocity is not None else None
-        stamps = jb.stamp_ns.tolist()
-        keys = list(stamps)
-        for k in np.flatnonzero(b.zero_stamp).tolist():
-            keys[k] = output_stamp_ns(float(b.stamp_s[k]))
-        for k, t_ns in enumerate(ts):
-            e = None if E is None or (b.measured is not None and not b.measured[k]) else E[k]
-            self.sample(t_ns, stamps[k], keys[k], b.q[k], None if V is None else V[k], e)
+        if not self._start():
+            return
+        measured = None if E is None or b.measured is None else b.measured
+        rs = self.monitor.update_rows(np.asarray(ts, dtype=np.int64), jb.stamp_ns, b.q, V, E,
+                                      measured=measured)
+        self.samples += len(ts)
+        self._events()
+        est = np.flatnonzero(rs.estimated)
+        if not len(est):
+            return
+        if self.sink is not None:
+            keys = jb.stamp_ns.tolist()
+            for k in np.flatnonzero(b.zero_stamp).tolist():
+                keys[k] = output_stamp_ns(float(b.stamp_s[k]))
+            frame = self.monitor.frame
+            for k in est.tolist():
+                self.sink.expect_rows(keys[k], rs.tau_ext[k], frame, rs.wrench[k] if rs.has_wrench[k] else None)
+        force = np.where(rs.has_wrench, rs.force_n, np.nan)
+        self._plot_rows_at(rs.stamp_ns[est], rs.tau_ext[est], force[est])
 
     def _plot(self, t_ns: int, tau: np.ndarray, wrench: Any) -> None:
         """Buffered rows for the plot series, binned a block at a time (add_batch)."""
@@ -191,6 +209,14 @@ class ContactReplay:
         T = np.array(self._plot_t, dtype=np.int64)
         rows = np.array([np.append(tau, f) for tau, f in self._plot_rows])
         self._plot_t, self._plot_rows = [], []
+        self._bin(T, rows)
+
+    def _plot_rows_at(self, T: np.ndarray, tau: np.ndarray, force: np.ndarray) -> None:
+        """A batch's rows for the plot series (after the buffered single rows, in time order)."""
+        self._flush_plot()
+        self._bin(np.asarray(T, dtype=np.int64), np.column_stack([tau, force]))
+
+    def _bin(self, T: np.ndarray, rows: np.ndarray) -> None:
         if self.series is None:
             self.series = SeriesBins(rows.shape[1], int(T[0]))
         zeros = np.zeros_like(rows)
@@ -241,12 +267,16 @@ class ContactRecheck:
 
     # what the replay recomputed ------------------------------------------------------------
     def expect_estimate(self, key: int, tau: np.ndarray, wrench: Any) -> None:
+        self.expect_rows(key, tau, wrench.frame if wrench is not None else "",
+                         wrench.wrench if wrench is not None else None)
+
+    def expect_rows(self, key: int, tau: np.ndarray, frame: str, wrench: np.ndarray | None) -> None:
+        """One estimate (τ̂_ext, and the wrench at ``frame``, None while singular)."""
         want, pending = self.r.want, self.r.pending
         if want[ROLE_EXT_TORQUE]:
             pending[ROLE_EXT_TORQUE].put(key, np.asarray(tau, dtype=float))
         if want[ROLE_EXT_WRENCH] and wrench is not None:
-            pending[ROLE_EXT_WRENCH].put(key, (wrench.frame,
-                                               np.asarray(wrench.wrench, dtype=float)))
+            pending[ROLE_EXT_WRENCH].put(key, (frame, np.asarray(wrench, dtype=float)))
 
     def expect_event(self, ev: Any) -> None:
         if self.r.want[ROLE_OBS_EVENTS]:

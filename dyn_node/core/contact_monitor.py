@@ -18,10 +18,11 @@ import numpy as np
 
 from dyn_node.core.contact import (COLLISION, CONTACT, NONE, ContactDetector, ContactEpisode,
                                    ContactOptions)
+from dyn_node.core import observer_kernels as ok
 from dyn_node.core.dynamics import Dynamics
 from dyn_node.core.live_energy import EnergyPeaks, EnergyPeriod, LiveEnergy
 from dyn_node.core.observer import (EFFORT_MISSING, RESET_GAP, MomentumObserver, ObserverEstimate,
-                                    ObserverOptions, ObserverReset, WrenchEstimate, WrenchEstimator,
+                                    ObserverOptions, ObserverReset, WrenchEstimate,
                                     per_joint)
 from dyn_node.core.power_balance import PeriodBalance, PowerBalance
 from dyn_node.core.settings import Settings
@@ -82,6 +83,25 @@ class ContactSample:
 
 
 @dataclass(frozen=True)
+class RowsSample:
+    """:meth:`ContactMonitor.update_rows`' answer: per row the stamp used (ns), τ̂_ext (N×nv,
+    NaN rows without estimate), the wrench (N×6), whether there is an estimate and a wrench
+    (not singular), and the wrench's force (N)."""
+
+    stamp_ns: np.ndarray
+    tau_ext: np.ndarray
+    wrench: np.ndarray
+    estimated: np.ndarray
+    has_wrench: np.ndarray
+    force_n: np.ndarray
+
+
+def _power_step(info: np.ndarray) -> int:
+    """The power balance's step of one row of the pass (as observer_kernels.power_step)."""
+    return 1 if info[ok.I_POWER_FIRST] == 1.0 else 2 if info[ok.I_POWER_SAME] == 1.0 else 0
+
+
+@dataclass(frozen=True)
 class Observed:
     """:meth:`ContactMonitor.observe`'s result, for :meth:`ContactMonitor.finish`: the stamp
     used (ns), the observer's estimate and the sample."""
@@ -126,10 +146,6 @@ class ContactMonitor:
         self.frame = settings.contact_frame or model.last_link
         self._names = model.joint_names
         self._units = joint_units(model)["effort"]
-        self.observer = MomentumObserver(dynamics, options=ObserverOptions(
-            gain=per_joint(settings.observer_gain, nv, "observer_gain"),
-            max_gap_s=settings.stale_timeout))
-        self.wrench_estimator = WrenchEstimator(model, self.frame)
         options = ContactOptions(contact_threshold=settings.contact_threshold,
                                  collision_threshold=settings.collision_threshold,
                                  min_duration_s=settings.contact_min_duration,
@@ -137,6 +153,13 @@ class ContactMonitor:
         self.detector = ContactDetector(model.joint_names, model.limits.effort, units=self._units,
                                         frame=self.frame, options=options)
         self.power = PowerBalance(dynamics)
+        d = self.detector
+        self.observer = MomentumObserver(
+            dynamics, options=ObserverOptions(gain=per_joint(settings.observer_gain, nv, "observer_gain"),
+                                              max_gap_s=settings.stale_timeout),
+            frame=self.frame, levels=np.vstack([d._contact_at, d._collision_at, d._release_at]),
+            power=self.power.state)
+        self._nv = nv
         self.energy = LiveEnergy(model, include_armature=dynamics.options.include_armature)
         self._gap_ns = int(round(settings.stale_timeout * 1e9))
         self._last_receipt_ns: int | None = None
@@ -165,62 +188,153 @@ class ContactMonitor:
         return self.observer.reset(reason, code=code)
 
     def update(self, t_ns: int, stamp_ns: int, q: Sequence[float], v: Sequence[float] | None,
-               effort: Sequence[float] | None, *,
-               gravity: np.ndarray | None = None) -> ContactSample:
+               effort: Sequence[float] | None) -> ContactSample:
         """One accepted joint state: receipt (log) time ``t_ns``, header stamp ``stamp_ns`` (0:
-        the receipt is used), arrays in model order (v, effort None: not measured); ``gravity``:
-        the Monitor's g(q) for it (None: computed here, the same bits).
+        the receipt is used), arrays in model order (v, effort None: not measured).
         :meth:`observe` then :meth:`finish`."""
-        return self.finish(self.observe(t_ns, stamp_ns, q, v, effort, gravity=gravity))
+        return self.finish(self.observe(t_ns, stamp_ns, q, v, effort))
 
     def observe(self, t_ns: int, stamp_ns: int, q: Sequence[float], v: Sequence[float] | None,
-                effort: Sequence[float] | None, *, gravity: np.ndarray | None = None) -> Observed:
-        """The first half of :meth:`update`: resets and the observer's τ̂_ext (the node
-        publishes it before the wrench and the episodes are worked out). Call :meth:`finish`
-        with the result before the next sample."""
+                effort: Sequence[float] | None) -> Observed:
+        """The first half of :meth:`update`: resets and the observer's compiled pass (τ̂_ext,
+        and the wrench and power sums the second half reads; the node publishes τ̂_ext before
+        the episodes are worked out). Call :meth:`finish` with the result before the next sample."""
         prev = self._last_receipt_ns
         self._last_receipt_ns = t_ns
         if prev is not None and t_ns - prev > self._gap_ns:
-            self.reset(RESET_GAP, f"no joint_states for {(t_ns - prev) * 1e-9:.9g} s "
-                                  f"(> stale_timeout {self.settings.stale_timeout:g} s)")
+            self.reset(RESET_GAP, self._gap_reason(t_ns - prev))
         stamp = stamp_ns if stamp_ns != 0 else t_ns
-        est = self.observer.update(stamp * 1e-9, q, v, effort, gravity=gravity)
+        est = self.observer.update(stamp * 1e-9, q, v, effort)
         return Observed(stamp, est, q, v, effort)
+
+    def _gap_reason(self, gap_ns: int) -> str:
+        return (f"no joint_states for {gap_ns * 1e-9:.9g} s "
+                f"(> stale_timeout {self.settings.stale_timeout:g} s)")
 
     def finish(self, o: Observed) -> ContactSample:
         """The second half of :meth:`update`: the wrench, the episodes and the energies."""
         est, q, v = o.estimate, o.q, o.v
         t = o.stamp_ns * 1e-9
         if est.reset is not None:
-            self.resets += 1
-            self._events.append(ObserverEvent("reset", est.reset.code,
-                                              f"observer reset: {est.reset.detail}", t))
+            self._reset_event(est.reset, t)
         if v is not None:  # kept until the period closes: callers pass arrays they do not modify
             self.energy.add(np.asarray(q, dtype=float), np.asarray(v, dtype=float))
-        if v is not None and o.effort is not None:
-            self.power.update(t, q, v, o.effort)
-        else:
-            self.power.restart()
         if est.tau_ext is None:
-            code, why = est.code or "no_estimate", est.unavailable or "no estimate"
-            self.unavailable_by_code[code] = self.unavailable_by_code.get(code, 0) + 1
-            self._period_unavailable[code] = self._period_unavailable.get(code, 0) + 1
-            self._note(self.detector.unavailable(t, why).ended)
-            out = ContactSample(o.stamp_ns, None, None, UNAVAILABLE, est.reset, unavailable=why,
-                                unavailable_code=code)
+            self.power.dropped()
+            out = self._unavailable(t, o.stamp_ns, est.code or "no_estimate",
+                                    est.unavailable or "no estimate", est.reset)
         else:
+            info = self.observer.last_info
+            self.power.noted(t, np.asarray(q, dtype=float), np.asarray(v, dtype=float),
+                             _power_step(info))
             self.estimates += 1
-            w = self._last_wrench = self.wrench_estimator.estimate(q, est.tau_ext)
+            w = self._last_wrench = WrenchEstimate.from_row(
+                self.frame, self.observer.last_wrench.copy(), info, self.observer.wrench_options, self._nv)
             if w.singular:
                 self.wrench_singular += 1
             good = None if w.singular else w
-            st = self.detector.update(t, est.tau_ext, good)
-            self._note(st.ended)
-            self._note(st.episode)
-            out = ContactSample(o.stamp_ns, est.tau_ext, good, st.state, est.reset,
+            d = self.detector
+            # the pass's level test: nothing over, finite, no run open → update would change nothing
+            if d.idle and info[ok.I_OVER] == 0.0 and math.isfinite(info[ok.I_FORCE]):
+                state = NONE
+            else:
+                st = d.update(t, est.tau_ext, good)
+                self._note(st.ended)
+                self._note(st.episode)
+                state = st.state
+            out = ContactSample(o.stamp_ns, est.tau_ext, good, state, est.reset,
                                 wrench_singular=w.singular)
         self.last = out
         return out
+
+    def _reset_event(self, reset: ObserverReset, t: float) -> None:
+        self.resets += 1
+        self._events.append(ObserverEvent("reset", reset.code, f"observer reset: {reset.detail}", t))
+
+    def _unavailable(self, t: float, stamp_ns: int, code: str, why: str,
+                     reset: ObserverReset | None) -> ContactSample:
+        self.unavailable_by_code[code] = self.unavailable_by_code.get(code, 0) + 1
+        self._period_unavailable[code] = self._period_unavailable.get(code, 0) + 1
+        self._note(self.detector.unavailable(t, why).ended)
+        return ContactSample(stamp_ns, None, None, UNAVAILABLE, reset, unavailable=why,
+                             unavailable_code=code)
+
+    def update_rows(self, t_ns: np.ndarray, stamp_ns: np.ndarray, Q: np.ndarray,
+                    V: np.ndarray | None, E: np.ndarray | None, *,
+                    measured: np.ndarray | None = None) -> RowsSample:
+        """N accepted joint states at once (receipt times and header stamps in ns, N×nv arrays
+        in model order; V, E None: not in the messages; ``measured[k]`` False: row k has no
+        effort): the same estimates, wrenches, episodes, resets, counts and power sums as
+        :meth:`update` row by row, from one compiled pass. ``last`` is the last row's sample."""
+        N = len(t_ns)
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        stamps = np.asarray(stamp_ns, dtype=np.int64)
+        stamps = np.where(stamps != 0, stamps, t_ns)
+        T = stamps * 1e-9
+        prev = np.empty(N, dtype=np.int64)
+        if N:
+            prev[0] = self._last_receipt_ns if self._last_receipt_ns is not None else t_ns[0]
+            prev[1:] = t_ns[:-1]
+            self._last_receipt_ns = int(t_ns[-1])
+        gap = (t_ns - prev) > self._gap_ns
+        reasons = {k: ObserverReset(RESET_GAP, self._gap_reason(int(t_ns[k] - prev[k])))
+                   for k in np.flatnonzero(gap).tolist()}
+        rows = self.observer.update_rows(T, Q, V, E, reset=gap, reasons=reasons, measured=measured)
+        info = rows.info
+        if V is not None:
+            self.energy.add_rows(np.asarray(Q, dtype=float), np.asarray(V, dtype=float))
+        est = rows.code != ok.NO_ESTIMATE
+        singular = est & (info[:, ok.I_SIGMA] < self.observer.wrench_options.singular_value)
+        has_w = est & ~singular
+        self.estimates += int(est.sum())
+        self.wrench_singular += int(singular.sum())
+        # the power period's first and last states (their energies are taken at close)
+        if N:
+            self._note_power_rows(T, Q, V, info, est)
+        # resets and unavailable rows in order, the episodes between them
+        unavailable = {k: why for k, (_code, why) in rows.unavailable.items()}
+        for k, (code, _why) in rows.unavailable.items():
+            self.unavailable_by_code[code] = self.unavailable_by_code.get(code, 0) + 1
+            self._period_unavailable[code] = self._period_unavailable.get(code, 0) + 1
+        for k, r in sorted(rows.resets.items()):
+            self._reset_event(r, float(T[k]))
+        ended = self.detector.update_rows(T, rows.tau_ext, info[:, ok.I_FORCE], rows.wrench, has_w, unavailable)
+        for ep in ended:
+            self._note(ep)
+        self._note(self.detector.episode)
+        if N:
+            k = N - 1
+            lw = WrenchEstimate.from_row(self.frame, rows.wrench[k].copy(), info[k],
+                                         self.observer.wrench_options, self._nv)
+            if est[k]:
+                self._last_wrench = lw
+                self.last = ContactSample(int(stamps[k]), rows.tau_ext[k].copy(),
+                                          None if singular[k] else lw, self.detector.state,
+                                          rows.resets.get(k), wrench_singular=bool(singular[k]))
+            else:
+                code, why = rows.unavailable[k]
+                self.last = ContactSample(int(stamps[k]), None, None, UNAVAILABLE, rows.resets.get(k),
+                                          unavailable=why, unavailable_code=code)
+        return RowsSample(stamps, rows.tau_ext, rows.wrench, est, has_w, info[:, ok.I_FORCE])
+
+    def _note_power_rows(self, T: np.ndarray, Q: np.ndarray, V: np.ndarray, info: np.ndarray,
+                         est: np.ndarray) -> None:
+        """The power balance's first and last states over N rows of the pass."""
+        pb = self.power
+        usable = est & (info[:, ok.I_POWER_SAME] == 0.0)
+        first = np.flatnonzero(est & (info[:, ok.I_POWER_FIRST] == 1.0))
+        # a row without estimate restarts the period: nothing before it survives
+        bad = np.flatnonzero(~est)
+        if len(bad) and (not len(first) or bad[-1] > first[-1]):
+            pb._first = pb._last = None
+            return
+        if len(first):
+            f = int(first[-1])
+            pb.noted(float(T[f]), Q[f], V[f], 1)
+        idx = np.flatnonzero(usable)
+        if len(idx):
+            k = int(idx[-1])
+            pb.noted(float(T[k]), Q[k], V[k], 0)
 
     def _note(self, ep: ContactEpisode | None) -> None:
         """Keep the worst episode of the diagnostics period (the latest view of each)."""

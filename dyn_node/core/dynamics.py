@@ -111,6 +111,16 @@ class Dynamics:
     def nv(self) -> int:
         return self._pm.nv
 
+    @property
+    def pin_model(self) -> pin.Model:
+        """The Pinocchio model these dynamics use (armature as the options say); do not modify."""
+        return self._pm
+
+    @property
+    def friction_coefficients(self) -> tuple[np.ndarray, np.ndarray]:
+        """(viscous damping, Coulomb friction) per joint, zeros when friction is disabled."""
+        return self._damping, self._coulomb
+
     # --- single state ------------------------------------------------------------------------
     def gravity(self, q: np.ndarray) -> np.ndarray:
         """Generalized gravity g(q) (N·m): the torque that holds the robot still at q."""
@@ -148,16 +158,6 @@ class Dynamics:
         """C(q, v) (N·m·s/rad) in Pinocchio's factorisation, the one with Ṁ = C + Cᵀ that the
         momentum observer needs; C(q, v)v is the Coriolis and centrifugal torque."""
         return pin.computeCoriolisMatrix(self._pm, self._data, q, v).copy()
-
-    def momentum_terms(self, q: np.ndarray, v: np.ndarray, *,
-                       gravity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(p, C(q, v)ᵀv, g(q)) for the momentum observer: p = M(q)v (armature included) as
-        RNEA(q, 0, v) − g(q), which forms no mass matrix (three Pinocchio passes in all; two
-        when ``gravity``, :meth:`gravity` at this q, is passed in)."""
-        g = self.gravity(q) if gravity is None else gravity
-        p = pin.rnea(self._pm, self._data, q, self._zero, v) - g
-        ctv = pin.computeCoriolisMatrix(self._pm, self._data, q, v).T @ v
-        return p, ctv, g
 
     def potential_energy(self, q: np.ndarray) -> float:
         """Gravitational potential energy (J) of the model's bodies, payload included; its

@@ -76,6 +76,30 @@ def _mul9(A: np.ndarray, P: np.ndarray) -> tuple[float, float, float, float, flo
             a6 * p0 + a7 * p3 + a8 * p6, a6 * p1 + a7 * p4 + a8 * p7, a6 * p2 + a7 * p5 + a8 * p8)
 
 
+@njit(inline="always", **_JIT)   # inlined: one call per joint and state
+def joint_step(Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, parent: np.ndarray,
+               placement: np.ndarray, axis: np.ndarray, revolute: np.ndarray, i: int,
+               q: float) -> tuple[float, float, float, float, float, float]:
+    """Joint i at coordinate q from its parent's pose: writes its world rotation (Rw[i]), origin
+    (pw[i]) and axis (z[i]) and returns the origin and the axis. Shared by the frame and the
+    observer kernels."""
+    a, P = parent[i], placement[i]
+    Ra = Rw[a]
+    # B = R_parent · R_placement in locals (arrays here could alias: no registers)
+    b00, b01, b02, b10, b11, b12, b20, b21, b22 = _mul9(Ra, P)
+    tx, ty, tz = _rot(Ra, P[9], P[10], P[11])
+    px, py, pz = pw[a, 0] + tx, pw[a, 1] + ty, pw[a, 2] + tz
+    ux, uy, uz = axis[i, 0], axis[i, 1], axis[i, 2]
+    zx = b00 * ux + b01 * uy + b02 * uz
+    zy = b10 * ux + b11 * uy + b12 * uz
+    zz = b20 * ux + b21 * uy + b22 * uz
+    px, py, pz = joint_frame(Rw[i], b00, b01, b02, b10, b11, b12, b20, b21, b22, ux, uy, uz,
+                             zx, zy, zz, q, revolute[i], px, py, pz)
+    pw[i, 0], pw[i, 1], pw[i, 2] = px, py, pz
+    z[i, 0], z[i, 1], z[i, 2] = zx, zy, zz
+    return px, py, pz, zx, zy, zz
+
+
 @njit(**_JIT)
 def _world_inertia(R: np.ndarray, I6: np.ndarray, out: np.ndarray) -> None:
     """out (6: xx, xy, xz, yy, yz, zz) = R·I·Rᵀ for a symmetric I given the same way."""
@@ -383,23 +407,11 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
         Mt, Sx, Sy, Sz = m0, s0x, s0y, s0z
         fx = fy = fz = nx = ny = nz = 0.0
         for i in range(1, n):
-            a, P = parent[i], placement[i]
-            Ra = Rw[a]
-            # B = R_parent · R_placement in locals (arrays here could alias: no registers)
-            b00, b01, b02, b10, b11, b12, b20, b21, b22 = _mul9(Ra, P)
-            tx, ty, tz = _rot(Ra, P[9], P[10], P[11])
-            px, py, pz = pw[a, 0] + tx, pw[a, 1] + ty, pw[a, 2] + tz
-            ux, uy, uz = axis[i, 0], axis[i, 1], axis[i, 2]
-            zx = b00 * ux + b01 * uy + b02 * uz
-            zy = b10 * ux + b11 * uy + b12 * uz
-            zz = b20 * ux + b21 * uy + b22 * uz
+            a = parent[i]
             c = index[i]
             q, qd, qdd = Q[k, c], V[k, c], A[k, c]
             R = Rw[i]
-            px, py, pz = joint_frame(R, b00, b01, b02, b10, b11, b12, b20, b21, b22, ux, uy, uz,
-                                     zx, zy, zz, q, revolute[i], px, py, pz)
-            pw[i, 0], pw[i, 1], pw[i, 2] = px, py, pz
-            z[i, 0], z[i, 1], z[i, 2] = zx, zy, zz
+            px, py, pz, zx, zy, zz = joint_step(Rw, pw, z, parent, placement, axis, revolute, i, q)
             # motion of the joint origin from the parent's: r = p_i − p_a moves rigidly with
             # the parent, plus the prismatic stroke along z
             wax, way, waz = w[a, 0], w[a, 1], w[a, 2]

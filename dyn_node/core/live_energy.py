@@ -79,6 +79,20 @@ class LiveEnergy:
         else:
             self._skipped += 1
 
+    def add_rows(self, Q: np.ndarray, V: np.ndarray) -> None:
+        """N states at once (N×nv), as :meth:`add` row by row."""
+        n = len(Q)
+        if not n:
+            return
+        self._last = (Q[-1], V[-1])
+        if not self.limited:
+            self._n += n
+            return
+        room = max(0, MAX_STATES - len(self._q))
+        self._q.extend(Q[:room])
+        self._v.extend(V[:room])
+        self._skipped += max(0, n - room)
+
     def swap(self) -> "EnergyPeriod":
         """The period's states, and a new, empty period: cheap (no evaluation), so the node can
         take it under its joint_states lock and :meth:`EnergyPeriod.evaluate` it outside."""

@@ -90,15 +90,52 @@ class ObserverEstimate:
     code: str | None = None
 
 
+def _kernels():
+    """dyn_node.core.observer_kernels, imported on first use (it loads compiled code)."""
+    global _OK
+    if _OK is None:
+        from dyn_node.core import observer_kernels
+        _OK = observer_kernels
+    return _OK
+
+
+_OK = None
+
+
 def _bad_joints(names: Sequence[str], x: np.ndarray) -> str:
     return ", ".join(names[i] for i in np.flatnonzero(~np.isfinite(x)))
 
 
+@dataclass(frozen=True)
+class ObserverRows:
+    """:meth:`MomentumObserver.update_rows`' answer for N rows: ``tau_ext`` (N×nv, NaN rows
+    without estimate), ``wrench`` (N×6 at the contact frame, its axes), ``info`` and ``code``
+    (columns and codes of :mod:`dyn_node.core.observer_kernels`), the restarts by row and the
+    rows without estimate (row → (code, reason))."""
+
+    tau_ext: np.ndarray
+    wrench: np.ndarray
+    info: np.ndarray
+    code: np.ndarray
+    resets: dict[int, ObserverReset]
+    unavailable: dict[int, tuple[str, str]]
+
+
 class MomentumObserver:
     """The generalized-momentum observer on a :class:`Dynamics` (its friction switch and
-    armature included). Not thread-safe (it shares the Dynamics' Pinocchio buffers)."""
+    armature included), with the contact wrench at ``frame`` (default the last link) and the
+    detector's level tests (``levels``: contact, collision and release torques per joint; None:
+    never over) computed in the same compiled pass
+    (:func:`dyn_node.core.observer_kernels.observer_rows`); ``power``: the power balance's state
+    array it updates (None: its own). One row or N rows per call, the same arithmetic. Not
+    thread-safe."""
 
-    def __init__(self, dynamics: Dynamics, *, options: ObserverOptions = ObserverOptions()):
+    def __init__(self, dynamics: Dynamics, *, options: ObserverOptions = ObserverOptions(),
+                 frame: str | None = None, wrench: "WrenchOptions | None" = None,
+                 levels: np.ndarray | None = None, power: np.ndarray | None = None):
+        from dyn_node.core import observer_kernels as ok
+        from dyn_node.core.frames import joint_tables
+
         nv = dynamics.nv
         self.dynamics = dynamics
         self.options = options
@@ -110,19 +147,48 @@ class MomentumObserver:
             raise ValueError("settle_time_constants must be finite and ≥ 0")
         if options.effort_timing not in EFFORT_TIMINGS:
             raise ValueError(f"effort_timing must be one of {', '.join(EFFORT_TIMINGS)}, got {options.effort_timing!r}")
-        self._held = options.effort_timing == "held"
+        wo = wrench if wrench is not None else WrenchOptions()
+        _check_wrench_options(wo)
+        self.wrench_options = wo
+        model = dynamics.model
+        pm = dynamics.pin_model
+        self.frame = frame or model.last_link
+        if not pm.existFrame(self.frame):
+            raise InputError(f"contact frame '{self.frame}' is not a frame of the model", code="unknown_frame")
+        f = pm.frames[pm.getFrameId(self.frame)]
+        t = joint_tables(pm, pm.frames[0].name)
+        damping, coulomb = dynamics.friction_coefficients
+        lv = np.full((3, nv), np.inf) if levels is None else np.array(levels, dtype=float)
+        if lv.shape != (3, nv):
+            raise ValueError(f"levels needs 3×{nv} values")
+        self._model_args = (t.parent, t.revolute, t.index, t.placement, t.axis, t.inertia,
+                            t.armature, t.gravity, damping, coulomb, int(f.parentJoint),
+                            np.concatenate([np.asarray(f.placement.rotation).reshape(9),
+                                            np.asarray(f.placement.translation)]),
+                            np.ascontiguousarray(self.gain), float(options.max_gap_s),
+                            options.effort_timing == "held",
+                            np.array([wo.singular_value, wo.damping_band, wo.max_damping]), lv)
+        self._kernel = ok.observer_rows
+        self._ok = ok
         self.settle_s = options.settle_time_constants / float(self.gain.min())
-        self._names = dynamics.model.joint_names
+        self._names = model.joint_names
         self._nv = nv
         #: restarts and samples without an estimate, by code
         self.counts: dict[str, int] = {}
         self._pending: ObserverReset | None = ObserverReset(RESET_START, "first sample")
-        self._t: float = math.nan
-        self._t0: float = math.nan
-        self._p: np.ndarray | None = None
-        self._s: np.ndarray | None = None
-        self._e: np.ndarray | None = None
-        self._r = np.zeros(nv)
+        self._invalid_why = ""
+        self.state = np.zeros((ok.STATE_ROWS, nv))
+        self.clock = np.zeros(4)
+        self.power = power if power is not None else np.zeros(9)
+        # one row's buffers (the live path): no allocation per sample
+        self._q1, self._v1, self._e1 = np.zeros((1, nv)), np.zeros((1, nv)), np.zeros((1, nv))
+        self._t1 = np.zeros(1)
+        self._valid1, self._reset1 = np.ones(1, dtype=bool), np.zeros(1, dtype=bool)
+        self._tau1, self._w1 = np.zeros((1, nv)), np.zeros((1, 6))
+        self._info1, self._code1 = np.zeros((1, ok.INFO_COLUMNS)), np.zeros(1, dtype=np.int64)
+        #: the last row's wrench (6), σ_min, λ and misfit (see WrenchEstimate), NaN before any
+        self.last_wrench = np.full(6, np.nan)
+        self.last_info = self._info1[0]
 
     @property
     def time_constant_s(self) -> np.ndarray:
@@ -133,23 +199,18 @@ class MomentumObserver:
         """Forget the history; the next valid sample restarts the observer and reports this
         reason and ``code`` (also returned)."""
         self._pending = ObserverReset(code, reason)
-        self._p = None
+        self._reset1[0] = True
         return self._pending
 
     def _count(self, code: str) -> None:
         self.counts[code] = self.counts.get(code, 0) + 1
 
-    def _no_estimate(self, t: float, code: str, why: str) -> ObserverEstimate:
-        self._count(code)
-        if self._p is not None:
-            self._pending = ObserverReset(RESET_INVALID, f"restarted after a sample without an estimate ({why})")
-            self._p = None
-        return ObserverEstimate(t=t, tau_ext=None, unavailable=why, code=code)
-
     def _check(self, t: float, q, v, effort) -> tuple[tuple[str, str] | None, tuple]:
+        if v is None:
+            return ("velocity_missing", "velocity not measured"), ()
         if effort is None:
             return (EFFORT_MISSING, "effort not measured"), ()
-        arrays = [np.array(x, dtype=float) for x in (q, v, effort)]  # copies: the previous sample is kept
+        arrays = [np.asarray(x, dtype=float) for x in (q, v, effort)]
         for label, a in zip(("position", "velocity", "effort"), arrays):
             if a.shape != (self._nv,):
                 raise ValueError(f"{label} needs {self._nv} values in model order, got shape {a.shape}")
@@ -163,47 +224,104 @@ class MomentumObserver:
                             f"{label} not finite for {_bad_joints(self._names, a)}"), ()
         return None, tuple(arrays)
 
-    def update(self, t: float, q: Sequence[float], v: Sequence[float] | None,
-               effort: Sequence[float] | None, *, gravity: np.ndarray | None = None) -> ObserverEstimate:
-        """One joint state at time ``t`` (s), arrays in model order: position (rad|m), velocity
-        (rad/s|m/s; None: not measured) and measured effort (N·m|N; None: not measured);
-        ``gravity``: g(q) already computed by this Dynamics at this q (the Monitor's), else
-        computed here. Raises ValueError only for arrays of the wrong length (a caller bug)."""
-        if v is None:
-            return self._no_estimate(t, "velocity_missing", "velocity not measured")
-        bad, arrays = self._check(t, q, v, effort)
-        if bad is not None:
-            return self._no_estimate(t, *bad)
-        q, v, e = arrays
-        d = self.dynamics
-        p, ctv, g = d.momentum_terms(q, v, gravity=gravity)
-        s = ctv - g - d.friction(v)
-        restart = self._pending
-        if restart is None:
-            dt = t - self._t
-            if dt < 0:
-                restart = ObserverReset(RESET_BACKWARDS, f"stamp went back {-dt:.9g} s")
-            elif dt > self.options.max_gap_s:
-                restart = ObserverReset(RESET_STAMP_GAP, f"stamp gap of {dt:.9g} s > {self.options.max_gap_s:g} s")
-            elif dt == 0.0:  # the same instant again: nothing to integrate
-                return self._estimate(t, None)
-        if restart is not None:
-            self._count(restart.code)
-            self._pending = None
-            self._r = np.zeros(self._nv)
-            self._t0 = t
+    def _reset_of(self, code: int, dt: float) -> ObserverReset | None:
+        """The restart a row's kernel code stands for (None: not a restart)."""
+        ok = self._ok
+        if code == ok.RESTART:
+            r, self._pending = self._pending or ObserverReset(RESET_START, "first sample"), None
+        elif code == ok.RESTART_AFTER_INVALID:
+            r = ObserverReset(RESET_INVALID, f"restarted after a sample without an estimate ({self._invalid_why})")
+        elif code == ok.BACKWARDS:
+            r = ObserverReset(RESET_BACKWARDS, f"stamp went back {-dt:.9g} s")
+        elif code == ok.STAMP_GAP:
+            r = ObserverReset(RESET_STAMP_GAP, f"stamp gap of {dt:.9g} s > {self.options.max_gap_s:g} s")
         else:
-            effort_int = dt * e if self._held else 0.5 * dt * (self._e + e)
-            mean_ext = (p - self._p - 0.5 * dt * (self._s + s) - effort_int) / dt
-            a = np.exp(-self.gain * dt)
-            self._r = a * self._r + (1.0 - a) * mean_ext
-        self._t, self._p, self._s, self._e = t, p, s, e
-        return self._estimate(t, restart)
+            return None
+        self._count(r.code)
+        return r
 
-    def _estimate(self, t: float, restart: ObserverReset | None) -> ObserverEstimate:
-        since = t - self._t0
-        return ObserverEstimate(t=t, tau_ext=self._r.copy(), reset=restart, since_reset_s=since,
-                                settled=since >= self.settle_s)
+    def update(self, t: float, q: Sequence[float], v: Sequence[float] | None,
+               effort: Sequence[float] | None) -> ObserverEstimate:
+        """One joint state at time ``t`` (s), arrays in model order: position (rad|m), velocity
+        (rad/s|m/s; None: not measured) and measured effort (N·m|N; None: not measured).
+        Raises ValueError only for arrays of the wrong length (a caller bug)."""
+        bad, arrays = self._check(t, q, v, effort)
+        self._t1[0] = t
+        if bad is None:
+            self._q1[0], self._v1[0], self._e1[0] = arrays
+        self._valid1[0] = bad is None
+        self._kernel(self._q1, self._v1, self._e1, self._t1, self._valid1, self._reset1,
+                     *self._model_args, self.state, self.clock, self.power,
+                     self._tau1, self._w1, self._info1, self._code1)
+        self._reset1[0] = False
+        self.last_wrench, self.last_info = self._w1[0], self._info1[0]
+        if bad is not None:
+            self._count(bad[0])
+            if self._info1[0, self._ok.I_DROPPED]:
+                self._invalid_why = bad[1]
+            return ObserverEstimate(t=t, tau_ext=None, unavailable=bad[1], code=bad[0])
+        info = self._info1[0]
+        restart = self._reset_of(int(self._code1[0]), float(info[self._ok.I_DT]))
+        since = float(info[self._ok.I_SINCE])
+        return ObserverEstimate(t=t, tau_ext=self._tau1[0].copy(), reset=restart,
+                                since_reset_s=since, settled=since >= self.settle_s)
+
+    def update_rows(self, T: np.ndarray, Q: np.ndarray, V: np.ndarray | None,
+                    E: np.ndarray | None, *, reset: np.ndarray | None = None,
+                    reasons: dict[int, ObserverReset] | None = None,
+                    measured: np.ndarray | None = None) -> ObserverRows:
+        """N joint states at once (T stamps in s, N×nv arrays in model order; V, E None: not
+        measured; ``measured[k]`` False: row k has no effort). ``reset[k]`` with
+        ``reasons[k]``: :meth:`reset` just before row k. Gives the same numbers, restarts and
+        counts as :meth:`update` row by row."""
+        ok = self._ok
+        N = len(T)
+        T = np.ascontiguousarray(T, dtype=float)
+        Q = np.ascontiguousarray(Q, dtype=float)
+        Vk = np.zeros_like(Q) if V is None else np.ascontiguousarray(V, dtype=float)
+        Ek = np.zeros_like(Q) if E is None else np.ascontiguousarray(E, dtype=float)
+        has_e = np.ones(N, dtype=bool) if measured is None else np.asarray(measured, dtype=bool)
+        finite = (np.isfinite(T) & np.isfinite(Q).all(axis=1) & np.isfinite(Vk).all(axis=1)
+                  & np.isfinite(Ek).all(axis=1))
+        valid = finite & has_e & (V is not None) & (E is not None)
+        rs = np.zeros(N, dtype=bool) if reset is None else np.array(reset, dtype=bool)
+        if N and self._reset1[0]:
+            rs[0] = True
+        self._reset1[0] = False
+        TAU, W = np.empty((N, self._nv)), np.empty((N, 6))
+        info, code = np.empty((N, ok.INFO_COLUMNS)), np.empty(N, dtype=np.int64)
+        self._kernel(Q, Vk, Ek, T, valid, rs, *self._model_args, self.state, self.clock,
+                     self.power, TAU, W, info, code)
+        resets: dict[int, ObserverReset] = {}
+        unavailable: dict[int, tuple[str, str]] = {}
+        reasons = reasons or {}
+        for k in np.flatnonzero(rs | (code != ok.ESTIMATE)).tolist():
+            if rs[k] and k in reasons:
+                self._pending = reasons[k]
+            c = int(code[k])
+            if c == ok.NO_ESTIMATE:
+                bad, _ = self._check(float(T[k]), Q[k], None if V is None else V[k],
+                                     Ek[k] if E is not None and has_e[k] else None)
+                bad = bad or ("no_estimate", "no estimate")
+                self._count(bad[0])
+                if info[k, ok.I_DROPPED]:
+                    self._invalid_why = bad[1]
+                unavailable[k] = bad
+                continue
+            r = self._reset_of(c, float(info[k, ok.I_DT]))
+            if r is not None:
+                resets[k] = r
+        if N:
+            self.last_wrench = W[-1].copy()
+            self.last_info = info[-1].copy()
+        return ObserverRows(TAU, W, info, code, resets, unavailable)
+
+
+def _check_wrench_options(o: "WrenchOptions") -> None:
+    if not all(x > 0 and math.isfinite(x) for x in (o.singular_value, o.damping_band, o.max_damping)):
+        raise ValueError("singular_value, damping_band and max_damping must be finite and > 0")
+    if o.damping_band <= o.singular_value:
+        raise ValueError("damping_band must exceed singular_value: damping starts before refusal")
 
 
 # --------------------------------------------------------------------------------------------
@@ -251,28 +369,37 @@ class WrenchEstimate:
     def force_n(self) -> float:
         return float(np.linalg.norm(self.wrench[:3]))
 
+    @classmethod
+    def from_row(cls, frame: str, wrench: np.ndarray, info: np.ndarray, options: WrenchOptions,
+                 nv: int) -> "WrenchEstimate":
+        """One row of the observer's compiled pass (wrench and ``info`` columns)."""
+        ok = _kernels()
+        sigma = float(info[ok.I_SIGMA])
+        return cls(frame=frame, wrench=wrench, sigma_min=sigma, damping=float(info[ok.I_DAMPING]),
+                   singular=sigma < options.singular_value, misfit=float(info[ok.I_MISFIT]),
+                   determined=nv >= 6)
+
 
 def damped_wrench(J: np.ndarray, tau: np.ndarray, *, options: WrenchOptions = WrenchOptions()
                   ) -> tuple[np.ndarray, float, float]:
-    """(F̂, σ_min, λ) for a 6×nv Jacobian J and torque τ (see the module docstring)."""
-    U, s, Vt = np.linalg.svd(J, full_matrices=False)
-    sigma_min = float(s.min()) if s.size else 0.0
-    band = options.damping_band
-    lam2 = 0.0 if sigma_min >= band else (1.0 - (sigma_min / band) ** 2) * options.max_damping ** 2
-    # no zero denominator: λ² = 0 only while every s ≥ σ_min ≥ β > 0, and λ² > 0 otherwise
-    gain = s / (s * s + lam2)
-    return U @ (gain * (Vt @ tau)), sigma_min, math.sqrt(lam2)
+    """(F̂, σ_min, λ) for a 6×nv Jacobian J and torque τ: the compiled solve the observer's
+    pass uses (:func:`dyn_node.core.observer_kernels.damped_solve`)."""
+    from dyn_node.core.observer_kernels import damped_solve
+
+    J = np.ascontiguousarray(J, dtype=float)
+    k = min(6, J.shape[1])
+    F = np.zeros(6)
+    sigma, lam, _ = damped_solve(J, np.ascontiguousarray(tau, dtype=float), options.singular_value,
+                                 options.damping_band, options.max_damping, np.zeros((k, k)),
+                                 np.zeros((k, k)), np.zeros(k), np.zeros(k), F)
+    return F, sigma, lam
 
 
 class WrenchEstimator:
     """F̂ at one frame of ``model`` (a URDF link or any Pinocchio frame) from τ̂_ext."""
 
     def __init__(self, model: RobotModel, frame: str, *, options: WrenchOptions = WrenchOptions()):
-        o = options
-        if not all(x > 0 and math.isfinite(x) for x in (o.singular_value, o.damping_band, o.max_damping)):
-            raise ValueError("singular_value, damping_band and max_damping must be finite and > 0")
-        if o.damping_band <= o.singular_value:
-            raise ValueError("damping_band must exceed singular_value: damping starts before refusal")
+        _check_wrench_options(options)
         pm = model.pin_model
         if not pm.existFrame(frame):
             raise InputError(f"contact frame '{frame}' is not a frame of the model", code="unknown_frame")

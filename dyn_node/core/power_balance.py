@@ -61,19 +61,16 @@ class PeriodBalance:
         return self.balance_j < -self.tolerance_j
 
 
-@dataclass(frozen=True)
-class _Sample:
-    t: float
-    q: np.ndarray
-    v: np.ndarray
-    power: float
-    friction_power: float
-
-
 class PowerBalance:
-    """Accumulates samples; :meth:`close` ends a period and starts the next at its last sample."""
+    """Accumulates samples; :meth:`close` ends a period and starts the next at its last sample.
+
+    The running sums live in ``state`` (:mod:`dyn_node.core.observer_kernels`' P_* layout), which
+    the contact monitor's compiled pass updates in place (then :meth:`noted` keeps the states
+    whose energies a period needs); :meth:`update` is the same step for one sample."""
 
     def __init__(self, dynamics: Dynamics, *, options: PowerBalanceOptions = PowerBalanceOptions()):
+        from dyn_node.core import observer_kernels as ok
+
         if not (options.tolerance_j >= 0 and options.relative_tolerance >= 0
                 and math.isfinite(options.tolerance_j) and math.isfinite(options.relative_tolerance)):
             raise ValueError("tolerances must be finite and ≥ 0")
@@ -81,76 +78,81 @@ class PowerBalance:
             raise ValueError("persistent_periods must be ≥ 1")
         self.dynamics = dynamics
         self.options = options
+        self._ok = ok
         self._nv = dynamics.nv
-        self._first: _Sample | None = None
-        self._last: _Sample | None = None
+        self.state = np.zeros(9)
+        self._first: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._last: tuple[float, np.ndarray, np.ndarray] | None = None
         self._first_energy = (math.nan, math.nan)
-        self._n = 0
-        self._work = self._gross = self._friction = 0.0
-        #: periods discarded because a sample broke the integral
-        self.broken_periods = 0
         #: negative periods in a row, up to the last closed one
         self.negative_run = 0
         self.last: PeriodBalance | None = None
 
-    def _energies(self, s: _Sample) -> tuple[float, float]:
+    @property
+    def broken_periods(self) -> int:
+        """Periods discarded because a sample broke the integral."""
+        return int(self.state[self._ok.P_BROKEN])
+
+    def _energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(kinetic, potential) at a sample: only a period's first and last need them."""
         d = self.dynamics
-        return 0.5 * float(s.v @ d.mass_matrix(s.q) @ s.v), d.potential_energy(s.q)
+        return 0.5 * float(v @ d.mass_matrix(q) @ v), d.potential_energy(q)
 
     def restart(self) -> None:
         """Discard the open period (if it had begun) and start over at the next sample."""
-        if self._first is not None and self._n > 1:
-            self.broken_periods += 1
+        self._ok._power_restart(self.state)
         self._first = self._last = None
-        self._n = 0
-        self._work = self._gross = self._friction = 0.0
+
+    def dropped(self) -> None:
+        """The compiled pass restarted the period (a sample it could not use): forget its states."""
+        self._first = self._last = None
+
+    def noted(self, t: float, q: np.ndarray, v: np.ndarray, step: int) -> None:
+        """After the compiled pass took a sample at t (``step`` as power_step returns): keep
+        the states a period's energies are taken at (callers pass arrays they do not modify)."""
+        if step == 2:
+            return
+        if step == 1:
+            self._first, self._first_energy = (t, q, v), (math.nan, math.nan)
+        self._last = (t, q, v)
 
     def update(self, t: float, q: Sequence[float], v: Sequence[float] | None,
                effort: Sequence[float] | None) -> bool:
         """Add one sample (model order); False when it cannot be used (no velocity or effort,
-        a non-finite value, time not increasing), which restarts the period."""
+        a non-finite value), which restarts the period; a step back in time restarts it too."""
         if v is None or effort is None or not math.isfinite(t):
             self.restart()
             return False
         q, v, e = (np.array(x, dtype=float) for x in (q, v, effort))  # copies: samples are kept
-        # a sum is NaN or ±inf iff an element is, or it overflows (then each array decides)
-        if not math.isfinite(float(q.sum() + v.sum() + e.sum())) and not (
-                np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(e))):
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(e))):
             self.restart()
             return False
-        if self._last is not None and t <= self._last.t:
-            if t == self._last.t:
-                return True  # the same instant again
-            self.restart()
-        s = _Sample(t=t, q=q, v=v, power=float(e @ v), friction_power=float(self.dynamics.friction(v) @ v))
-        if self._last is None:
-            self._first, self._first_energy = s, self._energies(s)
-        else:
-            dt = s.t - self._last.t
-            self._work += 0.5 * dt * (self._last.power + s.power)
-            self._gross += 0.5 * dt * (abs(self._last.power) + abs(s.power))
-            self._friction += 0.5 * dt * (self._last.friction_power + s.friction_power)
-        self._last = s
-        self._n += 1
+        fw = float(self.dynamics.friction(v) @ v)
+        self.noted(t, q, v, self._ok.power_step(self.state, t, float(e @ v), fw))
         return True
 
     def close(self) -> PeriodBalance | None:
         """End the period at the last sample (None when it has fewer than two samples) and
         start the next one there."""
+        ok, st = self._ok, self.state
         a, b = self._first, self._last
-        if a is None or b is None or self._n < 2:
+        n = int(st[ok.P_N])
+        if a is None or b is None or n < 2:
             return None
         o = self.options
-        (k0, u0), (k1, u1) = self._first_energy, self._energies(b)
-        out = PeriodBalance(start_s=a.t, end_s=b.t, samples=self._n, measured_work_j=self._work,
-                            gross_work_j=self._gross, friction_work_j=self._friction,
+        if math.isnan(self._first_energy[0]):
+            self._first_energy = self._energies(a[1], a[2])
+        (k0, u0), (k1, u1) = self._first_energy, self._energies(b[1], b[2])
+        gross = float(st[ok.P_GROSS])
+        out = PeriodBalance(start_s=a[0], end_s=b[0], samples=n, measured_work_j=float(st[ok.P_WORK]),
+                            gross_work_j=gross, friction_work_j=float(st[ok.P_FRICTION]),
                             kinetic_start_j=k0, kinetic_end_j=k1, potential_start_j=u0, potential_end_j=u1,
-                            tolerance_j=max(o.tolerance_j, o.relative_tolerance * self._gross))
+                            tolerance_j=max(o.tolerance_j, o.relative_tolerance * gross))
         self.negative_run = self.negative_run + 1 if out.negative else 0
         self.last = out
-        self._first, self._first_energy, self._n = b, (k1, u1), 1
-        self._work = self._gross = self._friction = 0.0
+        self._first, self._first_energy = b, (k1, u1)
+        st[ok.P_N] = 1.0
+        st[ok.P_WORK] = st[ok.P_GROSS] = st[ok.P_FRICTION] = 0.0
         return out
 
     @property

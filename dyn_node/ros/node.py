@@ -565,7 +565,7 @@ class DynNode(Node):
         """The observer on the message whose ~/inverse_dynamics just went out, and
         ~/external_torque when there is an estimate (none is ever published from bad input);
         the wrench and the episodes follow in :meth:`_contact_finish`, off this output's latency."""
-        observed = core.contact.observe(receipt_ns, stamp_ns, *core.monitor.last_inputs, gravity=r.gravity)
+        observed = core.contact.observe(receipt_ns, stamp_ns, *core.monitor.last_inputs)
         tau = observed.estimate.tau_ext
         if tau is not None:
             self._publish(self._pub_external_torque, core.out_external.encode(sec, nsec, r.q, r.v, tau))
