@@ -337,6 +337,7 @@ def test_rows_at_once_are_the_row_by_row_monitor(panda, pushed_30, chunk):
     E = np.array([r[3] for r in rows])
     measured = np.ones(len(rows), dtype=bool)
     measured[300:303] = False              # effort missing on three rows
+    measured[-1] = False                   # and on the last (the last wrench stays the one before)
     E[350, 2] = np.nan                     # a NaN effort
     one, many = monitor(panda), monitor(panda)
     singles = [one.update(int(t[k]), int(stamps[k]), Q[k], V[k], E[k] if measured[k] else None)
@@ -355,7 +356,7 @@ def test_rows_at_once_are_the_row_by_row_monitor(panda, pushed_30, chunk):
     assert len(one.episodes) >= 1
     assert ([dataclasses.astuple(e) for e in many.pop_events()]
             == [dataclasses.astuple(e) for e in one.pop_events()])
-    assert many.unavailable_by_code == one.unavailable_by_code == {"effort_missing": 3, "non_finite_effort": 1}
+    assert many.unavailable_by_code == one.unavailable_by_code == {"effort_missing": 4, "non_finite_effort": 1}
     assert many.observer.counts == one.observer.counts
     assert {"backwards", "gap", "after_invalid_input"} <= set(one.observer.counts)
     assert (many.estimates, many.resets, many.wrench_singular) == (one.estimates, one.resets, one.wrench_singular)
@@ -364,6 +365,30 @@ def test_rows_at_once_are_the_row_by_row_monitor(panda, pushed_30, chunk):
     sa, sb = one.energy_status(int(t[-1])), many.energy_status(int(t[-1]))
     # repr: the values hold NaN (no limit, no wrench), which == never matches
     assert repr(sorted(sa.values.items())) == repr(sorted(sb.values.items())) and sa.message == sb.message
-    assert "power_balance_j" in sa.values
+    assert "no power balance this period: effort not measured" in sa.message  # the last row's
+    assert sa.values["broken_periods"] == 5
     ca, cb = one.contact_status(int(t[-1])), many.contact_status(int(t[-1]))
     assert repr(sorted(ca.values.items())) == repr(sorted(cb.values.items())) and ca.message == cb.message
+
+
+def test_a_reset_before_an_empty_batch_applies_to_the_next_rows(panda, pushed_30):
+    """reset() then a batch of no rows, then rows: the restart happens on the first of them, as
+    update row by row does it (the empty batch does not swallow it)."""
+    rows = pushed_30[:40]
+    T = np.array([r[0] for r in rows], dtype=np.int64)
+    Q, V, E = (np.array([r[i] for r in rows]) for i in (1, 2, 3))
+    one, many = monitor(panda), monitor(panda)
+    for k in range(20):
+        one.update(int(T[k]), int(T[k]), Q[k], V[k], E[k])
+    many.update_rows(T[:20], T[:20], Q[:20], V[:20], E[:20])
+    one.reset(RESET_RECORDING, "recording started")
+    many.reset(RESET_RECORDING, "recording started")
+    many.update_rows(T[:0], T[:0], Q[:0], V[:0], E[:0])
+    for k in range(20, 40):
+        one.update(int(T[k]), int(T[k]), Q[k], V[k], E[k])
+    rs = many.update_rows(T[20:], T[20:], Q[20:], V[20:], E[20:])
+    assert many.resets == one.resets == 2
+    assert [e.reason for e in many.pop_events()] == [e.reason for e in one.pop_events()] == [
+        "start", RESET_RECORDING]
+    np.testing.assert_array_equal(rs.tau_ext[0], np.zeros(7))
+    np.testing.assert_array_equal(many.power.state, one.power.state)

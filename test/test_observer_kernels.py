@@ -117,8 +117,7 @@ def test_damped_solve_is_the_svd_solution(nv):
 
 def _observer(model, frame):
     return MomentumObserver(Dynamics(model), options=ObserverOptions(gain=[30.0]), frame=frame,
-                            levels=np.vstack([np.full(model.nv, 0.5), np.full(model.nv, 2.0),
-                                              np.full(model.nv, 0.25)]))
+                            contact_at=np.full(model.nv, 0.5))
 
 
 def _rows(nv, N, rng):

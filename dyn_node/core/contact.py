@@ -170,6 +170,11 @@ class ContactDetector:
         self.ended = 0
 
     @property
+    def contact_level(self) -> np.ndarray:
+        """The torque per joint (N·m|N) over which a sample counts as contact."""
+        return self._contact_at
+
+    @property
     def idle(self) -> bool:
         """No episode, no candidate and no run under way: a finite sample with every joint
         below its contact level changes nothing (the live path then skips :meth:`update`)."""

@@ -157,7 +157,7 @@ class ContactMonitor:
         self.observer = MomentumObserver(
             dynamics, options=ObserverOptions(gain=per_joint(settings.observer_gain, nv, "observer_gain"),
                                               max_gap_s=settings.stale_timeout),
-            frame=self.frame, levels=np.vstack([d._contact_at, d._collision_at, d._release_at]),
+            frame=self.frame, contact_at=d.contact_level,
             power=self.power.state)
         self._nv = nv
         self.energy = LiveEnergy(model, include_armature=dynamics.options.include_armature)
@@ -269,6 +269,8 @@ class ContactMonitor:
         N = len(t_ns)
         t_ns = np.asarray(t_ns, dtype=np.int64)
         stamps = np.asarray(stamp_ns, dtype=np.int64)
+        if stamps.shape != (N,):
+            raise ValueError(f"stamp_ns needs {N} values, got shape {stamps.shape}")
         stamps = np.where(stamps != 0, stamps, t_ns)
         T = stamps * 1e-9
         prev = np.empty(N, dtype=np.int64)
@@ -302,12 +304,15 @@ class ContactMonitor:
         for ep in ended:
             self._note(ep)
         self._note(self.detector.episode)
+        done = np.flatnonzero(est)
+        if len(done):  # the last wrench computed, singular or not, as update leaves it
+            j = int(done[-1])
+            self._last_wrench = WrenchEstimate.from_row(self.frame, rows.wrench[j].copy(), info[j],
+                                                        self.observer.wrench_options, self._nv)
         if N:
             k = N - 1
-            lw = WrenchEstimate.from_row(self.frame, rows.wrench[k].copy(), info[k],
-                                         self.observer.wrench_options, self._nv)
             if est[k]:
-                self._last_wrench = lw
+                lw = self._last_wrench
                 self.last = ContactSample(int(stamps[k]), rows.tau_ext[k].copy(),
                                           None if singular[k] else lw, self.detector.state,
                                           rows.resets.get(k), wrench_singular=bool(singular[k]))

@@ -124,15 +124,15 @@ class ObserverRows:
 class MomentumObserver:
     """The generalized-momentum observer on a :class:`Dynamics` (its friction switch and
     armature included), with the contact wrench at ``frame`` (default the last link) and the
-    detector's level tests (``levels``: contact, collision and release torques per joint; None:
-    never over) computed in the same compiled pass
+    contact-level test (``contact_at``: the detector's contact torque per joint; None: never
+    over) computed in the same compiled pass
     (:func:`dyn_node.core.observer_kernels.observer_rows`); ``power``: the power balance's state
     array it updates (None: its own). One row or N rows per call, the same arithmetic. Not
     thread-safe."""
 
     def __init__(self, dynamics: Dynamics, *, options: ObserverOptions = ObserverOptions(),
                  frame: str | None = None, wrench: "WrenchOptions | None" = None,
-                 levels: np.ndarray | None = None, power: np.ndarray | None = None):
+                 contact_at: np.ndarray | None = None, power: np.ndarray | None = None):
         from dyn_node.core import observer_kernels as ok
         from dyn_node.core.frames import joint_tables
 
@@ -158,9 +158,9 @@ class MomentumObserver:
         f = pm.frames[pm.getFrameId(self.frame)]
         t = joint_tables(pm, pm.frames[0].name)
         damping, coulomb = dynamics.friction_coefficients
-        lv = np.full((3, nv), np.inf) if levels is None else np.array(levels, dtype=float)
-        if lv.shape != (3, nv):
-            raise ValueError(f"levels needs 3×{nv} values")
+        lv = np.full(nv, np.inf) if contact_at is None else np.array(contact_at, dtype=float)
+        if lv.shape != (nv,):
+            raise ValueError(f"contact_at needs {nv} values")
         self._model_args = (t.parent, t.revolute, t.index, t.placement, t.axis, t.inertia,
                             t.armature, t.gravity, damping, coulomb, int(f.parentJoint),
                             np.concatenate([np.asarray(f.placement.rotation).reshape(9),
@@ -186,7 +186,8 @@ class MomentumObserver:
         self._valid1, self._reset1 = np.ones(1, dtype=bool), np.zeros(1, dtype=bool)
         self._tau1, self._w1 = np.zeros((1, nv)), np.zeros((1, 6))
         self._info1, self._code1 = np.zeros((1, ok.INFO_COLUMNS)), np.zeros(1, dtype=np.int64)
-        #: the last row's wrench (6), σ_min, λ and misfit (see WrenchEstimate), NaN before any
+        #: the last row's wrench (6) and ``info`` columns (σ_min, λ, misfit, …; zeros before
+        #: any row); after :meth:`update` views the next sample overwrites
         self.last_wrench = np.full(6, np.nan)
         self.last_info = self._info1[0]
 
@@ -284,10 +285,15 @@ class MomentumObserver:
         finite = (np.isfinite(T) & np.isfinite(Q).all(axis=1) & np.isfinite(Vk).all(axis=1)
                   & np.isfinite(Ek).all(axis=1))
         valid = finite & has_e & (V is not None) & (E is not None)
+        for label, a in (("position", Q), ("velocity", Vk), ("effort", Ek)):
+            if a.shape != (N, self._nv):
+                raise ValueError(f"{label} needs {N}×{self._nv} values in model order, got shape {a.shape}")
         rs = np.zeros(N, dtype=bool) if reset is None else np.array(reset, dtype=bool)
-        if N and self._reset1[0]:
-            rs[0] = True
-        self._reset1[0] = False
+        if rs.shape != (N,) or has_e.shape != (N,):
+            raise ValueError(f"reset and measured need {N} values")
+        if N:  # a pending reset() applies to the first row (an empty batch keeps it pending)
+            rs[0] |= self._reset1[0]
+            self._reset1[0] = False
         TAU, W = np.empty((N, self._nv)), np.empty((N, 6))
         info, code = np.empty((N, ok.INFO_COLUMNS)), np.empty(N, dtype=np.int64)
         self._kernel(Q, Vk, Ek, T, valid, rs, *self._model_args, self.state, self.clock,

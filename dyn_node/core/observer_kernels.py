@@ -34,9 +34,9 @@ _IC = types.Array(types.int64, 1, "C")
 #: row codes (``code`` output)
 ESTIMATE, RESTART, BACKWARDS, STAMP_GAP, SAME_INSTANT, NO_ESTIMATE, RESTART_AFTER_INVALID = range(7)
 #: columns of ``info``
-(I_SINCE, I_SIGMA, I_DAMPING, I_MISFIT, I_FORCE, I_DT, I_OVER, I_COLLISION, I_RELEASE,
- I_POWER_FIRST, I_POWER_SAME, I_DROPPED) = range(12)
-INFO_COLUMNS = 12
+(I_SINCE, I_SIGMA, I_DAMPING, I_MISFIT, I_FORCE, I_DT, I_OVER, I_POWER_FIRST, I_POWER_SAME,
+ I_DROPPED) = range(10)
+INFO_COLUMNS = 10
 #: the observer's clock state (``clock``): last stamp, restart stamp, history kept (1.0),
 #: a sample without estimate since the history was dropped (1.0)
 C_T, C_T0, C_HAS, C_AFTER_INVALID = range(4)
@@ -297,7 +297,7 @@ def power_step(power: np.ndarray, t: float, pw: float, fw: float) -> int:
 # One compiled call per batch (or per live sample): per-row overhead of separate calls is what
 # this module removes.
 @njit([types.void(_M, _M, _M, _V, _B, _B, _I, _B, _I, _M, _M, _M, _V, _V, _V, _V,
-                  types.int64, _V, _V, _f8, types.boolean, _V, _M, _C2, _C1, _C1,
+                  types.int64, _V, _V, _f8, types.boolean, _V, _V, _C2, _C1, _C1,
                   _C2, _C2, _C2, _IC)], **_JIT)
 def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
                   valid: np.ndarray, reset: np.ndarray, parent: np.ndarray,
@@ -305,11 +305,11 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
                   axis: np.ndarray, inertia: np.ndarray, armature: np.ndarray,
                   gravity: np.ndarray, damping: np.ndarray, coulomb: np.ndarray, fjoint: int,
                   fplace: np.ndarray, gain: np.ndarray, max_gap: float, held: bool,
-                  wopt: np.ndarray, levels: np.ndarray, state: np.ndarray, clock: np.ndarray,
+                  wopt: np.ndarray, contact_at: np.ndarray, state: np.ndarray, clock: np.ndarray,
                   power: np.ndarray, TAU: np.ndarray, W: np.ndarray, info: np.ndarray,
                   code: np.ndarray) -> None:
     """N joint states (rows of Q, V, E in model order; T stamps in s) through the momentum
-    observer, the contact wrench, the detector's level tests and the power balance.
+    observer, the contact wrench, the contact-level test and the power balance.
 
     ``valid[k]``: the row has velocity and effort, all finite, and a finite stamp (else
     NO_ESTIMATE: the history is dropped and the power period restarted); ``reset[k]``: a restart
@@ -318,12 +318,12 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
     trapezoidal, the effort held (``held``) or trapezoidal; restarts on a step back
     (BACKWARDS) or longer than ``max_gap`` (STAMP_GAP); a repeated stamp gives the estimate
     again without integrating (SAME_INSTANT). ``wopt`` = (ε, β, λ_max) of the wrench,
-    ``levels`` rows (contact, collision, release) torques per joint. State carried between
+    ``contact_at`` the detector's contact level per joint (N·m|N). State carried between
     calls: ``state`` (4×nv: r, p, s, e), ``clock`` (C_*), ``power`` (P_*).
 
     Out per row: ``TAU`` τ̂_ext (NaN without estimate), ``W`` the wrench at the frame (its
     axes, [force; moment]), ``info`` (I_*: since the restart, σ_min, λ, misfit, ‖force‖, dt,
-    over contact, over collision, all below release (1.0/0.0), the power period's first sample
+    some joint over its contact level (1.0/0.0), the power period's first sample
     (1.0), a repeated power instant (1.0), the observer's history dropped here (1.0)), ``code`` (ESTIMATE …)."""
     N, nv = Q.shape
     n = len(parent)
@@ -410,17 +410,11 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
         code[k] = kind
         info[k, I_SINCE] = t - clock[C_T0]
         info[k, I_DT] = dt
-        over = coll = False
-        release = True
+        over = False
         for c in range(nv):
             TAU[k, c] = r_[c]
-            x = abs(r_[c])
-            over = over or x > levels[0, c]
-            coll = coll or x > levels[1, c]
-            release = release and x < levels[2, c]
+            over = over or abs(r_[c]) > contact_at[c]
         info[k, I_OVER] = 1.0 if over else 0.0
-        info[k, I_COLLISION] = 1.0 if coll else 0.0
-        info[k, I_RELEASE] = 1.0 if release else 0.0
         sigma, lam, misfit = damped_solve(J, r_, eps, band, lam_max, G, U, ev, y, F)
         f2 = 0.0
         for c in range(6):
