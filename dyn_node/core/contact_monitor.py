@@ -253,11 +253,14 @@ class ContactMonitor:
 
     def _unavailable(self, t: float, stamp_ns: int, code: str, why: str,
                      reset: ObserverReset | None) -> ContactSample:
-        self.unavailable_by_code[code] = self.unavailable_by_code.get(code, 0) + 1
-        self._period_unavailable[code] = self._period_unavailable.get(code, 0) + 1
+        self._count_unavailable(code)
         self._note(self.detector.unavailable(t, why).ended)
         return ContactSample(stamp_ns, None, None, UNAVAILABLE, reset, unavailable=why,
                              unavailable_code=code)
+
+    def _count_unavailable(self, code: str) -> None:
+        self.unavailable_by_code[code] = self.unavailable_by_code.get(code, 0) + 1
+        self._period_unavailable[code] = self._period_unavailable.get(code, 0) + 1
 
     def update_rows(self, t_ns: np.ndarray, stamp_ns: np.ndarray, Q: np.ndarray,
                     V: np.ndarray | None, E: np.ndarray | None, *,
@@ -293,11 +296,10 @@ class ContactMonitor:
         # the power period's first and last states (their energies are taken at close)
         if N:
             self._note_power_rows(T, Q, V, info, est)
-        # resets and unavailable rows in order, the episodes between them
+        # counts and reset events in row order, then the episodes over every row
         unavailable = {k: why for k, (_code, why) in rows.unavailable.items()}
-        for k, (code, _why) in rows.unavailable.items():
-            self.unavailable_by_code[code] = self.unavailable_by_code.get(code, 0) + 1
-            self._period_unavailable[code] = self._period_unavailable.get(code, 0) + 1
+        for code, _why in rows.unavailable.values():
+            self._count_unavailable(code)
         for k, r in sorted(rows.resets.items()):
             self._reset_event(r, float(T[k]))
         ended = self.detector.update_rows(T, rows.tau_ext, info[:, ok.I_FORCE], rows.wrench, has_w, unavailable)
@@ -331,7 +333,7 @@ class ContactMonitor:
         # a row without estimate restarts the period: nothing before it survives
         bad = np.flatnonzero(~est)
         if len(bad) and (not len(first) or bad[-1] > first[-1]):
-            pb._first = pb._last = None
+            pb.dropped()
             return
         if len(first):
             f = int(first[-1])
