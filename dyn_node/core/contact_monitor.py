@@ -96,11 +96,6 @@ class RowsSample:
     force_n: np.ndarray
 
 
-def _power_step(info: np.ndarray) -> int:
-    """The power balance's step of one row of the pass (as observer_kernels.power_step)."""
-    return 1 if info[ok.I_POWER_FIRST] == 1.0 else 2 if info[ok.I_POWER_SAME] == 1.0 else 0
-
-
 @dataclass(frozen=True)
 class Observed:
     """:meth:`ContactMonitor.observe`'s result, for :meth:`ContactMonitor.finish`: the stamp
@@ -226,7 +221,7 @@ class ContactMonitor:
         else:
             info = self.observer.last_info
             self.power.noted(t, np.asarray(q, dtype=float), np.asarray(v, dtype=float),
-                             _power_step(info))
+                             int(info[ok.I_POWER_STEP]))
             self.estimates += 1
             w = self._last_wrench = WrenchEstimate.from_row(
                 self.frame, self.observer.last_wrench.copy(), info, self.observer.wrench_options, self._nv)
@@ -328,8 +323,9 @@ class ContactMonitor:
                          est: np.ndarray) -> None:
         """The power balance's first and last states over N rows of the pass."""
         pb = self.power
-        usable = est & (info[:, ok.I_POWER_SAME] == 0.0)
-        first = np.flatnonzero(est & (info[:, ok.I_POWER_FIRST] == 1.0))
+        step = info[:, ok.I_POWER_STEP]
+        usable = est & (step != 2.0)
+        first = np.flatnonzero(est & (step == 1.0))
         # a row without estimate restarts the period: nothing before it survives
         bad = np.flatnonzero(~est)
         if len(bad) and (not len(first) or bad[-1] > first[-1]):

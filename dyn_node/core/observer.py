@@ -16,7 +16,9 @@ from typing import Sequence
 import numpy as np
 import pinocchio as pin
 
+from dyn_node.core import observer_kernels as ok
 from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.frames import joint_tables
 from dyn_node.errors import InputError
 from dyn_node.core.model import RobotModel
 
@@ -90,18 +92,6 @@ class ObserverEstimate:
     code: str | None = None
 
 
-def _kernels():
-    """dyn_node.core.observer_kernels, imported on first use (it loads compiled code)."""
-    global _OK
-    if _OK is None:
-        from dyn_node.core import observer_kernels
-        _OK = observer_kernels
-    return _OK
-
-
-_OK = None
-
-
 def _bad_joints(names: Sequence[str], x: np.ndarray) -> str:
     return ", ".join(names[i] for i in np.flatnonzero(~np.isfinite(x)))
 
@@ -133,9 +123,6 @@ class MomentumObserver:
     def __init__(self, dynamics: Dynamics, *, options: ObserverOptions = ObserverOptions(),
                  frame: str | None = None, wrench: "WrenchOptions | None" = None,
                  contact_at: np.ndarray | None = None, power: np.ndarray | None = None):
-        from dyn_node.core import observer_kernels as ok
-        from dyn_node.core.frames import joint_tables
-
         nv = dynamics.nv
         self.dynamics = dynamics
         self.options = options
@@ -169,7 +156,6 @@ class MomentumObserver:
                             options.effort_timing == "held",
                             np.array([wo.singular_value, wo.damping_band, wo.max_damping]), lv)
         self._kernel = ok.observer_rows
-        self._ok = ok
         self.settle_s = options.settle_time_constants / float(self.gain.min())
         self._names = model.joint_names
         self._nv = nv
@@ -227,7 +213,6 @@ class MomentumObserver:
 
     def _reset_of(self, code: int, dt: float) -> ObserverReset | None:
         """The restart a row's kernel code stands for (None: not a restart)."""
-        ok = self._ok
         if code == ok.RESTART:
             r, self._pending = self._pending or ObserverReset(RESET_START, "first sample"), None
         elif code == ok.RESTART_AFTER_INVALID:
@@ -258,12 +243,12 @@ class MomentumObserver:
         self.last_wrench, self.last_info = self._w1[0], self._info1[0]
         if bad is not None:
             self._count(bad[0])
-            if self._info1[0, self._ok.I_DROPPED]:
+            if self._info1[0, ok.I_DROPPED]:
                 self._invalid_why = bad[1]
             return ObserverEstimate(t=t, tau_ext=None, unavailable=bad[1], code=bad[0])
         info = self._info1[0]
-        restart = self._reset_of(int(self._code1[0]), float(info[self._ok.I_DT]))
-        since = float(info[self._ok.I_SINCE])
+        restart = self._reset_of(int(self._code1[0]), float(info[ok.I_DT]))
+        since = float(info[ok.I_SINCE])
         return ObserverEstimate(t=t, tau_ext=self._tau1[0].copy(), reset=restart,
                                 since_reset_s=since, settled=since >= self.settle_s)
 
@@ -275,7 +260,6 @@ class MomentumObserver:
         measured; ``measured[k]`` False: row k has no effort). ``reset[k]`` with
         ``reasons[k]``: :meth:`reset` just before row k. Gives the same numbers, restarts and
         counts as :meth:`update` row by row."""
-        ok = self._ok
         N = len(T)
         T = np.ascontiguousarray(T, dtype=float)
         Q = np.ascontiguousarray(Q, dtype=float)
@@ -379,7 +363,6 @@ class WrenchEstimate:
     def from_row(cls, frame: str, wrench: np.ndarray, info: np.ndarray, options: WrenchOptions,
                  nv: int) -> "WrenchEstimate":
         """One row of the observer's compiled pass (wrench and ``info`` columns)."""
-        ok = _kernels()
         sigma = float(info[ok.I_SIGMA])
         return cls(frame=frame, wrench=wrench, sigma_min=sigma, damping=float(info[ok.I_DAMPING]),
                    singular=sigma < options.singular_value, misfit=float(info[ok.I_MISFIT]),
@@ -390,12 +373,10 @@ def damped_wrench(J: np.ndarray, tau: np.ndarray, *, options: WrenchOptions = Wr
                   ) -> tuple[np.ndarray, float, float]:
     """(F̂, σ_min, λ) for a 6×nv Jacobian J and torque τ: the compiled solve the observer's
     pass uses (:func:`dyn_node.core.observer_kernels.damped_solve`)."""
-    from dyn_node.core.observer_kernels import damped_solve
-
     J = np.ascontiguousarray(J, dtype=float)
     k = min(6, J.shape[1])
     F = np.zeros(6)
-    sigma, lam, _ = damped_solve(J, np.ascontiguousarray(tau, dtype=float), options.singular_value,
+    sigma, lam, _ = ok.damped_solve(J, np.ascontiguousarray(tau, dtype=float), options.singular_value,
                                  options.damping_band, options.max_damping, np.zeros((k, k)),
                                  np.zeros((k, k)), np.zeros(k), np.zeros(k), F)
     return F, sigma, lam

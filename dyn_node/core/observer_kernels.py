@@ -34,9 +34,9 @@ _IC = types.Array(types.int64, 1, "C")
 #: row codes (``code`` output)
 ESTIMATE, RESTART, BACKWARDS, STAMP_GAP, SAME_INSTANT, NO_ESTIMATE, RESTART_AFTER_INVALID = range(7)
 #: columns of ``info``
-(I_SINCE, I_SIGMA, I_DAMPING, I_MISFIT, I_FORCE, I_DT, I_OVER, I_POWER_FIRST, I_POWER_SAME,
- I_DROPPED) = range(10)
-INFO_COLUMNS = 10
+(I_SINCE, I_SIGMA, I_DAMPING, I_MISFIT, I_FORCE, I_DT, I_OVER, I_POWER_STEP,
+ I_DROPPED) = range(9)
+INFO_COLUMNS = 9
 #: the observer's clock state (``clock``): last stamp, restart stamp, history kept (1.0),
 #: a sample without estimate since the history was dropped (1.0)
 C_T, C_T0, C_HAS, C_AFTER_INVALID = range(4)
@@ -323,8 +323,9 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
 
     Out per row: ``TAU`` τ̂_ext (NaN without estimate), ``W`` the wrench at the frame (its
     axes, [force; moment]), ``info`` (I_*: since the restart, σ_min, λ, misfit, ‖force‖, dt,
-    some joint over its contact level (1.0/0.0), the power period's first sample
-    (1.0), a repeated power instant (1.0), the observer's history dropped here (1.0)), ``code`` (ESTIMATE …)."""
+    some joint over its contact level (1.0/0.0), the power balance's step (what
+    :func:`power_step` returned; −1 without estimate), the observer's history dropped here
+    (1.0)), ``code`` (ESTIMATE …)."""
     N, nv = Q.shape
     n = len(parent)
     Rw = np.zeros((n, 9))
@@ -365,6 +366,7 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
             for c in range(6):
                 W[k, c] = np.nan
             info[k, I_SINCE] = info[k, I_SIGMA] = info[k, I_FORCE] = np.nan
+            info[k, I_POWER_STEP] = -1.0
             continue
         t = T[k]
         q, v, e = Q[k], V[k], E[k]
@@ -423,6 +425,4 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
             f2 += F[c] * F[c]
         info[k, I_SIGMA], info[k, I_DAMPING], info[k, I_MISFIT] = sigma, lam, misfit
         info[k, I_FORCE] = math.sqrt(f2)
-        step = power_step(power, t, pw_, fw_)
-        info[k, I_POWER_FIRST] = 1.0 if step == 1 else 0.0
-        info[k, I_POWER_SAME] = 1.0 if step == 2 else 0.0
+        info[k, I_POWER_STEP] = power_step(power, t, pw_, fw_)

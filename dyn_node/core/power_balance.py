@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from dyn_node.core import observer_kernels as ok
 from dyn_node.core.dynamics import Dynamics
 
 
@@ -69,8 +70,6 @@ class PowerBalance:
     whose energies a period needs); :meth:`update` is the same step for one sample."""
 
     def __init__(self, dynamics: Dynamics, *, options: PowerBalanceOptions = PowerBalanceOptions()):
-        from dyn_node.core import observer_kernels as ok
-
         if not (options.tolerance_j >= 0 and options.relative_tolerance >= 0
                 and math.isfinite(options.tolerance_j) and math.isfinite(options.relative_tolerance)):
             raise ValueError("tolerances must be finite and ≥ 0")
@@ -78,7 +77,6 @@ class PowerBalance:
             raise ValueError("persistent_periods must be ≥ 1")
         self.dynamics = dynamics
         self.options = options
-        self._ok = ok
         self._nv = dynamics.nv
         self.state = np.zeros(9)
         self._first: tuple[float, np.ndarray, np.ndarray] | None = None
@@ -91,7 +89,7 @@ class PowerBalance:
     @property
     def broken_periods(self) -> int:
         """Periods discarded because a sample broke the integral."""
-        return int(self.state[self._ok.P_BROKEN])
+        return int(self.state[ok.P_BROKEN])
 
     def _energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(kinetic, potential) at a sample: only a period's first and last need them."""
@@ -100,7 +98,7 @@ class PowerBalance:
 
     def restart(self) -> None:
         """Discard the open period (if it had begun) and start over at the next sample."""
-        self._ok._power_restart(self.state)
+        ok._power_restart(self.state)
         self._first = self._last = None
 
     def dropped(self) -> None:
@@ -128,13 +126,13 @@ class PowerBalance:
             self.restart()
             return False
         fw = float(self.dynamics.friction(v) @ v)
-        self.noted(t, q, v, self._ok.power_step(self.state, t, float(e @ v), fw))
+        self.noted(t, q, v, ok.power_step(self.state, t, float(e @ v), fw))
         return True
 
     def close(self) -> PeriodBalance | None:
         """End the period at the last sample (None when it has fewer than two samples) and
         start the next one there."""
-        ok, st = self._ok, self.state
+        st = self.state
         a, b = self._first, self._last
         n = int(st[ok.P_N])
         if a is None or b is None or n < 2:
