@@ -176,6 +176,14 @@ class MomentumObserver:
         #: any row); after :meth:`update` views the next sample overwrites
         self.last_wrench = np.full(6, np.nan)
         self.last_info = self._info1[0]
+        # what the pass answers for a row without estimate, from the pass itself (on scratch state)
+        self._no_wrench, self._no_info = np.zeros((1, 6)), np.zeros((1, ok.INFO_COLUMNS))
+        self._kernel(self._q1, self._v1, self._e1, self._t1, np.zeros(1, dtype=bool), self._reset1,
+                     *self._model_args, np.zeros_like(self.state), np.zeros(4), np.zeros(9),
+                     np.zeros((1, nv)), self._no_wrench, self._no_info, np.zeros(1, dtype=np.int64))
+        self._no_wrench, self._no_info = self._no_wrench[0], self._no_info[0]
+        for x in (self._no_wrench, self._no_info):
+            x.setflags(write=False)
 
     @property
     def time_constant_s(self) -> np.ndarray:
@@ -232,6 +240,13 @@ class MomentumObserver:
         (rad/s|m/s; None: not measured) and measured effort (N·m|N; None: not measured).
         Raises ValueError only for arrays of the wrong length (a caller bug)."""
         bad, arrays = self._check(t, q, v, effort)
+        if (bad is not None and not self._reset1[0] and self.clock[ok.C_HAS] == 0.0
+                and self.power[ok.P_N] == 0.0):
+            # nothing for the pass to drop (no history, no open power period): a robot that
+            # never reports effort costs no call per message
+            self._count(bad[0])
+            self.last_wrench, self.last_info = self._no_wrench, self._no_info
+            return ObserverEstimate(t=t, tau_ext=None, unavailable=bad[1], code=bad[0])
         self._t1[0] = t
         if bad is None:
             self._q1[0], self._v1[0], self._e1[0] = arrays
