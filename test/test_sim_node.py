@@ -187,6 +187,53 @@ def test_byte_fields_written_by_dyn_node_and_dyn_sim(ros_context):
             node.destroy_node()
 
 
+def stamp_ns(m) -> int:
+    return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+
+
+def wrench_of(m) -> np.ndarray:
+    f, t = m.wrench.force, m.wrench.torque
+    return np.array([f.x, f.y, f.z, t.x, t.y, t.z])
+
+
+def applied_probe(node) -> list:
+    """dyn_sim's ~/applied_wrench, as it arrives (transient-local, like its publisher)."""
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    got: list = []
+    node.create_subscription(WrenchStamped, "/dyn_sim/applied_wrench", got.append,
+                             QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                                        reliability=ReliabilityPolicy.RELIABLE))
+    return got
+
+
+@pytest.mark.timeout(60)
+def test_applied_wrench_ends_when_the_hold_runs_out(ros_context, spawn):
+    """A push held for 0.05 s: ~/applied_wrench says it began and, 50 simulated steps later to
+    the nanosecond, that it ended (a zero wrench at the same link), while joint_states go on."""
+    from geometry_msgs.msg import WrenchStamped
+
+    spawn(sim_cmd("apply_wrench_hold:=0.05"))
+    node, got = probe(ros_context)
+    applied = applied_probe(node)
+    pub = node.create_publisher(WrenchStamped, "/dyn_sim/apply_wrench", 10)
+    try:
+        spin_until(ros_context, node, lambda: len(got["js"]) >= 5 and pub.get_subscription_count() > 0,
+                   30, "dyn_sim to come up")
+        msg = WrenchStamped()
+        msg.header.frame_id = "panda_hand"
+        msg.wrench.force.y = -12.0
+        pub.publish(msg)
+        spin_until(ros_context, node, lambda: len(applied) >= 2, 30, "the push to start and end")
+    finally:
+        node.destroy_node()
+    assert [m.header.frame_id for m in applied] == ["panda_hand", "panda_hand"]
+    np.testing.assert_array_equal(wrench_of(applied[0]), [0.0, -12.0, 0.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(wrench_of(applied[1]), np.zeros(6))
+    assert stamp_ns(applied[1]) - stamp_ns(applied[0]) == 50_000_000
+
+
 @pytest.mark.timeout(90)
 def test_apply_wrench_round_trip(ros_context, spawn):
     """~/apply_wrench over DDS: an unknown frame_id is logged and counted and the simulation keeps
@@ -224,6 +271,7 @@ def test_apply_wrench_round_trip(ros_context, spawn):
 
     proc = spawn(sim_cmd("apply_wrench_hold:=60.0", "publish_rate_hz:=100.0"))
     node, got = probe(ros_context)
+    applied = applied_probe(node)
     pub = node.create_publisher(WrenchStamped, "/dyn_sim/apply_wrench", 10)
     try:
         spin_until(ros_context, node, lambda: len(got["js"]) >= 5 and pub.get_subscription_count() > 0,
@@ -238,6 +286,16 @@ def test_apply_wrench_round_trip(ros_context, spawn):
         node.destroy_node()
     # the push moved the robot (it is held by a PD controller, not infinitely stiff)
     assert np.abs(pushed_q - READY).max() > 1e-3
+    # ~/applied_wrench: the push (not the rejected one) stamped with the step it began acting on:
+    # the state published at that stamp is still at rest, the next one moves
+    assert [m.header.frame_id for m in applied] == ["panda_link8", "panda_link8"]
+    start, end = (stamp_ns(m) for m in applied)
+    np.testing.assert_array_equal(wrench_of(applied[0]), w)
+    np.testing.assert_array_equal(wrench_of(applied[1]), np.zeros(6))
+    v_at = {stamp_ns(m): np.abs(np.array(m.velocity[:7])).max() for m in got["js"]}
+    after = min(t for t in v_at if t > start)
+    assert v_at[start] < 1e-9 < 1e-6 < v_at[after]
+    assert start < end <= stamp_ns(got["js"][-1])
     np.testing.assert_allclose(got["js"][-1].position[:7], READY, atol=1e-6)
     rc, out, err = proc.stop(signal.SIGINT)
     assert rc == 0, err

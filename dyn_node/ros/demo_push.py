@@ -3,7 +3,9 @@
 the push began and its wrench estimate against the applied force, each with a PASS line.
 
 The push is published at the frame dyn_node estimates the wrench at (its ``contact_frame``,
-read from ``~/external_wrench``), in that frame's axes, so estimate and push compare directly.
+read from ``~/external_wrench``), in that frame's axes, so estimate and push compare directly;
+the settled window is timed by dyn_sim's ``~/applied_wrench`` (when the push acted, in the
+stamps the estimate carries), not by the wall clock.
 :func:`push_checks` is pure; :func:`run_push` needs the demo's running Stack.
 """
 from __future__ import annotations
@@ -35,6 +37,7 @@ class PushOutcome:
     estimate: np.ndarray | None = None   # mean F̂ over [sent + SETTLED_S, sent + PUSH_S)
     estimate_samples: int = 0
     wrenches: list = field(default_factory=list)  # (stamp s, frame_id, F̂)
+    truth: list = field(default_factory=list)     # dyn_sim's ~/applied_wrench: (stamp s, link, F)
     verdict_seen: bool = False           # dyn_node answered the trajectory on ~/feasibility
 
 
@@ -50,29 +53,30 @@ def push_checks(o: PushOutcome) -> list[tuple[bool, str]]:
                     f"push: dyn_node reported {o.reported_state} {dt * 1e3:.0f} ms after the {f:.3g} N "
                     f"push began (within the push's {DETECT_WITHIN_S:g} s)")
     if o.estimate is None:
-        return [detected, (False, f"push: no ~/external_wrench estimate at {o.frame} during the push")]
+        why = ("dyn_sim did not say it applied the push (~/applied_wrench)" if not o.truth else
+               f"no ~/external_wrench estimate at {o.frame} during the push")
+        return [detected, (False, f"push: {why}")]
     err = float(np.linalg.norm(o.estimate - o.applied))
     tol = 0.1 * f + 1.0
     est = (err <= tol, f"push: estimated force {np.linalg.norm(o.estimate):.1f} N vs {f:.3g} N applied "
                        f"at {o.frame} (|F̂ − F| {err:.2f} N ≤ {tol:.1f} N; mean of {o.estimate_samples} "
-                       f"samples {SETTLED_S:g}–{PUSH_S:g} s into the push)")
+                       f"samples {SETTLED_S:g}–{PUSH_S:g} s into the push, dyn_sim's stamps)")
     return [detected, est]
 
 
-ONSET_N = 1.0  # |F̂| above this marks the push's first sample (a 30 N step passes it within 1 ms)
-
-
 def settle_estimate(o: PushOutcome) -> None:
-    """Fill ``o.estimate`` from the wrenches stamped in the settled part of the push, timed from
-    its onset in the simulator's own stamps (the first |F̂| > ONSET_N after it was sent), so a
-    message that reached dyn_sim late on a loaded machine does not shift the window."""
-    mine = [(t, w) for t, fid, w in o.wrenches if fid == o.frame]
-    onset = next((t for t, w in mine if t >= o.sent_s - 0.05 and np.linalg.norm(w) > ONSET_N), None)
-    if onset is None:
-        o.estimate, o.estimate_samples = None, 0
+    """Fill ``o.estimate`` from the wrenches stamped in the settled part of the push, timed by
+    what dyn_sim says it applied (``o.truth``: its ~/applied_wrench, in its own stamps), so a
+    push that reached a starved simulator late, or a simulator behind the wall clock, does not
+    shift the window: [start + SETTLED_S, end) of the first push at ``o.frame``."""
+    o.estimate, o.estimate_samples = None, 0
+    start = next((i for i, (_, fid, w) in enumerate(o.truth) if fid == o.frame and np.any(w)), None)
+    if start is None:
         return
-    lo, hi = onset + SETTLED_S, onset + PUSH_S
-    F = [w for t, w in mine if lo <= t < hi]
+    t0 = o.truth[start][0]
+    # the push ends with the next message (a zero wrench, or a push replacing it)
+    t1 = o.truth[start + 1][0] if start + 1 < len(o.truth) else t0 + PUSH_S
+    F = [w for t, fid, w in o.wrenches if fid == o.frame and t0 + SETTLED_S <= t < t1]
     o.estimate_samples = len(F)
     o.estimate = np.mean(F, axis=0) if F else None
 
@@ -82,14 +86,22 @@ def run_push(stack: Any, traj: Any, say: Callable[[str], None]) -> PushOutcome |
     publishes no ~/external_wrench (no contact monitoring to show)."""
     from geometry_msgs.msg import WrenchStamped
 
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
     wrenches: list = []
+    truth: list = []
 
-    def on_wrench(m: WrenchStamped) -> None:
+    def entry(m: WrenchStamped) -> tuple[float, str, np.ndarray]:
         f = m.wrench.force
-        wrenches.append((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.header.frame_id,
-                         np.array([f.x, f.y, f.z])))
+        return (m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.header.frame_id,
+                np.array([f.x, f.y, f.z]))
 
-    sub = stack.node.create_subscription(WrenchStamped, "/dyn_node/external_wrench", on_wrench, 1000)
+    sub = stack.node.create_subscription(WrenchStamped, "/dyn_node/external_wrench",
+                                         lambda m: wrenches.append(entry(m)), 1000)
+    latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                         reliability=ReliabilityPolicy.RELIABLE)
+    sub_truth = stack.node.create_subscription(WrenchStamped, "/dyn_sim/applied_wrench",
+                                               lambda m: truth.append(entry(m)), latched)
     pub = stack.node.create_publisher(WrenchStamped, "/dyn_sim/apply_wrench", 10)
     try:
         if not stack.spin_until(lambda: wrenches and pub.get_subscription_count() >= 1, 5.0):
@@ -103,17 +115,21 @@ def run_push(stack: Any, traj: Any, say: Callable[[str], None]) -> PushOutcome |
         msg.header.frame_id = frame
         msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = PUSH_FORCE
         states_from = len(stack.states)
+        truth.clear()  # only what dyn_sim applied from now on
         o = PushOutcome(frame, np.array(PUSH_FORCE), time.time())
         pub.publish(msg)
-        stack.spin_until(lambda: wrenches and wrenches[-1][0] >= o.sent_s + PUSH_S + 0.1, PUSH_S + 5)
+        # until dyn_sim has said the push ended and the estimate has passed that stamp
+        stack.spin_until(lambda: len(truth) >= 2 and wrenches and wrenches[-1][0] >= truth[1][0] + 0.1,
+                         PUSH_S + 5)
         for recv, state in stack.states[states_from:]:
             if state in CONTACT_STATES:
                 o.reported_s, o.reported_state = recv, state
                 break
-        o.wrenches = wrenches
+        o.wrenches, o.truth = wrenches, list(truth)
         o.verdict_seen = stack.verdict_for(start_ns) is not None
         settle_estimate(o)
         return o
     finally:
         stack.node.destroy_subscription(sub)
+        stack.node.destroy_subscription(sub_truth)
         stack.node.destroy_publisher(pub)

@@ -9,7 +9,9 @@ reason and the current motion continues. ``~/apply_wrench`` (geometry_msgs/Wrenc
 wrench on the robot at the origin of the link named by frame_id, in that link's axes) pushes the
 robot from the next step on for ``apply_wrench_hold`` s, unless a newer message replaces it; a
 zero wrench ends the push; an unknown frame_id or a non-finite value is logged and counted
-(:meth:`dyn_node.sim.simulator.Simulator.apply_wrench` does the math).
+(:meth:`dyn_node.sim.simulator.Simulator.apply_wrench` does the math). ``~/applied_wrench`` says
+what the simulation actually applied, in its own stamps: the push when it starts acting and a
+zero wrench when it ends, so an estimate can be compared with the truth on a loaded machine too.
 
 Timing: the simulation runs in a thread of its own. With ``real_time`` true it is paced against
 the wall clock in batches (every wake-up steps as many 1 ms steps as are due, publishing at each
@@ -139,6 +141,11 @@ class SimNode(Node):
         self.clock_pub = None if self.real_time else self.create_publisher(Clock, "/clock", 10)
         self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10)
         self.create_subscription(WrenchStamped, "~/apply_wrench", self._on_wrench, 10)
+        # every start and end kept for a late or slow reader (transient-local, depth 10)
+        self.applied_pub = self.create_publisher(WrenchStamped, "~/applied_wrench", QoSProfile(
+            depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self._announced: Any = None  # the AppliedWrench last said on ~/applied_wrench
 
         self._wrench_inbox: list[WrenchStamped] = []
         #: ~/apply_wrench messages rejected (unknown frame_id, non-finite values)
@@ -214,7 +221,31 @@ class SimNode(Node):
                 f"{max(0.0, act.start_time - self.sim.time):.3f} s")
 
     # --- simulation loop -------------------------------------------------------------------------
+    def _stamp(self, steps: int) -> TimeMsg:
+        ns = self.epoch_ns + int(round(steps * self.sim.config.timestep * 1e9))
+        return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+    def _announce_push(self) -> None:
+        """~/applied_wrench on a change of push: the new one stamped with the step it starts
+        acting on, or a zero wrench stamped with the step the last one stopped acting on."""
+        cur, old = self.sim.wrench, self._announced
+        if cur is old:
+            return
+        msg = WrenchStamped()
+        if cur is not None:
+            msg.header.stamp = self._stamp(cur.start_step)
+            msg.header.frame_id = cur.mount.link
+            f, m = cur.wrench[:3], cur.wrench[3:]
+            msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = (float(x) for x in f)
+            msg.wrench.torque.x, msg.wrench.torque.y, msg.wrench.torque.z = (float(x) for x in m)
+        else:
+            msg.header.stamp = self._stamp(min(old.end_step, self.sim.steps))
+            msg.header.frame_id = old.mount.link
+        self.applied_pub.publish(msg)
+        self._announced = cur
+
     def _publish(self) -> None:
+        self._announce_push()
         st = self.sim.state()
         ns = self.epoch_ns + int(round(st.t * 1e9))
         stamp = TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)

@@ -295,6 +295,11 @@ class Simulator:
         return self._steps * self.config.timestep
 
     @property
+    def steps(self) -> int:
+        """Steps taken so far (a push's ``start_step``/``end_step`` count in these)."""
+        return self._steps
+
+    @property
     def q(self) -> np.ndarray:
         return self.data.qpos[self._qi].copy()
 
