@@ -10,7 +10,7 @@ from dyn_node.core import observer_kernels as ok
 from dyn_node.core.dynamics import Dynamics
 from dyn_node.core.frames import joint_tables
 from dyn_node.core.model import load_model
-from dyn_node.core.observer import MomentumObserver, ObserverOptions
+from dyn_node.core.observer import MomentumObserver, ObserverOptions, WrenchEstimate
 from robots import BRANCHED_URDF
 
 ARMATURE = {"joint_limits": {f"panda_joint{i}": {"armature": 0.1 * i} for i in range(1, 8)}}
@@ -139,7 +139,12 @@ def test_rows_at_once_equal_rows_one_by_one(which):
     T, Q, V, E = _rows(model.nv, 400, rng)
     a, b = _observer(model, frame), _observer(model, frame)
     rows = a.update_rows(T, Q, V, E)
-    singles = [b.update(float(T[k]), Q[k], V[k], E[k]) for k in range(len(T))]
+    singles, force_n = [], np.full(len(T), np.nan)
+    for k in range(len(T)):
+        singles.append(b.update(float(T[k]), Q[k], V[k], E[k]))
+        if singles[-1].tau_ext is not None:  # what the live path's detector reads as the force
+            force_n[k] = WrenchEstimate.from_row(frame, b.last_wrench.copy(), b.last_info,
+                                                 b.wrench_options, model.nv).force_n
     tau = np.array([s.tau_ext if s.tau_ext is not None else np.full(model.nv, np.nan) for s in singles])
     np.testing.assert_array_equal(rows.tau_ext, tau)
     for x, y in ((a.state, b.state), (a.clock, b.clock), (a.power, b.power)):
@@ -149,6 +154,9 @@ def test_rows_at_once_equal_rows_one_by_one(which):
         k: s.reset.code for k, s in enumerate(singles) if s.reset is not None}
     assert set(a.counts) >= {"start", "backwards", "stamp_gap", "after_invalid_input", "non_finite_effort"}
     np.testing.assert_array_equal(rows.wrench[-1], b.last_wrench)
+    # the batched replay's detector reads the pass's force column: the live force is its bits
+    assert np.isfinite(force_n).sum() > len(T) // 2
+    np.testing.assert_array_equal(force_n, rows.info[:, ok.I_FORCE])
     # the level flags were exercised both ways
     over = rows.info[:, ok.I_OVER]
     assert 0 < np.nansum(over) < len(T) - 1

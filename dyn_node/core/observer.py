@@ -372,7 +372,10 @@ class WrenchEstimate:
 
     @property
     def force_n(self) -> float:
-        return float(np.linalg.norm(self.wrench[:3]))
+        # summed in index order as the compiled pass's I_FORCE, which the batched replay reads:
+        # a BLAS norm's order depends on the CPU, and a live peak must equal the replayed one
+        f0, f1, f2 = self.wrench[:3].tolist()
+        return math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
 
     @classmethod
     def from_row(cls, frame: str, wrench: np.ndarray, info: np.ndarray, options: WrenchOptions,

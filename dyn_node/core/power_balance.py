@@ -125,8 +125,13 @@ class PowerBalance:
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(e))):
             self.restart()
             return False
-        fw = float(self.dynamics.friction(v) @ v)
-        self.noted(t, q, v, ok.power_step(self.state, t, float(e @ v), fw))
+        # summed in index order, as the compiled pass does: a BLAS dot's order depends on the
+        # arrays' alignment, and the two must agree to the bit
+        pw = fw = 0.0
+        for ei, fi, vi in zip(e.tolist(), self.dynamics.friction(v).tolist(), v.tolist()):
+            pw += ei * vi
+            fw += fi * vi
+        self.noted(t, q, v, ok.power_step(self.state, t, pw, fw))
         return True
 
     def close(self) -> PeriodBalance | None:
