@@ -196,6 +196,34 @@ def wrench_of(m) -> np.ndarray:
     return np.array([f.x, f.y, f.z, t.x, t.y, t.z])
 
 
+def wrench_msg(frame: str, x) -> "WrenchStamped":
+    from geometry_msgs.msg import WrenchStamped
+
+    msg = WrenchStamped()
+    msg.header.frame_id = frame
+    f, m = msg.wrench.force, msg.wrench.torque
+    f.x, f.y, f.z, m.x, m.y, m.z = (float(v) for v in x)
+    return msg
+
+
+def pushing(ros_context, spawn, *params: str):
+    """dyn_sim started with ``params``, a probe with ~/applied_wrench, and a ~/apply_wrench
+    publisher, once dyn_sim is up: (process, probe node, joint_states, applied, publisher)."""
+    from geometry_msgs.msg import WrenchStamped
+
+    proc = spawn(sim_cmd(*params))
+    node, got = probe(ros_context)
+    applied = applied_probe(node)
+    pub = node.create_publisher(WrenchStamped, "/dyn_sim/apply_wrench", 10)
+    try:
+        spin_until(ros_context, node, lambda: len(got["js"]) >= 5 and pub.get_subscription_count() > 0,
+                   30, "dyn_sim to come up")
+    except AssertionError:
+        node.destroy_node()
+        raise
+    return proc, node, got, applied, pub
+
+
 def applied_probe(node) -> list:
     """dyn_sim's ~/applied_wrench, as it arrives (transient-local, like its publisher)."""
     from geometry_msgs.msg import WrenchStamped
@@ -211,20 +239,10 @@ def applied_probe(node) -> list:
 @pytest.mark.timeout(60)
 def test_applied_wrench_ends_when_the_hold_runs_out(ros_context, spawn):
     """A push held for 0.05 s: ~/applied_wrench says it began and, 50 simulated steps later to
-    the nanosecond, that it ended (a zero wrench at the same link), while joint_states go on."""
-    from geometry_msgs.msg import WrenchStamped
-
-    spawn(sim_cmd("apply_wrench_hold:=0.05"))
-    node, got = probe(ros_context)
-    applied = applied_probe(node)
-    pub = node.create_publisher(WrenchStamped, "/dyn_sim/apply_wrench", 10)
+    the nanosecond, that it ended (a zero wrench at the same link)."""
+    _, node, got, applied, pub = pushing(ros_context, spawn, "apply_wrench_hold:=0.05")
     try:
-        spin_until(ros_context, node, lambda: len(got["js"]) >= 5 and pub.get_subscription_count() > 0,
-                   30, "dyn_sim to come up")
-        msg = WrenchStamped()
-        msg.header.frame_id = "panda_hand"
-        msg.wrench.force.y = -12.0
-        pub.publish(msg)
+        pub.publish(wrench_msg("panda_hand", [0.0, -12.0, 0.0, 0.0, 0.0, 0.0]))
         spin_until(ros_context, node, lambda: len(applied) >= 2, 30, "the push to start and end")
     finally:
         node.destroy_node()
@@ -241,7 +259,6 @@ def test_apply_wrench_round_trip(ros_context, spawn):
     holding the robot against it; Pinocchio's g and Jacobian at the published q); a zero wrench
     ends it (effort = g(q) again)."""
     import pinocchio as pin
-    from geometry_msgs.msg import WrenchStamped
 
     model = load_model(builtin="panda")
     dyn = Dynamics(model)
@@ -249,13 +266,6 @@ def test_apply_wrench_round_trip(ros_context, spawn):
     pdata = pm.createData()
     flange = pm.getFrameId("panda_link8")
     w = np.array([6.0, -4.0, 20.0, 0.0, 0.0, 0.5])
-
-    def wrench_msg(frame: str, x: np.ndarray) -> WrenchStamped:
-        msg = WrenchStamped()
-        msg.header.frame_id = frame
-        f, m = msg.wrench.force, msg.wrench.torque
-        f.x, f.y, f.z, m.x, m.y, m.z = (float(v) for v in x)
-        return msg
 
     def held(push: np.ndarray, tol: float) -> Callable[[], bool]:
         def cond() -> bool:
@@ -269,13 +279,9 @@ def test_apply_wrench_round_trip(ros_context, spawn):
                     and np.abs(np.array(last.effort[:7]) - expect).max() < tol)
         return cond
 
-    proc = spawn(sim_cmd("apply_wrench_hold:=60.0", "publish_rate_hz:=100.0"))
-    node, got = probe(ros_context)
-    applied = applied_probe(node)
-    pub = node.create_publisher(WrenchStamped, "/dyn_sim/apply_wrench", 10)
+    proc, node, got, applied, pub = pushing(ros_context, spawn, "apply_wrench_hold:=60.0",
+                                            "publish_rate_hz:=100.0")
     try:
-        spin_until(ros_context, node, lambda: len(got["js"]) >= 5 and pub.get_subscription_count() > 0,
-                   30, "dyn_sim to come up")
         pub.publish(wrench_msg("panda_link9", w))
         pub.publish(wrench_msg("panda_link8", w))
         spin_until(ros_context, node, held(w, 1e-4), 30, "the robot to settle against the push")
