@@ -4,8 +4,10 @@
 --out result.json``: per rate, stamp-to-receipt latency p50/p99, loss and the subject's CPU share;
 it stops after the first rate that loses more than 1%. Outputs are subscribed raw and only the
 stamp is read, so the probe keeps up at high rates. Definitions: docs/BENCHMARK_METHODS.md.
-``--effort``: the publisher sends efforts too; ``--also TOPIC``: a second output
-(geometry_msgs/WrenchStamped) whose messages of each window are counted (``also_loss``).
+``--start-after T``: warm up at least until wall time T (s), so that no window holds the
+subject's start-up (docs/BENCHMARK_METHODS.md). ``--effort``: the publisher sends efforts too;
+``--also TOPIC``: a second output (geometry_msgs/WrenchStamped) whose messages of each window
+are counted (``also_loss``).
 """
 from __future__ import annotations
 
@@ -76,6 +78,8 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--effort", action="store_true", help="joint_states carry efforts")
     ap.add_argument("--also", default="", help="a second output (WrenchStamped) to count")
+    ap.add_argument("--start-after", type=float, default=0.0,
+                    help="keep warming up until this wall time (s since the epoch)")
     args = ap.parse_args()
     result: dict = {"output_topic": args.output, "windows": []}
 
@@ -108,7 +112,7 @@ def main() -> None:
         # Warm up until outputs come back (the subject may still be loading its model).
         while True:
             command("run 200 0.5")
-            if len(receiver.stamps) >= 50:
+            if len(receiver.stamps) >= 50 and time.time() >= args.start_after:
                 break
             if time.monotonic() > deadline:
                 raise RuntimeError(f"no output on {args.output} within {args.ready_timeout:.0f} s "
