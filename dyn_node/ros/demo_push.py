@@ -34,7 +34,7 @@ class PushOutcome:
     sent_s: float
     reported_s: float | None = None      # first contact/collision on ~/controller_status
     reported_state: str = ""
-    estimate: np.ndarray | None = None   # mean F̂ over [sent + SETTLED_S, sent + PUSH_S)
+    estimate: np.ndarray | None = None   # mean F̂ over [applied + SETTLED_S, its end)
     estimate_samples: int = 0
     wrenches: list = field(default_factory=list)  # (stamp s, frame_id, F̂)
     truth: list = field(default_factory=list)     # dyn_sim's ~/applied_wrench: (stamp s, link, F)

@@ -247,8 +247,7 @@ class SimNode(Node):
     def _publish(self) -> None:
         self._announce_push()
         st = self.sim.state()
-        ns = self.epoch_ns + int(round(st.t * 1e9))
-        stamp = TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        stamp = self._stamp(self.sim.steps)
         msg = JointState()
         msg.header.stamp = stamp
         msg.name = self._names
