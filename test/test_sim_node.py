@@ -196,7 +196,7 @@ def wrench_of(m) -> np.ndarray:
     return np.array([f.x, f.y, f.z, t.x, t.y, t.z])
 
 
-def wrench_msg(frame: str, x) -> "WrenchStamped":
+def wrench_msg(frame: str, x):
     from geometry_msgs.msg import WrenchStamped
 
     msg = WrenchStamped()
@@ -227,20 +227,22 @@ def pushing(ros_context, spawn, *params: str):
 def applied_probe(node) -> list:
     """dyn_sim's ~/applied_wrench, as it arrives (transient-local, like its publisher)."""
     from geometry_msgs.msg import WrenchStamped
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    from dyn_node.ros.qos import LATCHED_HISTORY
 
     got: list = []
-    node.create_subscription(WrenchStamped, "/dyn_sim/applied_wrench", got.append,
-                             QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
-                                        reliability=ReliabilityPolicy.RELIABLE))
+    node.create_subscription(WrenchStamped, "/dyn_sim/applied_wrench", got.append, LATCHED_HISTORY)
     return got
 
 
 @pytest.mark.timeout(60)
-def test_applied_wrench_ends_when_the_hold_runs_out(ros_context, spawn):
-    """A push held for 0.05 s: ~/applied_wrench says it began and, 50 simulated steps later to
-    the nanosecond, that it ended (a zero wrench at the same link)."""
-    _, node, got, applied, pub = pushing(ros_context, spawn, "apply_wrench_hold:=0.05")
+@pytest.mark.parametrize("hold_steps,rate", [(50, 500.0), (5, 100.0)])
+def test_applied_wrench_ends_when_the_hold_runs_out(ros_context, spawn, hold_steps, rate):
+    """A push held for ``hold_steps`` 1 ms steps: ~/applied_wrench says it began and, that many
+    steps later to the nanosecond, that it ended (a zero wrench at the same link); also when the
+    whole push fits between two joint_states (5 steps at 100 Hz: 10 steps a sample)."""
+    _, node, got, applied, pub = pushing(ros_context, spawn, f"apply_wrench_hold:={hold_steps / 1000}",
+                                         f"publish_rate_hz:={rate}")
     try:
         pub.publish(wrench_msg("panda_hand", [0.0, -12.0, 0.0, 0.0, 0.0, 0.0]))
         spin_until(ros_context, node, lambda: len(applied) >= 2, 30, "the push to start and end")
@@ -249,7 +251,7 @@ def test_applied_wrench_ends_when_the_hold_runs_out(ros_context, spawn):
     assert [m.header.frame_id for m in applied] == ["panda_hand", "panda_hand"]
     np.testing.assert_array_equal(wrench_of(applied[0]), [0.0, -12.0, 0.0, 0.0, 0.0, 0.0])
     np.testing.assert_array_equal(wrench_of(applied[1]), np.zeros(6))
-    assert stamp_ns(applied[1]) - stamp_ns(applied[0]) == 50_000_000
+    assert stamp_ns(applied[1]) - stamp_ns(applied[0]) == hold_steps * 1_000_000
 
 
 @pytest.mark.timeout(90)

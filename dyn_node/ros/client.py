@@ -24,16 +24,14 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from dyn_node.core.limits import LIMIT_KINDS
 from dyn_node.core.status import ERROR, NAME_PREFIX
+from dyn_node.ros.qos import LATCHED_HISTORY
 
 STATUS_NAME = NAME_PREFIX + "trajectory feasibility"  # feasibility.STATUS_NAME, without its imports
-_LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
 _POLL_S = 0.01
 
 
@@ -206,7 +204,7 @@ class DynClient:
         self._pub_check = node.create_publisher(JointTrajectory, f"{ns}/check_trajectory", 10)
         self._pub_states = node.create_publisher(JointTrajectory, f"{ns}/inverse_dynamics_request", 10)
         self._sub_verdict = node.create_subscription(DiagnosticArray, f"{ns}/feasibility", self._on_verdict,
-                                                     _LATCHED, callback_group=group)
+                                                     LATCHED_HISTORY, callback_group=group)
         self._sub_effort = node.create_subscription(JointTrajectory, f"{ns}/trajectory_effort",
                                                     self._on_effort, 100, callback_group=group)
 

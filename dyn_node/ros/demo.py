@@ -356,7 +356,7 @@ class Stack:
         import rclpy
         from rclpy.context import Context
         from rclpy.node import Node
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from dyn_node.ros.qos import LATCHED_HISTORY
         from rclpy.signals import SignalHandlerOptions
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
         from sensor_msgs.msg import JointState
@@ -378,8 +378,6 @@ class Stack:
         self.js_last = self.inv_last = 0          # newest stamps seen (ns)
         self.verdicts: list[tuple[float, Any]] = []
         self.states: list[tuple[float, str]] = []
-        latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
-                             reliability=ReliabilityPolicy.RELIABLE)
         n = model.nv
 
         def on_js(m: JointState) -> None:
@@ -404,7 +402,7 @@ class Stack:
         self.node.create_subscription(JointState, "/dyn_node/inverse_dynamics", on_inv, 1000)
         self.node.create_subscription(
             DiagnosticArray, "/dyn_node/feasibility",
-            lambda m: self.verdicts.append((time.time(), m)), latched)
+            lambda m: self.verdicts.append((time.time(), m)), LATCHED_HISTORY)
         self.node.create_subscription(
             DiagnosticStatus, "/dyn_node/controller_status",
             lambda m: self.states.append((time.time(), next(

@@ -86,7 +86,7 @@ def run_push(stack: Any, traj: Any, say: Callable[[str], None]) -> PushOutcome |
     publishes no ~/external_wrench (no contact monitoring to show)."""
     from geometry_msgs.msg import WrenchStamped
 
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from dyn_node.ros.qos import LATCHED_HISTORY
 
     wrenches: list = []
     truth: list = []
@@ -98,10 +98,8 @@ def run_push(stack: Any, traj: Any, say: Callable[[str], None]) -> PushOutcome |
 
     sub = stack.node.create_subscription(WrenchStamped, "/dyn_node/external_wrench",
                                          lambda m: wrenches.append(entry(m)), 1000)
-    latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
-                         reliability=ReliabilityPolicy.RELIABLE)
     sub_truth = stack.node.create_subscription(WrenchStamped, "/dyn_sim/applied_wrench",
-                                               lambda m: truth.append(entry(m)), latched)
+                                               lambda m: truth.append(entry(m)), LATCHED_HISTORY)
     pub = stack.node.create_publisher(WrenchStamped, "/dyn_sim/apply_wrench", 10)
     try:
         if not stack.spin_until(lambda: wrenches and pub.get_subscription_count() >= 1, 5.0):

@@ -65,6 +65,7 @@ from dyn_node.ros.convert import (JointStateOut, RawTrajectory, WrenchStampedOut
                           s_to_stamp, status_to_msg, stamp_to_s, to_byte, trajectory_arrays,
                           trajectory_header_cdr, verdict_array)
 from dyn_node.ros.params import KINDS, parameter_descriptor
+from dyn_node.ros.qos import LATCHED_HISTORY
 from dyn_node.core.selftest import run_self_test
 from dyn_node.core.settings import MODEL_PARAMETERS, PARAMETERS, SPECS, ParamSpec, Settings, settings_from_mapping
 from dyn_node.core.status import STALE, Status
@@ -77,8 +78,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
 # ~/feasibility keeps the last 10: with depth 1 a burst of answers (a full request queue's
 # 'rejected: busy', several clients' requests) overwrote verdicts a reader had not acknowledged yet
-FEASIBILITY_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+FEASIBILITY_QOS = LATCHED_HISTORY
 
 
 def _descriptor(spec: ParamSpec) -> ParameterDescriptor:

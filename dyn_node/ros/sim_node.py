@@ -46,6 +46,7 @@ from dyn_node.sim.simulator import DEFAULT_DAMPING_RATIO, DEFAULT_NATURAL_FREQUE
 from dyn_node.ros.main import spin_until_signalled
 from dyn_node.core.settings import ParamSpec
 from dyn_node.ros.params import KINDS, parameter_descriptor
+from dyn_node.ros.qos import LATCHED_HISTORY
 
 #: Largest backlog (s) a real-time run catches up. When the process was starved of CPU (a loaded
 #: machine), the steps that were due are computed in a burst with their own evenly spaced stamps,
@@ -141,10 +142,7 @@ class SimNode(Node):
         self.clock_pub = None if self.real_time else self.create_publisher(Clock, "/clock", 10)
         self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10)
         self.create_subscription(WrenchStamped, "~/apply_wrench", self._on_wrench, 10)
-        # every start and end kept for a late or slow reader (transient-local, depth 10)
-        self.applied_pub = self.create_publisher(WrenchStamped, "~/applied_wrench", QoSProfile(
-            depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.applied_pub = self.create_publisher(WrenchStamped, "~/applied_wrench", LATCHED_HISTORY)
         self._announced: Any = None  # the AppliedWrench last said on ~/applied_wrench
 
         self._wrench_inbox: list[WrenchStamped] = []
@@ -188,6 +186,8 @@ class SimNode(Node):
                 self.get_logger().error(f"apply_wrench rejected ({exc.failure_label}, {exc.code}): {exc} "
                                         f"({self.rejected_wrenches} rejected so far)", throttle_duration_sec=1.0)
                 continue
+            # said now: a push shorter than a publish period is over by the next joint_states
+            self._announce_push()
             if push is None:
                 self.get_logger().info("apply_wrench: zero wrench, push ended", throttle_duration_sec=1.0)
             else:
@@ -226,8 +226,9 @@ class SimNode(Node):
         return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
     def _announce_push(self) -> None:
-        """~/applied_wrench on a change of push: the new one stamped with the step it starts
-        acting on, or a zero wrench stamped with the step the last one stopped acting on."""
+        """~/applied_wrench on a change of push (when one is applied, and at each publish for
+        one whose hold ran out): the new one stamped with the step it starts acting on, or a
+        zero wrench stamped with the step the last one stopped acting on."""
         cur, old = self.sim.wrench, self._announced
         if cur is old:
             return
