@@ -159,8 +159,8 @@ def _contact_md(d: dict) -> str:
                    "row (e) not run")
         return f"- contact observer on ((e) ÷ minimal node): not measured ({why})"
     by_pair = d.get("p99_contact_over_minimal_1k_by_pair", [])
-    how = (f"median of {len(by_pair)} runs of (b) and (e) one after the other: "
-           + ", ".join(f"{x:.2f}" for x in by_pair) + "; ") if len(by_pair) > 1 else ""
+    how = (f"median of {len(by_pair)} runs of (b) fed the same efforts and (e) one after the "
+           "other: " + ", ".join(f"{x:.2f}" for x in by_pair) + "; ") if len(by_pair) > 1 else ""
     return (f"- contact observer on: (e) p99 ÷ minimal node p99 at 1 kHz: "
             f"**{c['p99_contact_over_minimal_1k']:.2f}** ({how}target ≤ 1.0; (e) ÷ (c): "
             f"{_ratio(c.get('p99_contact_over_dyn_node_1k'))}); lost at 1 kHz: ~/external_torque "

@@ -243,23 +243,26 @@ def test_task_row_covers_every_issue18_kind() -> None:
 
 def test_live_pairs_and_contact_comparisons(monkeypatch) -> None:
     """The live section's ratios from fake subject rows: the contact row's p99 ratio is the
-    median over the (b)/(e) pairs, its loss the worst run's, the recording overhead over (c)/(d)."""
+    median over pairs of (b) fed efforts and (e) run apart from the rows, its loss the worst
+    run's (the row's included), the recording overhead over (c)/(d)."""
     from benchmarks import detection, live_bench
 
-    p99 = {"bare": [100.0], "minimal": [200.0, 400.0, 100.0, 100.0, 100.0],
+    p99 = {"bare": [100.0], "minimal": [200.0], "minimal_effort": [200.0, 400.0, 100.0, 100.0, 100.0],
            "dyn_node": [100.0, 100.0, 100.0], "dyn_node_record": [100.0] * 3,
-           "dyn_node_contact": [100.0, 800.0, 90.0, 300.0, 50.0]}
-    loss = {"dyn_node_contact": [0.0, 0.02, 0.0, 0.0, 0.0]}
+           "dyn_node_contact": [100.0, 100.0, 800.0, 90.0, 300.0, 50.0]}
+    loss = {"dyn_node_contact": [0.03, 0.0, 0.02, 0.0, 0.0, 0.0]}
     calls: list[str] = []
+    probe_args: dict[str, list[str]] = {}
 
     def fake(s, rates, window, ready_timeout, repeat_first, settle_s=live_bench.SETTLE_S):
         assert settle_s == live_bench.SETTLE_S > 0  # no window holds a subject's start-up
         k = s["key"]
         n = calls.count(k)
         calls.append(k)
+        probe_args[k] = s.get("probe_args", [])
         return dict(key=k, subject=s["name"], what="", status="ok", p99_us_1k=p99[k][n],
                     p50_us_1k=50.0, cpu_share_1k=0.2 + 0.02 * (k == "dyn_node_record"),
-                    cpu_us_per_output_1k=200.0, loss_1k=loss.get(k, [0.0] * 5)[n],
+                    cpu_us_per_output_1k=200.0, loss_1k=loss.get(k, [0.0] * 6)[n],
                     also_loss_1k=0.0, max_rate_no_loss_hz=1000.0, windows=[])
 
     monkeypatch.setattr(live_bench, "run_subject", fake)
@@ -267,9 +270,13 @@ def test_live_pairs_and_contact_comparisons(monkeypatch) -> None:
     monkeypatch.setattr(detection, "run", lambda **kw: dict(status="not available: test"))
     out = live_bench.run()
     c = out["comparisons"]
-    assert calls.count("minimal") == 5 and calls.count("dyn_node_contact") == 5
+    assert calls.count("minimal") == 1 and calls.count("minimal_effort") == live_bench.CONTACT_PAIRS == 5
+    assert calls.count("dyn_node_contact") == 6
+    # both ends of a pair get the same joint_states: (b) is fed efforts like (e)
+    assert "--effort" in probe_args["minimal_effort"] and "--effort" in probe_args["dyn_node_contact"]
+    assert "--effort" not in probe_args["minimal"]
     assert out["p99_contact_over_minimal_1k_by_pair"] == [0.5, 2.0, 0.9, 3.0, 0.5]
-    assert c["p99_contact_over_minimal_1k"] == 0.9 and c["loss_contact_1k"] == 0.02
+    assert c["p99_contact_over_minimal_1k"] == 0.9 and c["loss_contact_1k"] == 0.03
     assert c["p99_contact_over_dyn_node_1k"] == 1.0
     assert out["recording_cpu_overhead_1k_by_pair"] == pytest.approx([0.1] * 3, abs=1e-12)
     assert out["detection"] == {"status": "not available: test"}

@@ -153,6 +153,28 @@ def test_effort_status_levels_and_message():
     np.testing.assert_allclose(st.values["panda_joint2_utilisation"], abs(g[1]) / 87.0, rtol=1e-12)
 
 
+def test_a_closed_window_keeps_its_messages_and_the_next_gets_the_rest():
+    """The node closes a window under its joint_states lock and writes its statuses after
+    releasing it, while messages go on: a message taken in between belongs to the next window."""
+    mon = Monitor(PANDA, Settings())
+    g = Dynamics(PANDA).gravity(Q0)
+    over = g.copy()
+    over[3] = 1.04 * 87.0
+    # more rows than one fold batch, so the closed window holds folded and unfolded rows
+    n = mon._w.FOLD_ROWS + 7
+    for k in range(n):
+        mon.process(NAMES, Q0, np.zeros(7), g, 1.0 + k * 1e-3, 1.0 + k * 1e-3)
+    closed = mon.close_window(2.0, "panda")
+    mon.process(NAMES, Q0, np.zeros(7), over, 2.001, 2.001)
+    first = {s.name: s for s in closed.statuses()}
+    assert first["dyn_node: effort"].level == OK
+    assert first["dyn_node: joint_states"].values["received_messages"] == n
+    np.testing.assert_allclose(first["dyn_node: effort"].values["panda_joint4_utilisation"],
+                               abs(g[3]) / 87.0, rtol=1e-12)
+    second = by_name(mon.statuses(3.0, "panda"), "effort")
+    assert second.level == ERROR and second.values["panda_joint4_utilisation"] == pytest.approx(1.04, abs=1e-12)
+
+
 def test_residual_rms():
     mon = Monitor(PANDA, Settings(residual_warn_ratio=0.1))
     dyn = Dynamics(PANDA)

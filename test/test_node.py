@@ -715,3 +715,94 @@ def test_destroy_stops_the_joint_states_thread(module_ros_context):
     assert node._io_thread.is_alive() and node._sub_js.topic_name == "/teardown/joint_states"
     node.destroy_node()
     assert not node._io_thread.is_alive()
+
+
+def _fed_node(ctx: Context, name: str) -> DynNode:
+    """A DynNode nobody spins, fed 50 joint_states with efforts through its joint_states path."""
+    from rclpy.serialization import serialize_message
+
+    node = DynNode(name, context=ctx, namespace=f"/{name}",
+                   parameter_overrides=[Parameter("robot_model", value="panda")])
+    effort = Dynamics(PANDA).gravity(Q0)
+    for k in range(50):
+        node._take_joint_state(serialize_message(js(NAMES, Q0, V0, effort, stamp=1.0 + k * 1e-3)), None)
+    return node
+
+
+@pytest.mark.timeout(60)
+def test_periodic_outputs_are_written_after_the_joint_states_lock_is_released(module_ros_context, monkeypatch):
+    """The diagnostics and controller-status timers hold the joint_states lock only to close
+    their period: folding the window, the energy kernel, message conversion and publishing run
+    after it, so a joint_states message never waits for them."""
+    from dyn_node.core.contact_monitor import EnergyClose
+    from dyn_node.core.monitor import ClosedWindow
+
+    node = _fed_node(module_ros_context, "lock_scope")
+    try:
+        held: dict[str, bool] = {}
+
+        def spy(cls, name: str, key: str) -> None:
+            orig = getattr(cls, name)
+
+            def wrapped(*a, **k):
+                held[key] = node._io_lock.locked()
+                return orig(*a, **k)
+            monkeypatch.setattr(cls, name, wrapped)
+
+        spy(ClosedWindow, "statuses", "window")
+        spy(EnergyClose, "status", "energy")
+        published: list[tuple[str, bool]] = []
+        orig_publish = node._publish
+        monkeypatch.setattr(node, "_publish", lambda pub, msg: (
+            published.append((pub.topic_name, node._io_lock.locked())), orig_publish(pub, msg)))
+        node._on_diagnostics()
+        node._on_controller_timer()
+        assert held == {"window": False, "energy": False}
+        ctrl = f"{node.get_fully_qualified_name()}/controller_status"
+        assert ("/diagnostics", False) in published and (ctrl, False) in published, published
+        assert all(not locked for topic, locked in published if topic in ("/diagnostics", ctrl)), published
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.timeout(60)
+def test_controller_status_never_goes_out_after_a_newer_one(module_ros_context, monkeypatch):
+    """Both threads publish ~/controller_status, the timer after releasing the joint_states
+    lock: a status made before one that already went out is dropped, not sent late."""
+    from dyn_node.ros.convert import status_to_msg
+
+    node = _fed_node(module_ros_context, "ctrl_order")
+    try:
+        sent: list = []
+        monkeypatch.setattr(node, "_publish", lambda pub, msg: sent.append(msg))
+        core = node._core
+        older = node._controller_status(core, 1.0)
+        newer = node._controller_status(core, 2.0)
+        assert newer[0] > older[0]
+        node._publish_controller_status(*newer)
+        node._publish_controller_status(*older)
+        assert len(sent) == 1
+        assert values(sent[0]) == values(status_to_msg(newer[1])) != values(status_to_msg(older[1]))
+        node._publish_controller_status(*node._controller_status(core, 3.0))
+        assert len(sent) == 2
+    finally:
+        node.destroy_node()
+
+
+def test_main_shortens_the_gil_switch_interval(monkeypatch):
+    """The process entry sets the switch interval before the node spins (and the node class,
+    used inside other programs, leaves it alone)."""
+    import dyn_node.ros.node as node_mod
+
+    seen: list[float] = []
+    monkeypatch.setattr(node_mod, "spin_until_signalled", lambda *a, **k: seen.append(sys.getswitchinterval()) or 0)
+    monkeypatch.setattr(node_mod, "end_process", lambda code: (_ for _ in ()).throw(SystemExit(code)))
+    monkeypatch.setattr(node_mod, "retain_freed_memory", lambda: None)
+    before = sys.getswitchinterval()
+    try:
+        with pytest.raises(SystemExit):
+            node_mod.main([])
+    finally:
+        sys.setswitchinterval(before)
+    assert node_mod.GIL_SWITCH_INTERVAL_S < before
+    assert seen == [pytest.approx(node_mod.GIL_SWITCH_INTERVAL_S, rel=1e-6)]

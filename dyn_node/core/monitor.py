@@ -213,8 +213,8 @@ class Monitor:
                 measured_ratio = max(mrl)
             else:
                 measured_ratio = float(np.fmax.reduce(mr))  # NaN only when every joint is NaN
-        w.rows.append((q, v, model_ratio, lim, mr, residual, a))
-        if len(w.rows) >= w.FOLD_ROWS:
+        nan = self._nan
+        if w.add((q, v, model_ratio, lim, nan if mr is None else mr, nan if residual is None else residual, a)):
             self._fold()
         c.accepted += 1
         w.accepted += 1
@@ -393,8 +393,7 @@ class Monitor:
         return A, ooo, (float(T[-1]), last_v, a_state, filtered)
 
     def _fold(self) -> None:
-        self._w.fold(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel, self._nan,
-                     dec=self._dec)
+        self._fold_window(self._w)
 
     def reject_message(self, exc: InputError, receipt_s: float) -> SampleResult:
         """A message taken but unusable before :meth:`process` could read it (e.g. bytes that
@@ -425,19 +424,21 @@ class Monitor:
     # --- reports -------------------------------------------------------------------------
     def statuses(self, now_s: float, hardware_id: str) -> list[Status]:
         """joint_states, effort, limits and residual statuses for the window ending at ``now_s``;
-        starts a new window."""
-        self._fold()
-        w = self._w
-        out = [self._joint_states_status(now_s, hardware_id)]
-        if w.accepted == 0:
-            msg = "no accepted joint_states since the last report"
-            for name in (EFFORT, LIMITS, RESIDUAL):
-                out.append(Status(name, STALE, msg, hardware_id, {"failure_label": STATE_ERROR}))
-        else:
-            out += [self._effort_status(hardware_id), self._limits_status(hardware_id),
-                    self._residual_status(hardware_id)]
+        starts a new window (:meth:`close_window` then :meth:`ClosedWindow.statuses`)."""
+        return self.close_window(now_s, hardware_id).statuses()
+
+    def close_window(self, now_s: float, hardware_id: str) -> ClosedWindow:
+        """End the window at ``now_s`` and start the next; the cheap half of :meth:`statuses`,
+        for under the node's joint_states lock. The joint_states status reads the running
+        counts, so it is made here; the window's rows are folded and the other statuses
+        written by :meth:`ClosedWindow.statuses`, which the next messages do not wait for."""
+        js = self._joint_states_status(now_s, hardware_id)
+        closed = ClosedWindow(self, self._w, js, hardware_id)
         self._w = Window(self._nv, now_s)
-        return out
+        return closed
+
+    def _fold_window(self, w: Window) -> None:
+        w.fold(self._lo, self._hi, self._slo, self._shi, self._soft_distinct, self._vel, dec=self._dec)
 
     def _joint_states_status(self, now_s: float, hid: str) -> Status:
         c, w = self.counts, self._w
@@ -479,8 +480,8 @@ class Monitor:
             vals["failure_label"] = STATE_ERROR
         return Status(JOINT_STATES, level, msg, hid, vals)
 
-    def _effort_status(self, hid: str) -> Status:
-        w, s = self._w, self.settings
+    def _effort_status(self, w: Window, hid: str) -> Status:
+        s = self.settings
         vals: dict = {}
         for i, n in enumerate(self._names):
             vals[f"{n}_utilisation"] = float(w.util[i])
@@ -503,8 +504,8 @@ class Monitor:
         return Status(EFFORT, OK, f"worst {self._names[j]} at {worst * 100:.0f}% of its effort limit",
                       hid, vals)
 
-    def _limits_status(self, hid: str) -> Status:
-        w, lim = self._w, self.model.limits
+    def _limits_status(self, w: Window, hid: str) -> Status:
+        lim = self.model.limits
         pos = np.flatnonzero(w.pos_excess > 0)
         vel = np.flatnonzero(w.vel_excess > 0)
         soft = np.flatnonzero(w.soft_excess > 0)
@@ -544,8 +545,8 @@ class Monitor:
             return Status(LIMITS, level, all_lines[0] + more, hid, vals)
         return Status(LIMITS, OK, "positions and velocities within limits", hid, vals)
 
-    def _residual_status(self, hid: str) -> Status:
-        w, s = self._w, self.settings
+    def _residual_status(self, w: Window, hid: str) -> Status:
+        s = self.settings
         have = w.res_n > 0
         if not have.any():
             return Status(RESIDUAL, OK, "effort not measured: no residual", hid, {"effort_measured": False})
@@ -572,4 +573,24 @@ class Monitor:
                       hid, vals)
 
 
-__all__ = ["Monitor", "JOINT_STATES", "EFFORT", "LIMITS", "RESIDUAL"]
+class ClosedWindow:
+    """One ended diagnostics window (:meth:`Monitor.close_window`): its joint_states status,
+    and its rows still to fold into the effort, limits and residual statuses."""
+
+    def __init__(self, monitor: Monitor, window: Window, joint_states: Status, hardware_id: str):
+        self._monitor, self._w, self._js, self._hid = monitor, window, joint_states, hardware_id
+
+    def statuses(self) -> list[Status]:
+        """joint_states, effort, limits and residual; folds the rows (call once)."""
+        m, w, hid = self._monitor, self._w, self._hid
+        out = [self._js]
+        if w.accepted == 0:
+            msg = "no accepted joint_states since the last report"
+            for name in (EFFORT, LIMITS, RESIDUAL):
+                out.append(Status(name, STALE, msg, hid, {"failure_label": STATE_ERROR}))
+            return out
+        m._fold_window(w)
+        return out + [m._effort_status(w, hid), m._limits_status(w, hid), m._residual_status(w, hid)]
+
+
+__all__ = ["Monitor", "ClosedWindow", "JOINT_STATES", "EFFORT", "LIMITS", "RESIDUAL"]

@@ -7,9 +7,12 @@ import numpy as np
 class Window:
     """Worst cases since the last report (reset by :meth:`Monitor.statuses`).
 
-    Accepted messages are queued as rows (references to their result arrays) and folded into the
-    worst cases in batches by :meth:`fold`; the fold gives exactly the state a message-by-message
-    update would (earliest maximum wins, NaN never wins, squares summed in message order)."""
+    Accepted messages are copied as rows into a block (:meth:`add`) and folded into the worst
+    cases in batches by :meth:`fold`; the fold gives exactly the state a message-by-message
+    update would (earliest maximum wins, NaN never wins, squares summed in message order). A
+    copy per message costs what gathering a list of rows into arrays at the fold did, but the
+    fold then holds the interpreter for a fraction of the time: the node folds a closed window
+    while the next messages are being handled."""
 
     FOLD_ROWS = 512
 
@@ -30,9 +33,17 @@ class Window:
         self.dec_value = np.zeros(nv)
         self.res_sq = np.zeros(nv)
         self.res_n = np.zeros(nv, dtype=np.int64)
-        # (q, v, model ratio |τ|/limit, limit, measured ratio | None, residual | None, â) per
-        # message
-        self.rows: list[tuple] = []
+        # per message (q, v, model ratio |τ|/limit, limit, measured ratio, residual, â), NaN
+        # where not measured; rows [0, n_rows) are not folded yet
+        self._rows = np.empty((self.FOLD_ROWS, 7, nv))
+        self.n_rows = 0
+
+    def add(self, row: tuple) -> bool:
+        """Queue one message's row (7 arrays of nv, as above); True when the block is full and
+        must be folded before the next."""
+        self._rows[self.n_rows] = row
+        self.n_rows += 1
+        return self.n_rows == self.FOLD_ROWS
 
     @staticmethod
     def _worst(x: np.ndarray, best: np.ndarray, *targets: tuple[np.ndarray, np.ndarray]) -> None:
@@ -48,20 +59,15 @@ class Window:
             for dst, src in targets:
                 dst[b] = src[k, cols][b]
 
-    def fold(self, lo, hi, slo, shi, soft: bool, vel, nan_row: np.ndarray, *,
-             dec: np.ndarray | None = None) -> None:
-        rows = self.rows
-        if not rows:
+    def fold(self, lo, hi, slo, shi, soft: bool, vel, *, dec: np.ndarray | None = None) -> None:
+        """Fold the queued rows into the worst cases."""
+        n = self.n_rows
+        if not n:
             return
-        self.rows = []
-        Q = np.array([r[0] for r in rows])
-        V = np.array([r[1] for r in rows])
-        UM = np.array([r[2] for r in rows])
-        L = np.array([r[3] for r in rows])
-        MR = np.array([nan_row if r[4] is None else r[4] for r in rows])
-        R = np.array([nan_row if r[5] is None else r[5] for r in rows])
-        A = np.array([r[6] for r in rows]) if dec is not None else None
-        self.fold_arrays(lo, hi, slo, shi, soft, vel, Q, V, UM, L, MR, R, dec=dec, A=A)
+        self.n_rows = 0
+        Q, V, UM, L, MR, R, A = (self._rows[:n, j] for j in range(7))
+        self.fold_arrays(lo, hi, slo, shi, soft, vel, Q, V, UM, L, MR, R, dec=dec,
+                         A=A if dec is not None else None)
 
     def fold_arrays(self, lo, hi, slo, shi, soft: bool, vel, Q, V, UM, L, MR, R, *,
                     dec: np.ndarray | None = None, A: np.ndarray | None = None) -> None:

@@ -23,6 +23,7 @@ import collections
 import math
 import queue
 import struct
+import sys
 import threading
 import time
 import traceback
@@ -184,6 +185,10 @@ class DynNode(Node):
         qos = QoSProfile(depth=self.settings.qos_depth, reliability=JOINT_STATES_QOS_RELIABILITY,
                          history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
         self._io_lock = threading.Lock()
+        # ~/controller_status goes out from both threads: each status is numbered under _io_lock
+        # and published under this lock only if nothing newer went out first
+        self._ctrl_lock = threading.Lock()
+        self._ctrl_seq = self._ctrl_sent = 0
         self._clock_handle = self.get_clock().handle
         self._io_node = Node("_dyn_node_io", context=self.context, namespace=self.get_namespace(),
                              use_global_arguments=False, enable_rosout=False,
@@ -211,7 +216,11 @@ class DynNode(Node):
         self._requests_closed = False
         self._srv_self_test = self.create_service(SelfTest, "~/self_test", self._on_self_test)
         self._diag_timer = self.create_timer(s.diagnostics_period, self._on_diagnostics)
-        self._ctrl_timer = self.create_timer(s.controller_status_period, self._on_controller_timer)
+        # ~/controller_status ticks on the joint_states thread's wait set, on this node's clock
+        # (sim time included): on the executor each 10 Hz tick cost a full wait-set rebuild
+        # holding the GIL for ~0.6 ms, 10 times the tick itself (docs/BENCHMARK_METHODS.md)
+        self._ctrl_timer = self._io_node.create_timer(s.controller_status_period, self._on_controller_timer,
+                                                      clock=self.get_clock())
 
     def _start_workers(self) -> None:
         self._jobs: queue.Queue = queue.Queue(maxsize=64)
@@ -342,8 +351,10 @@ class DynNode(Node):
             self.destroy_timer(self._diag_timer)
             self._diag_timer = self.create_timer(new.diagnostics_period, self._on_diagnostics)
         if new.controller_status_period != old.controller_status_period:
-            self.destroy_timer(self._ctrl_timer)
-            self._ctrl_timer = self.create_timer(new.controller_status_period, self._on_controller_timer)
+            # in place (the joint_states thread may be waiting on it), restarted at the new period
+            self._ctrl_timer.timer_period_ns = int(round(new.controller_status_period * 1e9))
+            self._ctrl_timer.reset()
+            self._io_wake.trigger()
         return SetParametersResult(successful=True)
 
     # --- publishing ------------------------------------------------------------------------
@@ -383,25 +394,27 @@ class DynNode(Node):
             return io.create_subscription(JointState, topic, self._on_joint_state, qos, raw=True)
 
     def _io_loop(self) -> None:
-        """The joint_states thread: a wait set of just the subscription, its QoS events and a
-        wake-up guard, rebuilt cheaply each time (what rclpy's executor does for every entity
-        of a node, generically and at several times the cost). Falls back to an executor."""
-        sub, wake, ctx = self._sub_js, self._io_wake, self.context
+        """The joint_states thread: a wait set of just the subscription, its QoS events, the
+        controller-status timer and a wake-up guard, rebuilt cheaply each time (what rclpy's
+        executor does for every entity of a node, generically and at several times the cost).
+        Falls back to an executor."""
+        sub, wake, ctx, timer = self._sub_js, self._io_wake, self.context, self._ctrl_timer
         handlers = list(getattr(sub, "event_handlers", ()))
         try:
             n_events = sum(h.get_num_entities().num_events for h in handlers)
             with ctx.handle:
-                ws = _rclpy.WaitSet(1, 1, 0, 0, 0, n_events, ctx.handle)
+                ws = _rclpy.WaitSet(1, 1, 1, 0, 0, n_events, ctx.handle)
         except Exception:  # an rclpy without this internal API
             self._io_spin_executor()
             return
         failures = 0
         while not self._io_stop.is_set():
             try:
-                with ctx.handle, sub.handle, wake.handle:
+                with ctx.handle, sub.handle, wake.handle, timer.handle:
                     ws.clear_entities()
                     ws.add_subscription(sub.handle)
                     ws.add_guard_condition(wake.handle)
+                    ws.add_timer(timer.handle)
                     for h in handlers:
                         h.add_to_wait_set(ws)
                     ws.wait(100_000_000)  # 0.1 s: the stop flag is seen even without a wake-up
@@ -414,6 +427,10 @@ class DynNode(Node):
                     first = self._take_pending()
                     if first is not None:
                         self._on_joint_state(first[0], first[1])
+                if ws.get_ready_entities("timer"):
+                    with timer.handle:
+                        timer.handle.call_timer()
+                    self._on_controller_timer()
                 failures = 0
             except Exception:  # context shut down under us, or a bug: never a dead thread
                 if self._io_stop.is_set() or not ctx.ok():
@@ -556,7 +573,7 @@ class DynNode(Node):
             else:
                 self.get_logger().warn(f"joint_states rejected: {r.error}", throttle_duration_sec=5.0)
             if core.tracker.update(r, receipt):
-                self._publish_controller_status(core, receipt)
+                self._publish_controller_status(*self._controller_status(core, receipt))
         except Exception:  # a bug must not kill the executor; it is counted and logged
             self._callback_failed("joint_states callback")
 
@@ -608,15 +625,17 @@ class DynNode(Node):
         else:
             out = [model_status(core.model, hid)]
         if core is not None:
+            if now_ns is None:
+                now_ns = int(round(now * 1e9))
+            # under the joint_states lock only what the next message changes; the window's fold,
+            # the frame kernel and the text are written after it, while messages flow
             with self._io_lock:
-                out += core.monitor.statuses(now, hid)
-                if now_ns is None:
-                    now_ns = int(round(now * 1e9))
-                out.append(core.contact.contact_status(now_ns, hid))
+                window = core.monitor.close_window(now, hid)
+                contact = core.contact.contact_status(now_ns, hid)
                 energy = core.contact.close_energy_period(now_ns)
                 self._publish_events(core)  # the period just closed
-            # the frame kernel over the period's states: off the joint_states lock
-            out.append(energy.status(hid))
+            out += window.statuses()
+            out += [contact, energy.status(hid)]
         else:
             out.append(Status(JOINT_STATES, STALE, "no robot model yet: joint_states cannot be used", hid,
                               {"received_messages": self._counts.received,
@@ -646,18 +665,27 @@ class DynNode(Node):
         except Exception:
             self._callback_failed("diagnostics")
 
-    def _publish_controller_status(self, core: _Core, now_s: float) -> None:
-        self._publish(self._pub_controller, status_to_msg(core.tracker.status(now_s, core.model.name)))
+    def _controller_status(self, core: _Core, now_s: float) -> tuple[int, Status]:
+        """The tracker's status now and its number (under ``_io_lock``)."""
+        self._ctrl_seq += 1
+        return self._ctrl_seq, core.tracker.status(now_s, core.model.name)
+
+    def _publish_controller_status(self, seq: int, status: Status) -> None:
+        with self._ctrl_lock:
+            if seq > self._ctrl_sent:  # else a newer status already went out
+                self._ctrl_sent = seq
+                self._publish(self._pub_controller, status_to_msg(status))
 
     def _on_controller_timer(self) -> None:
         core = self._core
         if core is None:
             return
         try:
-            with self._io_lock:
+            with self._io_lock:  # the message conversion and publish after it, outside the lock
                 now = self._now_s()
                 core.tracker.tick(now)
-                self._publish_controller_status(core, now)
+                out = self._controller_status(core, now)
+            self._publish_controller_status(*out)
         except Exception:
             self._callback_failed("controller status")
 
@@ -901,6 +929,12 @@ def _run_coroutine(coro: Any) -> None:
         coro.close()
 
 
+#: how long a thread holding the GIL keeps a thread that waits for it (s; CPython's default is
+#: 5 ms): the joint_states thread then waits at most about this long for a timer or service
+#: callback running Python on the executor thread (docs/BENCHMARK_METHODS.md, issue 19)
+GIL_SWITCH_INTERVAL_S = 2e-4
+
+
 def main(args: list[str] | None = None) -> NoReturn:
     """Entry point of ``ros2 run dyn_node dyn_node``: spin until SIGINT/SIGTERM, then clean up
     and exit (without the interpreter's finalization: :func:`dyn_node.ros.main.end_process`).
@@ -910,6 +944,7 @@ def main(args: list[str] | None = None) -> NoReturn:
     with exit code 2 and a one-line error instead of a traceback.
     """
     retain_freed_memory()     # each trajectory check then reuses the last one's pages
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # the process's, so here and not in DynNode
     end_process(spin_until_signalled(DynNode, args, "dyn_node", fatal=(
         InvalidParameterValueException, InvalidParameterTypeException, SettingsError)))
 
