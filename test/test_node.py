@@ -320,6 +320,27 @@ def test_parameters_validated_and_applied_whole(panda):
     expect_torques(panda, s)
 
 
+@pytest.mark.timeout(60)
+def test_controller_status_period_changed_live(panda):
+    """~/controller_status ticks on the joint_states thread's timer: a new period applies to
+    that timer in place, and the status keeps coming at the new rate."""
+    n_ctrl = lambda: len(panda.got["ctrl"])  # noqa: E731
+    try:
+        assert panda.set_params([Parameter("controller_status_period", value=0.4)])[0].successful
+        assert panda.node._ctrl_timer.timer_period_ns == 400_000_000
+        slow0, t0 = n_ctrl(), time.monotonic()
+        assert panda.wait(lambda: n_ctrl() >= slow0 + 3, 10)
+        slow_s = (time.monotonic() - t0) / (n_ctrl() - slow0)
+        assert panda.set_params([Parameter("controller_status_period", value=0.02)])[0].successful
+        assert panda.node._ctrl_timer.timer_period_ns == 20_000_000
+        fast0, t0 = n_ctrl(), time.monotonic()
+        assert panda.wait(lambda: n_ctrl() >= fast0 + 20, 10)
+        fast_s = (time.monotonic() - t0) / (n_ctrl() - fast0)
+        assert fast_s < slow_s / 3, (fast_s, slow_s)   # 20× the rate, with room for a busy machine
+    finally:
+        panda.set_params([Parameter("controller_status_period", value=0.05)])
+
+
 @pytest.mark.timeout(90)
 def test_trajectory_tracking_status_and_effort(panda):
     now = panda.probe.get_clock().now().nanoseconds * 1e-9

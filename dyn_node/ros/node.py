@@ -5,9 +5,10 @@ diagnostics are listed in the README. Everything numeric happens in the pure cor
 converts messages, owns timers, publishers and parameters, and swaps immutable pieces atomically.
 
 Threads: joint_states are taken on a thread of their own (a hidden helper node ``_dyn_node_io``
-holding only that subscription, waited on by a minimal wait set: rclpy's executor would rebuild
-its wait set over all ~30 entities of this node on every message); timers, services, parameters
-and the other subscriptions run on the executor that spins this node. A callback never sees a
+holding only that subscription and the controller-status timer, waited on by a minimal wait
+set: rclpy's executor would rebuild its wait set over all ~30 entities of this node on every
+wake-up); the diagnostics timer, services, parameters and the other subscriptions run on the
+executor that spins this node. A callback never sees a
 half-applied model or settings: a new model is built aside and one reference, ``self._core``, is
 replaced, and each message reads it once. ``_io_lock`` serialises each message's work with the
 timers and the workers that read or feed the same monitor, tracker and recorder. Trajectory
@@ -218,7 +219,7 @@ class DynNode(Node):
         self._diag_timer = self.create_timer(s.diagnostics_period, self._on_diagnostics)
         # ~/controller_status ticks on the joint_states thread's wait set, on this node's clock
         # (sim time included): on the executor each 10 Hz tick cost a full wait-set rebuild
-        # holding the GIL for ~0.6 ms, 10 times the tick itself (docs/BENCHMARK_METHODS.md)
+        # holding the GIL for ~0.6 ms, 10 times the tick itself (docs/INTERNALS.md)
         self._ctrl_timer = self._io_node.create_timer(s.controller_status_period, self._on_controller_timer,
                                                       clock=self.get_clock())
 
@@ -931,7 +932,7 @@ def _run_coroutine(coro: Any) -> None:
 
 #: how long a thread holding the GIL keeps a thread that waits for it (s; CPython's default is
 #: 5 ms): the joint_states thread then waits at most about this long for a timer or service
-#: callback running Python on the executor thread (docs/BENCHMARK_METHODS.md, issue 19)
+#: callback running Python on the executor thread (docs/INTERNALS.md)
 GIL_SWITCH_INTERVAL_S = 2e-4
 
 
