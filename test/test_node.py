@@ -827,3 +827,39 @@ def test_main_shortens_the_gil_switch_interval(monkeypatch):
         sys.setswitchinterval(before)
     assert node_mod.GIL_SWITCH_INTERVAL_S < before
     assert seen == [pytest.approx(node_mod.GIL_SWITCH_INTERVAL_S, rel=1e-6)]
+
+
+@pytest.mark.timeout(60)
+def test_controller_status_ticks_on_sim_time(module_ros_context):
+    """The controller-status timer lives on the joint_states thread but keeps the node's clock:
+    under use_sim_time it ticks as /clock advances and not while /clock stands still."""
+    from rosgraph_msgs.msg import Clock
+
+    from conftest import NodeHarness
+
+    h = NodeHarness(module_ros_context, "/simtick", [
+        Parameter("robot_model", value="panda"), Parameter("use_sim_time", value=True),
+        Parameter("controller_status_period", value=0.1)])
+    try:
+        clock_pub = h.probe.create_publisher(Clock, "/clock", 10)
+        h.got["ctrl"] = []
+        h.sub("ctrl", DiagnosticStatus, "dyn_node/controller_status", 100)
+        h.start(lambda: clock_pub.get_subscription_count() >= 1
+                and h.probe.count_publishers("/simtick/dyn_node/controller_status") >= 1)
+
+        def clock(t: float) -> None:
+            clock_pub.publish(Clock(clock=t_msg(t)))
+            assert h.wait(lambda: abs(h.node.get_clock().now().nanoseconds * 1e-9 - t) < 1e-6, 5), t
+
+        clock(100.0)
+        time.sleep(0.3)  # what the start and the jump to 100 s tick goes out first
+        still = len(h.got["ctrl"])
+        time.sleep(1.0)  # 10 periods of wall time, none of sim time
+        assert len(h.got["ctrl"]) - still <= 1, len(h.got["ctrl"]) - still
+        before = len(h.got["ctrl"])
+        for k in range(1, 41):  # 2 s of sim time in 0.05 s steps
+            clock(100.0 + 0.05 * k)
+        assert h.wait(lambda: len(h.got["ctrl"]) - before >= 15, 5), len(h.got["ctrl"]) - before
+        assert len(h.got["ctrl"]) - before <= 25
+    finally:
+        h.close()
