@@ -13,6 +13,8 @@ from typing import Callable
 import numpy as np
 import pytest
 import rclpy
+import rclpy.clock
+import rclpy.task
 from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from diagnostic_msgs.srv import SelfTest
@@ -851,10 +853,17 @@ def test_controller_status_ticks_on_sim_time(module_ros_context):
             clock_pub.publish(Clock(clock=t_msg(t)))
             assert h.wait(lambda: abs(h.node.get_clock().now().nanoseconds * 1e-9 - t) < 1e-6, 5), t
 
-        clock(100.0)
-        time.sleep(0.3)  # what the start and the jump to 100 s tick goes out first
+        clock(100.0)  # the jump from 0 to 100 s makes the timer due once
+        assert h.wait(lambda: len(h.got["ctrl"]) >= 1, 5), "no tick for the jump to 100 s"
         still = len(h.got["ctrl"])
-        time.sleep(1.0)  # 10 periods of wall time, none of sim time
+        # a wall-clock timer with the same period, beside it: 10 of its ticks, none of sim time
+        wall_ticks: list[int] = []
+        done = rclpy.task.Future()
+        steady = h.probe.create_timer(0.1, lambda: (wall_ticks.append(1), len(wall_ticks) >= 10
+                                                    and done.set_result(True)),
+                                      clock=rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME))
+        assert h.wait(done.done, 10), "the wall-clock timer did not tick"
+        h.probe.destroy_timer(steady)
         assert len(h.got["ctrl"]) - still <= 1, len(h.got["ctrl"]) - still
         before = len(h.got["ctrl"])
         for k in range(1, 41):  # 2 s of sim time in 0.05 s steps
