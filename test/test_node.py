@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from typing import Callable
 
@@ -789,27 +790,22 @@ def test_periodic_outputs_are_written_after_the_joint_states_lock_is_released(mo
 
 
 @pytest.mark.timeout(60)
-def test_controller_status_never_goes_out_after_a_newer_one(module_ros_context, monkeypatch):
-    """Both threads publish ~/controller_status, the timer after releasing the joint_states
-    lock: a status made before one that already went out is dropped, not sent late."""
-    from dyn_node.ros.convert import status_to_msg
+def test_controller_status_goes_out_from_the_joint_states_thread_only(panda, monkeypatch):
+    """~/controller_status is published on a state change (per message) and by its timer: both
+    on the joint_states thread, so its statuses go out in the order they were made."""
+    ctrl = f"{panda.node.get_fully_qualified_name()}/controller_status"
+    threads: list[str] = []
+    publish = panda.node._publish
 
-    node = _fed_node(module_ros_context, "ctrl_order")
-    try:
-        sent: list = []
-        monkeypatch.setattr(node, "_publish", lambda pub, msg: sent.append(msg))
-        core = node._core
-        older = node._controller_status(core, 1.0)
-        newer = node._controller_status(core, 2.0)
-        assert newer[0] > older[0]
-        node._publish_controller_status(*newer)
-        node._publish_controller_status(*older)
-        assert len(sent) == 1
-        assert values(sent[0]) == values(status_to_msg(newer[1])) != values(status_to_msg(older[1]))
-        node._publish_controller_status(*node._controller_status(core, 3.0))
-        assert len(sent) == 2
-    finally:
-        node.destroy_node()
+    def spy(pub, msg) -> None:
+        if pub.topic_name == ctrl:
+            threads.append(threading.current_thread().name)
+        publish(pub, msg)
+    monkeypatch.setattr(panda.node, "_publish", spy)
+    start = len(panda.got["ctrl"])
+    expect_torques(panda, send_valid(panda))  # joint_states through DDS: the thread's own work
+    assert panda.wait(lambda: len(threads) >= 5 and len(panda.got["ctrl"]) >= start + 5, 10), threads
+    assert set(threads) == {panda.node._io_thread.name}, set(threads)
 
 
 def test_main_shortens_the_gil_switch_interval(monkeypatch):

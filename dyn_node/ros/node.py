@@ -186,10 +186,6 @@ class DynNode(Node):
         qos = QoSProfile(depth=self.settings.qos_depth, reliability=JOINT_STATES_QOS_RELIABILITY,
                          history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
         self._io_lock = threading.Lock()
-        # ~/controller_status goes out from both threads: each status is numbered under _io_lock
-        # and published under this lock only if nothing newer went out first
-        self._ctrl_lock = threading.Lock()
-        self._ctrl_seq = self._ctrl_sent = 0
         self._clock_handle = self.get_clock().handle
         self._io_node = Node("_dyn_node_io", context=self.context, namespace=self.get_namespace(),
                              use_global_arguments=False, enable_rosout=False,
@@ -574,7 +570,7 @@ class DynNode(Node):
             else:
                 self.get_logger().warn(f"joint_states rejected: {r.error}", throttle_duration_sec=5.0)
             if core.tracker.update(r, receipt):
-                self._publish_controller_status(*self._controller_status(core, receipt))
+                self._publish_controller_status(core.tracker.status(receipt, core.model.name))
         except Exception:  # a bug must not kill the executor; it is counted and logged
             self._callback_failed("joint_states callback")
 
@@ -666,16 +662,10 @@ class DynNode(Node):
         except Exception:
             self._callback_failed("diagnostics")
 
-    def _controller_status(self, core: _Core, now_s: float) -> tuple[int, Status]:
-        """The tracker's status now and its number (under ``_io_lock``)."""
-        self._ctrl_seq += 1
-        return self._ctrl_seq, core.tracker.status(now_s, core.model.name)
-
-    def _publish_controller_status(self, seq: int, status: Status) -> None:
-        with self._ctrl_lock:
-            if seq > self._ctrl_sent:  # else a newer status already went out
-                self._ctrl_sent = seq
-                self._publish(self._pub_controller, status_to_msg(status))
+    def _publish_controller_status(self, status: Status) -> None:
+        # only ever on the joint_states thread (state changes and the timer in its wait set),
+        # so the statuses go out in the order they were made
+        self._publish(self._pub_controller, status_to_msg(status))
 
     def _on_controller_timer(self) -> None:
         core = self._core
@@ -685,8 +675,8 @@ class DynNode(Node):
             with self._io_lock:  # the message conversion and publish after it, outside the lock
                 now = self._now_s()
                 core.tracker.tick(now)
-                out = self._controller_status(core, now)
-            self._publish_controller_status(*out)
+                status = core.tracker.status(now, core.model.name)
+            self._publish_controller_status(status)
         except Exception:
             self._callback_failed("controller status")
 
