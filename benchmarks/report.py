@@ -1,4 +1,4 @@
-"""Markdown from bench.json: docs/BENCHMARKS.md, the README section and the terminal tables."""
+"""Markdown from bench.json: docs/BENCHMARKS.md, the summary in docs/performance.md and the terminal tables."""
 from __future__ import annotations
 
 import math
@@ -373,8 +373,9 @@ def render(doc: dict) -> str:
     return "\n".join(parts)
 
 
-def summary_md(doc: dict) -> str:
-    """The short version for the README, between the BENCH markers."""
+def summary_md(doc: dict, *, full_page: str = "BENCHMARKS.md") -> str:
+    """The short version for the summary page, between the BENCH markers; ``full_page`` is the
+    generated page's path relative to the summary page's directory (its link must resolve)."""
     lines = [machine_md(doc), ""]
     rows = []
     dyn = doc["sections"].get("dynamics", {}).get("result")
@@ -439,7 +440,7 @@ def summary_md(doc: dict) -> str:
         rows.append(["fleet", fl.get("status", "")])
     lines.append(_table(["measured", "result"], rows))
     lines += ["", "Full tables, what each row measures, and the raw figures: "
-              "[docs/BENCHMARKS.md](docs/BENCHMARKS.md), `bench_out/bench.json`."]
+              f"[{full_page}]({full_page}), `bench_out/bench.json`."]
     return "\n".join(lines)
 
 

@@ -83,14 +83,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", help=f"comma-separated sections: {','.join(SECTION_NAMES)}")
     ap.add_argument("--quick", action="store_true", help="smaller sizes and shorter windows")
     ap.add_argument("--render-only", action="store_true",
-                    help="measure nothing: regenerate the docs and README section from bench.json")
+                    help="measure nothing: regenerate the docs and the summary section from bench.json")
     ap.add_argument("--smoke", action="store_true",
                     help="tiny sizes to check the harness runs (the test suite); figures meaningless")
     ap.add_argument("--out", default=str(REPO / "bench_out"), help="directory for bench.json")
     ap.add_argument("--docs", default=str(REPO / "docs" / "BENCHMARKS.md"),
                     help="generated markdown ('' to skip)")
-    ap.add_argument("--readme", default=str(REPO / "README.md"),
-                    help="README whose BENCH markers are refreshed ('' to skip)")
+    ap.add_argument("--summary", "--readme", dest="summary", default=str(REPO / "docs" / "performance.md"),
+                    help="page whose BENCH markers are refreshed ('' to skip)")
     args = ap.parse_args(argv)
     names = parse_only(args.only)
     t0 = time.perf_counter()
@@ -119,11 +119,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.docs:
         Path(args.docs).parent.mkdir(parents=True, exist_ok=True)
         Path(args.docs).write_text(md)
-    readme_done = bool(args.readme) and report.replace_between_markers(Path(args.readme),
-                                                                         report.summary_md(doc))
+    summary_done = False
+    if args.summary:
+        # the summary links the full page, relative to where the summary lives
+        full = os.path.relpath(args.docs or REPO / "docs" / "BENCHMARKS.md", Path(args.summary).parent)
+        summary_done = report.replace_between_markers(
+            Path(args.summary), report.summary_md(doc, full_page=Path(full).as_posix()))
     print(md)
     print(f"\nraw figures: {json_path}" + (f"; docs: {args.docs}" if args.docs else "")
-          + ("; README section refreshed" if readme_done else "; README: no BENCH markers, untouched"))
+          + (f"; summary refreshed in {args.summary}" if summary_done
+             else "; summary: no page with BENCH markers, untouched"))
     print(f"total wall time: {time.perf_counter() - t0:.1f} s")
     return 0
 

@@ -118,28 +118,30 @@ def test_proc_readers_see_this_process() -> None:
     assert read_vm(os.getpid(), "VmHWM") >= read_vm(os.getpid(), "VmRSS") > 1.0
 
 
-def test_readme_markers_replaced_only_between_them(tmp_path) -> None:
-    readme = tmp_path / "README.md"
-    assert not report.replace_between_markers(readme, "x")
-    readme.write_text("intro\n")
-    assert not report.replace_between_markers(readme, "x")
-    assert readme.read_text() == "intro\n"
-    readme.write_text(f"intro\n{report.BEGIN}\nold\n{report.END}\noutro\n")
-    assert report.replace_between_markers(readme, "new table")
-    assert readme.read_text() == f"intro\n{report.BEGIN}\nnew table\n{report.END}\noutro\n"
+def test_summary_markers_replaced_only_between_them(tmp_path) -> None:
+    summary = tmp_path / "performance.md"
+    assert not report.replace_between_markers(summary, "x")
+    summary.write_text("intro\n")
+    assert not report.replace_between_markers(summary, "x")
+    assert summary.read_text() == "intro\n"
+    summary.write_text(f"intro\n{report.BEGIN}\nold\n{report.END}\noutro\n")
+    assert report.replace_between_markers(summary, "new table")
+    assert summary.read_text() == f"intro\n{report.BEGIN}\nnew table\n{report.END}\noutro\n"
 
 
 @pytest.mark.timeout(120)
 def test_bench_harness_smoke(tmp_path, ros_domain: int) -> None:
     """`python -m benchmarks.run --smoke` over dynamics, live (bare republisher only) and
-    feasibility (one measuring process each way) writes bench.json, the docs page and the README
-    section; every dynamics peer agreed with dyn_node."""
-    readme = tmp_path / "README.md"
-    readme.write_text(f"# x\n{report.BEGIN}\n{report.END}\n")
+    feasibility (one measuring process each way) writes bench.json, the docs page and the summary
+    section, whose link to the docs page resolves from where it lives; every dynamics peer agreed
+    with dyn_node."""
+    summary = tmp_path / "summary" / "performance.md"
+    summary.parent.mkdir()
+    summary.write_text(f"# x\n{report.BEGIN}\n{report.END}\n")
     env = dict(os.environ, DYN_BENCH_DOMAIN=str(ros_domain))
     p = subprocess.run([sys.executable, "-m", "benchmarks.run", "--smoke", "--only", "dynamics,live,feasibility",
                         "--out", str(tmp_path / "out"), "--docs", str(tmp_path / "BENCH.md"),
-                        "--readme", str(readme)], cwd=REPO, env=env, capture_output=True, text=True,
+                        "--summary", str(summary)], cwd=REPO, env=env, capture_output=True, text=True,
                        timeout=170)
     assert p.returncode == 0, p.stderr[-2000:]
     doc = json.loads((tmp_path / "out" / "bench.json").read_text())
@@ -184,8 +186,9 @@ def test_bench_harness_smoke(tmp_path, ros_domain: int) -> None:
     assert "detection" not in live["result"]   # the pushes are not part of the smoke run
     text = (tmp_path / "BENCH.md").read_text()
     assert "## Dynamics" in text and "pinocchio.rnea Python loop" in text and "SMOKE" in text
-    readme_text = readme.read_text()
-    assert readme_text.startswith("# x\n" + report.BEGIN) and "docs/BENCHMARKS.md" in readme_text
+    summary_text = summary.read_text()
+    assert summary_text.startswith("# x\n" + report.BEGIN)
+    assert "[../BENCH.md](../BENCH.md)" in summary_text and (summary.parent / "../BENCH.md").is_file()
 
 
 def test_publisher_efforts_are_the_free_motion_torque() -> None:

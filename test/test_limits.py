@@ -181,9 +181,9 @@ def test_every_accepted_key_is_applied_or_documented_as_unused(two_link):
     assert [wraps[f][0] for f in ("position_lower", "position_upper", "soft_lower",
                                   "soft_upper")] == [None] * 4
     assert _merged(two_link, {"angle_wraps": False}) == urdf
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    assert "`k_position` and `k_velocity` are gains of ros2_control's soft-limit controller" in readme
-    assert "dyn_node does not use them" in readme
+    page = (Path(__file__).resolve().parents[1] / "docs" / "limits.md").read_text()
+    assert "`k_position` and `k_velocity` are gains of ros2_control's soft-limit controller" in page
+    assert "dyn_node does not use them" in page
 
 
 def test_yaml_zero_is_a_real_limit_with_a_warning_urdf_zero_means_not_given(two_link):
