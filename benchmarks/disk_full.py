@@ -2,7 +2,7 @@
 tmpfs (mounted here: needs root), node CPU and ``dropped_messages`` before and after the
 recorder fails with ENOSPC.
 
-``python -m benchmarks.disk_full [--size-kb 2048] [--window-s 9] [--domain 74]``; prints one
+``python -m benchmarks.disk_full [--size-kb 8192] [--window-s 9] [--domain 74]``; prints one
 JSON object. Not part of the test suite (issue 27, bad input item 2).
 """
 from __future__ import annotations
@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -26,13 +25,24 @@ def _cpu_s(pid: int) -> float:
 
 
 class _Diagnostics:
-    """The last ``dyn_node: joint_states`` and ``dyn_node: recorder`` values seen."""
+    """A probe on its own context and thread, keeping the last ``dyn_node: joint_states`` and
+    ``dyn_node: recorder`` values seen on /diagnostics."""
 
-    def __init__(self, node) -> None:
+    def __init__(self, domain: int) -> None:
+        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
         self.lock = threading.Lock()
         self.values: dict[str, dict[str, str]] = {}
-        node.create_subscription(DiagnosticArray, "/diagnostics", self._on, 100)
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.node = rclpy.create_node("disk_full_probe", context=self.ctx)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on, 100)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        threading.Thread(target=self.executor.spin, daemon=True).start()
 
     def _on(self, msg) -> None:
         with self.lock:
@@ -43,6 +53,12 @@ class _Diagnostics:
     def get(self, status: str, key: str) -> str | None:
         with self.lock:
             return self.values.get(status, {}).get(key)
+
+    def close(self) -> None:
+        import rclpy
+        self.executor.shutdown(timeout_sec=2)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
 
 
 def _window(pid: int, diag: _Diagnostics, seconds: float) -> dict[str, float]:
@@ -62,7 +78,7 @@ def _window(pid: int, diag: _Diagnostics, seconds: float) -> dict[str, float]:
 def _wait(pred, timeout_s: float, what: str, procs) -> None:
     deadline = time.monotonic() + timeout_s
     while not pred():
-        if any(p.poll() is not None for p in procs):
+        if not all(p.alive() for p in procs):
             raise RuntimeError(f"a child exited while waiting for {what}")
         if time.monotonic() > deadline:
             raise RuntimeError(f"timed out waiting for {what}")
@@ -71,15 +87,14 @@ def _wait(pred, timeout_s: float, what: str, procs) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="disk_full", description=__doc__.splitlines()[0])
-    ap.add_argument("--size-kb", type=int, default=2048, help="tmpfs size for the bags")
+    ap.add_argument("--size-kb", type=int, default=8192, help="tmpfs size for the bags")
     ap.add_argument("--window-s", type=float, default=9.0, help="measurement window (s)")
     ap.add_argument("--domain", type=int, default=int(os.environ.get("DYN_TEST_DOMAIN", "74")))
     args = ap.parse_args(argv)
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
+    from dyn_node.ros.demo import FINGERS, READY, Child
 
-    from dyn_node.ros.demo import FINGERS, READY
+    def python_cmd(module: str, *params: str) -> list[str]:
+        return [sys.executable, "-m", module, "--ros-args", *params]
 
     mnt = Path(tempfile.mkdtemp(prefix="dyn_disk_full_"))
     r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={args.size_kb}k", "tmpfs", str(mnt)],
@@ -89,44 +104,27 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     env.pop("ROS_LOCALHOST_ONLY", None)
-    py = sys.executable
-    logs = open(mnt.with_suffix(".log"), "w")
-    sim = subprocess.Popen([py, "-m", "dyn_node.ros.sim_node", "--ros-args", "-p", "publish_rate_hz:=1000.0",
-                            "-p", f"initial_positions:={list(READY)}"], env=env, stdout=logs,
-                           stderr=subprocess.STDOUT, start_new_session=True)
-    node = subprocess.Popen([py, "-m", "dyn_node.ros.node", "--ros-args", "-p", f"locked_joints:={FINGERS}",
-                             "-p", "record.enabled:=true", "-p", f"record.directory:={mnt}"],
-                            env=env, stdout=logs, stderr=subprocess.STDOUT, start_new_session=True)
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=args.domain)
-    probe = rclpy.create_node("disk_full_probe", context=ctx)
-    diag = _Diagnostics(probe)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(probe)
-    threading.Thread(target=ex.spin, daemon=True).start()
-    result: dict = {"tmpfs_kb": args.size_kb, "rate_hz": 1000}
+    log_dir = Path(tempfile.mkdtemp(prefix="dyn_disk_full_logs_"))
+    sim = Child("dyn_sim", python_cmd("dyn_node.ros.sim_node", "-p", "publish_rate_hz:=1000.0",
+                                      "-p", f"initial_positions:={list(READY)}"), env, log_dir / "sim.log")
+    node = Child("dyn_node", python_cmd("dyn_node.ros.node", "-p", f"locked_joints:={FINGERS}",
+                                        "-p", "record.enabled:=true", "-p", f"record.directory:={mnt}"),
+                 env, log_dir / "node.log")
+    diag = _Diagnostics(args.domain)
+    result: dict = {"tmpfs_kb": args.size_kb, "rate_hz": 1000, "logs": str(log_dir)}
     try:
         _wait(lambda: int(diag.get("dyn_node: joint_states", "received_messages") or 0) > 2000,
               120, "joint_states to flow", (sim, node))
-        result["recording"] = _window(node.pid, diag, min(args.window_s, 3.0))
+        result["recording"] = _window(node.proc.pid, diag, args.window_s)
         _wait(lambda: diag.get("dyn_node: recorder", "state") == "error", 300,
               "the recorder to fail", (sim, node))
         time.sleep(1.0)  # past the failure itself
-        result["after_enospc"] = _window(node.pid, diag, args.window_s)
+        result["after_enospc"] = _window(node.proc.pid, diag, args.window_s)
         result["recorder_dropped"] = diag.get("dyn_node: recorder", "dropped_messages")
     finally:
-        for p in (node, sim):
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGINT)
-            try:
-                p.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
-        ex.shutdown(timeout_sec=2)
-        probe.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-        logs.close()
+        node.stop()
+        sim.stop()
+        diag.close()
         bags = [d for d in mnt.iterdir() if d.is_dir()]
         if bags:
             result["bag_files"] = sorted(f.name for f in bags[0].iterdir())
