@@ -650,10 +650,9 @@ class Recorder:
         try:
             os.posix_fallocate(fd, 0, self._RESERVE_BYTES)
         except OSError:  # no room even for that: go on without it
-            os.close(fd)
             path.unlink(missing_ok=True)
-            return
-        os.close(fd)
+        finally:
+            os.close(fd)
 
     def _write_metadata_yaml(self) -> None:
         with self._lock:

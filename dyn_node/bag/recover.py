@@ -42,7 +42,7 @@ def _write_error(dst: Path, exc: OSError) -> RecoverError:
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return NoSpaceError(f"no space left on the device for {dst}: nothing written (free "
                             "some space, or give -o OUTPUT on another file system)")
-    return RecoverError(f"cannot write {dst}: {exc.strerror or exc}")
+    return RecoverError(f"cannot recover into {dst}: {exc.strerror or exc}")
 # Guards against absurd sizes in a damaged header (never allocate more than this per record).
 MAX_RECORD = 4 << 30
 # Every file we write says so in its Header's library field (OWN_LIBRARY), and the default
