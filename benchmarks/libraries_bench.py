@@ -148,10 +148,11 @@ class _zstd_level:
 def _write_layer(cls, work, path: Path, chunk_size: int, fsync: bool) -> dict:
     """Write ``work`` through one writer: chunks closed every 0.5 s of log time (or at
     chunk_size), each flushed and fsynced. Returns CPU s, wall s, file bytes."""
-    from dyn_node.bag.recorder import METADATA_RECORD, _CountingFile, message_definition
+    from dyn_node.bag.recorder import METADATA_RECORD, message_definition
+    from dyn_node.bag.writer import CountingFile
 
     raw = open(path, "xb", buffering=0)
-    stream = _CountingFile(raw)
+    stream = CountingFile(raw)
     c0, w0 = time.process_time(), time.perf_counter()
     wr = cls(stream, chunk_size)
     sids = {t: wr.schema(t, message_definition(t).encode()) for t in (JS, DIAG)}

@@ -139,7 +139,7 @@ def test_the_push_is_one_episode_at_its_time(audited):
     assert first_pushed - 1e-6 <= ep["start_s"] <= first_pushed + 0.02, (ep, first_pushed)
     assert ep["end_s"] > first_pushed + PUSH_STEPS * 1e-3
     assert ep["level"] in ("contact", "collision") and ep["frame"] == "panda_link8"
-    assert abs(ep["peak_force_n"] - 30.0) <= 0.1 * 30.0 + 1.0, ep
+    assert abs(ep["peak_force_n"] - 30.0) <= 0.01 * 30.0, ep  # the lag settles within the push
     assert ep["failure_label"] == "control error" and ep["joints"]
     findings = rec["verdict"]["findings"]
     assert any(f.startswith(f"{ep['level']} from {ep['start_s']:.3f} s") for f in findings), findings

@@ -299,3 +299,73 @@ def test_conflicting_channel_definitions_reported(tmp_path, capsys):
     assert "lost: channel 1 is defined twice, differently" in capsys.readouterr().out
     assert [(m[0], m[7]) for m in _official(out, seeking=True).messages] == [("/a", b"{}"),
                                                                              ("/a", b"[]")]
+
+
+def _listing(d: Path) -> list[str]:
+    return sorted(str(p.relative_to(d)) for p in d.rglob("*"))
+
+
+def test_full_disk_says_no_space_and_leaves_nothing(bag, tmp_path, capsys):
+    """A real full tmpfs (root needed to mount): the default outputs beside the input fail with
+    exit 4 and one "no space" line, and leave no file or directory behind; the old
+    ``unexpected failure: OSError`` left a 0-byte file and exit 1."""
+    import shutil
+    from tmpfs import fill, tiny_tmpfs
+
+    with tiny_tmpfs(tmp_path / "tiny", 512) as mnt:
+        src = mnt / bag.name
+        shutil.copytree(bag, src)
+        fill(mnt)
+        before = _listing(mnt)
+        for target in (_mcap_of(src), src):  # one file, then the whole bag directory
+            assert main([str(target)]) == 4
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and "no space left on the device" in err
+            assert "Traceback" not in err and "unexpected" not in err
+            assert _listing(mnt) == before
+        (mnt / "filler").unlink()  # with room again, the same command recovers everything
+        assert main([str(src)]) == 0
+        capsys.readouterr()
+        assert _read(mnt / f"{bag.name}.recovered" / _mcap_of(bag).name) == [
+            _payload(s) for s in range(N)]
+
+
+def test_injected_enospc_mid_file_leaves_no_half_output(bag, tmp_path, capsys, monkeypatch):
+    """ENOSPC after some bytes of the output (injected at the file layer, no mount needed):
+    exit 4, nothing at the output path, no temporary file, in file and directory mode."""
+    import errno
+    import shutil
+
+    real_open = Path.open
+
+    class Full:
+        def __init__(self, f):
+            self.f, self.budget = f, 3000
+
+        def write(self, data):
+            if len(data) > self.budget:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            self.budget -= len(data)
+            return self.f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    def fake_open(self, mode="r", *args, **kwargs):
+        f = real_open(self, mode, *args, **kwargs)
+        return Full(f) if "w" in mode and self.suffix == ".part" else f
+
+    src = tmp_path / "in"
+    shutil.copytree(bag, src)
+    monkeypatch.setattr(Path, "open", fake_open)
+    before = _listing(tmp_path)
+    for target in (src / _mcap_of(bag).name, src):
+        assert main([str(target)]) == 4
+        assert "no space left on the device" in capsys.readouterr().err
+        assert _listing(tmp_path) == before

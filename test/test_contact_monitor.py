@@ -61,8 +61,9 @@ def pushed_30(panda):
 
 def test_estimates_are_the_pieces_and_the_push(panda, pushed_30):
     """τ̂_ext is exactly the MomentumObserver's (same inputs, same gain), the wrench the
-    WrenchEstimator's to 1e-12 (its Jacobian is Pinocchio's, the monitor's the compiled pass's), and after 5/K of push the flange force is within 10 % + 1 N of the 30 N
-    applied while the robot moves."""
+    WrenchEstimator's to 1e-12 (its Jacobian is Pinocchio's, the monitor's the compiled pass's), and after 5/K of push the flange force is within 2 % (0.6 N; measured
+    0.26 N) of the 30 N applied passed through the observer's first-order lag (K = 50/s, from
+    the push at 0.3 s), its magnitude within 0.5 % (measured 0.07 N), while the robot moves."""
     cm = monitor(panda)
     obs, west = MomentumObserver(Dynamics(panda)), WrenchEstimator(panda, "panda_link8")
     assert cm.frame == "panda_link8"  # the default: the flange
@@ -73,7 +74,9 @@ def test_estimates_are_the_pieces_and_the_push(panda, pushed_30):
         np.testing.assert_allclose(s.wrench.wrench, west.estimate(q, ref).wrench, rtol=0, atol=1e-12)
         if pushed and t >= 400_000_000:
             checked += 1
-            assert np.linalg.norm(s.wrench.force - [30.0, 0.0, 0.0]) <= 0.1 * 30 + 1.0
+            rise = 1.0 - math.exp(-50.0 * (t - 300_000_000) * 1e-9)
+            assert np.linalg.norm(s.wrench.force - [30.0 * rise, 0.0, 0.0]) <= 0.02 * 30
+            assert abs(np.linalg.norm(s.wrench.force) - 30.0 * rise) <= 0.005 * 30
     assert checked == 201  # samples 0.400 … 0.600 s
 
 
@@ -89,7 +92,7 @@ def test_push_makes_one_contact_episode_and_status(panda, pushed_30):
     assert len(cm.episodes) == 1
     ep = cm.episodes[0]
     assert ep.end_s is not None and 0.6 < ep.end_s < 0.8 and ep.level == "contact"
-    assert abs(ep.peak_force_n - 30.0) < 4.0
+    assert abs(ep.peak_force_n - 30.0) <= 0.01 * 30  # measured 0.045 N (the lag has settled)
     st = cm.contact_status(pushed_30[-1][0])
     assert st.name == CONTACT_STATUS and st.level == WARN
     assert st.values["failure_label"] == CONTROL_ERROR and st.values["peak_joint"] == ep.joints[0].joint

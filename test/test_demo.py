@@ -146,6 +146,12 @@ def test_demo_short_end_to_end(tmp_path):
             proc.communicate()
     assert proc.returncode == 0, text[-3000:]
     assert "highest utilisation" in text                     # the model table came first
+    assert f"writing to {out.resolve()}: a new bag in {out.resolve() / 'bags'}/dyn_node_" in text
+    # inputs the node did not answer come with its own reason (taken before it had its model)
+    live = re.findall(r"/dyn_node/(gravity_torque|inverse_dynamics)\s+matched \d+, unmatched 0, "
+                      r"not answered live (\d+)( \(all taken before dyn_node had its model from "
+                      r"/robot_description\))?, ", text)
+    assert len(live) == 2 and all((n == "0") == (reason == "") for _t, n, reason in live), live
     summary = text[text.index("4. summary"):]
     for name in ("comfortable", "aggressive", "slowed"):
         assert re.search(rf"^{name}\s", summary, re.M), summary

@@ -409,25 +409,36 @@ CASES = [
 
 @pytest.mark.parametrize("kind,force,moment", CASES)
 def test_estimates_match_mujoco_push(panda, kind, force, moment):
-    """After 5/K = 0.1 s of push, at every 1 kHz sample until it ends: τ̂_ext within
-    5 % + 0.2 N·m of MuJoCo's Jᵀ·F per joint, and the flange wrench within 10 % + 1 N (force)
-    and 10 % + 0.1 N·m (moment) of the applied one."""
+    """The observer is a first-order lag of gain K = 50/s on the true external torque, so the
+    reference is MuJoCo's Jᵀ·F passed through that lag (exact for the 1 ms steps; as in
+    test_fast_motion_error_is_the_observer_lag). After 5/K = 0.1 s of push, at every 1 kHz
+    sample until it ends: τ̂_ext within 0.005 N·m of it on every joint (measured ≤ 0.003), the
+    flange force's magnitude within 1 % + 0.02 N of the lagged applied |F|·(1 − e^(−K·t))
+    (measured ≤ 0.5 %: the lag of a force on a moving J), the force vector within 2.5 % + 0.05 N
+    of F·(1 − e^(−K·t)) and the moment within 0.06 N·m of the applied one (measured ≤ 1.9 % and
+    0.048 N·m). The bounds used to be 5 % + 0.2 N·m and 10 % + 1 N: 30 % of a 5 N push."""
     rows = run_pushed(panda, kind, force, moment)
     est = WrenchEstimator(panda, "panda_link8")
     F, Mo = np.array(force), np.array(moment)
+    a = math.exp(-50.0 * 0.001)
+    lagged = np.zeros(7)
     checked = 0
-    worst_tau = worst_f = worst_m = 0.0
+    worst_tau = worst_mag = worst_f = worst_m = 0.0
     for t, tau_hat, true, q, pushed in rows:
+        lagged = a * lagged + (1 - a) * true
         if not pushed or t < 0.4 - 1e-9:
             continue
         checked += 1
-        worst_tau = max(worst_tau, float((np.abs(tau_hat - true) / (0.05 * np.abs(true) + 0.2)).max()))
+        rise = 1.0 - math.exp(-50.0 * (t - 0.3))  # the push acts from t = 0.3 s
+        worst_tau = max(worst_tau, float(np.abs(tau_hat - lagged).max()) / 0.005)
         w = est.estimate(q, tau_hat)
-        worst_f = max(worst_f, float(np.linalg.norm(w.force - F) / (0.1 * np.linalg.norm(F) + 1.0)))
-        worst_m = max(worst_m, float(np.linalg.norm(w.moment - Mo) / (0.1 * np.linalg.norm(Mo) + 0.1)))
+        mag_bound = 0.01 * np.linalg.norm(F) + 0.02
+        worst_mag = max(worst_mag, abs(np.linalg.norm(w.force) - rise * np.linalg.norm(F)) / mag_bound)
+        worst_f = max(worst_f, float(np.linalg.norm(w.force - rise * F) / (0.025 * np.linalg.norm(F) + 0.05)))
+        worst_m = max(worst_m, float(np.linalg.norm(w.moment - rise * Mo) / 0.06))
     assert checked == 901  # samples 0.400 … 1.300 s
-    # each worst-case is the error as a fraction of its tolerance
-    assert worst_tau <= 1.0 and worst_f <= 1.0 and worst_m <= 1.0, (worst_tau, worst_f, worst_m)
+    # each worst-case is the error as a fraction of its bound
+    assert max(worst_tau, worst_mag, worst_f, worst_m) <= 1.0, (worst_tau, worst_mag, worst_f, worst_m)
 
 
 def test_no_false_contact_over_a_fast_trajectory(panda):

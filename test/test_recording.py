@@ -1,6 +1,7 @@
 """The pure bag writer, read back by independent readers (rosbags, mcap) with exact counts."""
 from __future__ import annotations
 
+import errno
 import io
 import struct
 import threading
@@ -407,20 +408,48 @@ def test_never_overwrites_and_rejects_bad_config(tmp_path):
         Recorder(RecorderConfig(directory=str(tmp_path), max_bag_size_mb=-1))
 
 
-def test_real_full_tmpfs(tmp_path):
-    """A real 128 kB tmpfs (needs root to mount): ENOSPC from the kernel, not from a fake."""
-    import os
-    import subprocess
+def _thread_cpu_s(thread: threading.Thread, window_s: float) -> float:
+    """CPU seconds ``thread`` used over ``window_s`` of wall time (its own POSIX CPU clock)."""
+    clock = time.pthread_getcpuclockid(thread.ident)
+    c0 = time.clock_gettime(clock)
+    threading.Event().wait(window_s)
+    return time.clock_gettime(clock) - c0
 
-    mnt = tmp_path / "tiny"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=128k", "tmpfs", str(mnt)],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here (not root?): {r.stderr.strip()}")
-    try:
+
+def test_failed_recorder_costs_nothing(tmp_path):
+    """After ENOSPC the writer thread sleeps until close(): it used to spin on a flush deadline
+    that no longer advanced, a whole core taken from the node's live path (issue 27)."""
+    failed = threading.Event()
+    rec = make_recorder(tmp_path, chunk_size=2048, flush_period_s=0.1,
+                        opener=lambda p: FullDisk(p, 20_000), on_state=lambda s: failed.set() if s.state == "error" else None)
+    n = 0
+    while not failed.is_set() and n < 100_000:
+        rec.write(JS, joint_state(n % 50), 10**18 + n)
+        n += 1
+        if n % 200 == 0:
+            failed.wait(0.01)
+    assert failed.is_set(), "ENOSPC not detected"
+    writer = rec._thread
+    assert writer.is_alive()
+    cpu = _thread_cpu_s(writer, 1.0)  # idle: blocked until close(), no wake-up at all
+    assert cpu < 0.01, f"failed writer used {cpu:.3f} s of CPU in 1 s"
+    assert all(rec.write(JS, joint_state(1), 2 * 10**18 + k) is False for k in range(100))
+    stats = rec.close()
+    assert not writer.is_alive() and stats.state == "error"
+    assert stats.topics[JS].received == n + 100
+    assert stats.topics[JS].written + stats.topics[JS].dropped == n + 100
+
+
+def test_real_full_tmpfs(tmp_path):
+    """A real 128 kB tmpfs (needs root to mount): ENOSPC from the kernel, not from a fake. The
+    writer then idles, and close() leaves the final metadata.yaml (state error, the counts)
+    and no temp file: never the start's "recording" beside a 0-byte metadata.yaml.tmp."""
+    import os
+    from tmpfs import tiny_tmpfs
+
+    with tiny_tmpfs(tmp_path / "tiny", 128) as mnt:
         failed = threading.Event()
-        rec = Recorder(RecorderConfig(directory=str(mnt), chunk_size=8192),
+        rec = Recorder(RecorderConfig(directory=str(mnt), chunk_size=8192, flush_period_s=0.1),
                        robot_description=URDF,
                        on_state=lambda s: failed.set() if s.state == "error" else None)
         rec.add_topic(TopicInfo("/noise", "std_msgs/msg/String"))
@@ -431,6 +460,7 @@ def test_real_full_tmpfs(tmp_path):
             rec.write("/noise", payload, 10**18 + len(sent) * 1000)
             sent.append(payload)
         assert failed.is_set(), "the tmpfs never filled"
+        assert _thread_cpu_s(rec._thread, 1.0) < 0.01  # the failed writer sleeps
         for k in range(100):  # after the error: counted as dropped, never raised
             assert rec.write("/noise", b"late", 2 * 10**18 + k) is False
         stats = rec.close()
@@ -438,12 +468,40 @@ def test_real_full_tmpfs(tmp_path):
         assert stats.state == "error" and "ENOSPC" in stats.error
         assert c.received == len(sent) + 100 and c.written + c.dropped == c.received
         bag = Path(stats.path)
+        assert sorted(p.name for p in bag.iterdir()) == [f"{bag.name}_0.mcap", "metadata.yaml"]
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+        assert meta["dyn_node"]["state"] == "error" and "ENOSPC" in meta["dyn_node"]["error"]
+        assert meta["dyn_node"]["topics"]["/noise"] == {
+            "received": c.received, "written": c.written, "dropped": c.dropped}
+        # The half-written record was cut off: the file ends exactly on a record (MCAP spec:
+        # magic, then records of opcode u8, length u64, body).
+        raw = (bag / f"{bag.name}_0.mcap").read_bytes()
+        pos = 8
+        while pos < len(raw):
+            pos += 9 + struct.unpack_from("<Q", raw, pos + 1)[0]
+        assert raw[:8] == b"\x89MCAP0\r\n" and pos == len(raw)
         recovered = recover_file(bag / f"{bag.name}_0.mcap", tmp_path / "out.mcap")
         assert recovered.kept.get("/noise", 0) == c.written > 0
         msgs, _ = read_mcap(tmp_path / "out.mcap")
         assert [m[3] for m in msgs if m[0] == "/noise"] == sent[:c.written]
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_metadata_yaml_on_a_full_disk_is_new_or_absent_never_stale(tmp_path):
+    """write_metadata_yaml on a full file system: the old file is given up for the new one
+    (written whole) or, when even that does not fit, removed; no temp file is ever left."""
+    from tmpfs import fill, tiny_tmpfs
+    from dyn_node.bag.metadata import write_metadata_yaml
+
+    with tiny_tmpfs(tmp_path / "tiny", 64) as mnt:
+        write_metadata_yaml(mnt, {"state": "recording"})
+        fill(mnt)
+        write_metadata_yaml(mnt, {"state": "error", "pad": "x" * 3000})  # fits in the old one's page
+        assert sorted(p.name for p in mnt.iterdir()) == ["filler", "metadata.yaml"]
+        assert yaml.safe_load((mnt / "metadata.yaml").read_text())["state"] == "error"
+        with pytest.raises(OSError) as err:  # larger than what removing the old one frees
+            write_metadata_yaml(mnt, {"state": "closed", "pad": "x" * 20_000})
+        assert err.value.errno == errno.ENOSPC
+        assert sorted(p.name for p in mnt.iterdir()) == ["filler"]
 
 
 def _log_durability_calls(monkeypatch) -> list[tuple[str, ...]]:

@@ -114,16 +114,42 @@ def bag_metadata(topics: Sequence[TopicInfo], files: Sequence[FileInfo],
 def write_metadata_yaml(bag_dir: str | os.PathLike[str], doc: Mapping[str, Any], *,
                         fsync: bool = True) -> None:
     """Write metadata.yaml atomically, so a reader never sees half of it and a power loss
-    leaves the old or the new file whole: temp file, fsync it, rename over, fsync the directory
-    (without the first fsync the rename can reach the disk before the data: an empty file)."""
+    leaves the old or the new file whole (temp file, fsync, rename over, fsync the directory).
+    No temp file is ever left behind; on a full disk, the old file is removed rather than kept
+    stale (see below)."""
     path = Path(bag_dir) / "metadata.yaml"
     tmp = path.with_name("metadata.yaml.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(yaml.safe_dump(dict(doc), sort_keys=False, default_flow_style=False))
-        f.flush()
-        if fsync:
-            os.fsync(f.fileno())
-    os.replace(tmp, path)
+    text = yaml.safe_dump(dict(doc), sort_keys=False, default_flow_style=False)
+    try:
+        _replace_with(tmp, path, text, fsync=fsync)
+    except OSError as exc:
+        if exc.errno not in _NO_SPACE or not path.exists():
+            raise
+        # A full disk: an old metadata.yaml (say, the start's "recording", no counts) beside
+        # the new one's failed copy would mislead more than none. Removing it frees its space
+        # for one more try; if that fails too, there is no metadata.yaml, never a stale one.
+        path.unlink()
+        _replace_with(tmp, path, text, fsync=fsync)
+
+
+#: errno values of "the file system has no room" (a full disk, a user's quota)
+_NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+def _replace_with(tmp: Path, path: Path, text: str, *, fsync: bool) -> None:
+    """Write ``text`` to ``tmp``, fsync it, rename it over ``path``, fsync the directory
+    (without the first fsync the rename can reach the disk before the data: an empty file).
+    On failure ``tmp`` is removed and ``path`` is as it was."""
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            if fsync:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     if fsync:
         fsync_directory(path.parent)
 

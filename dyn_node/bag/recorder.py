@@ -25,7 +25,7 @@ from dyn_node.bag.metadata import (METADATA_RECORD, FileInfo, TopicInfo, bag_met
                            qos_profile_dict, qos_yaml, write_metadata_yaml)
 from dyn_node.bag.cdr import cdr_string, cdr_string_value, header_stamp_ns
 from dyn_node.errors import RecordingError
-from dyn_node.bag.writer import COMPRESSIONS, PROFILE, McapFile
+from dyn_node.bag.writer import COMPRESSIONS, PROFILE, CountingFile, McapFile
 from dyn_node.bag.msgdefs import message_definition, type_description_hash
 
 __all__ = [  # the recorder, and what its callers pass it or read from it
@@ -94,46 +94,6 @@ class RecorderStats:
     @property
     def dropped(self) -> int:
         return sum(c.dropped for c in self.topics.values())
-
-
-class _CountingFile:
-    """Wrap the binary file so the MCAP writer's ``tell()`` works on any file-like and we know
-    the size without a stat call. Writes loop until done (a raw file may write partially)."""
-
-    def __init__(self, raw: BinaryIO):
-        self.raw = raw
-        self.pos = 0
-
-    def write(self, data: bytes) -> int:
-        if not data:
-            return 0
-        view = memoryview(data)
-        while view:
-            n = self.raw.write(view)
-            n = len(view) if n is None else n
-            if n <= 0:
-                raise OSError(errno.EIO, "write made no progress")
-            self.pos += n
-            view = view[n:]
-        return len(data)
-
-    def tell(self) -> int:
-        return self.pos
-
-    def flush(self) -> None:
-        self.raw.flush()
-
-    def fsync(self) -> None:
-        fileno = getattr(self.raw, "fileno", None)
-        if fileno is not None:
-            try:
-                fd = fileno()
-            except (OSError, ValueError):
-                return
-            os.fsync(fd)
-
-    def close(self) -> None:
-        self.raw.close()
 
 
 # Recorder.write's publish time "the header stamp of the message" (parsed on the writer thread).
@@ -208,7 +168,7 @@ class Recorder:
         self._files: list[FileInfo] = []
         # Writer-thread state.
         self._mcap: McapFile | None = None
-        self._stream: _CountingFile | None = None
+        self._stream: CountingFile | None = None
         self._channels: dict[str, int] = {}
         self._channel_topics: dict[int, str] = {}
         self._schemas: dict[str, int] = {}
@@ -385,13 +345,20 @@ class Recorder:
         try:
             self._open_file()
             self._write_metadata_yaml()
+            self._reserve(True)
         except Exception as exc:  # noqa: BLE001 - any I/O failure becomes the error state
             self._fail(exc)
         stop = False
         while not stop:
             with self._lock:
                 q = self._queue
-                if len(q) < self._BATCH_N and not self._urgent():
+                if self._state != "recording":
+                    # Failed: nothing is queued any more (write() counts its drops), so sleep
+                    # until close(). Waiting on the flush deadline here, which no longer
+                    # advances, spun a whole core and starved the node's live path.
+                    while not self._closing:
+                        self._wake.wait()
+                elif len(q) < self._BATCH_N and not self._urgent():
                     self._wake.wait(max(0.0, min(next_flush - time.monotonic(), self._BATCH_S)))
                 batch = self._take_locked()
             try:
@@ -524,7 +491,7 @@ class Recorder:
     def _open_file(self, log_ns: int | None = None) -> None:
         self._file_index += 1
         path = self._file_path(self._file_index)
-        self._stream = _CountingFile(self._opener(str(path)))
+        self._stream = CountingFile(self._opener(str(path)))
         chunk = self.config.chunk_size
         if self.config.max_bag_size_mb > 0:
             chunk = max(4096, min(chunk, int(self.config.max_bag_size_mb * 1e6 / 4)))
@@ -666,6 +633,27 @@ class Recorder:
                 pass
         self._mcap, self._stream = None, None
 
+    # Room kept for the final metadata.yaml (about 1 kB per topic, 0.2 kB per file): a disk
+    # that fills up during the recording still gets its counts and error written at close.
+    _RESERVE_BYTES = 64 * 1024
+
+    def _reserve(self, hold: bool) -> None:
+        """Hold (or release, before the final metadata.yaml) the reserved space in the bag."""
+        path = self.path / ".metadata.yaml.reserve"
+        if not hold:
+            path.unlink(missing_ok=True)
+            return
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        except OSError:
+            return
+        try:
+            os.posix_fallocate(fd, 0, self._RESERVE_BYTES)
+        except OSError:  # no room even for that: go on without it
+            path.unlink(missing_ok=True)
+        finally:
+            os.close(fd)
+
     def _write_metadata_yaml(self) -> None:
         with self._lock:
             files = list(self._files)
@@ -692,9 +680,11 @@ class Recorder:
             # the stop item; a message queued later still shows as dropped in stats().
             self._drop_locked(self._queue, taken=False)
         try:
+            self._reserve(False)
             self._write_metadata_yaml()
         except Exception as exc:  # noqa: BLE001 - e.g. the disk is still full
-            with self._lock:
-                self._error = self._error or f"metadata.yaml not written: {exc}"
+            note = f"metadata.yaml not written: {exc}"
+            with self._lock:  # the bag then has no metadata.yaml (never a stale one)
+                self._set_state_locked("error", f"{self._error}; {note}" if self._error else note)
         _LIVE.discard(self)
         self._closed.set()

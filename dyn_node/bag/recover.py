@@ -2,11 +2,14 @@
 
 The file is read record by record from the start, never trusting the summary for data; damaged
 chunks are skipped and reading goes on. Exit status 0 nothing lost, 3 something lost, 1 nothing
-recoverable. Usage: README "Recovering a crashed or damaged bag"; the rules: docs/BAGS.md.
+recoverable, 4 no space for the output (nothing written). Outputs appear whole or not at all
+(written beside, then renamed). Usage: README "Recovering a crashed or damaged bag"; the rules: docs/BAGS.md.
 """
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import re
 import struct
 import sys
@@ -28,7 +31,18 @@ from dyn_node.errors import RecoverError
 from dyn_node.bag.metadata import FileInfo, TopicInfo, bag_metadata, write_metadata_yaml
 
 MAGIC = b"\x89MCAP0\r\n"
-EXIT_OK, EXIT_NOTHING, EXIT_LOST = 0, 1, 3
+EXIT_OK, EXIT_NOTHING, EXIT_LOST, EXIT_NO_SPACE = 0, 1, 3, 4
+
+
+class NoSpaceError(RecoverError):
+    """The output's file system is full (or over quota): nothing was written."""
+
+
+def _write_error(dst: Path, exc: OSError) -> RecoverError:
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return NoSpaceError(f"no space left on the device for {dst}: nothing written (free "
+                            "some space, or give -o OUTPUT on another file system)")
+    return RecoverError(f"cannot recover into {dst}: {exc.strerror or exc}")
 # Guards against absurd sizes in a damaged header (never allocate more than this per record).
 MAX_RECORD = 4 << 30
 # Every file we write says so in its Header's library field (OWN_LIBRARY), and the default
@@ -404,17 +418,19 @@ def _rewrite(f: BinaryIO, size: int, src: Path, dst: Path,
     profile, library = header or ("", "")
     summary = _read_summary(f, size, rec)
     f.seek(len(MAGIC))
+    # Written beside and renamed when whole: a failure (a full disk) leaves no half file.
+    part = dst.with_name(f".{dst.name}.part")
     try:
-        out = dst.open("wb")
-    except OSError as exc:
-        raise RecoverError(f"cannot write {dst}: {exc.strerror or exc}") from None
-    with out:
-        rw = _Rewriter(out, profile, _own_library(library), summary)
-        complete = _walk(f, size, rw, rec)
-        try:
+        with part.open("wb") as out:
+            rw = _Rewriter(out, profile, _own_library(library), summary)
+            complete = _walk(f, size, rw, rec)
             rw.finish(rec)
-        except OSError as exc:
-            raise RecoverError(f"cannot write {dst}: {exc.strerror or exc}") from None
+        os.replace(part, dst)
+    except BaseException as exc:
+        part.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise _write_error(dst, exc) from None
+        raise
     return rw, summary, complete
 
 
@@ -544,17 +560,17 @@ def recover_dir(src: Path, dst: Path) -> DirRecovery:
         raise RecoverError(f"{src} holds no .mcap files" + (
             f" but {len(skipped)} written by dyn-bag-recover (give one as INPUT to recover it "
             "again)" if skipped else ""))
+    created = not dst.exists()
     try:
         dst.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise RecoverError(f"cannot create {dst}: {exc.strerror or exc}") from None
-    results = []
-    for p in files:
-        try:
-            results.append(recover_file(p, dst / p.name))
-        except RecoverError as exc:
-            r = Recovery(str(p), "", lost=True, problems=[str(exc)])
-            results.append(r)
+        raise _write_error(dst, exc) from None
+    results: list[Recovery] = []
+    try:
+        _recover_files(files, dst, results)
+    except NoSpaceError:
+        _remove_outputs(results, dst, created)
+        raise
     topics: dict[str, TopicInfo] = {}
     infos = []
     for r in results:
@@ -567,8 +583,35 @@ def recover_dir(src: Path, dst: Path) -> DirRecovery:
         write_metadata_yaml(dst, bag_metadata(list(topics.values()), infos,
                                               {"recovered_from": str(src)}))
     except OSError as exc:
-        raise RecoverError(f"cannot write {dst / 'metadata.yaml'}: {exc.strerror or exc}") from None
+        err = _write_error(dst / "metadata.yaml", exc)
+        if isinstance(err, NoSpaceError):
+            _remove_outputs(results, dst, created)
+        raise err from None
     return DirRecovery(results, skipped)
+
+
+def _recover_files(files: Sequence[Path], dst: Path, results: list[Recovery]) -> None:
+    """Recover each file into ``dst``, appending to ``results``; a full disk stops it all."""
+    for p in files:
+        try:
+            results.append(recover_file(p, dst / p.name))
+        except NoSpaceError:
+            raise
+        except RecoverError as exc:
+            results.append(Recovery(str(p), "", lost=True, problems=[str(exc)]))
+
+
+def _remove_outputs(results: Sequence[Recovery], dst: Path, created: bool) -> None:
+    """Undo a directory recovery the disk had no room for: our outputs, and ``dst`` if new."""
+    for r in results:
+        if r.output:
+            Path(r.output).unlink(missing_ok=True)
+    (dst / "metadata.yaml").unlink(missing_ok=True)
+    if created:
+        try:
+            dst.rmdir()
+        except OSError:
+            pass  # something else was put there meanwhile: leave it
 
 
 def _report(results: Sequence[Recovery], out=None, *, skipped: Sequence[Path] = ()) -> int:
@@ -610,7 +653,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="dyn-bag-recover",
         description="Rewrite a truncated or damaged MCAP file (or every file of a bag "
                     "directory) into a valid, indexed one. Exit 0: nothing lost, "
-                    "3: some data lost, 1: nothing recoverable.")
+                    "3: some data lost, 1: nothing recoverable, 4: no space for the output "
+                    "(nothing written).")
     parser.add_argument("input", help="an .mcap file or a bag directory")
     parser.add_argument("-o", "--output", help="output file (or directory for a bag directory); "
                         "default: <input>.recovered.mcap, or <dir>.recovered")
@@ -635,6 +679,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             results, skipped = [recover_file(src, dst)], []
         else:
             raise RecoverError(f"{src}: no such file or directory")
+    except NoSpaceError as exc:
+        print(f"dyn-bag-recover: error: {exc}", file=sys.stderr)
+        return EXIT_NO_SPACE
     except RecoverError as exc:
         print(f"dyn-bag-recover: error: {exc}", file=sys.stderr)
         return EXIT_NOTHING

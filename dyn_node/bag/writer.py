@@ -6,11 +6,13 @@ trip, which at 3 records per 1 kHz joint state was most of what recording cost t
 """
 from __future__ import annotations
 
+import errno
+import os
 import struct
 import sys
 import zlib
 from array import array
-from typing import Any, Callable, Mapping
+from typing import Any, BinaryIO, Callable, Mapping
 
 from mcap.writer import CompressionType
 
@@ -71,7 +73,7 @@ class McapFile:
     data-section CRC; a summary (schemas, channels, statistics, chunk indexes, metadata
     indexes, summary offsets) and a Footer with the summary CRC.
 
-    ``stream`` needs ``write`` and ``tell`` (see :class:`_CountingFile`). Nothing is buffered
+    ``stream`` needs ``write`` and ``tell`` (see :class:`CountingFile`). Nothing is buffered
     except the open chunk, which :meth:`close_chunk` writes in one ``write`` call."""
 
     def __init__(self, stream: Any, compression: str = "zstd", profile: str = PROFILE,
@@ -214,3 +216,57 @@ class McapFile:
         footer = struct.pack("<BQQQ", _OP_FOOTER, 20, summary_start, pos)
         crc = zlib.crc32(footer, zlib.crc32(summary))
         self._stream.write(summary + footer + struct.pack("<I", crc) + MCAP_MAGIC)
+
+
+class CountingFile:
+    """Wrap the binary file so the MCAP writer's ``tell()`` works on any file-like and we know
+    the size without a stat call. Writes loop until done (a raw file may write partially)."""
+
+    def __init__(self, raw: BinaryIO):
+        self.raw = raw
+        self.pos = 0
+
+    def write(self, data: bytes) -> int:
+        if not data:
+            return 0
+        start = self.pos
+        view = memoryview(data)
+        try:
+            while view:
+                n = self.raw.write(view)
+                n = len(view) if n is None else n
+                if n <= 0:
+                    raise OSError(errno.EIO, "write made no progress")
+                self.pos += n
+                view = view[n:]
+        except OSError:
+            # Cut the half-written record off: the file then ends on a whole record, and on a
+            # full disk its space is what lets the final metadata.yaml be written.
+            self._truncate(start)
+            raise
+        return len(data)
+
+    def _truncate(self, size: int) -> None:
+        try:
+            os.ftruncate(self.raw.fileno(), size)
+        except (AttributeError, OSError, ValueError):
+            return  # a file-like without a descriptor: the partial record stays
+        self.pos = size
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        self.raw.flush()
+
+    def fsync(self) -> None:
+        fileno = getattr(self.raw, "fileno", None)
+        if fileno is not None:
+            try:
+                fd = fileno()
+            except (OSError, ValueError):
+                return
+            os.fsync(fd)
+
+    def close(self) -> None:
+        self.raw.close()

@@ -25,6 +25,7 @@ from dyn_node.core.dynamics import Dynamics
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_VIOLATIONS
 from dyn_node.core.model import RobotModel, load_model
 from dyn_node.core.trajectory import Trajectory, interpolate, validate_trajectory
+from dyn_node.ros.demo_output import before_model_in_bag, unanswered_reason, where_line
 from dyn_node.ros.demo_push import PUSH_S, push_checks, run_push
 
 READY = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
@@ -652,6 +653,7 @@ def run_demo(args: argparse.Namespace) -> int:
     run = DemoRun(Path(args.out).resolve(), time.monotonic())
     run.out.mkdir(parents=True, exist_ok=True)
     run.logs.mkdir(exist_ok=True)
+    _say(where_line(run.out))
     model = load_model(builtin="panda")
     _banner("1. the model")
     _say(model_table(model))
@@ -863,7 +865,7 @@ def _scene_audit(run: DemoRun) -> None:
         _say(f"  [FAIL] {run.checks[-1][1]}")
         _say(f"report: {report}")
     elif outcome == "audited":
-        for line in audit_recheck_lines(evidence):
+        for line in audit_recheck_lines(evidence, before_model_in_bag(bag)):
             _say(line)
         live = sum(o.verdict_source == "dyn_node" for o in run.outcomes) + sum(
             o.check_feasible is not None for o in run.outcomes) + run.extra_verdicts  # check-only verdicts too
@@ -920,8 +922,10 @@ def audit_outcome(rc: int, report_written: bool) -> str:
     return {EXIT_OK: "audited", EXIT_VIOLATIONS: "audited", EXIT_PARTIAL: "partial"}.get(rc, "failed")
 
 
-def audit_recheck_lines(evidence: Path) -> list[str]:
-    """One line per output topic the audit recomputed from the bag: matched and identical?"""
+def audit_recheck_lines(evidence: Path, before_model: int | None = None) -> list[str]:
+    """One line per output topic the audit recomputed from the bag: matched and identical?
+    ``before_model``: the node's count of inputs taken before its model (why some went
+    unanswered, demo_output.unanswered_reason)."""
     try:
         rec = json.loads(evidence.read_text())
         recheck = rec.get("outputs", {}).get("recheck", {})
@@ -930,7 +934,8 @@ def audit_recheck_lines(evidence: Path) -> list[str]:
     lines = ["dyn-audit recomputed the live outputs from the bag alone:"]
     for topic, d in sorted(recheck.items()):
         lines.append(f"  {topic:<36} matched {d.get('matched')}, unmatched {d.get('unmatched')}, "
-                     f"not answered live {d.get('unanswered', 0)}, "
+                     f"not answered live {d.get('unanswered', 0)}"
+                     f"{unanswered_reason(d.get('unanswered', 0), before_model)}, "
                      f"max |difference| {d.get('max_abs_difference')}, identical {d.get('identical')}")
     return lines
 

@@ -68,6 +68,7 @@ from dyn_node.ros.convert import (JointStateOut, RawTrajectory, WrenchStampedOut
                           trajectory_header_cdr, verdict_array)
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.qos import LATCHED_HISTORY
+from dyn_node.ros.startup_log import FirstStateAnnouncer, model_ready_line
 from dyn_node.core.selftest import run_self_test
 from dyn_node.core.settings import MODEL_PARAMETERS, PARAMETERS, SPECS, ParamSpec, Settings, settings_from_mapping
 from dyn_node.core.status import STALE, Status
@@ -135,6 +136,8 @@ class DynNode(Node):
         self._start_workers()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._start_recording()
+        if self._core is not None:
+            self._announce_model()
         self._io_thread.start()
 
     def _init_state(self) -> None:
@@ -154,6 +157,7 @@ class DynNode(Node):
         # (model, receipt ns, q, q̇) of the last accepted joint_states: a trajectory whose first
         # point lies ahead starts from it (feasibility.current_state)
         self._last_state: tuple[RobotModel, int, Any, Any] | None = None
+        self._first_state = FirstStateAnnouncer(self.get_logger().info)
         self._callback_errors = 0
 
     def _create_publishers(self) -> None:
@@ -318,7 +322,15 @@ class DynNode(Node):
         self._topic_urdf = msg.data
         self._swap_core(self._make_core(self.settings, model))
         self._model_problem = None
-        self.get_logger().info(f"model {model.name} ({model.nv} DoF) from robot_description")
+        self._announce_model()
+
+    def _announce_model(self) -> None:
+        """The start-up line of the model in use (startup_log.model_ready_line)."""
+        rec = getattr(self, "recording", None)  # not there yet while the constructor runs
+        bag = rec.recorder.path if rec is not None and rec.recorder is not None else None
+        self.get_logger().info(model_ready_line(
+            self.model, limits_file=self.settings.limits_file, limits_text=limits_text(self.model),
+            friction=self.settings.include_friction, recording=str(bag) if bag else "off"))
 
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         values = {p.name: p.value for p in params if p.name in SPECS}
@@ -338,11 +350,13 @@ class DynNode(Node):
             return SetParametersResult(successful=False, reason=str(exc))
         except Exception as exc:  # anything unexpected still leaves the old settings intact
             return SetParametersResult(successful=False, reason=f"{type(exc).__name__}: {exc}")
-        old = self.settings
+        old, old_model = self.settings, self.model
         self.settings = new
         self._swap_core(core)
         if core is not None:
             self._model_problem = None
+            if core.model is not old_model:
+                self._announce_model()
         self._ensure_description_subscription()
         if new.diagnostics_period != old.diagnostics_period:
             self.destroy_timer(self._diag_timer)
@@ -557,6 +571,7 @@ class DynNode(Node):
                 r = core.monitor.process(names, position, velocity, effort, sec + nsec * 1e-9, receipt)
             if r.accepted:
                 self._last_state = (core.model, receipt_ns, r.q, r.v)
+                self._first_state.accepted(core.model, len(fields[2]), r.stamp_s)
                 if r.zero_stamp:
                     st = s_to_stamp(r.stamp_s)
                     sec, nsec = st.sec, st.nanosec
