@@ -27,8 +27,11 @@ def value_axis(ax: Any, values: Sequence[float], *, reference: float, label: str
         ax.yaxis.set_major_locator(MaxNLocator(nbins=6))
         return
     ax.set_yscale("log")
-    ax.set_ylim(10 ** math.floor(math.log10(lo)), 10 ** math.ceil(math.log10(hi * 1.05)))
-    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=30))
+    bottom, top = math.floor(math.log10(lo / 1.2)), math.ceil(math.log10(hi * 1.2))  # off the frame
+    ax.set_ylim(10 ** bottom, 10 ** top)
+    # 1-2-5 in each decade while that stays readable, else the decades alone
+    subs = (1.0, 2.0, 5.0) if top - bottom <= 3 else (1.0,)
+    ax.yaxis.set_major_locator(LogLocator(base=10, subs=subs, numticks=30))
     ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _p: f"{v:g}"))
     ax.yaxis.set_minor_formatter(NullFormatter())
 
@@ -70,7 +73,9 @@ def utilisation_figure(joints: list[dict]) -> Any:
             pos = [i + offset for i, d in enumerate(data) if d]
             if pos:
                 bp = ax.boxplot([d for d in data if d], positions=pos, widths=0.3, patch_artist=True,
-                                manage_ticks=False)
+                                manage_ticks=False, medianprops={"color": "black"},
+                                flierprops={"marker": "o", "markersize": 4, "markerfacecolor": colour,
+                                            "markeredgecolor": colour})
                 for b in bp["boxes"]:
                     b.set_facecolor(colour)
                     b.set_alpha(0.5)
