@@ -32,8 +32,9 @@ def test_report_is_about_the_trajectory_not_a_bag(tmp_path, capsys, path, word):
     page = (tmp_path / path.stem / "report.html").read_text()
     assert f">{word}<small>" in page and (tmp_path / path.stem / "trajectory.png").is_file()
     assert page.count("data:image/png;base64,") >= 1
+    text = re.sub(r"data:image/png;base64,[A-Za-z0-9+/=]+", "", page)  # words, not image bytes
     for w in BAG_WORDS:
-        assert w not in page, w
+        assert w not in text, w
     assert "Times are seconds from the trajectory's first point" in page
     rec_k = re.search(r"time_scale ([0-9.]+)", page).group(1)
     assert f"<td>Time scale k</td><td>{float(rec_k):.4g}" in page

@@ -185,8 +185,16 @@ def test_every_row_is_right_and_damaged_bags_are_isolated(fleet_run):
     # violations win over the partial and unusable bags
     assert fleet_run["code"] == 1
     # and the damaged bags are said, whatever won the exit code
-    first = fleet_run["stdout"].splitlines()[0]
+    first, second = fleet_run["stdout"].splitlines()[:2]
     assert first.startswith("VIOLATIONS: 22 bags: ") and first.endswith(" (2 partial: data lost)"), first
+    # executed and questions over the bags audited whole (the damaged ones lost some of theirs)
+    whole = [spec_of(n) for n, r in by.items() if r["verdict"] != "error" and n not in DAMAGE]
+    lost = [by[n] for n in DAMAGE]
+    assert second == (
+        f"trajectories: {sum(sum(s.trajectories) for s in whole) + sum(r['trajectories_bad'] for r in lost)} of "
+        f"{sum(len(s.trajectories) for s in whole) + sum(r['trajectories'] for r in lost)} executed infeasible "
+        f"or rejected; questions: {sum(sum(s.questions) for s in whole)} of "
+        f"{sum(len(s.questions) for s in whole)} answered infeasible or rejected (not violations)")
 
 
 def test_joint_rows_match_the_bags(fleet_run):

@@ -85,8 +85,8 @@ def trajectory_plot(curves: Curves, model: Any, violations: Sequence[Any], *, ti
     k_text = (f"time scale k = {time_scale:.3g}" + (" (feasible)" if time_scale <= 1 else
               f": must run {time_scale:.3g}× slower") if np.isfinite(time_scale)
               else "no time scale makes it feasible")
-    cv.text(W / 2, 14, f"The trajectory over its time, against the limits ({k_text})", 11, "ma")
-    _legend(cv, left, 34, [("value", _BLUE, "line"), ("limit", _RED, "line"),
+    cv.text(W / 2, 6, f"The trajectory over its time, against the limits ({k_text})", 11, "ma")
+    _legend(cv, left, 40, [("value", _BLUE, "line"), ("limit", _RED, "line"),
                            ("over a limit (× its peak)", _blend(_RED, 0.2), "area")])
     t = curves.t
     xlim = (float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1.0)

@@ -31,7 +31,7 @@ from dyn_node.fleet import cleanup
 from dyn_node.fleet.rows import (CRASHED, JOINT_COLUMNS, LIVE_KINDS, OK, PARTIAL, ROW_COLUMNS,  # noqa: F401
                                  ROW_FORMAT, TIMEOUT, TRAJ_KINDS, UNUSABLE, VIOLATIONS, BagJob,
                                  BagOutcome, FleetConfig, error_outcome, partial_note,
-                                 row_from_record)
+                                 row_from_record, trajectories_line)
 
 if TYPE_CHECKING:
     from dyn_node.core.model_source import ModelCache
@@ -593,6 +593,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _print_result(res: FleetResult) -> int:
     print(_summary(res))
+    print(trajectories_line(res.rows))
     for r in res.rows:
         if r["exit_category"] in (UNUSABLE, TIMEOUT, CRASHED):
             print(f"  - {Path(r['path']).name}: {r['exit_category']}: {r['error']}")

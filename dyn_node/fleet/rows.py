@@ -255,3 +255,13 @@ def partial_note(rows: list[dict]) -> str:
     category (violations win the exit code; the lost data must still be said), else ``""``."""
     k = sum(bool(r.get("partial")) for r in rows)
     return f" ({k} partial: data lost)" if k else ""
+
+
+def trajectories_line(rows: list[dict]) -> str:
+    """``trajectories: 4 of 16 executed infeasible or rejected; questions: 8 of 20 answered
+    infeasible or rejected (not violations)``, over the audited bags."""
+    def total(k: str) -> int:
+        return sum(int(r.get(k) or 0) for r in rows)
+    return (f"trajectories: {total('trajectories_bad')} of {total('trajectories')} executed infeasible or "
+            f"rejected; questions: {total('questions_infeasible')} of {total('questions')} answered "
+            "infeasible or rejected (not violations)")
