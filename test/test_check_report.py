@@ -96,3 +96,19 @@ def test_sections_hook_adds_a_section(tmp_path, checker):
     page = (tmp_path / "report.html").read_text()
     assert page.index("id='retime'") > page.index("id='trajectory'")
     assert (tmp_path / "retime.png") in files and (tmp_path / "retime.png").read_bytes() == b"\x89PNG"
+
+
+@pytest.mark.parametrize("mutate, word, banner, want_code", [
+    (lambda ls: [ls[0], ls[1], ls[2].replace("-0.435", "nan", 1), *ls[3:]], "REJECTED", "REJECTED", 1),
+    (lambda ls: [ls[0].replace("panda_joint7", "panda_joint8", 1), *ls[1:]], "UNREADABLE", "NOT CHECKED", 2)])
+def test_a_file_that_cannot_be_checked_gets_a_report_with_nothing_to_plot(tmp_path, capsys, mutate, word,
+                                                                          banner, want_code):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(mutate(REACH.read_text().splitlines())) + "\n")
+    code = check_cli.main([str(bad), "--robot-model", "panda", "--out", str(tmp_path / "o")])
+    io = capsys.readouterr()
+    assert f"bad.csv: {word}" in io.out + io.err
+    page = (tmp_path / "o" / "bad" / "report.html").read_text()
+    assert f">{banner}<small>" in page and "could not be checked" in page
+    assert "data:image/png" not in page and not (tmp_path / "o" / "bad" / "trajectory.png").exists()
+    assert code == want_code

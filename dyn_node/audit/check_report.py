@@ -130,14 +130,16 @@ def _head(record: dict) -> list[str]:
 
     v, m = record["verdict"], record["configuration"]["model"]
     path = record["inputs"]["files"][0]
+    t = (record["outputs"]["trajectories"] or [{}])[0]
     word = {"feasible": ("ok", "FEASIBLE"), "violations": ("bad", "INFEASIBLE")}.get(v["result"], ("unusable", "NOT CHECKED"))
+    if v["result"] == "violations" and not t.get("accepted"):
+        word = ("bad", "REJECTED")  # refused before any check: nothing was evaluated
     p = ["<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
          f"<title>dyn-check: {_e(Path(path).name)}</title><style>{_CSS}</style></head><body><main>",
          f"<h1>dyn-check report — <code>{_e(path)}</code></h1>",
          f"<div class='verdict {word[0]}' id='verdict'>{word[1]}<small>{_e(v['summary'])}</small></div>"]
     if v.get("findings"):
         p.append("<ul>" + "".join(f"<li>{_e(f)}</li>" for f in v["findings"]) + "</ul>")
-    t = (record["outputs"]["trajectories"] or [{}])[0]
     facts = [("Model", f"{_e(m['name'])} ({m['dof']} DoF); URDF sha256 <code>{_e(m['urdf_sha256'])}</code>"),
              ("File", f"{_e(path)} ({_e(record['inputs'].get('format') or '?')}), {_num(t.get('n_points'))} "
                       f"points, {_num(t.get('duration_s'), '{:.4g}')} s, {_e(t.get('interpolation') or '—')} interpolation"),
