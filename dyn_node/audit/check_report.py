@@ -73,8 +73,9 @@ def _over(t: np.ndarray, y: np.ndarray, lim: tuple[float, float] | None) -> list
 
 
 def trajectory_plot(curves: Curves, model: Any, violations: Sequence[Any], *, time_scale: float) -> bytes:
-    """One row per joint, one column per quantity: the curve (blue), its limits (red) and the
-    violations (shaded from their first time over the limit, a red mark at the peak)."""
+    """One row per joint, one column per quantity: the curve (blue), its limits (red dashed),
+    the time it is over them shaded (for kinds with no line of their own, such as the effort rate,
+    the violation's span) and each violation's peak marked × on the curve."""
     from dyn_node.core.units import joint_units
 
     names, units = list(model.joint_names), joint_units(model)

@@ -1,10 +1,11 @@
 """report.html for an audit: one self-contained page (no network fetches) plus the plots as PNGs.
 
-Verdict at the top; per-joint effort vs limit over time with the ±limit envelope; utilisation heat
-map (joint × time); violations table; each trajectory's time scale and margins; with task limits
-(#18) each place and kind against its limit (``task_limits.png``); input-quality
-findings; re-check and latency. Plots are drawn with Pillow (anti-aliased by drawing at twice the
-size) and embedded as base64 ``data:`` URIs; matplotlib is not imported, since importing and laying
+Verdict at the top; per-joint model torque and measured effort (both signed) against the ±limit
+over time; utilisation heat map (joint × time); violations table; each trajectory (executed or a
+question) with its time scale and margins; with task limits (#18) each place and kind against its
+limit (``task_limits.png``); input-quality findings; re-check and latency. Plots are drawn with
+Pillow (:mod:`report_plots`: the canvas and the effort plot) and embedded as base64 ``data:`` URIs;
+the HTML pieces are :mod:`report_html`'s. matplotlib is not imported, since importing and laying
 out a matplotlib figure took longer than auditing a minute of 1 kHz joint states.
 """
 from __future__ import annotations
