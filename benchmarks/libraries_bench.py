@@ -742,7 +742,7 @@ def _mpl_effort(plt, series, names, start_ns, violations):
         lo = np.where(have, series.tau_min[:n, j], np.nan)
         hi = np.where(have, series.tau_max[:n, j], np.nan)
         lim = series.limit[:n, j]
-        meas = series.measured[:n, j]
+        meas = series.meas_max[:n, j]  # the report draws min and max; one is enough to time
         env = np.where(have & np.isfinite(lim), lim, np.nan)
         for v in violations:
             if v["joint"] == names[j] and v["kind"] == "effort":
@@ -751,7 +751,7 @@ def _mpl_effort(plt, series, names, start_ns, violations):
                         label="model torque (min–max per bin)")
         ax.plot(t, (lo + hi) / 2, color=_DARK_BLUE, lw=0.7)
         if np.isfinite(meas).any():
-            ax.step(t, meas, where="mid", color=_ORANGE, lw=1.0, label="|measured effort| (max per bin)")
+            ax.step(t, meas, where="mid", color=_ORANGE, lw=1.0, label="measured effort (max per bin)")
         if np.isfinite(env).any():
             ax.step(t, env, where="mid", color=_RED, lw=1.3, label="±effort limit")
             ax.step(t, -env, where="mid", color=_RED, lw=1.3)

@@ -2,7 +2,8 @@
 
 Each bag holds ``seconds`` of joint_states of one built-in robot (a slow sine about a pose inside
 the limits), optionally a measured-effort spike over one joint's limit (a live violation) and
-trajectories (``fast=True``: 20× too fast, infeasible). The dyn_node metadata (URDF, parameters)
+trajectories (``fast=True``: 20× too fast, infeasible), executed on ``/joint_trajectory`` or
+asked as check-only questions on ``/dyn_node/check_trajectory``. The dyn_node metadata (URDF, parameters)
 is written unless ``model=False``, which leaves a bag no model can be found for.
 """
 from __future__ import annotations
@@ -27,6 +28,7 @@ class BagSpec:
     rate_hz: float = 500.0
     spike: tuple[float, float] | None = None     # (start s, end s) of an effort spike on joint 2
     trajectories: tuple[bool, ...] = ()          # one per trajectory: True = too fast
+    questions: tuple[bool, ...] = ()             # check-only requests (never executed): True = too fast
     model: bool = True
     start_s: float = 0.0
 
@@ -80,6 +82,8 @@ def write_bag(parent: Path, spec: BagSpec) -> Path:
     rec.add_topic(TopicInfo("/joint_states", "sensor_msgs/msg/JointState"))
     if spec.trajectories:
         rec.add_topic(TopicInfo("/joint_trajectory", "trajectory_msgs/msg/JointTrajectory"))
+    if spec.questions:
+        rec.add_topic(TopicInfo("/dyn_node/check_trajectory", "trajectory_msgs/msg/JointTrajectory"))
     n = int(round(spec.seconds * spec.rate_hz))
     dt = int(round(1e9 / spec.rate_hz))
     q0 = nominal_pose(model)
@@ -87,6 +91,8 @@ def write_bag(parent: Path, spec: BagSpec) -> Path:
     limit = float(model.limits.effort[1])
     traj_at = {int(n * (k + 1) / (len(spec.trajectories) + 1)): fast
                for k, fast in enumerate(spec.trajectories)}
+    ask_at = {int(n * (k + 1) / (len(spec.questions) + 1)) + 1: fast  # beside, never on, a trajectory
+              for k, fast in enumerate(spec.questions)}
     m = JointState()
     m.header.frame_id = "base"
     m.name = list(model.joint_names)
@@ -95,6 +101,9 @@ def write_bag(parent: Path, spec: BagSpec) -> Path:
         if i in traj_at:
             rec.write("/joint_trajectory", serialize_message(_trajectory(model, t_ns, traj_at[i])),
                       t_ns + 500)
+        if i in ask_at:
+            rec.write("/dyn_node/check_trajectory",
+                      serialize_message(_trajectory(model, t_ns + 1, ask_at[i])), t_ns + 700)
         t = i / spec.rate_hz
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
         m.position = [float(x) for x in q0 + 0.05 * np.sin(2 * np.pi * 0.5 * t + ph)]

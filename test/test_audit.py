@@ -495,9 +495,16 @@ def test_series_bins_stay_bounded_and_keep_extremes():
     for k in range(0, n, 1024):
         sl = slice(k, k + 1024)
         b.add_batch(t[sl], tau[sl], util[sl], np.full((len(t[sl]), 2), 3.0), meas[sl])
-    for name in ("tau_min", "tau_max", "util", "limit", "measured", "count"):
+    for name in ("tau_min", "tau_max", "util", "limit", "meas_min", "meas_max", "count"):
         np.testing.assert_array_equal(getattr(b, name), getattr(s2, name))
     assert (b.n, b.width) == (s2.n, s2.width)
+    # the measured effort keeps its sign (the report plots it beside the signed model torque)
+    per = s2.width // MS
+    for k in (0, 17):
+        sl = slice(k * per, (k + 1) * per)
+        np.testing.assert_array_equal(s2.meas_min[k], np.nanmin(meas[sl], axis=0))
+        np.testing.assert_array_equal(s2.meas_max[k], np.nanmax(meas[sl], axis=0))
+        assert (s2.meas_min[k] < 0).all() and (s2.meas_max[k] > 0).all()
 
 
 @pytest.mark.timeout(60)
@@ -786,7 +793,7 @@ def test_a_trajectory_the_check_rejects_is_a_finding_and_the_rest_is_audited(tmp
     fe = rec["outputs"]["recheck"]["/dyn_node/feasibility"]
     assert (fe["matched"], fe["unmatched"], fe["identical"]) == (2, 0, True)
     assert code == 1 and rec["verdict"]["result"] == "violations"
-    assert rec["verdict"]["summary"].startswith("1 of 2 trajectories infeasible or rejected")
+    assert rec["verdict"]["summary"].startswith("1 of 2 executed trajectories infeasible or rejected")
 
 
 @pytest.mark.parametrize("burst", [1, 40])  # 1: message by message; 40: runs replayed as batches

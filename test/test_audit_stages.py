@@ -168,7 +168,7 @@ def test_verdict_of_a_clean_replay_and_a_differing_recheck(tmp_path):
     r = replay.finish()
     rec = build_evidence(AuditOptions(bag=str(bag)), source, Roles(), r, recheck.result())
     assert add_verdict(rec, source, r, gap_threshold_s=0.05) == EXIT_OK
-    assert rec.verdict["summary"].startswith("all feasible: 300 joint states, 0 trajectories; ")
+    assert rec.verdict["summary"].startswith("all feasible: 300 joint states, 0 executed trajectories; ")
     assert rec.failure_labels == [EVALUATION_ERROR]
     assert rec.verdict["findings"] == [
         "re-check differs from the recorded outputs on /dyn_node/inverse_dynamics"]

@@ -171,6 +171,10 @@ def test_demo_short_end_to_end(tmp_path):
         assert re.search(rf"/dyn_node/{topic}\s+matched [1-9]\d*, unmatched 0, not answered live 0, "
                          r"max \|difference\| 0\.0, identical True", text), text[-3000:]
     assert re.search(r"- (contact|collision) from [0-9.]+ s to [0-9.]+ s: peak [0-9.]+ N at panda_link8", text)
+    # dyn-audit's line adds up: the executed trajectories and the check-only questions apart
+    # (the aggressive trajectory is the executed "no"; two of the checks asked before sending said no)
+    assert re.search(r"; 1 of 4 executed trajectories infeasible or rejected; 2 of 5 questions "
+                     r"answered infeasible or rejected \(check 5\)", text), text[-3000:]
     # 3b: the TCP speed limit, before execution with its time_scale, and the slowed transfer
     assert re.search(r"\[PASS\] fast transfer: infeasible before execution on the TCP speed "
                      r"\(worst panda_hand frame_speed, peak 0\.64\d* m/s of 0\.25 m/s\), "

@@ -9,6 +9,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 import jsonschema
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_audit import MS, T0, make_bag, trajectory_msg  # noqa: E402
@@ -98,3 +99,30 @@ def test_report_says_when_the_recheck_is_not_comparable(tmp_path):
     html, page = parse(tmp_path / "o" / "report.html")
     cells = [t for t in page.text if t.startswith("not comparable: joints: 7 recorded, 9 here")]
     assert len(cells) == 2  # gravity_torque and inverse_dynamics rows
+
+
+def test_effort_plot_draws_the_measured_effort_signed():
+    """Model torque −15 N·m and measured effort −15 N·m (they agree): the measured line is
+    drawn below zero beside the model band, not at +15 as a |value| would put it."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    from dyn_node.audit.replay_common import SeriesBins
+    from dyn_node.audit.report_plots import _ORANGE, effort_plot
+
+    s = SeriesBins(1, 0, width_ns=10 * MS)
+    for i in range(200):
+        s.add(i * MS * 5, np.array([-15.0]), np.array([15 / 87]), np.array([87.0]), np.array([-15.0 - 0.01 * i]))
+    assert s.meas_min[0, 0] < 0 and s.meas_max[0, 0] < 0
+    img = np.asarray(Image.open(io.BytesIO(effort_plot(s, ["j"], 0, []))).convert("RGB")).astype(int)
+    orange = np.array([int(_ORANGE[i:i + 2], 16) for i in (1, 3, 5)])
+    ys, xs = np.nonzero(np.abs(img - orange).sum(axis=2) < 40)
+    ys = ys[ys > 56]  # below the legend's sample line
+    top, bottom = 62, 62 + 150 - 14  # the joint's panel; its y range is ±1.15·limit, 0 in the middle
+    zero = (top + bottom) / 2
+    assert len(ys) > 100
+    assert ys.min() > zero  # all of it below zero
+    # at −15 of ±100 N·m: 15 % of the half-height below the middle
+    assert np.median(ys) == pytest.approx(zero + 15 / (1.15 * 87) * (bottom - top) / 2, abs=3)

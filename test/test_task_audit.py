@@ -53,7 +53,7 @@ def models(tmp_path_factory):
 
 
 def _entry(per_frame: dict, *, index: int = 0, time_s: float = 0.0, feasible: bool = False) -> dict:
-    return {"index": index, "topic": "/joint_trajectory", "time_s": time_s, "stamp_ns": 0,
+    return {"index": index, "request": "execute", "topic": "/joint_trajectory", "time_s": time_s, "stamp_ns": 0,
             "accepted": True, "feasible": feasible, "failure_label": None, "per_frame": per_frame}
 
 

@@ -25,6 +25,7 @@ from dyn_node.core.allocator import retain_freed_memory
 from dyn_node.bag.reader import BagMessage, BagReader, MessageDecoder
 from dyn_node.bag.metadata import LIMITS_SHA256_KEY, LIMITS_YAML_KEY
 from dyn_node.bag.cdr import decode_joint_state, decode_joint_state_batch
+from dyn_node.audit.accounting import EXECUTE, INVERSE_DYNAMICS, RequestTally, request_of_role
 from dyn_node.audit.cli import add_audit_options, run_command
 from dyn_node.errors import (CONTROL_ERROR, EVALUATION_ERROR, PLANNING_ERROR, STATE_ERROR, DynNodeError,
                      InputError, TrajectoryError)
@@ -828,6 +829,7 @@ class ReplayResult:
     trajectory_failure_labels: set[str]
     controller: ControllerTimeline
     contact: Any = None         # audit.contact_replay.ContactResult
+    tally: RequestTally = field(default_factory=RequestTally)  # executed vs questions, exact
 
 
 class Replay:
@@ -859,6 +861,7 @@ class Replay:
         self.out_of_order: list[dict] = []
         self.trajectories = Capped(MAX_TRAJECTORIES)
         self.trajectories_bad = 0
+        self.tally = RequestTally()
         self.trajectory_failure_labels: set[str] = set()
         self.controller = ControllerTimeline()
         # Consecutive joint_states of one topic with one byte layout and no gap are queued as a
@@ -900,7 +903,7 @@ class Replay:
                             self.js_topics, self.prev_log, self.gaps, self.stale, self.invalid,
                             self.invalid_by_reason, self.out_of_order, self.trajectories,
                             self.trajectories_bad, self.trajectory_failure_labels, self.controller,
-                            contact=self.contact.finish())
+                            contact=self.contact.finish(), tally=self.tally)
 
     def _switch(self, cfg: _Config) -> None:
         """What the node does when a parameter is set: a new core from now on."""
@@ -1034,8 +1037,9 @@ class Replay:
     # trajectories and requests -------------------------------------------------------------
     def _trajectory_request(self, role: str, m: BagMessage) -> None:
         entry, ok_traj, res = self._trajectory(m, self.trajectories.total)
-        execute = role == ROLE_TRAJECTORY
-        entry["request"] = "execute" if execute else "check"
+        entry["request"] = request_of_role(role)
+        execute = entry["request"] == EXECUTE
+        self.tally.add(entry["request"], answered_yes=entry["feasible"])
         # a check-only request is a question: its "no" is listed, not a violation of the run
         if entry.get("failure_label") and execute:
             self.trajectory_failure_labels.add(entry["failure_label"])
@@ -1117,10 +1121,12 @@ class Replay:
                                        [p.accelerations for p in pts])
             tau = on_demand.inverse_dynamics(self.traj_dynamics, Q, V, A)
         except TrajectoryError as exc:
+            self.tally.add(INVERSE_DYNAMICS, answered_yes=False)
             if self.sink is not None:
                 self.sink.expect_verdict(key, {"message": f"rejected: {exc}", "error_code": exc.code,
                                                "n_points": len(pts), "duration_s": math.nan})
             return
+        self.tally.add(INVERSE_DYNAMICS, answered_yes=True)
         if self.sink is not None:
             self.sink.expect_efforts(key, tau)
 
@@ -1475,6 +1481,7 @@ def _outputs_section(source: AuditSource, replay: ReplayResult, recheck: Recheck
     return {
         "trajectories": trajectories, "trajectories_total": replay.trajectories.total,
         "trajectories_infeasible_or_rejected": replay.trajectories_bad,
+        "trajectory_counts": replay.tally.to_dict(),
         "effort": {"per_joint": [_joint_peak(replay.live, model, units, rel, j)
                                  for j in range(len(model.joint_names))],
                    "samples": int(counts.accepted)},
@@ -1556,7 +1563,7 @@ def add_verdict(rec: EvidenceRecord, source: AuditSource, replay: ReplayResult, 
 
 def _summary(replay: ReplayResult, violations: list[dict], episodes_total: int,
              unreadable: list[dict]) -> list[str]:
-    n_traj, n_traj_bad, accepted = replay.trajectories.total, replay.trajectories_bad, replay.counts.accepted
+    n_traj_bad, accepted, tally = replay.trajectories_bad, replay.counts.accepted, replay.tally
     parts = []
     if episodes_total:
         rated = [v for v in violations if isinstance(v["peak_ratio"], float)]
@@ -1565,11 +1572,13 @@ def _summary(replay: ReplayResult, violations: list[dict], episodes_total: int,
                      + (f", worst {worst['joint']} {worst['kind']} at t = {worst['peak_time_s']:.3f} s"
                         if worst else ""))
     if n_traj_bad:
-        parts.append(f"{n_traj_bad} of {n_traj} trajectories infeasible or rejected")
+        parts.append(tally.sentence())  # each count over its own total: executed, questions
     if not (episodes_total or n_traj_bad):
-        parts.append(f"all feasible: {accepted} joint states, {n_traj} trajectories; "
+        parts.append(f"all feasible: {accepted} joint states, {tally.executed_text()}; "
                      f"peak utilisation {np.max(replay.live.peak_util) * 100:.0f}%" if accepted
-                     else f"all feasible: {n_traj} trajectories")
+                     else f"all feasible: {tally.executed_text()}")
+    if tally.questions and not n_traj_bad:
+        parts.append(tally.questions_sentence())
     if unreadable:
         parts.append(f"PARTIAL: {len(unreadable)} unreadable range(s)")
     return parts

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+from dyn_node.audit.accounting import CHECK, RequestTally
 from dyn_node.errors import CheckError, DynNodeError, PLANNING_ERROR, STATE_ERROR, TrajectoryFileError
 from dyn_node.audit.exit_codes import EXIT_UNUSABLE, MEANINGS, exit_code
 from dyn_node.audit.trajectory_files import TrajectoryFile, format_trajectory, parse_trajectory, read_trajectory
@@ -195,6 +196,7 @@ def evidence_record(checker: Checker, v: FileVerdict, started_utc: str) -> dict:
                           "effort_limit": float(model.limits.effort[j])})
     rec.outputs = {"trajectories": [entry] if tf else [], "trajectories_total": 1 if tf else 0,
                    "trajectories_infeasible_or_rejected": 0 if v.feasible or not tf else 1,
+                   "trajectory_counts": RequestTally.of_entries([entry] if tf else []).to_dict(),
                    "effort": {"per_joint": per_joint, "samples": 0}, "violations": [],
                    "controller_states": {}, "recheck": {}, "latency": {}}
     rec.input_quality = {
@@ -230,7 +232,7 @@ def _entry(v: FileVerdict) -> dict:
     from dyn_node.audit.evidence import add_per_frame
 
     tf, o = v.trajectory, v.outcome
-    entry: dict[str, Any] = {"index": 0, "topic": v.path, "time_s": 0.0,
+    entry: dict[str, Any] = {"index": 0, "request": CHECK, "topic": v.path, "time_s": 0.0,
                              "stamp_ns": tf.stamp_ns if tf else 0, "accepted": False, "feasible": False,
                              "failure_label": STATE_ERROR}
     if o is None:
@@ -256,13 +258,13 @@ def _entry(v: FileVerdict) -> dict:
 def write_evidence(checker: Checker, v: FileVerdict, out_dir: Path, started_utc: str) -> Path:
     import json
 
-    from dyn_node.audit.report import write_report
+    from dyn_node.audit.check_report import write_check_report
 
     d = out_dir / Path(v.path).stem
     d.mkdir(parents=True, exist_ok=True)
     rec = evidence_record(checker, v, started_utc)
     (d / "evidence.json").write_text(json.dumps(rec, indent=1, ensure_ascii=False, allow_nan=False))
-    write_report(rec, None, checker.model, d)
+    write_check_report(rec, v, checker, d)  # the trajectory's own report, not the bag report
     return d
 
 

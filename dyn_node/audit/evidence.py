@@ -86,6 +86,12 @@ METRIC_DEFINITIONS: dict[str, dict[str, str]] = {
     "contact.resets": {"unit": "s", "description": "observer restarts (recording start, joint_states gap > "
                        "stale_timeout, model or parameter change, invalid input): stamp of the sample"},
     "throughput_msgs_per_s": {"unit": "1/s", "description": "messages read per second of wall time"},
+    "request": {"unit": "", "description": "trajectory entry: execute (sent to be executed: infeasible "
+                "is a violation of the run) or the kind of question (check, retime, inverse_dynamics: "
+                "a 'no' is an answer, not a violation)"},
+    "trajectory_counts": {"unit": "requests", "description": "executed trajectories and questions "
+                          "apart, each with how many were infeasible or rejected, exact past the "
+                          "listed entries; by_request: per request kind"},
     "per_frame": {"unit": "the kind's (entry.unit)", "description": "trajectory entry: place (a "
                   "frame_limits link, robot_limits, base_limits or grasp) → task kind → {ratio, "
                   "time_s, value, limit, unit}: peak value over its limit, at time_s from the "

@@ -27,7 +27,9 @@ class SeriesBins:
         self.tau_max = np.full((MAX_BINS, nv), -np.inf)
         self.util = np.zeros((MAX_BINS, nv))
         self.limit = np.full((MAX_BINS, nv), np.inf)
-        self.measured = np.full((MAX_BINS, nv), np.nan)  # max |measured effort| (NaN: none)
+        # measured effort, signed like the model torque (NaN: none measured in the bin)
+        self.meas_min = np.full((MAX_BINS, nv), np.nan)
+        self.meas_max = np.full((MAX_BINS, nv), np.nan)
         self.count = np.zeros(MAX_BINS, dtype=np.int64)
 
     def _merge(self) -> None:
@@ -36,8 +38,9 @@ class SeriesBins:
                          (self.util, np.maximum), (self.limit, np.minimum)):
             arr[:half] = red(arr[0::2], arr[1::2])
             arr[half:] = np.inf if red is np.minimum else (-np.inf if arr is self.tau_max else 0.0)
-        self.measured[:half] = np.fmax(self.measured[0::2], self.measured[1::2])
-        self.measured[half:] = np.nan
+        for arr, red in ((self.meas_min, np.fmin), (self.meas_max, np.fmax)):
+            arr[:half] = red(arr[0::2], arr[1::2])
+            arr[half:] = np.nan
         self.count[:half] = self.count[0::2] + self.count[1::2]
         self.count[half:] = 0
         self.width *= 2
@@ -54,7 +57,8 @@ class SeriesBins:
         np.fmax(self.util[i], util, out=self.util[i])
         np.minimum(self.limit[i], limit, out=self.limit[i])
         if measured is not None:
-            np.fmax(self.measured[i], np.abs(measured), out=self.measured[i])
+            np.fmin(self.meas_min[i], measured, out=self.meas_min[i])
+            np.fmax(self.meas_max[i], measured, out=self.meas_max[i])
         self.count[i] += 1
         if i >= self.n:
             self.n = i + 1
@@ -73,14 +77,16 @@ class SeriesBins:
             self.tau_max[b] = np.maximum(self.tau_max[b], np.maximum.reduceat(tau, starts))
             self.util[b] = np.fmax(self.util[b], np.fmax.reduceat(util, starts))
             self.limit[b] = np.minimum(self.limit[b], np.minimum.reduceat(limit, starts))
-            self.measured[b] = np.fmax(self.measured[b], np.fmax.reduceat(np.abs(measured), starts))
+            self.meas_min[b] = np.fmin(self.meas_min[b], np.fmin.reduceat(measured, starts))
+            self.meas_max[b] = np.fmax(self.meas_max[b], np.fmax.reduceat(measured, starts))
             self.count[b] += np.diff(np.r_[starts, len(idx)])
         else:  # log time went backwards inside the batch: slower unbuffered path
             np.minimum.at(self.tau_min, idx, tau)
             np.maximum.at(self.tau_max, idx, tau)
             np.fmax.at(self.util, idx, util)
             np.minimum.at(self.limit, idx, limit)
-            np.fmax.at(self.measured, idx, np.abs(measured))
+            np.fmin.at(self.meas_min, idx, measured)
+            np.fmax.at(self.meas_max, idx, measured)
             np.add.at(self.count, idx, 1)
         self.n = max(self.n, int(idx.max()) + 1)
 

@@ -18,133 +18,30 @@ import sys
 import time
 from collections import deque
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Sequence
 
 from dyn_node import __version__
-from dyn_node.audit.bag_audit import LiveStats
 from dyn_node.audit.cli import add_audit_options, run_command
 from dyn_node.errors import FleetError
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code
-from dyn_node.core.limits import LIMIT_KINDS
+from dyn_node.fleet import cleanup
+from dyn_node.fleet.rows import (CRASHED, JOINT_COLUMNS, LIVE_KINDS, OK, PARTIAL, ROW_COLUMNS,  # noqa: F401
+                                 ROW_FORMAT, TIMEOUT, TRAJ_KINDS, UNUSABLE, VIOLATIONS, BagJob,
+                                 BagOutcome, FleetConfig, error_outcome, partial_note,
+                                 row_from_record, trajectories_line)
 
 if TYPE_CHECKING:
     from dyn_node.core.model_source import ModelCache
 
-#: Bumped when a row's content changes meaning: --resume then re-audits every bag.
-ROW_FORMAT = 1
 STATE_FILE = "fleet_row.json"
-LIVE_KINDS: tuple[str, ...] = tuple(LiveStats.KINDS)   # live violation kinds of the audit
-TRAJ_KINDS: tuple[str, ...] = tuple(LIMIT_KINDS)        # every limit kind the check knows
 #: One BLAS / Numba / OpenMP thread per worker: the workers are the parallelism.
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "NUMBA_NUM_THREADS": "1"}
 LOOPBACK = "127.0.0.1"
 HASH_BLOCK = 1 << 20
-
-# exit categories of a row
-OK, VIOLATIONS, PARTIAL, UNUSABLE, TIMEOUT, CRASHED = (
-    "ok", "violations", "partial", "unusable", "timeout", "crashed")
-_CATEGORY = {EXIT_OK: OK, EXIT_VIOLATIONS: VIOLATIONS, EXIT_PARTIAL: PARTIAL, EXIT_UNUSABLE: UNUSABLE}
-
-# --- the tables' columns: (name, Arrow type, unit, meaning); the README table is made of these ---
-ROW_COLUMNS: list[tuple[str, str, str, str]] = [
-    ("bag_id", "string", "", "directory name of the bag's outputs under DIR/bags/ (bag name + path hash)"),
-    ("path", "string", "", "absolute path of the bag (rosbag2 directory or .mcap file)"),
-    ("content_hash", "string", "", "SHA-256 of the bag's files (names, sizes and bytes); '' if unreadable"),
-    ("config_hash", "string", "", "SHA-256 of the audit configuration (options, override files, versions)"),
-    ("robot", "string", "", "model name ('' when no model could be built)"),
-    ("dof", "int32", "", "model joints"),
-    ("recording_start_ns", "int64", "ns since the Unix epoch", "first log time in the bag (null if none)"),
-    ("recording_duration_s", "float64", "s", "log-time span of the bag"),
-    ("messages", "int64", "messages", "messages read, all topics"),
-    ("joint_states", "int64", "messages", "joint_states replayed (received by the monitor)"),
-    ("joint_states_accepted", "int64", "messages", "joint_states the monitor accepted"),
-    ("trajectories", "int64", "messages", "joint_trajectory messages checked"),
-    ("trajectories_bad", "int64", "messages", "trajectories infeasible or rejected"),
-    ("verdict", "string", "", "feasible | violations | error (not audited)"),
-    ("exit_code", "int8", "", "dyn-audit's exit code for this bag: 0, 1, 3 partial, 2 unusable"),
-    ("exit_category", "string", "", "ok | violations | partial | unusable | timeout | crashed"),
-    ("partial", "bool", "", "parts of the bag were unreadable"),
-    ("error", "string", "", "why the bag was not audited ('' when it was)"),
-    ("error_code", "string", "", "machine-readable error (no_model, bag_unreadable, no_inputs, timeout, worker_died, ...)"),
-    ("worst_joint", "string", "", "joint of the largest limit ratio, live or in a trajectory"),
-    ("worst_constraint", "string", "", "limit kind of that ratio (effort, velocity, ...)"),
-    ("worst_ratio", "float64", "value / limit", "largest ratio found (NaN: none)"),
-    ("worst_source", "string", "", "live (joint_states) or trajectory"),
-    ("worst_time_s", "float64", "s from the bag's start", "when the worst ratio occurred (live) or its trajectory was received"),
-    ("worst_time_scale", "float64", "", "largest time_scale k over the checked trajectories (inf: no slowdown helps; NaN: none)"),
-    ("live_episodes_total", "int64", "episodes", "live limit-violation episodes (exact count)"),
-    *[(f"live_{k}_episodes", "int64", "episodes", f"live {k} violation episodes (of those listed)")
-      for k in LIVE_KINDS],
-    *[(f"traj_{k}_violations", "int64", "joint × trajectory", f"trajectory joints over their {k} limit")
-      for k in TRAJ_KINDS],
-    ("invalid_messages", "int64", "messages", "joint_states rejected (NaN, missing joints, undecodable ...)"),
-    ("out_of_order_messages", "int64", "messages", "joint_states whose stamp went backwards"),
-    ("zero_stamp_messages", "int64", "messages", "joint_states with a zero header stamp"),
-    ("gaps", "int64", "gaps", "joint_states gaps longer than the gap threshold"),
-    ("stale_periods", "int64", "periods", "gaps longer than stale_timeout"),
-    ("unreadable_ranges", "int64", "ranges", "time ranges that could not be read"),
-    ("chunks_damaged", "int64", "chunks", "MCAP chunks failing their CRC or decompression"),
-    ("audit_s", "float64", "s", "wall-clock time of the bag's task (hash + audit + report)"),
-    ("audited_utc", "string", "ISO 8601 UTC", "when the evidence was written"),
-    ("resumed", "bool", "", "true: evidence from an earlier run reused (--resume, bag and configuration unchanged)"),
-    ("node", "string", "", "Ray node that ran the task ('' when none did)"),
-    ("evidence", "string", "path relative to DIR", "evidence.json ('' when the bag was not audited)"),
-    ("report", "string", "path relative to DIR", "report.html ('' when none)"),
-]
-JOINT_COLUMNS: list[tuple[str, str, str, str]] = [
-    ("bag_id", "string", "", "the bag's row in fleet.parquet"),
-    ("robot", "string", "", "model name"),
-    ("joint", "string", "", "joint name"),
-    ("joint_index", "int32", "", "position in the model's joint order"),
-    ("recording_start_ns", "int64", "ns since the Unix epoch", "the bag's first log time"),
-    ("live_effort_peak", "float64", "effort / limit", "peak live effort utilisation (NaN: no accepted joint_states)"),
-    ("live_effort_peak_time_s", "float64", "s from the bag's start", "when it occurred"),
-    ("effort_limit", "float64", "N·m or N", "effort limit at the peak"),
-    *[(f"live_{k}_over_s", "float64", "s", f"time in live {k} violation episodes") for k in LIVE_KINDS],
-    ("live_episodes", "int64", "episodes", "live violation episodes of this joint (of those listed)"),
-    *[(f"traj_{k}_peak", "float64", "value / limit", f"largest {k} ratio over the checked trajectories (NaN: no limit or none)")
-      for k in TRAJ_KINDS],
-    ("traj_over_limit_s", "float64", "s", "time over a limit in the checked trajectories (violations listed)"),
-]
-
-
-# --- configuration and jobs ------------------------------------------------------------------
-@dataclass(frozen=True)
-class FleetConfig:
-    """What every bag is audited with (the part of dyn-audit's options shared by the fleet)."""
-
-    robot_model: str = ""
-    robot_description: str = ""
-    limits: str = ""
-    gap_threshold_s: float = 0.05
-    topics: tuple[str, ...] = ()
-    report: bool = True
-
-
-@dataclass(frozen=True)
-class BagJob:
-    path: str
-    bag_id: str
-    out_root: str          # DIR
-    config: FleetConfig
-    config_hash: str
-    resume: bool = False
-
-    @property
-    def out_dir(self) -> Path:
-        return Path(self.out_root) / "bags" / self.bag_id
-
-
-@dataclass
-class BagOutcome:
-    """One bag's row (ROW_COLUMNS) and joint rows (JOINT_COLUMNS)."""
-
-    row: dict
-    joints: list[dict] = field(default_factory=list)
 
 
 def _file_sha256(path: Path | None) -> str:
@@ -205,8 +102,10 @@ def _walk(root: Path, skip: Path | None) -> Iterable[Path]:
             dirs[:] = []
             yield here
             continue
-        dirs.sort()
-        yield from (here / f for f in sorted(files) if f.endswith(".mcap"))
+        # a directory named like a bag file is an input too: it gets a row (with its error)
+        named = sorted(x for x in dirs if x.endswith(".mcap"))
+        dirs[:] = sorted(x for x in dirs if not x.endswith(".mcap"))
+        yield from sorted([here / x for x in named] + [here / f for f in files if f.endswith(".mcap")])
 
 
 def discover(roots: Sequence[str], *, skip: Path | None = None) -> list[Path]:
@@ -218,9 +117,9 @@ def discover(roots: Sequence[str], *, skip: Path | None = None) -> list[Path]:
     skip = skip.resolve() if skip is not None else None
     for r in roots:
         root = Path(r).expanduser()
-        if root.is_dir():
+        if root.is_dir() and not (root.suffix == ".mcap" and not (root / "metadata.yaml").exists()):
             bags: Iterable[Path] = _walk(root.resolve(), skip)
-        elif root.is_file() and root.suffix == ".mcap":
+        elif root.suffix == ".mcap" and (root.is_file() or root.is_dir()):
             bags = [root.resolve()]
         elif root.is_file():
             bags = [(root.parent / line.strip()).resolve() if not Path(line.strip()).is_absolute()
@@ -235,125 +134,6 @@ def discover(roots: Sequence[str], *, skip: Path | None = None) -> list[Path]:
 
 
 # --- one bag (runs inside a Ray worker) --------------------------------------------------------
-def _nan(x: Any) -> float:
-    """A number of the evidence record as a float: its non-finite strings ("inf", "-inf") as
-    such, null and anything else as NaN."""
-    if isinstance(x, str) and x in ("inf", "-inf"):
-        return float(x)
-    return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else math.nan
-
-
-def _blank_row(job: BagJob) -> dict:
-    row: dict[str, Any] = {name: None for name, *_ in ROW_COLUMNS}
-    row.update(bag_id=job.bag_id, path=job.path, content_hash="", config_hash=job.config_hash,
-               robot="", dof=0, error="", error_code="", resumed=False, partial=False,
-               evidence="", report="", node="", worst_joint="", worst_constraint="", worst_source="",
-               worst_ratio=math.nan, worst_time_s=math.nan, worst_time_scale=math.nan,
-               recording_duration_s=math.nan, audit_s=0.0, audited_utc="")
-    for name, typ, *_ in ROW_COLUMNS:
-        if row[name] is None and typ.startswith("int"):
-            row[name] = 0
-    row["recording_start_ns"] = None
-    return row
-
-
-def error_outcome(job: BagJob, category: str, code: str, message: str, **extra: Any) -> BagOutcome:
-    """The row of a bag that was not audited: its error and exit category; exit code 2."""
-    row = _blank_row(job)
-    row.update(verdict="error", exit_code=EXIT_UNUSABLE, exit_category=category,
-               error=message.strip().splitlines()[0] if message.strip() else category,
-               error_code=code, **extra)
-    return BagOutcome(row)
-
-
-def _worst(rec: dict) -> tuple[str, str, float, str, float]:
-    """(joint, constraint, ratio, source, time) of the largest limit ratio in the record."""
-    best = ("", "", -math.inf, "", math.nan)
-    out = rec["outputs"]
-    for pj in out["effort"]["per_joint"]:
-        r = _nan(pj.get("peak_utilisation"))
-        if r > best[2]:
-            best = (pj["joint"], "effort", r, "live", _nan(pj.get("peak_time_s")))
-    for v in out["violations"]:
-        r = _nan(v.get("peak_ratio"))
-        if r > best[2]:
-            best = (v["joint"], v["kind"], r, "live", _nan(v.get("peak_time_s")))
-    for t in out["trajectories"]:
-        r = _nan(t.get("worst_ratio"))
-        if t.get("accepted") and r > best[2]:
-            best = (t.get("worst_joint") or "", t.get("worst_constraint") or "", r, "trajectory",
-                    _nan(t.get("time_s")))
-    return best if best[2] > -math.inf else ("", "", math.nan, "", math.nan)
-
-
-def row_from_record(job: BagJob, rec: dict, code: int, digest: str) -> BagOutcome:
-    """The fleet row and joint rows of one evidence record (all numbers come from it)."""
-    row = _blank_row(job)
-    out, iq, inp = rec["outputs"], rec["input_quality"], rec["inputs"]
-    model = rec["configuration"]["model"]
-    wj, wc, wr, ws, wt = _worst(rec)
-    scales = [_nan(t.get("time_scale")) for t in out["trajectories"] if t.get("accepted")]
-    scales = [s for s in scales if not math.isnan(s)]
-    row.update(
-        content_hash=digest, robot=model["name"], dof=int(model["dof"]),
-        recording_start_ns=inp["time_span"]["start_ns"],
-        recording_duration_s=float(inp["time_span"]["duration_s"]),
-        messages=int(sum(inp["message_counts"].values())),
-        joint_states=int(out["monitor_counts"]["received"]),
-        joint_states_accepted=int(out["monitor_counts"]["accepted"]),
-        trajectories=int(out["trajectories_total"]),
-        trajectories_bad=int(out["trajectories_infeasible_or_rejected"]),
-        verdict=rec["verdict"]["result"], exit_code=int(code), exit_category=_CATEGORY[code],
-        partial=bool(rec["verdict"]["partial"]),
-        worst_joint=wj, worst_constraint=wc, worst_ratio=wr, worst_source=ws, worst_time_s=wt,
-        worst_time_scale=max(scales) if scales else math.nan,
-        live_episodes_total=int(out["violation_episodes_total"]),
-        invalid_messages=int(iq["invalid_messages"]["count"]),
-        out_of_order_messages=int(iq["out_of_order"]["count"]),
-        zero_stamp_messages=int(iq["zero_stamp_messages"]),
-        gaps=int(iq["gaps_total"]), stale_periods=int(iq["stale_periods_total"]),
-        unreadable_ranges=len(iq["unreadable_ranges"]), chunks_damaged=int(iq["chunks_damaged"]),
-        audited_utc=rec["timestamps"]["finished_utc"],
-        evidence=f"bags/{job.bag_id}/evidence.json",
-        report=f"bags/{job.bag_id}/report.html" if job.config.report else "",
-    )
-    for k in LIVE_KINDS:
-        row[f"live_{k}_episodes"] = sum(1 for v in out["violations"] if v["kind"] == k)
-    for k in TRAJ_KINDS:
-        row[f"traj_{k}_violations"] = sum(
-            1 for t in out["trajectories"] for kinds in (t.get("per_joint") or {}).values()
-            if _nan((kinds.get(k) or {}).get("ratio")) > 1.0)
-    return BagOutcome(row, _joint_rows(job, rec, row))
-
-
-def _joint_rows(job: BagJob, rec: dict, row: dict) -> list[dict]:
-    out = rec["outputs"]
-    rows = []
-    for j, name in enumerate(rec["configuration"]["model"]["joint_names"]):
-        pj = out["effort"]["per_joint"][j]
-        jr: dict[str, Any] = {
-            "bag_id": job.bag_id, "robot": row["robot"], "joint": name, "joint_index": j,
-            "recording_start_ns": row["recording_start_ns"],
-            "live_effort_peak": _nan(pj.get("peak_utilisation")),
-            "live_effort_peak_time_s": _nan(pj.get("peak_time_s")),
-            "effort_limit": _nan(pj.get("effort_limit")),
-        }
-        eps = [v for v in out["violations"] if v["joint"] == name]
-        for k in LIVE_KINDS:
-            jr[f"live_{k}_over_s"] = float(sum(v["duration_s"] for v in eps if v["kind"] == k))
-        jr["live_episodes"] = len(eps)
-        for k in TRAJ_KINDS:
-            ratios = [_nan(((t.get("per_joint") or {}).get(name, {}).get(k) or {}).get("ratio"))
-                      for t in out["trajectories"]]
-            ratios = [r for r in ratios if not math.isnan(r)]
-            jr[f"traj_{k}_peak"] = max(ratios) if ratios else math.nan
-        jr["traj_over_limit_s"] = float(sum(
-            _nan(v.get("duration_s")) for t in out["trajectories"] for v in (t.get("violations") or [])
-            if isinstance(v, dict) and v.get("joint") == name and not math.isnan(_nan(v.get("duration_s")))))
-        rows.append(jr)
-    return rows
-
-
 def _state_path(job: BagJob) -> Path:
     return job.out_dir / STATE_FILE
 
@@ -472,8 +252,18 @@ class Engine:
         self.address, self.workers = address, workers or usable_cores()
         self.started_s = 0.0
         self.slots = self.workers
+        self.temp_dir: Path | None = None   # Ray's session files (local Ray only), removed at exit
+        self._baseline: set[int] = set()    # processes that were there before Ray started
+        self.ray: Any = None
 
     def __enter__(self) -> "Engine":
+        try:
+            return self._start()
+        except BaseException:  # Ctrl-C while Ray starts too: nothing it started may be left
+            self._stop()
+            raise
+
+    def _start(self) -> "Engine":
         import logging
 
         _ray_env(local=not self.address)
@@ -498,15 +288,17 @@ class Engine:
             if self.address:  # the workers of other nodes get the thread settings per job
                 ray.init(address=self.address, runtime_env={"env_vars": dict(WORKER_ENV)}, **common)
             else:  # inherited by the raylet, so its pre-started workers can take the first bags
+                self._baseline = {p for p, _s in cleanup.descendants()}
+                self.temp_dir = cleanup.make_temp_dir()
                 with _environ(WORKER_ENV):
-                    ray.init(num_cpus=self.workers, _node_ip_address=LOOPBACK, **common)
+                    ray.init(num_cpus=self.workers, _node_ip_address=LOOPBACK,
+                             _temp_dir=str(self.temp_dir), **common)
         except Exception as exc:  # noqa: BLE001 - Ray's own errors are many; one line for the user
             raise FleetError(f"cannot start Ray{' at ' + self.address if self.address else ''}: "
                              f"{type(exc).__name__}: {exc}", code="ray_start") from None
         if not self.address:
             ip = ray.util.get_node_ip_address()
             if ip != LOOPBACK:
-                ray.shutdown()
                 raise FleetError(f"local Ray bound to {ip}, not {LOOPBACK}: set "
                                  "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 before Ray is imported",
                                  code="ray_not_loopback")
@@ -517,7 +309,20 @@ class Engine:
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        self.ray.shutdown()
+        self._stop()
+
+    def _stop(self) -> None:
+        """Shut Ray down; a local Ray's processes still running after that are ended (Ctrl-C
+        leaves its agents otherwise running for a minute) and its session files removed."""
+        local = self.temp_dir is not None
+        # listed before the shutdown: once the raylet is gone its agents are no longer ours
+        started = cleanup.ray_processes(self._baseline) if local else []
+        if self.ray is not None:
+            self.ray.shutdown()
+        if local:
+            cleanup.end_processes(started)
+            cleanup.remove_temp_dir(self.temp_dir)
+            self.temp_dir = None
 
 
 @contextmanager
@@ -767,7 +572,7 @@ def _summary(res: FleetResult) -> str:
     resumed = sum(bool(r["resumed"]) for r in res.rows)
     word = {EXIT_OK: "FEASIBLE", EXIT_VIOLATIONS: "VIOLATIONS", EXIT_PARTIAL: "PARTIAL",
             EXIT_UNUSABLE: "UNUSABLE"}[res.exit_code]
-    return (f"{word}: {n} bags: " + ", ".join(parts)
+    return (f"{word}: {n} bags: " + ", ".join(parts) + partial_note(res.rows)
             + (f" ({resumed} unchanged, not re-audited)" if resumed else ""))
 
 
@@ -788,6 +593,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _print_result(res: FleetResult) -> int:
     print(_summary(res))
+    print(trajectories_line(res.rows))
     for r in res.rows:
         if r["exit_category"] in (UNUSABLE, TIMEOUT, CRASHED):
             print(f"  - {Path(r['path']).name}: {r['exit_category']}: {r['error']}")

@@ -4,7 +4,7 @@ The fleet verdict, the worst bags (linked to their own report.html), per-joint u
 distributions across the fleet, violations over recording time (is it getting worse) and the
 input-quality problems. Figures are drawn once per fleet with matplotlib (Agg) and embedded as
 base64 PNGs, so the page needs no other file; the HTML helpers (escaping, tables, images) are
-report.py's.
+audit.report_html's, the figures fleet.figures'.
 matplotlib is fine once per fleet run (report.py keeps Pillow: a 0.64 s import per dyn-audit, LIBRARIES.md).
 """
 from __future__ import annotations
@@ -16,11 +16,11 @@ from pathlib import Path
 from typing import Any
 
 from dyn_node.audit.exit_codes import MEANINGS
-from dyn_node.audit.report import _e, _img, _num, _table  # one set of HTML helpers for both pages
+from dyn_node.audit.report_html import _e, _img, _num, _table  # one set of HTML helpers for all pages
+from dyn_node.fleet.figures import CATEGORY_COLOURS, timeline_figure, utilisation_figure
+from dyn_node.fleet.rows import partial_note
 
 WORST_BAGS = 25
-CATEGORY_COLOURS = {"ok": "#2e7d32", "violations": "#c62828", "partial": "#ef6c00",
-                    "unusable": "#6d4c41", "timeout": "#6a1b9a", "crashed": "#000000"}
 QUALITY_KEYS = ("invalid_messages", "out_of_order_messages", "zero_stamp_messages", "gaps",
                 "stale_periods", "unreadable_ranges", "chunks_damaged")
 
@@ -40,69 +40,8 @@ def _png(fig, alt: str) -> str:
     return _img(buf.getvalue(), alt)
 
 
-def utilisation_figure(joints: list[dict]) -> str:
-    """Per robot, the distribution across bags of each joint's peak live effort utilisation and
-    its peak trajectory effort ratio (box plots; 100 % is the limit)."""
-    import matplotlib.pyplot as plt
-
-    robots = sorted({j["robot"] for j in joints})
-    if not robots:
-        return "<p>No bag was audited: no utilisation to show.</p>"
-    fig, axes = plt.subplots(len(robots), 1, figsize=(9, 2.6 * len(robots)), squeeze=False)
-    for ax, robot in zip(axes[:, 0], robots):
-        rows = [j for j in joints if j["robot"] == robot]
-        names = sorted({j["joint"] for j in rows}, key=lambda n: next(
-            j["joint_index"] for j in rows if j["joint"] == n))
-        for offset, key, colour in ((-0.18, "live_effort_peak", "#1565c0"),
-                                    (0.18, "traj_effort_peak", "#ef6c00")):
-            data = [[100 * j[key] for j in rows if j["joint"] == n and not math.isnan(j[key])]
-                    for n in names]
-            pos = [i + offset for i, d in enumerate(data) if d]
-            if pos:
-                bp = ax.boxplot([d for d in data if d], positions=pos, widths=0.3, patch_artist=True,
-                                manage_ticks=False)
-                for b in bp["boxes"]:
-                    b.set_facecolor(colour)
-                    b.set_alpha(0.5)
-        ax.axhline(100, color="#c62828", lw=1, ls="--")
-        ax.set_xticks(range(len(names)), names, rotation=20, fontsize=7)
-        ax.set_ylabel("% of effort limit")
-        ax.set_title(f"{robot}: peak effort utilisation per joint across bags "
-                     "(blue: live, orange: trajectories)", fontsize=9)
-        ax.set_yscale("symlog", linthresh=100)
-        ax.set_ylim(bottom=0)  # utilisations are magnitudes
-    fig.tight_layout()
-    return _png(fig, "peak effort utilisation per joint across bags")
-
-
-def timeline_figure(rows: list[dict]) -> str:
-    """Violations (live episodes + bad trajectories) and the worst ratio of each bag against
-    its recording start time."""
-    import matplotlib.pyplot as plt
-    from datetime import datetime, timezone
-
-    pts = [r for r in rows if r["recording_start_ns"] is not None]
-    if not pts:
-        return "<p>No bag with a recording time.</p>"
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 4.6), sharex=True)
-    for cat, colour in CATEGORY_COLOURS.items():
-        sel = [r for r in pts if r["exit_category"] == cat]
-        if not sel:
-            continue
-        t = [datetime.fromtimestamp(r["recording_start_ns"] * 1e-9, tz=timezone.utc) for r in sel]
-        a1.scatter(t, [r["live_episodes_total"] + r["trajectories_bad"] for r in sel], s=14,
-                   color=colour, label=cat)
-        a2.scatter(t, [r["worst_ratio"] for r in sel], s=14, color=colour)
-    a1.set_ylabel("violations")
-    a1.legend(fontsize=7, ncol=6, loc="upper left")
-    a1.set_title("violations per bag over recording time (live episodes + bad trajectories)", fontsize=9)
-    a2.axhline(1.0, color="#c62828", lw=1, ls="--")
-    a2.set_ylabel("worst value / limit")
-    a2.set_yscale("log")
-    a2.set_xlabel("recording start (UTC)")
-    fig.autofmt_xdate()
-    fig.tight_layout()
-    return _png(fig, "violations and worst ratio per bag over recording time")
+def _figure(fig, alt: str, empty: str) -> str:
+    return _png(fig, alt) if fig is not None else f"<p>{_e(empty)}</p>"
 
 
 def _link(r: dict) -> str:
@@ -122,19 +61,27 @@ def render_fleet_html(rows: list[dict], joints: list[dict], *, exit_code: int) -
     summary = ", ".join(f'<span style="color:{CATEGORY_COLOURS[c]}">{v} {c}</span>'
                         for c, v in cats.items() if v)
     parts = [
-        f"<h1>dyn-fleet: {verdict}</h1>",
-        f"<p><b>{n} bags</b>: {summary}. Exit code {exit_code} ({_e(MEANINGS[exit_code])}). "
+        f"<h1>dyn-fleet: {verdict}{_e(partial_note(rows))}</h1>",
+        f"<p><b>{n} bags</b>: {summary}. Executed trajectories: "
+        f"{sum(r['trajectories_bad'] for r in rows)} of {sum(r['trajectories'] for r in rows)} "
+        f"infeasible or rejected; questions (not executed): {sum(r['questions_infeasible'] for r in rows)} "
+        f"of {sum(r['questions'] for r in rows)} answered infeasible or rejected. Exit code {exit_code} ({_e(MEANINGS[exit_code])}). "
         f"{sum(bool(r['resumed']) for r in rows)} unchanged since their evidence (not re-audited). "
         f"Messages: {sum(r['messages'] for r in rows):,}. Written {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}.</p>",
         "<h2>Worst bags</h2>",
         _table(["bag", "robot", "result", "worst joint", "constraint", "value / limit", "source",
-                "time scale", "live episodes", "bad trajectories"],
+                "time scale", "live episodes", "bad executed trajectories", "questions answered no"],
                [[_link(r), _e(r["robot"]), _e(r["exit_category"]), _e(r["worst_joint"]),
                  _e(r["worst_constraint"]), _f(r["worst_ratio"]), _e(r["worst_source"]),
-                 _f(r["worst_time_scale"]), str(r["live_episodes_total"]), str(r["trajectories_bad"])]
+                 _f(r["worst_time_scale"]), str(r["live_episodes_total"]), str(r["trajectories_bad"]),
+                 f'{r["questions_infeasible"]} of {r["questions"]}']
                 for r in worst]) if worst else "<p>No bag has a limit ratio.</p>",
-        "<h2>Per-joint utilisation across the fleet</h2>", utilisation_figure(joints),
-        "<h2>Violations over recording time</h2>", timeline_figure(rows),
+        "<h2>Per-joint utilisation across the fleet</h2>",
+        _figure(utilisation_figure(joints), "peak effort utilisation per joint across bags",
+                "No bag was audited: no utilisation to show."),
+        "<h2>Violations over recording time</h2>",
+        _figure(timeline_figure(rows), "violations and worst ratio per bag over recording time",
+                "No bag with a recording time."),
         "<h2>Bags not audited</h2>",
         _table(["bag", "category", "error code", "error"],
                [[_e(r["path"]), _e(r["exit_category"]), _e(r["error_code"]), _e(r["error"])]
