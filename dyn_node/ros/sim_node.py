@@ -24,6 +24,7 @@ Run: ``ros2 run dyn_node dyn_sim`` or ``python -m dyn_node.ros.sim_node [--ros-a
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from typing import Any
@@ -326,7 +327,12 @@ class SimNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Jazzy main(): spin until SIGINT/SIGTERM, then stop the sim thread and shut down cleanly
-    (signal handling in :mod:`dyn_node.ros.main`). A model that cannot be loaded exits with 1."""
+    (signal handling in :mod:`dyn_node.ros.main`). A model that cannot be loaded exits with 1.
+    ``--check-physics`` runs the simulator's physics checks instead (no ROS graph)."""
+    argv = list(sys.argv if args is None else args)
+    if "--check-physics" in argv:
+        from dyn_node.sim.physics_check import main as check_physics
+        return check_physics(argv[argv.index("--check-physics") + 1:])
     return spin_until_signalled(SimNode, args, "dyn_sim", fatal=(DynNodeError,),
                                 describe=lambda exc: f"{exc.failure_label}: {exc}", fatal_code=1)
 

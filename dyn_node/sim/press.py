@@ -13,8 +13,11 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+import pinocchio as pin
 
+from dyn_node.core.model import RobotModel
 from dyn_node.errors import ModelError
+from dyn_node.sim.contact_truth import ContactTruth
 from dyn_node.sim.scene import Scene, SceneObject
 from dyn_node.sim.simulator import Simulator
 
@@ -83,3 +86,35 @@ def plan_press(sim: Simulator, *, x_m: float = 0.4, approach_height_m: float = 0
     above = solve_ik(sim, TOOL, np.array([x_m, 0.0, TABLE_TOP_Z + approach_height_m]), R, q0)
     press = solve_ik(sim, TOOL, np.array([x_m, 0.0, TABLE_TOP_Z - press_depth_m]), R, above)
     return PressPlan(q_ready=q0, q_approach=above, q_press=press, t_approach=t_approach, t_press=t_press)
+
+
+@dataclass(frozen=True)
+class Balance:
+    """Static balance of a held press (N·m, model order): ``contact_torque`` = Σ J_linkᵀ·W_link
+    (Pinocchio's LOCAL frame Jacobians, the truth's link wrenches), ``actuator_torque`` the
+    applied τ, ``gravity_torque`` g(q); at rest contact + actuator = gravity."""
+
+    contact_torque: np.ndarray
+    actuator_torque: np.ndarray
+    gravity_torque: np.ndarray
+
+    @property
+    def residual_rel(self) -> float:
+        """max|Σ Jᵀ·W + τ − g| ÷ max|g|."""
+        r = self.contact_torque + self.actuator_torque - self.gravity_torque
+        return float(np.abs(r).max() / max(np.abs(self.gravity_torque).max(), 1e-12))
+
+
+def static_balance(model: RobotModel, q: np.ndarray, tau: np.ndarray, truth: ContactTruth) -> Balance:
+    """:class:`Balance` of ``truth`` (a :class:`~dyn_node.sim.contact_truth.ContactTruth`) at q
+    under actuator torque ``tau``, with Pinocchio (not MuJoCo) kinematics and gravity."""
+    pm = model.pin_model
+    data = pm.createData()
+    pin.computeJointJacobians(pm, data, q)
+    pin.framesForwardKinematics(pm, data, q)
+    tau_c = np.zeros(model.nv)
+    for w in truth.link_wrenches:
+        J = pin.getFrameJacobian(pm, data, pm.getFrameId(w.link), pin.ReferenceFrame.LOCAL)
+        tau_c += J.T @ w.wrench
+    g = pin.computeGeneralizedGravity(pm, data, q)
+    return Balance(contact_torque=tau_c, actuator_torque=np.asarray(tau, float), gravity_torque=np.asarray(g))

@@ -20,7 +20,7 @@ import numpy as np
 from dyn_node.errors import InputError, ModelError, TrajectoryError
 from dyn_node.core.model import RobotModel
 from dyn_node.sim.mujoco_model import MujocoRobot, mujoco_from_model, mujoco_urdf
-from dyn_node.sim.scene import Scene, SolverSettings
+from dyn_node.sim.scene import INTEGRATORS, Scene, SolverSettings
 from dyn_node.sim.contact_truth import ContactTruth, contact_truth, scene_geom_ids
 from dyn_node.core.trajectory import PiecewisePolynomial, Trajectory, interpolate, validate_trajectory
 
@@ -230,6 +230,9 @@ class Simulator:
                                                     solver=config.solver)
         self.mj = self.robot.model
         self.mj.opt.timestep = config.timestep
+        # the integrator applies with or without a scene (MuJoCo's default Euler unless asked)
+        self.mj.opt.integrator = int(INTEGRATORS[config.solver.integrator])
+        self._rk4 = config.solver.integrator == "rk4"
         if config.energy:
             self.mj.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
         self.data = mujoco.MjData(self.mj)
@@ -492,6 +495,12 @@ class Simulator:
             if self.wrench is not None and self._steps >= self.wrench.end_step:
                 self.clear_wrench()
             if self.wrench is None:
+                mujoco.mj_step(self.mj, self.data)
+            elif self._rk4:
+                # RK4 has no step1/step2 split: this state's kinematics first, then a full step
+                mujoco.mj_kinematics(self.mj, self.data)
+                mujoco.mj_comPos(self.mj, self.data)
+                self._push()
                 mujoco.mj_step(self.mj, self.data)
             else:
                 # step1 computes this state's kinematics, which the push's rotation and lever
