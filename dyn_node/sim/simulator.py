@@ -21,6 +21,7 @@ from dyn_node.errors import InputError, ModelError, TrajectoryError
 from dyn_node.core.model import RobotModel
 from dyn_node.sim.mujoco_model import MujocoRobot, mujoco_from_model, mujoco_urdf
 from dyn_node.sim.scene import INTEGRATORS, Scene, SolverSettings
+from dyn_node.sim.physics_status import PhysicsMonitor
 from dyn_node.sim.contact_truth import ContactTruth, contact_truth, scene_geom_ids
 from dyn_node.core.trajectory import PiecewisePolynomial, Trajectory, interpolate, validate_trajectory
 
@@ -263,6 +264,8 @@ class Simulator:
         self._mounts: dict[str, LinkMount] = {}
         #: the push being applied (None: none)
         self.wrench: AppliedWrench | None = None
+        #: per-step physics accounting (energy budget, solver, penetration), when enabled
+        self.physics: PhysicsMonitor | None = PhysicsMonitor(self.mj) if config.energy else None
         self.reset(q0)
 
     # --- setup ---------------------------------------------------------------------------------
@@ -494,6 +497,8 @@ class Simulator:
             self.data.qfrc_applied[self._di] = tau
             if self.wrench is not None and self._steps >= self.wrench.end_step:
                 self.clear_wrench()
+            if self.physics is not None:
+                self.physics.before(self.data)
             if self.wrench is None:
                 mujoco.mj_step(self.mj, self.data)
             elif self._rk4:
@@ -508,6 +513,8 @@ class Simulator:
                 mujoco.mj_step1(self.mj, self.data)
                 self._push()
                 mujoco.mj_step2(self.mj, self.data)
+            if self.physics is not None:
+                self.physics.after(self.data)
             self._steps += 1
             self._effort, self._saturated = tau, sat
         self._ref_cache = (self._steps, Q[n], V[n])
