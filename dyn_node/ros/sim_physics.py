@@ -92,6 +92,11 @@ class SimPhysics:
         self.truth_pub = None
         self.truth_published = 0
         if sim.config.scene is not None:
+            sc = sim.config.scene
+            node.get_logger().info(
+                f"scene {sc.source}: {', '.join(f'{o.type} {o.name}' for o in sc.objects) or 'no objects'}; "
+                f"touching links: {', '.join(sc.collide_links) or 'all with collision geometry'}; "
+                f"solver {sim.config.solver.to_dict()}")
             try:
                 from dyn_node_interfaces.msg import ContactTruth as ContactTruthMsg
             except ImportError:  # interface package not built: the scene still simulates
