@@ -56,7 +56,7 @@ def test_press_publishes_truth_and_physics_status(ros_context, spawn):
                              lambda m: diag.extend(s for s in m.status if s.name == "dyn_sim: physics"), 100)
     pub = node.create_publisher(JointTrajectory, "joint_trajectory", 10)
     try:
-        spin_until(ros_context, node, lambda: len(diag) >= 2 and pub.get_subscription_count() > 0, 30,
+        spin_until(ros_context, node, lambda: len(diag) >= 2 and pub.get_subscription_count() > 0, 45,
                    "dyn_sim and two physics statuses")
         assert truth == []  # READY touches nothing: no truth published
         pub.publish(_press_trajectory())

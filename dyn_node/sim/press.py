@@ -2,9 +2,9 @@
 
 The table is the shipped ``config/press_scene.yaml`` (a test checks the file parses to
 :data:`PRESS_SCENE`). The press is planned with a damped least-squares IK on MuJoCo's own
-kinematics: from the 'ready' pose the tool point (``panda_hand_tcp``) goes straight down to
-``approach_height_m`` above the table top, keeping the ready orientation (fingers down), then to
-``press_depth_m`` below the top face; the joint controller holding that unreachable reference
+kinematics: from the 'ready' pose the tool point (``panda_hand_tcp``) goes to ``approach_height_m``
+above the table top at x = ``x_m``, keeping the ready orientation (fingers down), then straight
+down to ``press_depth_m`` below the top face; the joint controller holding that unreachable reference
 is what presses the fingers onto the table.
 """
 from __future__ import annotations
@@ -25,7 +25,7 @@ from dyn_node.sim.simulator import Simulator
 READY = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
 TABLE_TOP_Z = 0.40
 PRESS_SCENE = Scene(
-    objects=(SceneObject(name="table", type="box", size=(0.4, 0.8, 0.4), position=(0.5, 0.0, 0.2),
+    objects=(SceneObject(name="table", type="box", size=(0.4, 0.8, 0.4), position=(0.6, 0.0, 0.2),
                          quat_xyzw=(0.0, 0.0, 0.0, 1.0), friction=(0.8, 0.005, 0.0001)),),
     collide_links=("panda_link5", "panda_link6", "panda_link7", "panda_link8", "panda_hand",
                    "panda_leftfinger", "panda_rightfinger"),
@@ -74,7 +74,7 @@ def solve_ik(sim: Simulator, body: str, position: np.ndarray, rotation: np.ndarr
     raise ModelError(f"IK for {body} at {position.tolist()} did not converge", code="ik_failed")
 
 
-def plan_press(sim: Simulator, *, x_m: float = 0.4, approach_height_m: float = 0.03,
+def plan_press(sim: Simulator, *, x_m: float = 0.5, approach_height_m: float = 0.03,
                press_depth_m: float = 0.01, t_approach: float = 1.5, t_press: float = 2.5) -> PressPlan:
     """The press from READY on ``sim`` (its model must be the Panda)."""
     q0 = np.asarray(READY, dtype=float)
