@@ -67,3 +67,14 @@ def test_press_checks():
     assert [c[0] for c in press_checks(_outcome(88.0, None))] == [False, True]  # never
     none = press_checks(PressOutcome(frame="panda_link8"))
     assert len(none) == 1 and not none[0][0] and "no ~/contact_truth" in none[0][1]
+
+
+def test_bench_press_row():
+    """The bench's press row (simulated time, no DDS): the monitor reports contact within its
+    20 ms minimum duration plus a few observer time constants of the touch, and its settled
+    wrench equals the truth moved to panda_link8 (both explain the same static torques)."""
+    from benchmarks import contact_bench
+
+    r = contact_bench.press()
+    assert 20.0 <= r["touch_to_contact_ms"] <= 100.0
+    assert r["settled_force_n"] > 20.0 and r["settled_error_rel"] < 1e-6
