@@ -2,7 +2,6 @@
 simulator's own states, its closing on a press with a push, and a diverging step as an ERROR."""
 from __future__ import annotations
 
-import numpy as np
 
 from dyn_node.core.model import load_model
 from dyn_node.sim.physics_status import ERROR, OK

@@ -3,7 +3,6 @@ touches nothing changes nothing, and the contact truth checked against MuJoCo's 
 forces, Pinocchio's static balance, a frame change done with Pinocchio and the solref/solimp law."""
 from __future__ import annotations
 
-import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -11,10 +10,10 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 import pytest
-import yaml
 
 from dyn_node.core.model import load_model
-from dyn_node.sim.press import PRESS_SCENE, READY, plan_press
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.sim.press import PRESS_SCENE, READY, plan_press, static_balance
 from dyn_node.sim.scene import SceneError, SolverSettings, load_scene, parse_scene
 from dyn_node.sim.simulator import SimConfig, Simulator
 
@@ -181,8 +180,9 @@ def test_link_wrench_is_the_sum_moved_to_the_link_origin(panda, pressed):
 
 
 def test_held_press_is_statically_balanced(panda, pressed):
-    """At rest: Σ J_linkᵀ·W_link (Pinocchio's LOCAL frame Jacobians, the truth's link wrenches)
-    + τ_actuators = g(q) (Pinocchio), the base carrying the rest."""
+    """At rest: Σ over contacts of J_pointᵀ·F (Pinocchio's world-aligned Jacobian of the contact
+    point on its link) + τ_actuators = g(q) (dyn_node's gravity), the base carrying the rest;
+    static_balance (link wrenches and LOCAL Jacobians) gives the same torques."""
     sim = pressed
     assert np.abs(sim.v).max() < 1e-4
     truth = sim.contact_truth()
@@ -192,14 +192,20 @@ def test_held_press_is_statically_balanced(panda, pressed):
     pin.computeJointJacobians(pm, data, q)
     pin.framesForwardKinematics(pm, data, q)
     tau_ext = np.zeros(panda.nv)
-    for w in truth.link_wrenches:
-        J = pin.getFrameJacobian(pm, data, pm.getFrameId(w.link), pin.ReferenceFrame.LOCAL)
-        tau_ext += J.T @ w.wrench
-    g = pin.computeGeneralizedGravity(pm, data, q)
+    for c in truth.contacts:
+        fid = pm.getFrameId(c.body1)
+        J = pin.getFrameJacobian(pm, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        lever = c.position - data.oMf[fid].translation
+        J_point = J[:3] - np.cross(lever, J[3:].T).T  # v_p = v_o + ω × (p − o)
+        tau_ext += J_point.T @ c.force
+    g = Dynamics(panda).gravity(q)
     tau = sim.state().effort
     scale = np.abs(g).max()
     np.testing.assert_allclose(tau_ext + tau, g, atol=1e-4 * scale)
     assert np.abs(tau_ext).max() > 0.05 * scale  # the contact carries a real share
+    bal = static_balance(panda, q, tau, truth)
+    np.testing.assert_allclose(bal.contact_torque, tau_ext, atol=1e-9 * scale)
+    assert bal.residual_rel < 1e-4
 
 
 def test_penetration_is_what_solref_and_solimp_imply(pressed):

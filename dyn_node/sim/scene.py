@@ -20,7 +20,7 @@ filtering, friction and solref/solimp precedence): docs/SIMULATOR.md.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
