@@ -92,12 +92,14 @@ def contact_run(model: RobotModel, *, solver: SolverSettings, timestep: float, l
     steps_before = int(round((plan.t_press + SETTLE_S) / timestep))
     first_contact = None
     max_pen = 0.0
+    fn_all = np.zeros(steps_before)  # the whole press, for the plot
     for k in range(steps_before):
         sim.step()
         truth = sim.contact_truth()
         if truth.active and first_contact is None:
             first_contact = sim.time
         max_pen = max(max_pen, truth.max_penetration_m)
+        fn_all[k] = truth.normal_force_n
     n_hold = int(round(HOLD_S / timestep))
     fn, pen, ncon = np.empty(n_hold), np.empty(n_hold), np.empty(n_hold, dtype=int)
     for k in range(n_hold):
@@ -113,7 +115,8 @@ def contact_run(model: RobotModel, *, solver: SolverSettings, timestep: float, l
             "contacts_min": int(ncon.min()), "contacts_max": int(ncon.max()),
             "balance_residual_rel": balance.residual_rel, "first_contact_s": first_contact,
             "max_speed_rad_s": float(np.abs(sim.v).max()), "t_hold": sim.time - HOLD_S + np.arange(1, n_hold + 1) * timestep,
-            "normal_force": fn, "plan": {"q_press": plan.q_press, "q_approach": plan.q_approach,
+            "normal_force": fn, "t_press": np.arange(1, steps_before + 1) * timestep, "normal_force_press": fn_all,
+            "plan": {"q_press": plan.q_press, "q_approach": plan.q_approach,
                                          "t_approach_s": plan.t_approach, "t_press_s": plan.t_press}}
 
 

@@ -100,7 +100,7 @@ def write_contact(out: Path, model: RobotModel, result: dict[str, Any], *, start
     """``out/contact/evidence.json`` and ``normal_force.png``; returns the record."""
     out.mkdir(parents=True, exist_ok=True)
     nom = result["nominal"]
-    drop = ("t_hold", "normal_force")
+    drop = ("t_hold", "normal_force", "t_press", "normal_force_press")
     physics = {"initial_state": {"q": np.asarray(result["q0"]), "v": np.zeros(model.nv)},
                "scene": result["scene"], "nominal": _run_summary(nom, drop),
                "perturbed": [_run_summary(r, drop) for r in result["perturbed"]],
@@ -143,11 +143,16 @@ def _plot_force(path: Path, result: dict[str, Any]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig, (ax, hold) = plt.subplots(1, 2, figsize=(11, 4.5), gridspec_kw={"width_ratios": [3, 2]})
     for r in [result["nominal"], *result["perturbed"]]:
-        ax.plot(r["t_hold"], r["normal_force"], label=f"{r['label']}: pen. {r['max_penetration_m'] * 1e3:.2f} mm")
-    ax.set(xlabel="t (s)", ylabel="normal force (N)", title="contact: held press on the table")
-    ax.legend(fontsize=7)
+        label = f"{r['label']}: pen. {r['max_penetration_m'] * 1e3:.2f} mm"
+        ax.plot(np.concatenate([r["t_press"], r["t_hold"]]),
+                np.concatenate([r["normal_force_press"], r["normal_force"]]), label=label, lw=0.8)
+        hold.plot(r["t_hold"], r["normal_force"], label=label)
+    ax.axvspan(result["nominal"]["t_hold"][0], result["nominal"]["t_hold"][-1], color="0.9")
+    ax.set(xlabel="t (s)", ylabel="normal force (N)", title="contact: the press (shaded: the held second)")
+    hold.set(xlabel="t (s)", title="the held second")
+    hold.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
