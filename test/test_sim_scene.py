@@ -255,3 +255,24 @@ def test_truth_is_empty_without_a_scene(panda):
     sim = Simulator(panda, SimConfig(initial_positions=READY))
     sim.run(0.1)
     assert not sim.contact_truth().active and sim.contact_truth().max_penetration_m == 0.0
+
+
+@pytest.mark.parametrize("obj, size", [
+    ({"name": "floor", "type": "plane", "size": [0, 0], "position": [0.0, 0.0, 0.40]}, [0.0, 0.0, 1.0]),
+    ({"name": "ball", "type": "sphere", "size": [0.05], "position": [0.5, 0.0, 0.35],
+      "orientation": [0.0, 0.0, 0.3826834, 0.9238795]}, [0.05, 0.0, 0.0]),
+])
+def test_plane_and_sphere_take_the_press(panda, links, obj, size):
+    """The other two object types: MuJoCo's sizes (an infinite plane, the radius), and the same
+    press touches them from above (normal down, force up on the fingers)."""
+    scene = parse_scene({"objects": [{**obj, "friction": 0.8}], "collide_links": list(PRESS_SCENE.collide_links)},
+                        link_names=links)
+    sim = Simulator(panda, SimConfig(scene=scene, initial_positions=READY))
+    np.testing.assert_array_equal(sim.mj.geom_size[sim.mj.geom(obj["name"]).id], size)
+    assert sim.data.ncon == 0
+    sim.execute(list(panda.joint_names), *plan_press(sim).waypoints())
+    sim.run(4.0)
+    truth = sim.contact_truth()
+    assert truth.active and {c.body2 for c in truth.contacts} == {obj["name"]}
+    assert all(c.normal @ [0, 0, -1] > 0.7 and c.force[2] > 0 for c in truth.contacts)
+    assert 0 < truth.max_penetration_m < 5e-3 and truth.normal_force_n > 20.0
