@@ -50,7 +50,8 @@ def test_press_with_a_push_closes_the_budget():
     assert st.level == OK and v["energy_error_rel"] < 1e-2
 
 
-def test_a_diverging_step_is_an_error():
+def test_a_diverging_step_is_an_error(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning to MUJOCO_LOG.TXT in the cwd
     arm = load_model(builtin="planar_2link")
     sim = Simulator(arm, SimConfig(initial_positions=(0.0, 0.0), energy=True))
     sim.run(0.1)
