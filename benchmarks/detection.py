@@ -30,7 +30,7 @@ def summarise(res: dict[str, Any]) -> dict[str, Any]:
                 one_over_k_ms=1e3 / k, three_over_k_ms=3e3 / k,
                 force_n=res.get("force_n"), what=res.get("what", ""),
                 min_duration_ms=res.get("contact_min_duration_ms"),
-                enough=len(lat) >= MIN_PUSHES, latencies_ms=lat)
+                enough=len(lat) >= MIN_PUSHES, latencies_ms=lat, press=res.get("press"))
 
 
 def run(quick: bool = False, smoke: bool = False) -> dict[str, Any]:

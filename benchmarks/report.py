@@ -401,6 +401,10 @@ def summary_md(doc: dict, *, full_page: str = "BENCHMARKS.md") -> str:
         if det:
             rows.append(["live: contact detection latency (simulated push → first `contact`)",
                          _detection_line(det)])
+            if (pr := det.get("press")) and "settled_error_n" in pr:
+                rows.append(["live: press on dyn_sim's table (issue 32): ContactMonitor vs ~/contact_truth",
+                             f"first touch → `contact` {_f(pr['touch_to_contact_ms'])} ms; settled error "
+                             f"{_f(pr['settled_error_n'])} N of {_f(pr['settled_force_n'])} N"])
     feas = doc["sections"].get("feasibility", {})
     if feas.get("result"):
         f = feas["result"]

@@ -165,6 +165,9 @@ def test_demo_short_end_to_end(tmp_path):
     # the push scene: contact reported while the 30 N push lasted, its force estimated
     assert re.search(r"\[PASS\] push: dyn_node reported (contact|collision) \d+ ms after", summary), summary
     assert re.search(r"\[PASS\] push: estimated force [0-9.]+ N vs 30 N applied at panda_link8", summary)
+    # the press scene: the hand on dyn_sim's table, the estimate against ~/contact_truth
+    assert re.search(r"\[PASS\] press: dyn_node reported (contact|collision) \d+ ms after the first touch", summary)
+    assert re.search(r"\[PASS\] press: settled estimate [0-9.]+ N vs truth [0-9.]+ N at panda_link8", summary)
     # the audit replays the contact outputs of a node that took its model from /robot_description
     # (a fresh observer at its first core, no recording_start reset) identically
     for topic in ("external_torque", "external_wrench", "observer_events"):

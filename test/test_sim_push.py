@@ -13,6 +13,7 @@ from robots import fast_panda_points
 from dyn_node.errors import InputError
 from dyn_node.core.model import load_model
 from dyn_node.sim.mujoco_model import mujoco_urdf
+from dyn_node.sim.scene import INTEGRATORS, SolverSettings
 from dyn_node.sim.simulator import SimConfig, Simulator, body_wrench, link_mount
 
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
@@ -38,12 +39,14 @@ def pinocchio_torque(model, q, link, wrench) -> np.ndarray:
     return J.T @ wrench
 
 
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])  # rk4: no step1/step2 split, own path
 @pytest.mark.parametrize("link", ["panda_link8", "panda_hand", "panda_link4", "panda_leftfinger"])
-def test_applied_xfrc_is_the_transformed_wrench(panda, link):
+def test_applied_xfrc_is_the_transformed_wrench(panda, link, integrator):
     """After one pushed step, the body's xfrc_applied is R·f and R·m + (p_o − p_com) × R·f with R,
     p_o the link's pose from Pinocchio's kinematics, and its generalized force (MuJoCo's
     mj_applyFT at the body's centre of mass) equals Pinocchio's J_localᵀ·wrench, to 1e-9."""
-    sim = Simulator(panda, SimConfig(initial_positions=tuple(READY)))
+    sim = Simulator(panda, SimConfig(initial_positions=tuple(READY), solver=SolverSettings(integrator=integrator)))
+    assert sim.mj.opt.integrator == int(INTEGRATORS[integrator])
     rng = np.random.default_rng(sum(map(ord, link)))  # a fixed seed per link
     sim.reset(READY + rng.uniform(-0.3, 0.3, 7), rng.uniform(-1.0, 1.0, 7))  # moving
     w = np.concatenate([rng.uniform(-30, 30, 3), rng.uniform(-3, 3, 3)])
@@ -60,9 +63,12 @@ def test_applied_xfrc_is_the_transformed_wrench(panda, link):
     oMf = data.oMf[pm.getFrameId(link)]
     F = oMf.rotation @ w[:3]
     np.testing.assert_allclose(xfrc[:3], F, atol=1e-9)
-    np.testing.assert_allclose(xfrc[3:], oMf.rotation @ w[3:] + np.cross(oMf.translation - sim.data.xipos[b], F),
+    at_q = mujoco.MjData(sim.mj)  # MuJoCo's kinematics at q (RK4 leaves sim.data at a later stage)
+    sim.robot.set_state(at_q, q)
+    mujoco.mj_forward(sim.mj, at_q)
+    np.testing.assert_allclose(xfrc[3:], oMf.rotation @ w[3:] + np.cross(oMf.translation - at_q.xipos[b], F),
                                atol=1e-9)
-    qfrc = generalized_force(sim.mj, sim.data, b, xfrc)[sim.robot.dof_ids]
+    qfrc = generalized_force(sim.mj, at_q, b, xfrc)[sim.robot.dof_ids]
     np.testing.assert_allclose(qfrc, pinocchio_torque(panda, q, link, w), atol=1e-9)
 
 

@@ -251,6 +251,8 @@ class EvidenceRecord:
     seed: dict[str, Any] = field(default_factory=lambda: {
         "used": False, "value": None, "note": "no randomness is used: the same bag and "
         "configuration give identical numbers"})
+    #: headline numbers of a check (top-level ``figures``; omitted when empty)
+    figures: dict[str, float] = field(default_factory=dict)
 
     def add_label(self, label: str) -> None:
         if label not in FAILURE_LABELS:
@@ -269,6 +271,7 @@ class EvidenceRecord:
                            "finished_utc": self.finished_utc or utc_now(),
                            "duration_s": self.duration_s},
             "seed": self.seed,
+            **({"figures": self.figures} if self.figures else {}),
         })
         validate(rec)
         return rec

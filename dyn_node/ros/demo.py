@@ -27,6 +27,7 @@ from dyn_node.core.model import RobotModel, load_model
 from dyn_node.core.trajectory import Trajectory, interpolate, validate_trajectory
 from dyn_node.ros.demo_output import before_model_in_bag, unanswered_reason, where_line
 from dyn_node.ros.demo_push import PUSH_S, push_checks, run_push
+from dyn_node.ros.demo_press import PRESS_SCENE_FILE, scene_press
 
 READY = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
 #: Named Panda poses (rad): the 'ready' pose of franka_ros, the arm stretched forward
@@ -664,6 +665,7 @@ def run_demo(args: argparse.Namespace) -> int:
         _scene_trajectories(run, args.short)
         _scene_task_limits(run)
         _scene_push(run, args.short)
+        scene_press(run, _say, _banner, DemoTrajectory)
         if len(run.children) > 1 and run.children[1].alive():
             run.bag_path = run.stack.call_stop_recording()
         _save_samples(run.stack, run.out)
@@ -686,7 +688,8 @@ def _scene_stack(run: DemoRun, model: RobotModel, domain: int) -> None:
     children = run.children
     children.append(Child("dyn_sim", [sys.executable, "-m", "dyn_node.ros.sim_node", "--ros-args",
                                       "-p", f"initial_positions:={list(READY)}",
-                                      "-p", f"apply_wrench_hold:={PUSH_S}"],
+                                      "-p", f"apply_wrench_hold:={PUSH_S}",
+                                      "-p", f"scene_file:={PRESS_SCENE_FILE}"],
                           run.env, run.logs / "dyn_sim.log"))
     node_ok = _module_available("dyn_node.ros.node")
     if node_ok:

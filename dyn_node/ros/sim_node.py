@@ -24,6 +24,7 @@ Run: ``ros2 run dyn_node dyn_sim`` or ``python -m dyn_node.ros.sim_node [--ros-a
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from typing import Any
@@ -47,6 +48,7 @@ from dyn_node.ros.main import spin_until_signalled
 from dyn_node.core.settings import ParamSpec
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.qos import LATCHED_HISTORY
+from dyn_node.ros.sim_physics import SCENE_PARAMETERS, SimPhysics, sim_config_extras
 
 #: Largest backlog (s) a real-time run catches up. When the process was starved of CPU (a loaded
 #: machine), the steps that were due are computed in a burst with their own evenly spaced stamps,
@@ -92,7 +94,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("apply_wrench_hold", _D, 0.5,
              "how long (s) each ~/apply_wrench message pushes the robot, unless a newer one "
              "replaces it", 0.001, 3600.0),
-)
+) + SCENE_PARAMETERS
 
 
 def _descriptor(p: ParamSpec) -> ParameterDescriptor:
@@ -120,7 +122,8 @@ class SimNode(Node):
         self.sim = Simulator(self.model, SimConfig(
             timestep=self.p["timestep"], kp=arr("kp"), kd=arr("kd"),
             natural_frequency=self.p["natural_frequency"], damping_ratio=self.p["damping_ratio"],
-            feedforward=self.p["feedforward"], initial_positions=arr("initial_positions")))
+            feedforward=self.p["feedforward"], initial_positions=arr("initial_positions"),
+            **sim_config_extras(self.p, self.model)))
         self.steps_per_publish = max(1, int(round(1.0 / (self.p["publish_rate_hz"] * self.p["timestep"]))))
         self.real_time = bool(self.p["real_time"])
         # Stamps: wall-clock start + simulation time (real time), or simulation time (/clock).
@@ -144,6 +147,7 @@ class SimNode(Node):
         self.create_subscription(WrenchStamped, "~/apply_wrench", self._on_wrench, 10)
         self.applied_pub = self.create_publisher(WrenchStamped, "~/applied_wrench", LATCHED_HISTORY)
         self._announced: Any = None  # the AppliedWrench last said on ~/applied_wrench
+        self.physics = SimPhysics(self, self.sim, self._stamp, period_s=self.p["physics_diagnostics_period"])
 
         self._wrench_inbox: list[WrenchStamped] = []
         #: ~/apply_wrench messages rejected (unknown frame_id, non-finite values)
@@ -259,6 +263,7 @@ class SimNode(Node):
             self.clock_pub.publish(Clock(clock=stamp))
         self.js_pub.publish(msg)
         self.published += 1
+        self.physics.on_publish()
 
     def _run(self) -> None:
         dt = self.sim.config.timestep
@@ -326,7 +331,12 @@ class SimNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Jazzy main(): spin until SIGINT/SIGTERM, then stop the sim thread and shut down cleanly
-    (signal handling in :mod:`dyn_node.ros.main`). A model that cannot be loaded exits with 1."""
+    (signal handling in :mod:`dyn_node.ros.main`). A model that cannot be loaded exits with 1.
+    ``--check-physics`` runs the simulator's physics checks instead (no ROS graph)."""
+    argv = list(sys.argv if args is None else args)
+    if "--check-physics" in argv:
+        from dyn_node.sim.physics_check import main as check_physics
+        return check_physics(argv[argv.index("--check-physics") + 1:])
     return spin_until_signalled(SimNode, args, "dyn_sim", fatal=(DynNodeError,),
                                 describe=lambda exc: f"{exc.failure_label}: {exc}", fatal_code=1)
 

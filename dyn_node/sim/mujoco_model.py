@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from pathlib import Path
 
 import mujoco
 import numpy as np
 import pinocchio as pin
 
 from dyn_node.errors import ModelError
-from dyn_node.core.model import RobotModel
+from dyn_node.core.model import RobotModel, example_robot_data_dir
+from dyn_node.sim.scene import Scene, SolverSettings, add_scene
 
 #: Inertia (kg·m²) temporarily added to near-singular inertia tensors so MuJoCo compiles them.
 INERTIA_EPS = 1e-9
@@ -139,26 +141,64 @@ def mujoco_urdf(model: RobotModel, contacts: bool = False) -> tuple[str, tuple[s
             link.remove(v)
         for c in link.findall("collision"):
             geom = c.find("geometry")
-            if not contacts or geom is None or geom.find("mesh") is not None:
+            mesh = geom.find("mesh") if geom is not None else None
+            path = resolve_mesh(mesh.get("filename", "")) if contacts and mesh is not None else None
+            if not contacts or geom is None or (mesh is not None and path is None):
                 link.remove(c)
+            elif path is not None:
+                mesh.set("filename", path)
     for joint in root.findall("joint"):
         if joint.get("name") in model.locked_joints:
             _bake_lock(joint, float(model.locked_joints[joint.get("name")]))
     patched = tuple(link.get("name") for link in root.findall("link") if _patch_inertia(link))
+    if contacts:
+        # absolute mesh paths: MuJoCo's URDF reader would otherwise keep only the file name
+        ET.SubElement(ET.SubElement(root, "mujoco"), "compiler", strippath="false")
     return ET.tostring(root, encoding="unicode"), patched
+
+
+def resolve_mesh(filename: str) -> str | None:
+    """An existing STL/OBJ file for a URDF mesh reference, or None (the collision is dropped).
+
+    ``package://example-robot-data/...`` resolves into example-robot-data's install, other
+    ``package://PKG/...`` through the ament index when ROS is sourced; ``file://`` and absolute
+    paths as they are. MuJoCo reads STL and OBJ only (not COLLADA .dae).
+    """
+    if not filename.lower().endswith((".stl", ".obj")):
+        return None
+    path: Path | None = None
+    if filename.startswith("package://"):
+        pkg, _, rest = filename[len("package://"):].partition("/")
+        if pkg == "example-robot-data":
+            path = example_robot_data_dir().parent / rest
+        else:
+            try:
+                from ament_index_python.packages import get_package_share_directory
+                path = Path(get_package_share_directory(pkg)) / rest
+            except Exception:  # not installed, or ROS not sourced: no mesh
+                path = None
+    elif filename.startswith("file://"):
+        path = Path(filename[len("file://"):])
+    elif Path(filename).is_absolute():
+        path = Path(filename)
+    return str(path) if path is not None and path.is_file() else None
 
 
 def mujoco_from_model(model: RobotModel, *, damping: bool = True, armature: bool = True,
                       frictionloss: bool = False, contacts: bool = False,
                       joint_limits: bool = False, effort_limits: bool = False,
-                      payload: bool = True, timestep: float = 0.001) -> MujocoRobot:
+                      payload: bool = True, timestep: float = 0.001, scene: Scene | None = None,
+                      solver: SolverSettings | None = None) -> MujocoRobot:
     """Compile ``model``'s URDF with MuJoCo (see the module docstring for every adaptation).
 
     ``damping``: URDF viscous damping (N·m·s/rad) on; ``armature``: limits' armature (kg·m²) on;
     ``frictionloss``: URDF Coulomb friction as MuJoCo frictionloss; ``contacts``/``joint_limits``:
     enable those constraints; ``effort_limits``: clamp actuator force to the URDF effort;
-    ``payload``: include ``model.payload``; ``timestep`` in s.
+    ``payload``: include ``model.payload``; ``timestep`` in s. ``scene``: static objects the
+    robot collides with (contacts on, self-collisions off, :func:`dyn_node.sim.scene.add_scene`)
+    under ``solver`` (default MuJoCo's settings).
     """
+    contacts = contacts or scene is not None
     text, patched = mujoco_urdf(model, contacts=contacts)
     try:
         spec = mujoco.MjSpec.from_string(text)
@@ -183,6 +223,8 @@ def mujoco_from_model(model: RobotModel, *, damping: bool = True, armature: bool
         body.inertia = [INERTIA_EPS] * 3
         body.explicitinertial = True
         patched = patched + (_PAYLOAD_BODY,)
+    if scene is not None:
+        add_scene(spec, scene, solver or SolverSettings())
     for name in model.joint_names:
         act = spec.add_actuator(name=f"{name}_motor", target=name,
                                 trntype=mujoco.mjtTrn.mjTRN_JOINT)
@@ -199,6 +241,8 @@ def mujoco_from_model(model: RobotModel, *, damping: bool = True, armature: bool
     dof_ids = mj.jnt_dofadr[joint_ids].astype(np.intp)
     qpos_ids = mj.jnt_qposadr[joint_ids].astype(np.intp)
     actuator_ids = np.array([mj.actuator(f"{n}_motor").id for n in model.joint_names], dtype=np.intp)
+    if scene is not None:
+        (solver or SolverSettings()).apply(mj)
     if not damping:
         mj.dof_damping[:] = 0.0
     mj.dof_armature[:] = 0.0

@@ -8,6 +8,7 @@ tests. No rclpy: :mod:`dyn_node.ros.sim_node` is the ROS adapter.
 """
 from __future__ import annotations
 
+import copy
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -19,6 +20,9 @@ import numpy as np
 from dyn_node.errors import InputError, ModelError, TrajectoryError
 from dyn_node.core.model import RobotModel
 from dyn_node.sim.mujoco_model import MujocoRobot, mujoco_from_model, mujoco_urdf
+from dyn_node.sim.scene import INTEGRATORS, Scene, SolverSettings
+from dyn_node.sim.physics_status import PhysicsMonitor
+from dyn_node.sim.contact_truth import ContactTruth, contact_truth, scene_geom_ids
 from dyn_node.core.trajectory import PiecewisePolynomial, Trajectory, interpolate, validate_trajectory
 
 DEFAULT_TIMESTEP = 0.001
@@ -45,6 +49,11 @@ class SimConfig:
     feedforward: bool = True
     initial_positions: tuple[float, ...] = ()
     saturate: bool = True
+    #: static objects the robot collides with (None: contacts off, the plant of every test so far)
+    scene: Scene | None = None
+    solver: SolverSettings = SolverSettings()
+    #: MuJoCo's mjENBL_ENERGY (data.energy = potential, kinetic); no effect on the dynamics
+    energy: bool = False
 
 
 @dataclass(frozen=True)
@@ -214,15 +223,25 @@ class Simulator:
                              code="bad_timestep")
         self.model = model
         self.config = config
-        # Joint-limit and contact constraints stay off: the plant is the rigid-body dynamics
-        # plus URDF damping and armature that Pinocchio models too, so residuals mean something.
+        # Joint-limit constraints stay off, contacts too without a scene: the plant is the
+        # rigid-body dynamics plus URDF damping and armature that Pinocchio models too.
         self.robot: MujocoRobot = mujoco_from_model(model, damping=True, armature=True,
                                                     frictionloss=False, contacts=False,
-                                                    timestep=config.timestep)
+                                                    timestep=config.timestep, scene=config.scene,
+                                                    solver=config.solver)
         self.mj = self.robot.model
         self.mj.opt.timestep = config.timestep
+        # the integrator applies with or without a scene (MuJoCo's default Euler unless asked)
+        self.mj.opt.integrator = int(INTEGRATORS[config.solver.integrator])
+        self._rk4 = config.solver.integrator == "rk4"
+        if config.energy:
+            self.mj.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
         self.data = mujoco.MjData(self.mj)
-        self._ff_data = mujoco.MjData(self.mj)
+        # the feedforward is the rigid-body model a controller knows: never the scene's contacts
+        self._ff_model = copy.deepcopy(self.mj)
+        self._ff_model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        self._ff_data = mujoco.MjData(self._ff_model)
+        self._scene_geoms = scene_geom_ids(self.mj, config.scene.names) if config.scene else frozenset()
         self._qi = self.robot.qpos_ids
         self._di = self.robot.dof_ids
         nv = model.nv
@@ -245,6 +264,8 @@ class Simulator:
         self._mounts: dict[str, LinkMount] = {}
         #: the push being applied (None: none)
         self.wrench: AppliedWrench | None = None
+        #: per-step physics accounting (energy budget, solver, penetration), when enabled
+        self.physics: PhysicsMonitor | None = PhysicsMonitor(self.mj) if config.energy else None
         self.reset(q0)
 
     # --- setup ---------------------------------------------------------------------------------
@@ -387,8 +408,12 @@ class Simulator:
         d.qvel[self._di] = v
         d.qacc[:] = 0.0
         d.qacc[self._di] = a
-        mujoco.mj_inverse(self.mj, d)
+        mujoco.mj_inverse(self._ff_model, d)
         return d.qfrc_inverse[self._di].copy()
+
+    def contact_truth(self) -> ContactTruth:
+        """Robot–scene contacts of the last step (empty without a scene)."""
+        return contact_truth(self.mj, self.data, self._scene_geoms)
 
     def set_open_loop_torque(self, tau: Sequence[float]) -> None:
         """Disable the controller and apply ``tau`` (N·m, not saturated) from the next step."""
@@ -472,7 +497,15 @@ class Simulator:
             self.data.qfrc_applied[self._di] = tau
             if self.wrench is not None and self._steps >= self.wrench.end_step:
                 self.clear_wrench()
+            if self.physics is not None:
+                self.physics.before(self.data)
             if self.wrench is None:
+                mujoco.mj_step(self.mj, self.data)
+            elif self._rk4:
+                # RK4 has no step1/step2 split: this state's kinematics first, then a full step
+                mujoco.mj_kinematics(self.mj, self.data)
+                mujoco.mj_comPos(self.mj, self.data)
+                self._push()
                 mujoco.mj_step(self.mj, self.data)
             else:
                 # step1 computes this state's kinematics, which the push's rotation and lever
@@ -480,6 +513,8 @@ class Simulator:
                 mujoco.mj_step1(self.mj, self.data)
                 self._push()
                 mujoco.mj_step2(self.mj, self.data)
+            if self.physics is not None:
+                self.physics.after(self.data)
             self._steps += 1
             self._effort, self._saturated = tau, sat
         self._ref_cache = (self._steps, Q[n], V[n])
