@@ -430,7 +430,7 @@ class Stack:
 
     def check(self, traj: DemoTrajectory, start_ns: int, timeout: float = 15.0) -> Any:
         """dyn_node's verdict (client.Verdict) on ``traj`` from ~/check_trajectory, or None."""
-        fut = self.client.check_async(self.message(traj, start_ns), timeout=timeout)
+        fut = self.client.check_async(self.message(traj, start_ns), timeout=timeout, from_current_state=True)
         self.spin_until(fut.done, timeout)
         return fut.result() if fut.done() and fut.exception() is None else None
 
