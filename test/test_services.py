@@ -442,3 +442,37 @@ def test_dyn_check_rejects_like_the_node(rig, tmp_path):
     assert mine.outcome.statuses[0].message == st.message
     assert check_cli.verdict_line(mine) == f"{tmp_path / 'nan.csv'}: REJECTED: " + \
         st.message.removeprefix("rejected: ")
+
+
+def test_the_audit_reanswers_every_recorded_question(rig, tmp_path):
+    from std_srvs.srv import Trigger
+
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+
+    _, aggressive = demo_trajectories(short=True)
+    z = np.zeros((len(aggressive.times), 7))
+    shake = trajectory_message(NAMES, aggressive.times, aggressive.positions, z, z)
+    assert not rig.client.check(shake, timeout=30).feasible
+    q = np.array([READY, [0.3, 0.2, -0.1, -1.5, 0.2, 1.0, 0.1]])
+    rig.client.efforts(states_message(NAMES, q, q * 0.5, q * 0.1), timeout=30)
+    with pytest.raises(RequestRejected):
+        rig.client.efforts(states_message(NAMES[:6] + ["nope"], q), timeout=30)
+    cli = rig.node.create_client(Trigger, "/dyn_node/stop_recording")
+    assert cli.wait_for_service(timeout_sec=10)
+    fut = cli.call_async(Trigger.Request())
+    done = threading.Event()
+    fut.add_done_callback(lambda _f: done.set())
+    assert done.wait(30) and fut.result().success, fut.result()
+    res = run_audit(AuditOptions(bag=fut.result().message, out=str(tmp_path / "audit"), report=False))
+    rc = res.record["outputs"]["recheck"]
+    check = rc["/dyn_node/check_trajectory/_service_event"]
+    ids = rc["/dyn_node/compute_inverse_dynamics/_service_event"]
+    # every answer the node gave in this module (busy ones are not replayed), from the bag alone
+    assert check["matched"] >= 10 and check["unmatched"] == 0 and check["identical"], check
+    assert ids["matched"] >= 4 and ids["unmatched"] == 0 and ids["identical"], ids
+    qs = res.record["outputs"]["questions"]
+    assert qs["check"]["not_accepted"]["busy"] >= 1 and qs["check"]["infeasible"] >= 1
+    executed_bad = sum(not t["feasible"] for t in res.record["outputs"]["trajectories"]
+                       if t["request"] == "execute")
+    # a question answered "no" is not a violation of the run
+    assert res.record["outputs"]["trajectories_infeasible_or_rejected"] == executed_bad

@@ -67,12 +67,15 @@ def _definition_text(pkg: str, name: str) -> str | None:
     'srv/<Service>_Request|_Response|_Event' (built from share/<pkg>/srv/<Service>.srv)."""
     if not name.startswith("srv/"):
         f = _find_interface_file(pkg, name, ".msg")
+        if f is None and name.endswith(_SRV_PARTS):  # an event's field: pkg/<Service>_Request
+            return _service_part(pkg, f"srv/{name}")
         return f.read_text() if f is not None else None
     if name.endswith("_Event"):
-        service = name[:-len("_Event")]
-        if _find_interface_file(pkg, service[len("srv/"):], ".srv", kind="srv") is None:
+        service = name[len("srv/"):-len("_Event")]
+        if _find_interface_file(pkg, service, ".srv", kind="srv") is None:
             return None
-        return (f"service_msgs/msg/ServiceEventInfo info\n"
+        # field types as pkg/Type: mcap_ros2 (0.6) resolves no other form, rosbags both
+        return (f"service_msgs/ServiceEventInfo info\n"
                 f"{pkg}/{service}_Request[<=1] request\n{pkg}/{service}_Response[<=1] response\n")
     return _service_part(pkg, name)
 

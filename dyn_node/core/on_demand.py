@@ -28,6 +28,11 @@ REQUEST_RETIME = "retime"
 START_NOT_REQUESTED = "from_current_state not set"
 
 
+def question_start_unknown(from_current_state: bool) -> str:
+    """Why a question's start segment goes unchecked when it has no state (node and audit)."""
+    return feasibility.NO_CURRENT_STATE if from_current_state else START_NOT_REQUESTED
+
+
 @dataclass(frozen=True)
 class CheckOutcome:
     """One trajectory's verdict: ``statuses`` as the node publishes them on ``~/feasibility``;

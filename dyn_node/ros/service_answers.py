@@ -38,11 +38,6 @@ def reject(response: Any, reason: str, message: str) -> Any:
     return response
 
 
-def start_unknown(from_current_state: bool) -> str:
-    """Why a question's start segment goes unchecked when it has no state (the audit's too)."""
-    return feasibility.NO_CURRENT_STATE if from_current_state else on_demand.START_NOT_REQUESTED
-
-
 def _start_fields(response: Any, joint_names: Sequence[str],
                   start: feasibility.StartState | None) -> None:
     if start is None:
@@ -96,7 +91,7 @@ def answer_check(dynamics: Dynamics, settings: Settings, request: CheckTrajector
     model = dynamics.model
     names, times, P, V, A = trajectory_arrays(request.trajectory)
     outcome = on_demand.check(dynamics, settings, names, times, P, V, A, start=start,
-                              start_unknown=start_unknown(request.from_current_state))
+                              start_unknown=on_demand.question_start_unknown(request.from_current_state))
     response.statuses = [status_to_msg(s) for s in
                          on_demand.with_request(outcome.statuses, on_demand.REQUEST_CHECK)]
     _start_fields(response, model.joint_names, start)
