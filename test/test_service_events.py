@@ -212,3 +212,37 @@ def test_a_tampered_answer_is_caught(bag):
         check, _ = replay._own["/dyn_node/check_trajectory/_service_event"]
         assert decoder.done and check.matched == 3
         assert not check.to_dict()["identical"] and 0.0 < check.max_diff < 1e-6, (field, check.to_dict())
+
+
+def test_a_bag_with_the_old_request_topics_still_audits(tmp_path):
+    """Bags recorded before the services (questions on the ~/check_trajectory and
+    ~/inverse_dynamics_request topics) audit as before: the check is listed as a question."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    JT = ts.types["trajectory_msgs/msg/JointTrajectory"]
+    JTP = ts.types["trajectory_msgs/msg/JointTrajectoryPoint"]
+    H, T, D = (ts.types[t] for t in ("std_msgs/msg/Header", "builtin_interfaces/msg/Time",
+                                     "builtin_interfaces/msg/Duration"))
+    _, aggressive = demo_trajectories(short=True)
+    empty = np.array([], dtype=float)
+
+    def traj(frame_id: str, times, positions) -> object:
+        pts = [JTP(positions=np.asarray(p, float), velocities=empty, accelerations=empty, effort=empty,
+                   time_from_start=D(sec=int(t), nanosec=int(round((t % 1) * 1e9)))) for t, p in zip(times, positions)]
+        return JT(header=H(stamp=T(sec=100, nanosec=0), frame_id=frame_id), joint_names=NAMES, points=pts)
+
+    bag = tmp_path / "old_bag"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/dyn_node/check_trajectory", JT.__msgtype__, typestore=ts)
+        s = w.add_connection("/dyn_node/inverse_dynamics_request", JT.__msgtype__, typestore=ts)
+        w.write(c, 10**9, ts.serialize_cdr(traj("q1", aggressive.times, aggressive.positions), JT.__msgtype__))
+        w.write(s, 2 * 10**9, ts.serialize_cdr(traj("q2", [0.0], [READY]), JT.__msgtype__))
+    res = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "audit"), robot_model="panda", report=False))
+    checks = [t for t in res.record["outputs"]["trajectories"] if t["request"] == "check"]
+    assert len(checks) == 1 and checks[0]["accepted"] and not checks[0]["feasible"]
+    assert res.exit_code == 0 and res.record["outputs"]["trajectories_infeasible_or_rejected"] == 0
+    assert res.record["outputs"]["questions"] == {}

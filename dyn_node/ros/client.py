@@ -109,6 +109,12 @@ class Verdict:
     binding_joint: str = ""
     binding_constraint: str = ""
     effort: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+    statuses: tuple = field(default=(), repr=False)  # the DiagnosticStatus messages as answered
+
+    def status_values(self, place: str) -> dict[str, str] | None:
+        """The key/values of the ``…/<place>`` status (a joint, a frame, ...), None without one."""
+        st = next((s for s in self.statuses if s.name == f"{STATUS_NAME}/{place}"), None)
+        return None if st is None else {kv.key: kv.value for kv in st.values}
 
     @classmethod
     def from_response(cls, resp: CheckTrajectory.Response) -> "Verdict":
@@ -121,6 +127,7 @@ class Verdict:
                     first_violation_time_s=math.nan, ratios={}, violations=(), request="check")
         effort = np.array([list(p.effort) for p in resp.effort.points], dtype=float)
         return replace(v, rejected=not resp.accepted, reason=resp.reason or v.reason,
+                       statuses=tuple(resp.statuses),
                        feasible=bool(resp.accepted and resp.feasible),
                        binding_joint=resp.binding_joint, binding_constraint=resp.binding_constraint,
                        effort=effort.reshape(len(resp.effort.points), len(resp.effort.joint_names)))
