@@ -86,5 +86,5 @@ for entry in "${ordered[@]}"; do
   cmake --build "$build_root/$name" -j "$(nproc)"
   cmake --install "$build_root/$name" >/dev/null
   # marks the installed package as ours (skip_reason's test)
-  echo "$src" > "$venv/share/$name/dyn_node_built"
+  mkdir -p "$venv/share/$name" && echo "$src" > "$venv/share/$name/dyn_node_built"
 done

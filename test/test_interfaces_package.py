@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -60,3 +62,59 @@ def test_generated_types_match_the_sources() -> None:
     assert msg.ContactTruth.get_fields_and_field_types() == {
         "header": "std_msgs/Header", "contacts": "sequence<dyn_node_interfaces/Contact>",
         "link_names": "sequence<string>", "link_wrenches": "sequence<geometry_msgs/Wrench>"}
+
+
+def _package(root: Path, name: str, depends: tuple[str, ...] = ()) -> Path:
+    d = root / name
+    d.mkdir()
+    deps = "".join(f"<depend>{x}</depend>" for x in depends)
+    (d / "package.xml").write_text(f'<?xml version="1.0"?><package format="3"><name>{name}</name>'
+                                   f"<version>0.0.0</version>{deps}</package>")
+    (d / "CMakeLists.txt").write_text(f"cmake_minimum_required(VERSION 3.20)\nproject({name} NONE)\n")
+    return d
+
+
+def test_build_script_orders_by_dependency_and_skips_a_foreign_control_msgs(tmp_path) -> None:
+    """interfaces/build.sh on stand-in packages (empty CMake projects): a package after the one it
+    depends on whatever order they are given in; a control_msgs the venv already imports and did
+    not get from this script is left alone; the ones it builds are marked as its own."""
+    if shutil.which("cmake") is None:
+        pytest.skip("cmake is not installed")
+    venv = tmp_path / "venv"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").symlink_to(sys.executable)
+    pkgs = tmp_path / "src"
+    pkgs.mkdir()
+    a = _package(pkgs, "alpha_msgs", ("zeta_msgs",))
+    z = _package(pkgs, "zeta_msgs")
+    c = _package(pkgs, "control_msgs")
+    foreign = tmp_path / "site"
+    (foreign / "control_msgs" / "msg").mkdir(parents=True)
+    (foreign / "control_msgs" / "__init__.py").write_text("")
+    (foreign / "control_msgs" / "msg" / "__init__.py").write_text("")
+    env = dict(os.environ, PYTHONPATH=str(foreign))
+    run = subprocess.run([str(ROOT / "interfaces" / "build.sh"), "--venv", str(venv), "--build-dir",
+                          str(tmp_path / "build"), str(a), str(c), str(z)], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    lines = [ln for ln in run.stdout.splitlines() if ln.startswith("build.sh: ")]
+    built = [ln.split()[2] for ln in lines if ln.startswith("build.sh: building ")]
+    assert built == ["zeta_msgs", "alpha_msgs"], lines
+    assert any(ln.startswith("build.sh: skipping control_msgs: the venv already has") for ln in lines), lines
+    assert (venv / "share" / "zeta_msgs" / "dyn_node_built").read_text().strip() == str(z.resolve())
+    # without a foreign one, control_msgs is built like the others
+    run = subprocess.run([str(ROOT / "interfaces" / "build.sh"), "--venv", str(venv), "--build-dir",
+                          str(tmp_path / "build"), str(c)], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=120, env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+    assert run.returncode == 0 and "build.sh: building control_msgs" in run.stdout, run.stdout + run.stderr
+
+
+def test_make_rebuilds_the_interfaces_when_a_file_changes_and_test_needs_them() -> None:
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    srv = "interfaces/dyn_node_interfaces/srv/CheckTrajectory.srv"
+    out = subprocess.run(["make", "-n", "-o", ".venv/.dyn_node-installed", "-o", ".venv/.dyn_node-kernels",
+                          "-W", srv, "test"], cwd=ROOT, capture_output=True, text=True, timeout=60).stdout
+    build = out.find("interfaces/build.sh --venv .venv")
+    assert build >= 0 and "interfaces/dyn_node_interfaces" in out[build:].splitlines()[0], out
+    assert out.find("-m pytest") > build, out   # built before the tests run
