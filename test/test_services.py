@@ -256,8 +256,14 @@ def test_a_burst_beyond_the_queue_is_answered_busy_at_once(rig):
     P = np.array(READY) + 0.2 * np.sin(t[:, None] * np.arange(1, 8) * 0.1)
     msg = trajectory_message(NAMES, t, P)
     futs = [rig.srv_check.call_async(CheckTrajectory.Request(trajectory=msg)) for _ in range(9)]
+    order: list[int] = []  # the calls in the order their responses came
+    for i, f in enumerate(futs):
+        f.add_done_callback(lambda _f, i=i: order.append(i))
     assert rig.got.wait(lambda: all(f.done() for f in futs), 120), "a call was left without a response"
     rs = [f.result() for f in futs]
+    # the busy ones were answered at once: before the queue they could not join was worked off
+    assert max(order.index(i) for i, r in enumerate(rs) if r.reason == "busy") < \
+        max(order.index(i) for i, r in enumerate(rs) if r.accepted), order
     busy = [r for r in rs if r.reason == "busy"]
     checked = [r for r in rs if r.accepted]
     # at least the 3 a full queue holds are checked (4 once the worker has taken the first)
