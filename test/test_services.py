@@ -79,6 +79,8 @@ class Rig:
         n.create_subscription(JointTrajectory, "/dyn_node/trajectory_effort", self.got.collector("effort"), 100)
         n.create_subscription(DiagnosticStatus, "/dyn_node/controller_status",
                               self.got.collector("ctrl", stamp_receipt=True), 100)
+        n.create_subscription(JointState, "/dyn_node/gravity_torque",
+                              self.got.collector("gravity", stamp_receipt=True), 100)
         self.client = DynClient(n)
         self.spinner = Spinner(ctx, [n])
         def up() -> bool:   # discovered, or the process is gone (no point waiting on)
@@ -244,6 +246,30 @@ def test_questions_are_not_published_and_leave_controller_status_alone(rig):
         # without it, the same trajectory's start segment is not checked, and says why
         r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=late))
         assert on_demand.START_NOT_REQUESTED in r.start_segment and not r.start_state.name
+    finally:
+        stop.set()
+        pub.join()
+
+
+def test_a_long_question_does_not_hold_joint_states(rig):
+    # a 300 s trajectory (about 250,000 samples: seconds of checking) while joint_states flow
+    t = np.linspace(0.0, 300.0, 400)
+    msg = trajectory_message(NAMES, t, np.array(READY) + 0.2 * np.sin(t[:, None] * np.arange(1, 8) * 0.01))
+    stop = threading.Event()
+    pub = threading.Thread(target=_publish_joint_states, args=(rig, stop), daemon=True)
+    pub.start()
+    try:
+        t0 = time.monotonic()
+        assert rig.got.wait(lambda: any(t > t0 for t, _ in rig.got.got["gravity"]), 20)
+        done_at: list[float] = []
+        t_sent = time.monotonic()
+        fut = rig.srv_check.call_async(CheckTrajectory.Request(trajectory=msg))
+        fut.add_done_callback(lambda _f: done_at.append(time.monotonic()))
+        assert rig.got.wait(fut.done, 120)
+        assert fut.result().accepted and fut.result().message == local_check(msg).result.message
+        during = [t for t, _ in rig.got.got["gravity"] if t_sent < t < done_at[0]]
+        # joint_states at 100 Hz kept being answered while the check ran
+        assert len(during) >= 10, (len(during), done_at[0] - t_sent)
     finally:
         stop.set()
         pub.join()
