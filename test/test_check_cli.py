@@ -1,5 +1,5 @@
 """dyn-check without ROS: file formats, exit codes and messages, --out evidence and report,
---retime. (The same verdicts and torques as the node: test_check_requests.)"""
+--retime. (The same verdicts and torques as the node: test_services.)"""
 from __future__ import annotations
 
 import json

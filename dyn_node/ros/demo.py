@@ -432,7 +432,13 @@ class Stack:
 
     def check(self, traj: DemoTrajectory, start_ns: int, timeout: float = 15.0) -> Any:
         """dyn_node's verdict (client.Verdict) on ``traj`` from ~/check_trajectory, or None."""
-        fut = self.client.check_async(self.message(traj, start_ns), timeout=timeout)
+        fut = self.client.check_async(self.message(traj, start_ns), timeout=timeout, from_current_state=True)
+        self.spin_until(fut.done, timeout)
+        return fut.result() if fut.done() and fut.exception() is None else None
+
+    def retime(self, traj: DemoTrajectory, start_ns: int, timeout: float = 30.0) -> Any:
+        """dyn_node's retiming (client.Retimed) of ``traj`` from ~/retime_trajectory, or None."""
+        fut = self.client.retime_async(self.message(traj, start_ns), timeout=timeout, from_current_state=True)
         self.spin_until(fut.done, timeout)
         return fut.result() if fut.done() and fut.exception() is None else None
 
@@ -472,15 +478,6 @@ class Stack:
             return "; ".join(bad)
         finally:
             self.node.destroy_client(cli)
-
-    def place_status(self, start_ns: int, place: str) -> dict[str, str] | None:
-        """The values of the ``…/<place>`` status in the ~/feasibility answer stamped ``start_ns``."""
-        for _, arr in self.verdicts:
-            if arr.header.stamp.sec * 10**9 + arr.header.stamp.nanosec == start_ns:
-                for st in arr.status:
-                    if st.name.endswith(f"trajectory feasibility/{place}"):
-                        return {kv.key: kv.value for kv in st.values}
-        return None
 
     def verdict_for(self, start_ns: int) -> tuple[float, dict[str, str], int, str] | None:
         for recv, arr in self.verdicts:
@@ -527,6 +524,10 @@ def run_trajectory(stack: Stack, traj: DemoTrajectory, say) -> Outcome:
     if v is not None:
         o.check_verdict, o.check_feasible = _LEVELS.get(v.level, str(v.level)), v.feasible
         say(f"  ~/check_trajectory: {o.check_verdict}: {v.message}")
+        if not v.feasible:  # the fastest feasible timing along the same path
+            r = stack.retime(traj, stack.now_ns() + int(LEAD_S * 1e9))
+            say("  ~/retime_trajectory: " + ("no answer" if r is None else f"{r.duration_in:.3g} s -> "
+                f"{r.duration_out:.3g} s: {r.message}" if r.accepted else f"not retimed ({r.reason})"))
     else:
         say("  stage unavailable: check-only request (no answer on ~/check_trajectory)")
     start_ns = stack.now_ns() + int(LEAD_S * 1e9)
@@ -762,9 +763,7 @@ def _scene_task_limits(run: DemoRun) -> None:
     try:
         start = stack.now_ns() + int(LEAD_S * 1e9)
         v_fast = stack.check(fast, start)
-        if v_fast is not None:  # the demo's own ~/feasibility subscription hears it too
-            stack.spin_until(lambda: stack.place_status(start, TASK_PLACE) is not None, 3.0)
-        place = stack.place_status(start, TASK_PLACE)
+        place = v_fast.status_values(TASK_PLACE) if v_fast is not None else None  # from the response
         k = v_fast.time_scale if v_fast is not None else math.nan
         _say(f"  {fast.name} ({fast.description}), checked before execution: "
              + (f"{v_fast.message} [time_scale {_f(k, '.4g')}]" if v_fast else "no verdict"))
@@ -947,12 +946,17 @@ def audit_check(evidence: Path, live_verdicts: int) -> tuple[bool, str]:
     """dyn-audit reproduced every live ~/feasibility verdict from the bag, identically."""
     try:
         recheck = json.loads(evidence.read_text())["outputs"]["recheck"]
-        d = next(v for k, v in recheck.items() if k.endswith("feasibility"))
-    except (OSError, ValueError, KeyError, StopIteration, TypeError) as exc:
+        # executions' verdicts on ~/feasibility, the questions' in ~/check_trajectory's events
+        rows = [v for k, v in recheck.items() if k.endswith(("feasibility", "check_trajectory/_service_event"))]
+        if not rows:
+            raise KeyError("feasibility")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
         return False, f"dyn-audit: no feasibility recheck in {evidence} ({exc!r})"
-    ok = d.get("matched") == live_verdicts and not d.get("unmatched") and bool(d.get("identical"))
-    return ok, (f"dyn-audit reproduced the live verdicts from the bag: {d.get('matched')} of "
-                f"{live_verdicts} matched, identical {d.get('identical')}")
+    matched = sum(d.get("matched", 0) for d in rows)
+    identical = all(d.get("identical") for d in rows if d.get("matched"))
+    ok = matched == live_verdicts and not any(d.get("unmatched") for d in rows) and identical
+    return ok, (f"dyn-audit reproduced the live verdicts from the bag: {matched} of "
+                f"{live_verdicts} matched, identical {identical}")
 
 
 def acceptance(outcomes: Sequence[Outcome]) -> list[tuple[bool, str]]:
