@@ -246,7 +246,7 @@ def _entry(v: FileVerdict) -> dict:
     entry.update(accepted=True, feasible=bool(o.result.feasible), error_code=None)
     for k in ("level", "message", "failure_label", "time_scale", "payload_margin_kg", "worst_joint",
               "worst_constraint", "worst_ratio", "first_violation_time_s", "n_points", "duration_s",
-              "interpolation", "violations", "per_joint", "waypoint_effort", "warnings"):
+              "interpolation", "binding_joint", "binding_constraint", "violations", "per_joint", "waypoint_effort", "warnings"):
         entry[k] = d[k]
     add_per_frame(entry, o.result, curves=True, result_dict=d)
     entry["failure_label"] = entry["failure_label"] or None

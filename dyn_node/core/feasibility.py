@@ -27,6 +27,8 @@ from dyn_node.errors import PLANNING_ERROR, TrajectoryError
 from dyn_node.core.limits import LIMIT_KINDS
 from dyn_node.core.model import Payload
 from dyn_node.core.start_segment import REACH as START_REACH, StartSegment
+from dyn_node.core.start_segment import (NO_CURRENT_STATE, START_CHECKED, START_NONE,  # noqa: F401
+                                         StartState, current_state)
 from dyn_node.core.status import ERROR, NAME_PREFIX, OK, WARN, Status
 from dyn_node.core.trajectory import Trajectory, from_current_state, interpolate
 from dyn_node.core.units import joint_units
@@ -101,6 +103,17 @@ class FeasibilityResult:
     start_state_age_s: float = math.nan
     time_scale_start_segment: bool = False
 
+    @property
+    def binding_joint(self) -> str:
+        """The joint or place whose slowdown sets ``time_scale`` ("" when none does); the
+        largest ratio (``worst_joint``) may be elsewhere: velocity needs k = r, acceleration √r."""
+        return self.time_scale_joint
+
+    @property
+    def binding_constraint(self) -> str:
+        """The limit kind that sets ``time_scale`` (beside ``worst_constraint``, the largest ratio)."""
+        return self.time_scale_constraint
+
     def summary_values(self) -> dict[str, Any]:
         return {
             "feasible": self.feasible, "worst_joint": self.worst_joint,
@@ -111,6 +124,7 @@ class FeasibilityResult:
             "interpolation": self.interpolation, "n_samples": self.n_samples,
             "time_scale_joint": self.time_scale_joint,
             "time_scale_constraint": self.time_scale_constraint,
+            "binding_joint": self.binding_joint, "binding_constraint": self.binding_constraint,
             "violations": len(self.violations), "compute_time_s": self.compute_time_s,
             "warnings": "; ".join(self.warnings),
             "start_segment": self.start_segment, "start_state_age_s": self.start_state_age_s,
@@ -187,39 +201,6 @@ class FeasibilityResult:
         }
 
 
-#: ``start_segment`` when the first point is at t = 0 (nothing runs before it)
-START_NONE = "none (first point at t = 0)"
-START_CHECKED = "checked"
-#: why the start segment was not checked, when the node or the audit had no usable state
-NO_CURRENT_STATE = "no current state within stale_timeout"
-
-
-@dataclass(frozen=True)
-class StartState:
-    """The robot's state when a trajectory arrived, in model order: q and q̇ of the last accepted
-    joint_states (q̇ = 0 when it carried no velocity; q̈ = 0 is assumed, as
-    joint_trajectory_controller does), and its age in s."""
-
-    positions: np.ndarray
-    velocities: np.ndarray
-    age_s: float
-
-
-def current_state(last: tuple[int, np.ndarray, np.ndarray] | None, now_ns: int,
-                  stale_timeout: float) -> StartState | None:
-    """The state a trajectory received at ``now_ns`` starts from: ``last`` = (receipt time ns,
-    q, q̇) of the last accepted joint_states, when it is at most ``stale_timeout`` s old (None
-    otherwise: :data:`NO_CURRENT_STATE`). The node passes receipt times, the audit the log times
-    the node recorded with them, so a replay starts from the same state."""
-    if last is None:
-        return None
-    age = (now_ns - last[0]) * 1e-9
-    if not 0.0 <= age <= stale_timeout:
-        return None
-    return StartState(positions=np.asarray(last[1], dtype=float),
-                      velocities=np.asarray(last[2], dtype=float), age_s=age)
-
-
 def rejected_statuses(error: TrajectoryError, hardware_id: str = "", n_points: int = 0,
                       duration_s: float = math.nan) -> list[Status]:
     """ERROR status for a trajectory that could not be checked, with the same keys as a verdict."""
@@ -228,6 +209,7 @@ def rejected_statuses(error: TrajectoryError, hardware_id: str = "", n_points: i
         "first_violation_time_s": math.nan, "time_scale": math.nan,
         "payload_margin_kg": math.nan, "n_points": int(n_points), "duration_s": float(duration_s),
         "failure_label": error.failure_label, "reason": getattr(error, "code", "error"),
+        "binding_joint": "", "binding_constraint": "",
     }
     return [Status(STATUS_NAME, ERROR, f"rejected: {error}", hardware_id, values)]
 
@@ -669,6 +651,8 @@ def _infeasible_message(violations: list[Violation], warnings: list[str], scale:
                 "state feasible")
     else:
         tail = f"; run {_fmt_factor(scale.k)}× slower"
+        if scale.kind:
+            tail += f": {_kind_text(scale.kind)} of {scale.where} binds"
         if scale.start_binds:
             tail += " (the segment from the current state binds)"
     message = head + tail

@@ -80,7 +80,8 @@ class Verdict:
     (``reason`` is the code: ``non_finite``, ``bad_times``, ``unknown_joints``, ``busy`` ...; the
     message says what). ``time_scale``: the smallest stretch of the duration that makes it
     feasible (≤ 1 when feasible; inf: no slowdown helps; NaN when rejected). ``worst_*``: the
-    joint, limit kind and peak ratio closest to (or furthest over) its limit.
+    joint, limit kind and peak ratio closest to (or furthest over) its limit. ``binding_*``: the
+    joint (or place) and kind whose slowdown sets ``time_scale`` (may differ from ``worst_*``).
     ``first_violation_time_s``: s from the trajectory's start (NaN: none). ``ratios[joint][kind]``:
     peak ratio per limit kind (None: that joint has no such limit). ``request``: ``check`` or
     ``execute`` (or ``inverse_dynamics`` for a rejected torque request). ``stamp_ns`` /
@@ -108,6 +109,8 @@ class Verdict:
     stamp_ns: int = 0
     frame_id: str = ""
     values: Mapping[str, str] = field(default_factory=dict)
+    binding_joint: str = ""
+    binding_constraint: str = ""
 
     @classmethod
     def from_msg(cls, msg: DiagnosticArray) -> "Verdict":
@@ -141,7 +144,8 @@ class Verdict:
             payload_margin_kg=_float(vals.get("payload_margin_kg")),
             n_points=int(_float(vals.get("n_points"), 0.0)), duration_s=_float(vals.get("duration_s")),
             stamp_ns=int(st.sec) * 1_000_000_000 + int(st.nanosec), frame_id=msg.header.frame_id,
-            values=vals)
+            values=vals, binding_joint=vals.get("binding_joint", ""),
+            binding_constraint=vals.get("binding_constraint", ""))
 
 
 def _float(text: str | None, default: float = math.nan) -> float:
