@@ -137,7 +137,8 @@ def test_rejected_trajectories_exit_1_with_the_nodes_reason(capsys, tmp_path):
                                                      *lines[1:]]) + "\n")
     for p, reason in ((nan, "point 1: positions of panda_joint4 is nan"),
                       (backwards, "time_from_start not strictly increasing at point 2 (1.5 s then 1 s)"),
-                      (tmp_path / "unknown.csv", "joints not in the model: elbow_x")):
+                      (tmp_path / "unknown.csv", "joints not in the model: elbow_x; model joints missing "
+                                                  "from the trajectory: panda_joint7")):
         code, out, _ = run(capsys, p)
         assert code == 1
         assert out.strip() == f"{p}: REJECTED: {reason}"

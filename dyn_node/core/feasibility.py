@@ -30,7 +30,7 @@ from dyn_node.core.start_segment import REACH as START_REACH, StartSegment
 from dyn_node.core.start_segment import (NO_CURRENT_STATE, START_CHECKED, START_NONE,  # noqa: F401
                                          StartState, current_state)
 from dyn_node.core.status import ERROR, NAME_PREFIX, OK, WARN, Status
-from dyn_node.core.trajectory import Trajectory, from_current_state, interpolate
+from dyn_node.core.trajectory import Trajectory, from_current_state, interpolate, segment_steps
 from dyn_node.core.units import joint_units
 
 STATUS_NAME = NAME_PREFIX + "trajectory feasibility"
@@ -45,8 +45,8 @@ _KIND_LABEL = {c.kind: c.label for c in KINDS if c.label}
 class FeasibilityOptions:
     """``sample_period`` (s): longest step between samples; ``effort_warn_ratio``: a feasible
     trajectory whose peak ratio to any non-position limit exceeds this is WARN;
-    ``max_samples``: the sample period is raised (with a warning) so that at most about this many
-    samples are used, bounding memory for very long trajectories; ``threads``: OpenMP threads
+    ``max_samples``: at most this many samples; beyond, the longest segments get fewer steps
+    (with a warning), never fewer than MIN_SEGMENT_STEPS each (else rejected as too long); ``threads``: OpenMP threads
     for the batched RNEA passes (None: the Dynamics' own setting, one unless built otherwise;
     with two or more and a task section configured, one of them runs the frame pass instead).
     Every state is computed by the same sequential RNEA whatever the count, so the result does
@@ -244,11 +244,10 @@ def _colmax(X: np.ndarray) -> np.ndarray:
 
 
 def _sample(times: np.ndarray, period: float, max_samples: int) -> Samples:
+    """Every segment sampled on its own: uniform steps of at most ``period``, fewer only for the
+    longest segments when the samples would exceed ``max_samples`` (:func:`segment_steps`)."""
     T = np.diff(times)
-    n = np.maximum(1, np.ceil(T / period - 1e-9)).astype(np.int64)
-    if n.sum() + len(T) > max_samples and len(T) < max_samples:
-        period = float(times[-1] - times[0]) / max(1, max_samples - 2 * len(T))
-        n = np.maximum(1, np.ceil(T / period - 1e-9)).astype(np.int64)
+    n = segment_steps(times, period, max_samples)
     counts = n + 1
     first = np.concatenate(([0], np.cumsum(counts)[:-1]))
     last = first + n
@@ -381,6 +380,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
                               motion.smp.period, whole=any(c.reaches_back for c in kinds))
         _search_start(scale, search, feasible=not violations)
     _exact(scale, not violations, warnings)
+    _refuse_nan(per_joint, per_frame, scale)
     margin = math.inf if margin_job is None else margin_job.result()
     verdict = _verdict(per_joint, per_frame, violations, warnings, scale, options,
                        motion.units, start_segment)
@@ -395,6 +395,19 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
         start_segment=start_segment, start_state_age_s=start_age,
         time_scale_start_segment=scale.start_binds, per_frame=per_frame,
         task_curves=_task_curves(kinds, motion.smp.t))
+
+
+def _refuse_nan(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
+                per_frame: Mapping[str, Mapping[str, Mapping[str, Any]]], scale: _Scale) -> None:
+    """A NaN ratio or time scale (a limit or load the numbers cannot carry) never reaches a
+    verdict: the trajectory is rejected, naming the place and kind."""
+    for place, kinds in (*per_joint.items(), *per_frame.items()):
+        for kind, e in kinds.items():
+            if e["ratio"] is not None and math.isnan(e["ratio"]):
+                raise TrajectoryError(f"{place} {kind} could not be evaluated (NaN: check its limits)",
+                                      code="evaluation_failed")
+    if math.isnan(scale.k):
+        raise TrajectoryError(f"time scale of {scale.where} {scale.kind} is NaN", code="evaluation_failed")
 
 
 def _validate(traj: Trajectory, options: FeasibilityOptions) -> None:
@@ -432,9 +445,12 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
     nv = model.nv
     pp = interpolate(work, work.natural_interpolation)
     smp = _sample(work.times, options.sample_period, options.max_samples)
-    if smp.period > options.sample_period * (1 + 1e-9):
-        warnings.append(f"sample period raised from {options.sample_period * 1e3:.3g} ms to "
-                        f"{smp.period * 1e3:.3g} ms to bound memory")
+    coarse = smp.h[smp.last] > options.sample_period * (1 + 1e-9)
+    if np.any(coarse):
+        steps = np.diff(smp.first, append=len(smp.t)) - 1
+        warnings.append(f"{int(coarse.sum())} long segment(s) sampled with "
+                        f"{int(steps[coarse].min())} steps (up to {smp.h.max() * 1e3:.3g} ms) "
+                        f"instead of {options.sample_period * 1e3:.3g} ms, to bound memory")
     applicable = [cls for cls in KINDS if cls.applies(model)]
     n_derivatives = 1 + max((cls.order for cls in applicable), default=2)
     Q, V, A, *rest = _evaluate(pp.coeffs, pp.breaks, smp, max(3, n_derivatives))

@@ -1,23 +1,28 @@
 """YAML and JSON of user files, parsed fast and strictly.
 
-YAML goes through libyaml (``CSafeLoader``) when PyYAML has it. Stricter than ``yaml.safe_load``
+YAML: libyaml's events (PyYAML's C parser when it has one) built into values by one iterative
+loop, faster than PyYAML's constructor and never recursive. Stricter than ``yaml.safe_load``
 where YAML 1.1 silently changes a value: numbers are YAML 1.2's (``1:30`` is text, not 90;
-``1_000`` and ``012`` are not read as 1000 and 10), duplicate keys are refused (the last would
-win), and aliases may not expand the document beyond :data:`ALIAS_GROWTH` times its own node
-count (a "billion laughs" file is refused before anything walks it). JSON refuses duplicate
-keys too. Nesting deeper than Python's recursion allows is an error, not a crash. Line numbers
-are found only when an error is reported (:func:`yaml_line`)."""
+``1_000`` is text, ``012`` is twelve), duplicate keys are refused (the last would win), nesting
+stops at :data:`MAX_DEPTH`, and aliases may not expand the document beyond
+:data:`ALIAS_GROWTH` times its written node count (a "billion laughs" is refused while read).
+JSON: the standard parser, duplicate keys refused, too deep an error. Line numbers are found
+only when an error is reported (:func:`yaml_line`)."""
 from __future__ import annotations
 
 import json
+import math
 import re
 from typing import Any
 
 import yaml
-from yaml.constructor import ConstructorError, SafeConstructor
-from yaml.resolver import Resolver
 
 from dyn_node.io.text import shown
+
+try:
+    from yaml.cyaml import CParser as _CParser
+except ImportError:  # pragma: no cover - PyYAML built without libyaml
+    _CParser = None
 
 #: Aliases may make the document at most this many times its written node count (plus a
 #: little): enough for anchors reused as defaults, far from an exponential bomb.
@@ -26,9 +31,6 @@ ALIAS_SLACK = 10_000
 #: Nesting depth of a document at most (a limits file needs 5, a trajectory 4).
 MAX_DEPTH = 64
 
-_INT = "tag:yaml.org,2002:int"
-_FLOAT = "tag:yaml.org,2002:float"
-_MERGE = "tag:yaml.org,2002:merge"
 
 
 class LoadError(ValueError):
@@ -39,110 +41,110 @@ class LoadError(ValueError):
         self.problem, self.line = problem, line
 
 
-class _StrictResolver(Resolver):
-    """YAML 1.2 core-schema numbers: no sexagesimal, no underscores, no leading-zero octal."""
+_INT_RX = re.compile(r"[-+]?[0-9]+\Z|0o[0-7]+\Z|0x[0-9a-fA-F]+\Z")
+_FLOAT_RX = re.compile(r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?\Z")
+_SPECIAL = {".inf": math.inf, ".Inf": math.inf, ".INF": math.inf, "+.inf": math.inf,
+            "+.Inf": math.inf, "+.INF": math.inf, "-.inf": -math.inf, "-.Inf": -math.inf,
+            "-.INF": -math.inf, ".nan": math.nan, ".NaN": math.nan, ".NAN": math.nan,
+            "": None, "~": None, "null": None, "Null": None, "NULL": None}
+# YAML 1.1's word booleans too (PyYAML's safe_load reads them so; ROS parameter files use them)
+for _w in ("true", "True", "TRUE", "yes", "Yes", "YES", "on", "On", "ON"):
+    _SPECIAL[_w] = True
+for _w in ("false", "False", "FALSE", "no", "No", "NO", "off", "Off", "OFF"):
+    _SPECIAL[_w] = False
+_TAGGED = {"tag:yaml.org,2002:str": str, "tag:yaml.org,2002:float": float,
+           "tag:yaml.org,2002:int": lambda v: int(v, 0) if v[:2] in ("0o", "0x") else int(v, 10),
+           "tag:yaml.org,2002:bool": lambda v: {"true": True, "false": False}[v.lower()],
+           "tag:yaml.org,2002:null": lambda v: None}
 
 
-_StrictResolver.yaml_implicit_resolvers = {
-    first: [(tag, rx) for tag, rx in rules if tag not in (_INT, _FLOAT)]
-    for first, rules in Resolver.yaml_implicit_resolvers.items()}
-_StrictResolver.add_implicit_resolver(
-    _INT, re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"), list("-+0123456789"))
-_StrictResolver.add_implicit_resolver(
-    _FLOAT, re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
-                       r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"), list("-+.0123456789"))
+_MISS = object()
 
 
-class _StrictConstructor(SafeConstructor):
-    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
-        value = self.construct_scalar(node)
+def _plain(value: str) -> Any:
+    """A plain (unquoted) scalar by YAML 1.2's core schema: null, bool, int, float, else text
+    (``1:30`` stays text; ``012`` is twelve; no underscores in numbers)."""
+    known = _SPECIAL.get(value, _MISS)
+    if known is not _MISS:
+        return known
+    if _FLOAT_RX.match(value):
+        return float(value) if ("." in value or "e" in value or "E" in value) else int(value, 10)
+    if _INT_RX.match(value):
         return int(value, 0) if value[:2] in ("0o", "0x") else int(value, 10)
-
-    def construct_mapping(self, node: yaml.Node, deep: bool = False) -> dict:
-        if isinstance(node, yaml.MappingNode):
-            seen: dict[Any, int] = {}
-            for key_node, _ in node.value:
-                if key_node.tag == _MERGE or not isinstance(key_node, yaml.ScalarNode):
-                    continue
-                key = self.construct_object(key_node)
-                if key in seen:
-                    raise ConstructorError(
-                        None, None, f"duplicate key {shown(key)} (first at line {seen[key]}): "
-                        "each key once", key_node.start_mark)
-                seen[key] = key_node.start_mark.line + 1
-        return super().construct_mapping(node, deep)
+    return value
 
 
-_StrictConstructor.add_constructor(_INT, _StrictConstructor.construct_yaml_int)
-_StrictConstructor.add_constructor("tag:yaml.org,2002:map", SafeConstructor.construct_yaml_map)
-_Parser = getattr(yaml, "CParser", None)
-if _Parser is not None:
-    class _Loader(yaml.CParser, _StrictConstructor, _StrictResolver):  # type: ignore[misc]
-        def __init__(self, stream: str):
-            yaml.CParser.__init__(self, stream)
-            _StrictConstructor.__init__(self)
-            _StrictResolver.__init__(self)
-else:  # pragma: no cover - PyYAML built without libyaml
-    from yaml.composer import Composer
-    from yaml.parser import Parser
-    from yaml.reader import Reader
-    from yaml.scanner import Scanner
-
-    class _Loader(Reader, Scanner, Parser, Composer, _StrictConstructor, _StrictResolver):  # type: ignore[no-redef]
-        def __init__(self, stream: str):
-            Reader.__init__(self, stream)
-            Scanner.__init__(self)
-            Parser.__init__(self)
-            Composer.__init__(self)
-            _StrictConstructor.__init__(self)
-            _StrictResolver.__init__(self)
+def _scalar(ev: Any) -> Any:
+    if ev.tag in (None, "!") or ev.tag == "?":
+        return _plain(ev.value) if ev.implicit[0] else ev.value
+    convert = _TAGGED.get(ev.tag)
+    if convert is None:
+        raise LoadError(f"tag {shown(ev.tag)} is not supported", ev.start_mark.line + 1)
+    try:
+        return convert(ev.value)
+    except (ValueError, KeyError):
+        raise LoadError(f"{shown(ev.value)} is not a {ev.tag.rsplit(':', 1)[-1]}",
+                        ev.start_mark.line + 1) from None
 
 
-def _children(node: yaml.Node) -> list[yaml.Node]:
-    if isinstance(node, yaml.SequenceNode):
-        return node.value
-    if isinstance(node, yaml.MappingNode):
-        return [n for pair in node.value for n in pair]
-    return []
+class _Builder:
+    """Python values from libyaml's events, iteratively (no recursion however deep the text:
+    refused beyond :data:`MAX_DEPTH`, before libyaml's per-level cost grows). Each value's
+    expanded size (aliases counted at every use) is tracked to bound alias growth."""
+
+    def __init__(self) -> None:
+        self.stack: list[list[Any]] = []     # [container, size, pending key | _NO_KEY, line]
+        self.anchors: dict[str, tuple[Any, int]] = {}
+        self.written = 0                      # nodes in the text
+        self.result: Any = None
+        self.done = False
+
+    def add(self, value: Any, size: int, line: int) -> None:
+        if size > ALIAS_GROWTH * self.written + ALIAS_SLACK:
+            raise LoadError(f"aliases expand the document to more than {size} nodes "
+                            f"(from {self.written} written): refused", line)
+        if not self.stack:
+            self.result, self.done = value, True
+            return
+        top = self.stack[-1]
+        top[1] += size
+        container = top[0]
+        if isinstance(container, list):
+            container.append(value)
+        elif top[2] is _NO_KEY:
+            try:
+                hash(value)
+            except TypeError:
+                raise LoadError("a mapping key must be a scalar", line) from None
+            if value in container:
+                raise LoadError(f"duplicate key {shown(value)}: each key once", line)
+            top[2] = value
+        else:
+            if top[2] == "<<" and isinstance(value, (dict, list)):
+                top[4].append(value)          # a merge: applied under the explicit keys
+            else:
+                container[top[2]] = value
+            top[2] = _NO_KEY
+
+    def open(self, container: Any, ev: Any) -> None:
+        if len(self.stack) >= MAX_DEPTH:
+            raise LoadError(f"nested more than {MAX_DEPTH} levels deep", ev.start_mark.line + 1)
+        self.written += 1
+        self.stack.append([container, 1, _NO_KEY, ev.anchor, []])
+
+    def close(self, line: int) -> None:
+        container, size, _, anchor, merges = self.stack.pop()
+        for m in merges:
+            for part in (m if isinstance(m, list) else [m]):
+                if isinstance(part, dict):
+                    for k, v in part.items():
+                        container.setdefault(k, v)
+        if anchor is not None:
+            self.anchors[anchor] = (container, size)
+        self.add(container, size, line)
 
 
-def _check_expansion(root: yaml.Node) -> None:
-    """Refuse a document whose aliases expand it beyond the bound, nest too deep or refer back
-    to themselves: one walk over the distinct nodes, sizes and heights memoised."""
-    done: dict[int, tuple[int, int]] = {}
-    open_: dict[int, list[int]] = {id(root): [1, 0]}
-    stack = [(root, iter(_children(root)))]
-    while stack:
-        node, it = stack[-1]
-        child = next(it, None)
-        if child is None:
-            stack.pop()
-            size, height = open_.pop(id(node))
-            done[id(node)] = (size, height + 1)
-            if height + 1 > MAX_DEPTH:
-                raise LoadError(f"nested more than {MAX_DEPTH} levels deep", node.start_mark.line + 1)
-            if size > ALIAS_GROWTH * len(done) + ALIAS_SLACK:
-                raise LoadError(f"aliases expand the document to more than {size} nodes "
-                                f"(from {len(done)} written): refused", node.start_mark.line + 1)
-            if stack:
-                parent = open_[id(stack[-1][0])]
-                parent[0] += size
-                parent[1] = max(parent[1], height + 1)
-            continue
-        key = id(child)
-        if key in open_:
-            raise LoadError("an alias refers to a node containing it (recursive)",
-                            child.start_mark.line + 1)
-        if key in done:
-            parent = open_[id(node)]
-            parent[0] += done[key][0]
-            parent[1] = max(parent[1], done[key][1])
-            if parent[0] > ALIAS_GROWTH * len(done) + ALIAS_SLACK:
-                raise LoadError(f"aliases expand the document to more than {parent[0]} nodes "
-                                f"(from {len(done)} written): refused", child.start_mark.line + 1)
-            continue
-        open_[key] = [1, 0]
-        stack.append((child, iter(_children(child))))
+_NO_KEY = object()
 
 
 def _mark_line(exc: yaml.YAMLError) -> int | None:
@@ -152,21 +154,43 @@ def _mark_line(exc: yaml.YAMLError) -> int | None:
 
 def load_yaml(text: str) -> Any:
     """The one YAML document of ``text`` (None when empty); raises :class:`LoadError`."""
-    loader = _Loader(text)
+    parser = _CParser(text) if _CParser is not None else yaml.SafeLoader(text)
+    b = _Builder()
     try:
-        node = loader.get_single_node()
-        if node is None:
-            return None
-        if "*" in text:  # no alias can expand a document without one
-            _check_expansion(node)
-        return loader.construct_document(node)
+        while parser.check_event():
+            ev = parser.get_event()
+            kind = type(ev)
+            if kind is yaml.ScalarEvent:
+                b.written += 1
+                value = _plain(ev.value) if ev.tag is None and ev.implicit[0] else _scalar(ev)
+                if ev.anchor is not None:
+                    b.anchors[ev.anchor] = (value, 1)
+                top = b.stack[-1] if b.stack else None
+                if top is not None and type(top[0]) is list:    # the common case, inline
+                    top[0].append(value)
+                    top[1] += 1
+                else:
+                    b.add(value, 1, ev.start_mark.line + 1)
+            elif kind is yaml.SequenceStartEvent:
+                b.open([], ev)
+            elif kind is yaml.MappingStartEvent:
+                b.open({}, ev)
+            elif kind in (yaml.SequenceEndEvent, yaml.MappingEndEvent):
+                b.close(ev.start_mark.line + 1)
+            elif kind is yaml.AliasEvent:
+                if ev.anchor not in b.anchors:
+                    raise LoadError(f"alias *{shown(ev.anchor)} before its anchor (or inside it)",
+                                    ev.start_mark.line + 1)
+                b.add(*b.anchors[ev.anchor], ev.start_mark.line + 1)
+            elif kind is yaml.DocumentStartEvent and b.done:
+                raise LoadError("more than one document", ev.start_mark.line + 1)
     except yaml.YAMLError as exc:
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         raise LoadError(str(problem), _mark_line(exc)) from None
-    except RecursionError:
-        raise LoadError("nested too deeply") from None
     finally:
-        loader.dispose()
+        if hasattr(parser, "dispose"):
+            parser.dispose()
+    return b.result
 
 
 def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
