@@ -288,3 +288,25 @@ def test_unknown_joint_names_the_missing_ones_and_the_closest(capsys, tmp_path):
     assert code == 1
     assert ("REJECTED: joints not in the model: panda_joint8; model joints missing from the "
             "trajectory: panda_joint7 (did you mean 'panda_joint8' → 'panda_joint7'?)") in out, out
+
+
+# --- 6: NaN never reaches a verdict ------------------------------------------------------------
+
+@pytest.mark.parametrize("window", [0.0, math.inf])
+def test_a_nan_limit_that_slips_past_the_parser_rejects_instead_of_a_verdict(window):
+    """rms_window 0 or ∞ set directly (the parser refuses it): the RMS is NaN, which before gave
+    'feasible … no margin left' with time_scale inf."""
+    from dataclasses import replace
+
+    m = load_model(builtin="planar_2link")
+    lim = replace(m.limits, rms_window=np.full(m.nv, window), rms_effort=np.full(m.nv, 5.0))
+    names = list(m.joint_names)
+    traj = validate_trajectory(names, names, [0.0, 1.0, 2.0], [[0, 0], [0.5, 0.3], [1, 0.6]])
+    with pytest.raises(TrajectoryError) as e, np.errstate(all="ignore"):
+        check_trajectory(Dynamics(replace(m, limits=lim)), traj)
+    assert e.value.code == "evaluation_failed" and "rms_effort" in str(e.value)
+
+
+def test_huge_integer_polygon_coordinate_is_a_limits_error():
+    e = _limits_error(JL + f"base_limits: {{support_polygon: [[-1, -1], [1{'0' * 400}, -1], [1, 1]]}}\n")
+    assert "base_limits.support_polygon" in str(e) and len(str(e)) < 500

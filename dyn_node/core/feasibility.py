@@ -403,7 +403,8 @@ def _refuse_nan(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
     verdict: the trajectory is rejected, naming the place and kind."""
     for place, kinds in (*per_joint.items(), *per_frame.items()):
         for kind, e in kinds.items():
-            if e["ratio"] is not None and math.isnan(e["ratio"]):
+            r, v = e["ratio"], e["value"]
+            if (r is not None and not r >= 0) or (isinstance(v, float) and math.isnan(v)):
                 raise TrajectoryError(f"{place} {kind} could not be evaluated (NaN: check its limits)",
                                       code="evaluation_failed")
     if math.isnan(scale.k):

@@ -334,7 +334,7 @@ def support_polygon(value: Any, where: str) -> SupportPolygon:
                    or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in p)
                    for p in value)):
         raise _bad(where, what, value, code="limits_bad_polygon")
-    v = np.array(value, dtype=float)
+    v = np.array([[_float(x) for x in p] for p in value], dtype=float)
     if not np.all(np.isfinite(v)):
         raise _bad(where, "finite points", value, code="limits_bad_polygon")
     e = np.roll(v, -1, axis=0) - v
