@@ -310,3 +310,13 @@ def test_a_nan_limit_that_slips_past_the_parser_rejects_instead_of_a_verdict(win
 def test_huge_integer_polygon_coordinate_is_a_limits_error():
     e = _limits_error(JL + f"base_limits: {{support_polygon: [[-1, -1], [1{'0' * 400}, -1], [1, 1]]}}\n")
     assert "base_limits.support_polygon" in str(e) and len(str(e)) < 500
+
+
+def test_joint_and_task_problems_of_one_file_in_one_error():
+    e = _limits_error("joint_limits:\n  panda_joint1: {max_velocty: 1.0}\n"
+                      "grasp: {frame: panda_hand, normal_axis: [0, 0, 1], friction_coefficient: 0.5,"
+                      " grip_force: 10, faces: 2, colour: red}\n")
+    s = str(e)
+    assert "unknown key 'max_velocty'" in s and "unknown key 'colour'" in s
+    e = _limits_error("joint_limits:\n  panda_joint1: {max_velocity: 1.0}\nframe_limitz: {}\n")
+    assert str(e).count("frame_limitz") == 1     # refused by both parsers, said once
