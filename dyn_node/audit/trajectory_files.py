@@ -21,7 +21,7 @@ import yaml
 from dyn_node.errors import TrajectoryFileError
 from dyn_node.io.files import FileProblem, read_text
 from dyn_node.io.safe_load import LoadError, load_json, load_yaml, yaml_line
-from dyn_node.io.text import escape, name_list, shown
+from dyn_node.io.text import escape, shown
 
 FORMATS = {".yaml": "yaml", ".yml": "yaml", ".json": "json", ".csv": "csv"}
 
