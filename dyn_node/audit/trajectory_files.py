@@ -109,9 +109,12 @@ def _number(x: Any, fail: Any) -> float:
         raise   # not reached: fail raises
 
 
+_FLOAT_ONLY = frozenset({float})
+
+
 def _numbers(seq: list[Any], fail: Any) -> list[float]:
     # the common case at C speed: every item an int or a float (no bool, no huge int)
-    if all(type(x) is float for x in seq):
+    if set(map(type, seq)) <= _FLOAT_ONLY:
         return seq
     return [_number(x, lambda p, j=j: fail(p, j)) for j, x in enumerate(seq)]
 

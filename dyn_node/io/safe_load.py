@@ -194,11 +194,13 @@ def load_yaml(text: str) -> Any:
 
 
 def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in pairs:
-        if k in out:
-            raise LoadError(f"duplicate key {shown(k)}: each key once")
-        out[k] = v
+    out = dict(pairs)
+    if len(out) != len(pairs):      # rare: find the key written twice
+        seen: set[str] = set()
+        for k, _ in pairs:
+            if k in seen:
+                raise LoadError(f"duplicate key {shown(k)}: each key once")
+            seen.add(k)
     return out
 
 
