@@ -399,8 +399,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
 
 def _refuse_nan(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
                 per_frame: Mapping[str, Mapping[str, Mapping[str, Any]]], scale: _Scale) -> None:
-    """A NaN ratio or time scale (a limit or load the numbers cannot carry) never reaches a
-    verdict: the trajectory is rejected, naming the place and kind."""
+    """A NaN (or negative) ratio or time scale never reaches a verdict: rejected, place named."""
     for place, kinds in (*per_joint.items(), *per_frame.items()):
         for kind, e in kinds.items():
             r, v = e["ratio"], e["value"]
