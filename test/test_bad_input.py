@@ -320,3 +320,13 @@ def test_joint_and_task_problems_of_one_file_in_one_error():
     assert "unknown key 'max_velocty'" in s and "unknown key 'colour'" in s
     e = _limits_error("joint_limits:\n  panda_joint1: {max_velocity: 1.0}\nframe_limitz: {}\n")
     assert str(e).count("frame_limitz") == 1     # refused by both parsers, said once
+
+
+def test_effort_neither_empty_nor_one_per_joint_is_rejected_as_the_controller_does():
+    zero = [[0.0] * 7] * 2
+    pos = [READY, READY]
+    with pytest.raises(TrajectoryError, match=r"point 1: 2 effort for 7 joints") as e:
+        validate_trajectory(PANDA_JOINTS, PANDA_JOINTS, [0.0, 1.0], pos, efforts=[[], [1.0, 2.0]])
+    assert e.value.code == "length_mismatch"
+    for ok in ([[], []], zero, None):
+        validate_trajectory(PANDA_JOINTS, PANDA_JOINTS, [0.0, 1.0], pos, efforts=ok)

@@ -102,11 +102,13 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
                         times: Sequence[float], positions: Sequence[Sequence[float]],
                         velocities: Sequence[Sequence[float]] | None = None,
                         accelerations: Sequence[Sequence[float]] | None = None,
-                        min_points: int = 2, ignored_joints: Sequence[str] = ()) -> Trajectory:
+                        min_points: int = 2, ignored_joints: Sequence[str] = (),
+                        efforts: Sequence[Sequence[float]] | None = None) -> Trajectory:
     """Check a trajectory as joint_trajectory_controller does, plus dyn_node's own rules.
 
     ``velocities``/``accelerations`` are per-point sequences, each empty or one value per name,
-    consistently across points. Names in ``ignored_joints`` (the model's locked joints) may appear
+    consistently across points; ``efforts`` (not used: dyn_node computes the torque) each empty or
+    one per name, as the controller requires. Names in ``ignored_joints`` (the model's locked joints) may appear
     and their values are dropped, as for joint_states. Raises :class:`TrajectoryError` naming the
     first problem found.
     """
@@ -121,6 +123,11 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
         raise TrajectoryError(f"{len(positions)} position rows for {n_pts} times", code="length_mismatch")
     nj = len(names)
     order = np.array([names.index(n) for n in model_joints])
+    for i, r in enumerate(() if efforts is None else efforts):
+        if len(r) and len(r) != nj:
+            raise TrajectoryError(f"point {i}: {len(r)} effort for {nj} joints (joint_trajectory_"
+                                  "controller refuses an effort neither empty nor one per joint)",
+                                  code="length_mismatch")
 
     def matrix(rows: Sequence[Sequence[float]] | None, field: str, required: bool) -> np.ndarray | None:
         if rows is None:
