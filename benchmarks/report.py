@@ -365,10 +365,24 @@ def memory_md(doc: dict) -> str:
     return _table(["process", "peak RSS (MiB)"], rows)
 
 
+def parsing_md(sec: dict) -> str:
+    if _status(sec):
+        return f"Parsing: {_status(sec)}"
+    d = sec["result"]
+    rows = [[r["format"], f"{r['bytes'] / 1e6:.1f}", _f(r["read_s"]), _f(r["vm_hwm_mib"])]
+            if r.get("status") == "ok" else [r["format"], "—", r.get("status", "—"), "—"]
+            for r in d["rows"]]
+    return (f"`read_trajectory` of a {d['n_points']:,}-point, {d['joints']}-joint trajectory "
+            "(positions, velocities, accelerations), each format in a fresh process; median of "
+            f"{d['repeats']} reads, peak RSS of that process.\n\n"
+            + _table(["format", "file (MB)", "read (s)", "peak RSS (MiB)"], rows))
+
+
 SECTIONS = [("dynamics", "Dynamics", dynamics_md), ("live", "Live path", live_md),
             ("feasibility", "Feasibility check", feasibility_md),
             ("recording", "Recording and audit", recording_md), ("fleet", "Fleet (dyn-fleet on Ray)", fleet_md),
-            ("services", "Question services", services_md)]
+            ("services", "Question services", services_md),
+            ("parsing", "Parsing trajectory files", parsing_md)]
 
 
 def render(doc: dict) -> str:

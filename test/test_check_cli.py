@@ -55,7 +55,36 @@ def test_exit_0_all_feasible_1_some_infeasible(capsys):
     assert code == 0 and out.count(": FEASIBLE (") == 3
     code, out, _ = run(capsys, REACH[0], SHAKE)
     assert code == 1
-    assert f"{SHAKE}: INFEASIBLE (ERROR), time_scale 1.3" in out and "panda_joint2 effort" in out
+    k = shake_velocity_time_scale()
+    assert f"{SHAKE}: INFEASIBLE (ERROR), time_scale {k:.4g}: " in out and "panda_joint2 effort" in out
+    assert f"run {k:.2f}× slower: velocity of panda_joint2 binds" in out
+
+
+def shake_velocity_time_scale() -> float:
+    """panda_shake's k from its file alone: each segment is a quintic with zero velocity and
+    acceleration at both ends, peak |q̇| = 15/8·|Δq|/T at mid-segment; k = the largest peak over
+    the joint's URDF velocity limit (read by Pinocchio). Its effort (166 % at most, k ≤ √1.66)
+    binds less."""
+    import pinocchio as pin
+    import yaml
+
+    doc = yaml.safe_load(SHAKE.read_text())
+    t = np.array([p["time_from_start"]["sec"] + p["time_from_start"]["nanosec"] * 1e-9
+                  for p in doc["points"]])
+    q = np.array([p["positions"] for p in doc["points"]])
+    peak = 15 / 8 * np.abs(np.diff(q, axis=0)) / np.diff(t)[:, None]
+    model = check_cli.make_checker(robot_model="panda").model.base_model
+    vmax = np.array([model.velocityLimit[model.joints[model.getJointId(n)].idx_v]
+                     for n in doc["joint_names"]])
+    return float(np.max(peak / vmax))
+
+
+def test_shake_time_scale_is_its_velocity_peak_over_the_limit(checker):
+    k = shake_velocity_time_scale()
+    assert k == pytest.approx(1.875 * 0.2 / 0.13 / 2.175, rel=1e-12)   # joint2, 0.2 rad in 0.13 s
+    r = check_cli.check_file(checker, str(SHAKE)).outcome.result
+    assert r.time_scale == pytest.approx(k, rel=1e-9)
+    assert (r.binding_joint, r.binding_constraint) == ("panda_joint2", "velocity")
 
 
 @pytest.mark.parametrize("name,text,where", [
@@ -108,7 +137,8 @@ def test_rejected_trajectories_exit_1_with_the_nodes_reason(capsys, tmp_path):
                                                      *lines[1:]]) + "\n")
     for p, reason in ((nan, "point 1: positions of panda_joint4 is nan"),
                       (backwards, "time_from_start not strictly increasing at point 2 (1.5 s then 1 s)"),
-                      (tmp_path / "unknown.csv", "joints not in the model: elbow_x")):
+                      (tmp_path / "unknown.csv", "joints not in the model: elbow_x; model joints missing "
+                                                  "from the trajectory: panda_joint7")):
         code, out, _ = run(capsys, p)
         assert code == 1
         assert out.strip() == f"{p}: REJECTED: {reason}"

@@ -131,11 +131,32 @@ def tipping_band_ref(F1, M1, f1, m1, polygon, mb, cb) -> tuple:
     return linear_band_ref(alpha, beta, strict)
 
 
-def quadratic_norm_band_ref(a: np.ndarray, b: np.ndarray, L: float) -> tuple:
-    A = np.einsum("ij,ij->i", b, b)[None]
-    B = np.einsum("ij,ij->i", a, b)[None]
-    an = np.linalg.norm(a, axis=1)
-    return kernels.quadratic_band(A, B, ((an - L) * (an + L))[None])
+def quadratic_norm_band_ref(a: np.ndarray, b: np.ndarray, L: float, *, reach: float = 1e3,
+                            grid: int = 100_001) -> tuple:
+    """The masses m with |a + m·b| ≤ L at every row, found by scanning m directly (no quadratic
+    formula): the feasible points of a grid over [−reach, reach], each end then bisected on the
+    predicate to ~1e-15 relative; (inf, −inf) when no grid point is feasible."""
+    def ok(m: np.ndarray) -> np.ndarray:
+        m = np.atleast_1d(m)
+        return np.all(np.linalg.norm(a[None] + m[:, None, None] * b[None], axis=2) <= L, axis=1)
+
+    ms = np.linspace(-reach, reach, grid)
+    good = np.concatenate([ok(chunk) for chunk in np.array_split(ms, 200)])
+    if not good.any():
+        return math.inf, -math.inf
+    idx = np.flatnonzero(good)
+    assert np.all(np.diff(idx) == 1), "the feasible masses are one interval"
+    assert 0 < idx[0] and idx[-1] < grid - 1, "the band lies inside the scanned range"
+
+    def edge(inside: float, outside: float) -> float:
+        for _ in range(200):
+            mid = 0.5 * (inside + outside)
+            if mid in (inside, outside):
+                break
+            inside, outside = (mid, outside) if ok(mid)[0] else (inside, mid)
+        return inside
+
+    return edge(ms[idx[0]], ms[idx[0] - 1]), edge(ms[idx[-1]], ms[idx[-1] + 1])
 
 
 def _same(x, y) -> None:
@@ -334,12 +355,20 @@ def test_tipping_payload_band_equals_numpy_reference(seed):
     assert math.isnan(got[0])
 
 
-def test_quadratic_norm_band_equals_numpy_reference():
+def test_quadratic_norm_band_equals_a_direct_scan_of_the_mass():
     rng = np.random.default_rng(8)
     a, b = _norm_rows(rng, 200, 30.0)
     a, b = a[9:], b[9:]
-    for L in (30.0, 300.0, 0.0):
-        _same(BC._quadratic_norm_band(a, b, L), quadratic_norm_band_ref(a, b, L))
+    # rows 0-10 here have b = −2.5·a: a band around m = 0.4 even where all rows leave none
+    for rows, L in ((slice(None), 300.0), (slice(0, 11), 30.0), (slice(None), 30.0),
+                    (slice(None), 0.0)):
+        got = BC._quadratic_norm_band(a[rows], b[rows], L)
+        ref = quadratic_norm_band_ref(a[rows], b[rows], L)
+        if math.isinf(ref[0]):
+            assert got[0] > got[1], (L, got)          # empty: no scanned mass holds
+        else:
+            np.testing.assert_allclose(got, ref, rtol=1e-9, atol=0)
+            assert ref[0] < ref[1]
 
 
 # --- power law and the per-kg payload wrench ---------------------------------------------------

@@ -145,6 +145,14 @@ def test_the_model_is_built_from_one_read_of_the_file(tmp_path, monkeypatch):
                 reads.append(self)
             return _orig(self, *a, **kw)
         monkeypatch.setattr(Path, name, spy)
+    import dyn_node.core.limits_file as limits_file
+    orig_read = limits_file.read_bytes
+
+    def spy_read(path, *a, **kw):
+        if Path(path) == lim:
+            reads.append(Path(path))
+        return orig_read(path, *a, **kw)
+    monkeypatch.setattr(limits_file, "read_bytes", spy_read)   # the bounded regular-file read
     model = build_model(settings_from_mapping({"robot_model": "panda", "limits_file": str(lim)}))
     assert len(reads) == 1
     assert limits_text(model) == LIMITS

@@ -202,6 +202,9 @@ def _bad_messages():
     m = trajectory(NAMES, good_t, good_p)
     m.points[1].positions = [0.1]
     out.append(("length mismatch", m, "1 positions for 2 joints"))
+    m = trajectory(NAMES, good_t, good_p)
+    m.points[0].effort = [1.0]      # joint_trajectory_controller refuses it
+    out.append(("effort length", m, "point 0: 1 effort for 2 joints"))
     m = trajectory(["joint1", "elbow"], good_t, good_p)
     out.append(("unknown joint", m, "elbow"))
     m = trajectory(["joint1"], good_t, [[0.0], [0.1]])

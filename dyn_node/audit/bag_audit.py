@@ -1155,7 +1155,7 @@ def _verdict_entry(entry: dict[str, Any], res: Any) -> dict[str, Any]:
     entry.update(accepted=True, feasible=bool(res.feasible), error_code=None)
     for k in ("level", "message", "failure_label", "time_scale", "payload_margin_kg", "worst_joint",
               "worst_constraint", "worst_ratio", "first_violation_time_s", "n_points", "duration_s",
-              "interpolation", "start_segment", "start_state_age_s"):
+              "interpolation", "binding_joint", "binding_constraint", "start_segment", "start_state_age_s"):
         if k in d:
             entry[k] = d[k]
     entry["failure_label"] = entry.get("failure_label") or None  # "" (feasible) → null

@@ -20,6 +20,13 @@ from dyn_node.audit.accounting import CHECK, RequestTally
 from dyn_node.errors import CheckError, DynNodeError, PLANNING_ERROR, STATE_ERROR, TrajectoryFileError
 from dyn_node.audit.exit_codes import EXIT_UNUSABLE, MEANINGS, exit_code
 from dyn_node.audit.trajectory_files import TrajectoryFile, format_trajectory, parse_trajectory, read_trajectory
+from dyn_node.core.limits_file import MAX_LIMITS_BYTES
+from dyn_node.io.files import FileProblem, read_text
+from dyn_node.io.text import escape
+
+#: Characters of one printed line at most (values inside are capped already; this bounds the
+#: rest, e.g. a path), its unprintable characters escaped.
+LINE_CHARS = 4000
 
 #: ``--retime`` stretches by time_scale × (1 + this): just enough that rounding in the written
 #: times cannot leave the result a hair over a limit, while keeping the retimed motion fast.
@@ -75,9 +82,9 @@ def make_checker(*, robot_model: str = "", robot_description: str = "", limits: 
     overrides: dict[str, str] = {}
     if params_file:
         try:
-            params = parameters_from_yaml(Path(params_file).read_text(encoding="utf-8"))
-        except OSError as exc:
-            raise CheckError(f"{params_file}: cannot be read: {exc}", code="no_params") from None
+            params = parameters_from_yaml(read_text(params_file, max_bytes=MAX_LIMITS_BYTES))
+        except FileProblem as exc:
+            raise CheckError(f"{params_file}: {exc}", code="no_params") from None
         values.update({k: v for k, v in params.items() if k in SPECS})
         overrides["params_file"] = params_file
     if robot_description:
@@ -89,8 +96,8 @@ def make_checker(*, robot_model: str = "", robot_description: str = "", limits: 
         values.update(robot_description="", robot_description_file="", robot_model=robot_model)
         overrides["robot_model"] = robot_model
     if limits:
-        if not Path(limits).is_file():
-            raise CheckError(f"{limits}: limits file does not exist", code="no_limits")
+        if not Path(limits).exists():
+            raise CheckError(f"{escape(limits, 500)}: limits file does not exist", code="no_limits")
         values["limits_file"] = limits
         overrides["limits"] = limits
     try:
@@ -248,7 +255,7 @@ def _entry(v: FileVerdict) -> dict:
     entry.update(accepted=True, feasible=bool(o.result.feasible), error_code=None)
     for k in ("level", "message", "failure_label", "time_scale", "payload_margin_kg", "worst_joint",
               "worst_constraint", "worst_ratio", "first_violation_time_s", "n_points", "duration_s",
-              "interpolation", "violations", "per_joint", "waypoint_effort", "warnings"):
+              "interpolation", "binding_joint", "binding_constraint", "violations", "per_joint", "waypoint_effort", "warnings"):
         entry[k] = d[k]
     add_per_frame(entry, o.result, curves=True, result_dict=d)
     entry["failure_label"] = entry["failure_label"] or None
@@ -357,7 +364,7 @@ def run(args: argparse.Namespace, out: Any = None) -> int:
         v = check_file(checker, path)
         verdicts.append(v)
         # an unreadable file's line is an error message: stderr, like every other error
-        print(verdict_line(v), file=out if v.readable else sys.stderr, flush=True)
+        print(escape(verdict_line(v), LINE_CHARS), file=out if v.readable else sys.stderr, flush=True)
         for row in place_lines(v):
             print(row, file=out)
         if args.out:
@@ -375,10 +382,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return run(args)
     except CheckError as exc:
-        print(f"dyn-check: error: {exc}", file=sys.stderr)
+        print(f"dyn-check: error: {escape(str(exc), LINE_CHARS)}", file=sys.stderr)
         return EXIT_UNUSABLE
     except OSError as exc:  # e.g. --out or --retime not writable
-        print(f"dyn-check: error: {exc}", file=sys.stderr)
+        print(f"dyn-check: error: {escape(str(exc), LINE_CHARS)}", file=sys.stderr)
+        return EXIT_UNUSABLE
+    except (OverflowError, RecursionError, MemoryError) as exc:  # input beyond what was bounded
+        print(f"dyn-check: error: input too large or too deep: {type(exc).__name__}: "
+              f"{escape(str(exc), 200)}", file=sys.stderr)
         return EXIT_UNUSABLE
 
 

@@ -10,6 +10,8 @@ import csv
 import io
 import json
 import math
+import re
+from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -17,6 +19,9 @@ from typing import Any
 import yaml
 
 from dyn_node.errors import TrajectoryFileError
+from dyn_node.io.files import FileProblem, read_text
+from dyn_node.io.safe_load import LoadError, load_json, load_yaml, yaml_line
+from dyn_node.io.text import escape, shown
 
 FORMATS = {".yaml": "yaml", ".yml": "yaml", ".json": "json", ".csv": "csv"}
 
@@ -62,59 +67,33 @@ def read_trajectory(path: str | Path) -> TrajectoryFile:
     """Read one trajectory file (format from its extension); raises :class:`TrajectoryFileError`."""
     fmt = file_format(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TrajectoryFileError(path, None, "", f"cannot be read: {exc}") from None
+        text = read_text(path)
+    except FileProblem as exc:
+        raise TrajectoryFileError(path, None, "", str(exc)) from None
     return parse_trajectory(text, fmt, str(path))
 
 
 def parse_trajectory(text: str, fmt: str, path: str = "<text>") -> TrajectoryFile:
-    if fmt == "csv":
-        return _parse_csv(text, path)
-    return _parse_mapping(text, fmt, path)
+    text = text.removeprefix("\ufeff")    # a byte-order mark is not part of the first field
+    try:
+        if fmt == "csv":
+            return _parse_csv(text, path)
+        return _parse_mapping(text, fmt, path)
+    except RecursionError:
+        raise TrajectoryFileError(path, None, "", "nested too deeply") from None
+
+
+#: Range of builtin_interfaces' int32 ``sec`` (of Time and Duration) and the times it can hold.
+SEC_MIN, SEC_MAX = -(2 ** 31), 2 ** 31 - 1
 
 
 # --- YAML / JSON -------------------------------------------------------------------------------
-class _Lines:
-    """Line numbers (1-based) of the document's nodes by path, from YAML's composer (JSON is
-    read with ``json`` for its values, and located here when YAML can compose it)."""
-
-    def __init__(self, text: str):
-        try:
-            self.root = yaml.compose(text, Loader=yaml.SafeLoader)
-        except yaml.YAMLError:
-            self.root = None
-
-    def line(self, *path: str | int) -> int | None:
-        node, best = self.root, None
-        for key in path:
-            if node is None:
-                break
-            best = node.start_mark.line + 1
-            if isinstance(node, yaml.MappingNode) and isinstance(key, str):
-                node = next((v for k, v in node.value if getattr(k, "value", None) == key), None)
-                if node is None:
-                    return best
-            elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
-                node = node.value[key]
-            else:
-                return best
-        return node.start_mark.line + 1 if node is not None else best
-
-
 def _load(text: str, fmt: str, path: str) -> Any:
-    if fmt == "json":
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise TrajectoryFileError(path, exc.lineno, "", f"not valid JSON: {exc.msg}") from None
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise TrajectoryFileError(path, mark.line + 1 if mark else None, "",
-                                  f"not valid YAML: {problem}") from None
+        return load_json(text) if fmt == "json" else load_yaml(text)
+    except LoadError as exc:
+        raise TrajectoryFileError(path, exc.line, "",
+                                  f"not valid {fmt.upper()}: {exc.problem}") from None
 
 
 def _number(x: Any, fail: Any) -> float:
@@ -122,16 +101,30 @@ def _number(x: Any, fail: Any) -> float:
     if isinstance(x, bool) or not isinstance(x, (int, float)):
         if isinstance(x, str) and x.strip().lower() in ("nan", ".nan", "inf", ".inf", "-inf", "-.inf"):
             return float(x.strip().lower().replace(".", ""))  # parsed: the check rejects it
-        fail(f"not a number ({x!r})")
-    return float(x)
+        fail(f"not a number ({shown(x)})")
+    try:
+        return float(x)
+    except OverflowError:
+        fail(f"too large for a number ({shown(x)})")
+        raise   # not reached: fail raises
+
+
+_FLOAT_ONLY = frozenset({float})
+
+
+def _numbers(seq: list[Any], fail: Any) -> list[float]:
+    # the common case at C speed: every item an int or a float (no bool, no huge int)
+    if set(map(type, seq)) <= _FLOAT_ONLY:
+        return seq
+    return [_number(x, lambda p, j=j: fail(p, j)) for j, x in enumerate(seq)]
 
 
 def _parse_mapping(text: str, fmt: str, path: str) -> TrajectoryFile:
     doc = _load(text, fmt, path)
-    lines = _Lines(text)
 
     def fail(field: str, problem: str, *at: str | int) -> None:
-        raise TrajectoryFileError(path, lines.line(*at), field, problem)
+        # the line is looked up only now, when there is an error to report
+        raise TrajectoryFileError(path, yaml_line(text, *at), field, problem)
 
     if not isinstance(doc, dict):
         fail("", "expected a mapping with joint_names and points (a trajectory_msgs/JointTrajectory)")
@@ -159,16 +152,29 @@ def _parse_mapping(text: str, fmt: str, path: str) -> TrajectoryFile:
                 fail(f"{where}.positions", "missing", "points", i)
             if not isinstance(seq, list):
                 fail(f"{where}.{key}", "must be a list of numbers", "points", i, key)
-            rows[key].append([_number(x, lambda p, j=j: fail(f"{where}.{key}[{j}]", p, "points", i, key, j))
-                              for j, x in enumerate(seq)])
-        if "effort" in pt and not isinstance(pt["effort"], list):
-            fail(f"{where}.effort", "must be a list of numbers", "points", i, "effort")
+            rows[key].append(_numbers(seq, lambda p, j, key=key: fail(
+                f"{where}.{key}[{j}]", p, "points", i, key, j)))
+        _effort(pt, len(names), lambda p, *at: fail(f"{where}.effort", p, "points", i, "effort", *at))
         times.append(_duration(pt.get("time_from_start"),
                                lambda f, p: fail(f"{where}.time_from_start{f}", p, "points", i,
                                                  "time_from_start")))
     vel = rows["velocities"] if any(rows["velocities"]) else None
     acc = rows["accelerations"] if any(rows["accelerations"]) else None
     return TrajectoryFile(path, fmt, list(names), times, rows["positions"], vel, acc, stamp, frame_id)
+
+
+def _effort(pt: dict, n_joints: int, fail: Any) -> None:
+    """joint_trajectory_controller's rule: a point's effort is empty or one value per joint
+    (its values are not used: dyn_node computes the torque)."""
+    if "effort" not in pt:
+        return
+    effort = pt["effort"]
+    if not isinstance(effort, list):
+        fail("must be a list of numbers")
+    if effort and len(effort) != n_joints:
+        fail(f"{len(effort)} values for {n_joints} joints (joint_trajectory_controller refuses an "
+             "effort that is neither empty nor one value per joint)")
+    _numbers(effort, lambda p, j: fail(p, j))
 
 
 def _header(h: Any, fail: Any) -> tuple[tuple[int, int], str]:
@@ -185,23 +191,29 @@ def _header(h: Any, fail: Any) -> tuple[tuple[int, int], str]:
     out = []
     for key in ("sec", "nanosec"):
         v = st.get(key, 0)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0 or (key == "nanosec" and v >= 10**9):
-            fail(f"stamp.{key}", f"must be an integer{' below 1e9' if key == 'nanosec' else ''} "
-                 f"≥ 0 ({v!r})", "stamp", key)
+        top = SEC_MAX if key == "sec" else 10**9 - 1
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= top:
+            fail(f"stamp.{key}", f"must be an integer from 0 to {top} ({shown(v)})", "stamp", key)
         out.append(int(v))
     return (out[0], out[1]), frame_id
 
 
 def _duration(d: Any, fail: Any) -> float:
+    """A builtin_interfaces/Duration {int32 sec, uint32 nanosec < 1e9}, or seconds within its
+    range (rounded to it, as the message would carry them)."""
     if d is None:
         fail("", "missing")
     if isinstance(d, dict):
         sec, nsec = d.get("sec", 0), d.get("nanosec", 0)
-        for key, v in (("sec", sec), ("nanosec", nsec)):
-            if isinstance(v, bool) or not isinstance(v, int):
-                fail(f".{key}", f"must be an integer ({v!r})")
+        for key, v, lo, hi in (("sec", sec, SEC_MIN, SEC_MAX), ("nanosec", nsec, 0, 10**9 - 1)):
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                fail(f".{key}", f"must be an integer from {lo} to {hi} ({shown(v)})")
         return sec + nsec * 1e-9
-    return message_time(_number(d, lambda p: fail("", p + "; expected {sec, nanosec} or seconds")))
+    t = _number(d, lambda p: fail("", p + "; expected {sec, nanosec} or seconds"))
+    if math.isfinite(t) and not SEC_MIN <= t < SEC_MAX + 1:
+        fail("", f"{t:g} s is beyond what a message's time_from_start holds "
+                 f"(int32 seconds: {SEC_MIN} to {SEC_MAX})")
+    return message_time(t)
 
 
 def message_time(t: float) -> float:
@@ -214,6 +226,12 @@ def message_time(t: float) -> float:
 
 
 # --- CSV -----------------------------------------------------------------------------------------
+#: A CSV cell that is a number: ASCII digits only (float() would take '1_000' and other
+#: scripts' digits), or nan / inf.
+_CSV_NUMBER = re.compile(r"[-+]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?|nan|inf|infinity)\Z",
+                         re.ASCII | re.IGNORECASE)
+
+
 def _parse_csv(text: str, path: str) -> TrajectoryFile:
     reader = csv.reader(io.StringIO(text))
     try:
@@ -225,9 +243,9 @@ def _parse_csv(text: str, path: str) -> TrajectoryFile:
     cols = [c.strip() for c in header]
     if "time" not in cols:
         raise TrajectoryFileError(path, 1, "time", "missing column (seconds from the start)")
-    dup = sorted({c for c in cols if cols.count(c) > 1})
+    dup = sorted(c for c, n in Counter(cols).items() if n > 1)
     if dup:
-        raise TrajectoryFileError(path, 1, dup[0], "column appears twice")
+        raise TrajectoryFileError(path, 1, escape(dup[0]), "column appears twice")
     joints = [c for c in cols if c != "time" and not c.endswith((".vel", ".acc"))]
     if not joints:
         raise TrajectoryFileError(path, 1, "", "no joint columns (one column per joint, named as the joint)")
@@ -236,10 +254,12 @@ def _parse_csv(text: str, path: str) -> TrajectoryFile:
         given = [c for c in cols if c.endswith(suffix)]
         for c in given:
             if c[:-len(suffix)] not in joints:
-                raise TrajectoryFileError(path, 1, c, f"no position column '{c[:-len(suffix)]}' for it")
+                raise TrajectoryFileError(path, 1, escape(c),
+                                          f"no position column '{escape(c[:-len(suffix)])}' for it")
         if given and len(given) != len(joints):
-            missing = next(f"{j}{suffix}" for j in joints if f"{j}{suffix}" not in cols)
-            raise TrajectoryFileError(path, 1, missing, f"missing column (the {suffix} columns must "
+            have = set(given)
+            missing = next(f"{j}{suffix}" for j in joints if f"{j}{suffix}" not in have)
+            raise TrajectoryFileError(path, 1, escape(missing), f"missing column (the {suffix} columns must "
                                       "cover every joint or none)")
         extra[suffix] = bool(given)
     idx = {c: i for i, c in enumerate(cols)}
@@ -257,12 +277,16 @@ def _parse_csv(text: str, path: str) -> TrajectoryFile:
 
             def cell(name: str) -> float:
                 raw = row[idx[name]].strip()
-                try:
-                    return float(raw)
-                except ValueError:
-                    raise TrajectoryFileError(path, line, name, f"not a number ({raw!r})") from None
+                if not _CSV_NUMBER.match(raw):
+                    raise TrajectoryFileError(path, line, escape(name), f"not a number ({shown(raw)}) (ASCII "
+                                              "digits, '.', an exponent, nan or inf)")
+                return float(raw)
 
-            times.append(message_time(cell("time")))
+            t = cell("time")
+            if math.isfinite(t) and not SEC_MIN <= t < SEC_MAX + 1:
+                raise TrajectoryFileError(path, line, "time", f"{t:g} s is beyond what a message's "
+                                          f"time_from_start holds (int32 seconds)")
+            times.append(message_time(t))
             P.append([cell(j) for j in joints])
             if extra[".vel"]:
                 V.append([cell(f"{j}.vel") for j in joints])

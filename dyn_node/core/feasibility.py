@@ -27,8 +27,10 @@ from dyn_node.errors import PLANNING_ERROR, TrajectoryError
 from dyn_node.core.limits import LIMIT_KINDS
 from dyn_node.core.model import Payload
 from dyn_node.core.start_segment import REACH as START_REACH, StartSegment
+from dyn_node.core.start_segment import (NO_CURRENT_STATE, START_CHECKED, START_NONE,  # noqa: F401
+                                         StartState, current_state)
 from dyn_node.core.status import ERROR, NAME_PREFIX, OK, WARN, Status
-from dyn_node.core.trajectory import Trajectory, from_current_state, interpolate
+from dyn_node.core.trajectory import Trajectory, from_current_state, interpolate, segment_steps
 from dyn_node.core.units import joint_units
 
 STATUS_NAME = NAME_PREFIX + "trajectory feasibility"
@@ -43,8 +45,8 @@ _KIND_LABEL = {c.kind: c.label for c in KINDS if c.label}
 class FeasibilityOptions:
     """``sample_period`` (s): longest step between samples; ``effort_warn_ratio``: a feasible
     trajectory whose peak ratio to any non-position limit exceeds this is WARN;
-    ``max_samples``: the sample period is raised (with a warning) so that at most about this many
-    samples are used, bounding memory for very long trajectories; ``threads``: OpenMP threads
+    ``max_samples``: at most this many samples; beyond, the longest segments get fewer steps
+    (with a warning), never fewer than MIN_SEGMENT_STEPS each (else rejected as too long); ``threads``: OpenMP threads
     for the batched RNEA passes (None: the Dynamics' own setting, one unless built otherwise;
     with two or more and a task section configured, one of them runs the frame pass instead).
     Every state is computed by the same sequential RNEA whatever the count, so the result does
@@ -101,6 +103,17 @@ class FeasibilityResult:
     start_state_age_s: float = math.nan
     time_scale_start_segment: bool = False
 
+    @property
+    def binding_joint(self) -> str:
+        """The joint or place whose slowdown sets ``time_scale`` ("" when none does); the
+        largest ratio (``worst_joint``) may be elsewhere: velocity needs k = r, acceleration √r."""
+        return self.time_scale_joint
+
+    @property
+    def binding_constraint(self) -> str:
+        """The limit kind that sets ``time_scale`` (beside ``worst_constraint``, the largest ratio)."""
+        return self.time_scale_constraint
+
     def summary_values(self) -> dict[str, Any]:
         return {
             "feasible": self.feasible, "worst_joint": self.worst_joint,
@@ -111,6 +124,7 @@ class FeasibilityResult:
             "interpolation": self.interpolation, "n_samples": self.n_samples,
             "time_scale_joint": self.time_scale_joint,
             "time_scale_constraint": self.time_scale_constraint,
+            "binding_joint": self.binding_joint, "binding_constraint": self.binding_constraint,
             "violations": len(self.violations), "compute_time_s": self.compute_time_s,
             "warnings": "; ".join(self.warnings),
             "start_segment": self.start_segment, "start_state_age_s": self.start_state_age_s,
@@ -187,39 +201,6 @@ class FeasibilityResult:
         }
 
 
-#: ``start_segment`` when the first point is at t = 0 (nothing runs before it)
-START_NONE = "none (first point at t = 0)"
-START_CHECKED = "checked"
-#: why the start segment was not checked, when the node or the audit had no usable state
-NO_CURRENT_STATE = "no current state within stale_timeout"
-
-
-@dataclass(frozen=True)
-class StartState:
-    """The robot's state when a trajectory arrived, in model order: q and q̇ of the last accepted
-    joint_states (q̇ = 0 when it carried no velocity; q̈ = 0 is assumed, as
-    joint_trajectory_controller does), and its age in s."""
-
-    positions: np.ndarray
-    velocities: np.ndarray
-    age_s: float
-
-
-def current_state(last: tuple[int, np.ndarray, np.ndarray] | None, now_ns: int,
-                  stale_timeout: float) -> StartState | None:
-    """The state a trajectory received at ``now_ns`` starts from: ``last`` = (receipt time ns,
-    q, q̇) of the last accepted joint_states, when it is at most ``stale_timeout`` s old (None
-    otherwise: :data:`NO_CURRENT_STATE`). The node passes receipt times, the audit the log times
-    the node recorded with them, so a replay starts from the same state."""
-    if last is None:
-        return None
-    age = (now_ns - last[0]) * 1e-9
-    if not 0.0 <= age <= stale_timeout:
-        return None
-    return StartState(positions=np.asarray(last[1], dtype=float),
-                      velocities=np.asarray(last[2], dtype=float), age_s=age)
-
-
 def rejected_statuses(error: TrajectoryError, hardware_id: str = "", n_points: int = 0,
                       duration_s: float = math.nan) -> list[Status]:
     """ERROR status for a trajectory that could not be checked, with the same keys as a verdict."""
@@ -228,6 +209,7 @@ def rejected_statuses(error: TrajectoryError, hardware_id: str = "", n_points: i
         "first_violation_time_s": math.nan, "time_scale": math.nan,
         "payload_margin_kg": math.nan, "n_points": int(n_points), "duration_s": float(duration_s),
         "failure_label": error.failure_label, "reason": getattr(error, "code", "error"),
+        "binding_joint": "", "binding_constraint": "",
     }
     return [Status(STATUS_NAME, ERROR, f"rejected: {error}", hardware_id, values)]
 
@@ -262,11 +244,10 @@ def _colmax(X: np.ndarray) -> np.ndarray:
 
 
 def _sample(times: np.ndarray, period: float, max_samples: int) -> Samples:
+    """Every segment sampled on its own: uniform steps of at most ``period``, fewer only for the
+    longest segments when the samples would exceed ``max_samples`` (:func:`segment_steps`)."""
     T = np.diff(times)
-    n = np.maximum(1, np.ceil(T / period - 1e-9)).astype(np.int64)
-    if n.sum() + len(T) > max_samples and len(T) < max_samples:
-        period = float(times[-1] - times[0]) / max(1, max_samples - 2 * len(T))
-        n = np.maximum(1, np.ceil(T / period - 1e-9)).astype(np.int64)
+    n = segment_steps(times, period, max_samples)
     counts = n + 1
     first = np.concatenate(([0], np.cumsum(counts)[:-1]))
     last = first + n
@@ -399,6 +380,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
                               motion.smp.period, whole=any(c.reaches_back for c in kinds))
         _search_start(scale, search, feasible=not violations)
     _exact(scale, not violations, warnings)
+    _refuse_nan(per_joint, per_frame, scale)
     margin = math.inf if margin_job is None else margin_job.result()
     verdict = _verdict(per_joint, per_frame, violations, warnings, scale, options,
                        motion.units, start_segment)
@@ -413,6 +395,19 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
         start_segment=start_segment, start_state_age_s=start_age,
         time_scale_start_segment=scale.start_binds, per_frame=per_frame,
         task_curves=_task_curves(kinds, motion.smp.t))
+
+
+def _refuse_nan(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
+                per_frame: Mapping[str, Mapping[str, Mapping[str, Any]]], scale: _Scale) -> None:
+    """A NaN (or negative) ratio or time scale never reaches a verdict: rejected, place named."""
+    for place, kinds in (*per_joint.items(), *per_frame.items()):
+        for kind, e in kinds.items():
+            r, v = e["ratio"], e["value"]
+            if (r is not None and not r >= 0) or (isinstance(v, float) and math.isnan(v)):
+                raise TrajectoryError(f"{place} {kind} could not be evaluated (NaN: check its limits)",
+                                      code="evaluation_failed")
+    if math.isnan(scale.k):
+        raise TrajectoryError(f"time scale of {scale.where} {scale.kind} is NaN", code="evaluation_failed")
 
 
 def _validate(traj: Trajectory, options: FeasibilityOptions) -> None:
@@ -450,9 +445,12 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
     nv = model.nv
     pp = interpolate(work, work.natural_interpolation)
     smp = _sample(work.times, options.sample_period, options.max_samples)
-    if smp.period > options.sample_period * (1 + 1e-9):
-        warnings.append(f"sample period raised from {options.sample_period * 1e3:.3g} ms to "
-                        f"{smp.period * 1e3:.3g} ms to bound memory")
+    coarse = smp.h[smp.last] > options.sample_period * (1 + 1e-9)
+    if np.any(coarse):
+        steps = np.diff(smp.first, append=len(smp.t)) - 1
+        warnings.append(f"{int(coarse.sum())} long segment(s) sampled with "
+                        f"{int(steps[coarse].min())} steps (up to {smp.h.max() * 1e3:.3g} ms) "
+                        f"instead of {options.sample_period * 1e3:.3g} ms, to bound memory")
     applicable = [cls for cls in KINDS if cls.applies(model)]
     n_derivatives = 1 + max((cls.order for cls in applicable), default=2)
     Q, V, A, *rest = _evaluate(pp.coeffs, pp.breaks, smp, max(3, n_derivatives))
@@ -669,6 +667,8 @@ def _infeasible_message(violations: list[Violation], warnings: list[str], scale:
                 "state feasible")
     else:
         tail = f"; run {_fmt_factor(scale.k)}× slower"
+        if scale.kind:
+            tail += f": {_kind_text(scale.kind)} of {scale.where} binds"
         if scale.start_binds:
             tail += " (the segment from the current state binds)"
     message = head + tail

@@ -20,9 +20,10 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import yaml
 
 from dyn_node.errors import ModelError
+from dyn_node.io.safe_load import LoadError, load_yaml
+from dyn_node.io.text import escape, name_list, shown
 from dyn_node.core.limits_file import read_limits_file
 from dyn_node.core.task_limits import check_top_level_keys, did_you_mean, locate_limits
 
@@ -200,9 +201,9 @@ def read_limits_source(source: "str | Path | Mapping[str, Any] | LimitsText") ->
         if "\n" not in text and (p.suffix in (".yaml", ".yml") or p.exists()):
             where, text = str(p), read_limits_file(p)
     try:
-        return yaml.safe_load(text), where
-    except yaml.YAMLError as exc:
-        raise ModelError(f"{where}: not valid YAML: {exc}", code="limits_bad_yaml") from exc
+        return load_yaml(text), where
+    except LoadError as exc:
+        raise ModelError(f"{where}: not valid YAML: {exc}", code="limits_bad_yaml") from None
 
 
 def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[str, Any]]:
@@ -216,48 +217,92 @@ def load_limits_yaml(source: str | Path | Mapping[str, Any]) -> dict[str, dict[s
 
 
 def parse_joint_limits(data: Any, where: str) -> dict[str, dict[str, Any]]:
-    """:func:`load_limits_yaml` of a parsed limits file reported as ``where``."""
+    """:func:`load_limits_yaml` of a parsed limits file reported as ``where``: every unknown key
+    and bad value of the file in one :class:`ModelError` (the first one's code)."""
     mapping, where, node_parameters = locate_limits(data, source=where)
     if not isinstance(mapping.get("joint_limits"), Mapping):
         raise ModelError(f"{where}: expected a top-level 'joint_limits:' mapping of joint names",
                          code="limits_no_joint_limits")
     check_top_level_keys(mapping, source=where, node_parameters=node_parameters)
     out: dict[str, dict[str, Any]] = {}
+    problems: list[ModelError] = []
     for joint, entries in mapping["joint_limits"].items():
+        joint = str(joint)
         if not isinstance(entries, Mapping):
-            raise ModelError(f"{where}: joint_limits.{joint} must be a mapping of limit keys",
-                             code="limits_bad_entry")
+            problems.append(ModelError(f"joint_limits.{escape(joint)} must be a mapping of limit "
+                                       "keys", code="limits_bad_entry"))
+            continue
         clean: dict[str, Any] = {}
         for key, value in entries.items():
             if key not in LIMITS_YAML_KEYS:
                 hint = did_you_mean(str(key), LIMITS_YAML_KEYS)
-                raise ModelError(f"{where}: joint_limits.{joint}: unknown key '{key}'{hint}",
-                                 code="limits_unknown_key")
-            clean[key] = _coerce(where, joint, key, value)
-        out[str(joint)] = clean
+                problems.append(ModelError(f"joint_limits.{escape(joint)}: unknown key "
+                                           f"'{escape(str(key))}'{hint}", code="limits_unknown_key"))
+                continue
+            try:
+                clean[key] = _coerce(escape(joint), key, value)
+            except ModelError as exc:
+                problems.append(exc)
+        out[joint] = clean
+    raise_all(problems, where)
     return out
 
 
-def _coerce(where: str, joint: str, key: str, value: Any) -> Any:
+#: Problems of one file listed in its error at most (the rest counted).
+PROBLEMS_SHOWN = 20
+
+
+def raise_all(problems: Sequence[ModelError], where: str) -> None:
+    """One :class:`ModelError` for every problem found in a file (``where``), with the first
+    one's code; nothing when there is none."""
+    if not problems:
+        return
+    if len(problems) == 1:
+        raise ModelError(f"{where}: {problems[0]}", code=problems[0].code)
+    listed = "; ".join(str(p) for p in problems[:PROBLEMS_SHOWN])
+    more = f"; … and {len(problems) - PROBLEMS_SHOWN} more" if len(problems) > PROBLEMS_SHOWN else ""
+    raise ModelError(f"{where}: {len(problems)} problems: {listed}{more}", code=problems[0].code)
+
+
+#: Keys whose value must be > 0 and finite (``rms_window``: a window of 0 or ∞ s has no RMS),
+#: and ≥ 0 and finite (``armature``: a negative rotor inertia makes M(q) indefinite).
+_POSITIVE_KEYS = frozenset({"rms_window"})
+_NON_NEGATIVE_KEYS = frozenset({"armature"})
+
+
+def _coerce(joint: str, key: str, value: Any) -> Any:
     want = LIMITS_YAML_KEYS[key]
-    bad = ModelError(f"{where}: joint_limits.{joint}.{key} must be {want.__name__}, got {value!r}",
+    bad = ModelError(f"joint_limits.{joint}.{key} must be {want.__name__}, got {shown(value)}",
                      code="limits_wrong_type")
     if want is bool:
         if not isinstance(value, bool):
             raise bad
         return value
     if want is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise bad
-        return float(value)
+        try:
+            x = float(value)
+        except OverflowError:
+            raise ModelError(f"joint_limits.{joint}.{key} is too large for a number "
+                             f"({shown(value)})", code="limits_bad_value") from None
+        if math.isnan(x):
+            raise bad
+        if key in _POSITIVE_KEYS and not (0 < x < math.inf):
+            raise ModelError(f"joint_limits.{joint}.{key} must be a finite number > 0 s, got "
+                             f"{shown(value)}", code="limits_bad_value")
+        if key in _NON_NEGATIVE_KEYS and not (0 <= x < math.inf):
+            raise ModelError(f"joint_limits.{joint}.{key} must be a finite number ≥ 0, got "
+                             f"{shown(value)}", code="limits_bad_value")
+        return x
     # effort_speed_curve: [[speed, effort], ...] with ascending speeds
     try:
         curve = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         curve = np.empty((0, 0))  # reported as a bad curve below, with the expected shape
     if (curve.ndim != 2 or curve.shape[1] != 2 or len(curve) < 1 or not np.all(np.isfinite(curve))
             or np.any(curve < 0) or np.any(np.diff(curve[:, 0]) <= 0)):
-        raise ModelError(f"{where}: joint_limits.{joint}.effort_speed_curve must be a list of "
+        raise ModelError(f"joint_limits.{joint}.effort_speed_curve must be a list of "
                          "[speed rad/s, effort N·m] pairs, non-negative, speeds strictly ascending",
                          code="limits_bad_curve")
     return curve
@@ -288,7 +333,7 @@ def merge_limits(base: JointLimits, overrides: Mapping[str, Mapping[str, Any]],
     unknown = sorted(set(overrides) - set(idx))
     if unknown:
         raise ModelError(f"{where}: joint_limits names joints the model does not have: "
-                         f"{', '.join(unknown)} (model joints: {', '.join(base.names)})",
+                         f"{name_list(unknown)} (model joints: {name_list(base.names)})",
                          code="limits_unknown_joint")
     arrays = {k: getattr(base, k).copy() for k in (
         "position_lower", "position_upper", "soft_lower", "soft_upper", "continuous", "velocity",
@@ -351,9 +396,9 @@ def check_limits(limits: JointLimits, gravity_load: np.ndarray | None = None) ->
             out.append(f"{n}: soft lower limit {limits.soft_lower[i]:g} > soft upper "
                        f"{limits.soft_upper[i]:g}")
         for kind in ("velocity", "acceleration", "deceleration", "jerk", "effort", "effort_rate",
-                     "rms_effort", "power", "rms_window"):
+                     "rms_effort", "power"):
             value = getattr(limits, kind)[i]
-            if value == 0 and kind != "rms_window":
+            if value == 0:
                 # only a YAML max_X can be 0 here (a URDF 0 is "not given"); it is applied as set
                 off = f" or set has_{kind}_limits: false" if kind in _FLAGGED_KINDS else ""
                 out.append(f"{n}: {kind} limit 0 is not positive: applied as a real limit (any "
@@ -361,8 +406,6 @@ def check_limits(limits: JointLimits, gravity_load: np.ndarray | None = None) ->
                            f"the key{off}")
             elif value <= 0:
                 out.append(f"{n}: {kind} limit {value:g} is not positive")
-        if limits.armature[i] < 0:
-            out.append(f"{n}: armature {limits.armature[i]:g} kg·m² is negative")
         if gravity_load is not None and gravity_load[i] > 1e-2 and math.isfinite(limits.effort[i]):
             ratio = limits.effort[i] / gravity_load[i]
             if ratio > 1000:

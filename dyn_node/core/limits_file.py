@@ -7,16 +7,24 @@ import hashlib
 from pathlib import Path
 
 from dyn_node.errors import ModelError
+from dyn_node.io.files import FileProblem, read_bytes
+
+#: Largest limits file read (bytes): real ones are a few kB.
+MAX_LIMITS_BYTES = 16 * 1024 * 1024
 
 
 def read_limits_file(path: str | Path) -> str:
     """The limits file's text: its bytes decoded as UTF-8, newlines untouched. Raises
     ModelError (``limits_file_missing``, or ``limits_bad_yaml`` for bytes that are not UTF-8)."""
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise ModelError(f"limits file {p} does not exist", code="limits_file_missing")
     try:
-        return p.read_bytes().decode("utf-8")
+        data = read_bytes(p, max_bytes=MAX_LIMITS_BYTES)
+    except FileProblem as exc:
+        raise ModelError(f"limits file {p} {exc}", code="limits_file_missing") from None
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ModelError(f"{p}: not UTF-8 text: {exc}", code="limits_bad_yaml") from exc
 

@@ -252,8 +252,8 @@ class RobotModel:
     def with_limits(self, limits_yaml: str | Path | Mapping[str, Any] | None) -> "RobotModel":
         """Same robot with URDF limits merged with ``limits_yaml`` (None: URDF limits only)."""
         parsed = None if limits_yaml is None else read_limits_source(limits_yaml)
-        limits = _build_limits(ET.fromstring(self.urdf), self.joint_names, parsed, self.base_model)
-        task = _task_limits(parsed, self.base_model, self.gravity)
+        limits, task = _limits_and_task(ET.fromstring(self.urdf), self.joint_names, parsed,
+                                        self.base_model, self.gravity)
         return replace(self, limits=limits, task_limits=task,
                        pin_model=_apply(self.base_model, self.payload, self.gravity, limits))
 
@@ -419,6 +419,24 @@ def _build_limits(root: ET.Element, joint_names: Sequence[str],
     return replace(limits, warnings=limits.warnings + check_limits(limits, _gravity_load(m, limits)))
 
 
+def _limits_and_task(root: ET.Element, joint_names: Sequence[str], parsed: tuple[Any, str] | None,
+                     model: pin.Model, gravity: np.ndarray) -> tuple[JointLimits, TaskLimits]:
+    """:func:`_build_limits` and :func:`_task_limits`; the problems of both in one error."""
+    out, problems = [], []
+    for build in (lambda: _build_limits(root, joint_names, parsed, model),
+                  lambda: _task_limits(parsed, model, gravity)):
+        try:
+            out.append(build())
+        except ModelError as exc:
+            if all(str(exc) != str(p) for p in problems):   # a top-level key both refuse
+                problems.append(exc)
+    if len(problems) > 1:
+        raise ModelError("; ".join(map(str, problems)), code=problems[0].code)
+    if problems:
+        raise problems[0]
+    return out[0], out[1]
+
+
 def _task_limits(parsed: tuple[Any, str] | None, model: pin.Model, gravity: np.ndarray) -> TaskLimits:
     """The task sections of the parsed limits file (frames: the model's), tipping's gravity
     checked. A file without any keeps loading as before: node parameters may stand beside
@@ -491,12 +509,12 @@ def load_model(*, urdf: str | None = None, urdf_file: str | Path | None = None,
     names = tuple(base.names[i] for i in range(1, base.njoints))
     g = _gravity_vector(gravity)
     parsed = None if limits_yaml is None else read_limits_source(limits_yaml)
-    limits = _build_limits(root, names, parsed, base)
+    limits, task = _limits_and_task(root, names, parsed, base, g)
     model = RobotModel(
         name=root.get("name") or "robot", urdf=text, source=src, urdf_hash=urdf_hash(text),
         joint_names=names, locked_joints=dict(locks), limits=limits, payload=Payload(), gravity=g,
         pin_model=base, base_model=base, urdf_warnings=(),
-        _index={n: i for i, n in enumerate(names)}, task_limits=_task_limits(parsed, base, g))
+        _index={n: i for i, n in enumerate(names)}, task_limits=task)
     payload = _validate_payload(payload, base, model.last_link)
     return model.with_payload(payload)
 

@@ -16,6 +16,39 @@ import numpy as np
 from dyn_node.errors import TrajectoryError
 from dyn_node.core.trajectory import Trajectory
 
+#: ``start_segment`` when the first point is at t = 0 (nothing runs before it)
+START_NONE = "none (first point at t = 0)"
+START_CHECKED = "checked"
+#: why the start segment was not checked, when the node or the audit had no usable state
+NO_CURRENT_STATE = "no current state within stale_timeout"
+
+
+@dataclass(frozen=True)
+class StartState:
+    """The robot's state when a trajectory arrived, in model order: q and q̇ of the last accepted
+    joint_states (q̇ = 0 when it carried no velocity; q̈ = 0 is assumed, as
+    joint_trajectory_controller does), and its age in s."""
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    age_s: float
+
+
+def current_state(last: tuple[int, np.ndarray, np.ndarray] | None, now_ns: int,
+                  stale_timeout: float) -> StartState | None:
+    """The state a trajectory received at ``now_ns`` starts from: ``last`` = (receipt time ns,
+    q, q̇) of the last accepted joint_states, when it is at most ``stale_timeout`` s old (None
+    otherwise: :data:`NO_CURRENT_STATE`). The node passes receipt times, the audit the log times
+    the node recorded with them, so a replay starts from the same state."""
+    if last is None:
+        return None
+    age = (now_ns - last[0]) * 1e-9
+    if not 0.0 <= age <= stale_timeout:
+        return None
+    return StartState(positions=np.asarray(last[1], dtype=float),
+                      velocities=np.asarray(last[2], dtype=float), age_s=age)
+
+
 #: The search: the walk's step factor from the given timing, the relative bracket width the
 #: bisection stops at, the smallest k walked down to, and how far above the first k tried the
 #: walk up looks before answering "no slowdown helps".

@@ -18,6 +18,7 @@ import numpy as np
 
 from dyn_node.errors import ModelError
 from dyn_node.core.force_laws import SupportPolygon
+from dyn_node.io.text import escape, name_list, shown
 
 JOINT_LIMITS_KEY = "joint_limits"
 TASK_SECTIONS = ("frame_limits", "robot_limits", "task_wrench", "base_limits", "grasp")
@@ -36,12 +37,14 @@ GRASP_KEYS = ("frame", "normal_axis", "friction_coefficient", "grip_force", "fac
 
 #: Horizontal share of |g| above which gravity is not "along −z" for tipping.
 VERTICAL_GRAVITY_TOLERANCE = 1e-9
+#: Largest base_mass (kg): its weight and moments stay far from overflow.
+MAX_BASE_MASS_KG = 1e9
 
 
 def did_you_mean(name: str, candidates: Iterable[str]) -> str:
     """`` (did you mean 'x'?)`` for the closest candidate, or ``""``: for unknown-key errors."""
-    close = difflib.get_close_matches(str(name), sorted(candidates), n=1)
-    return f" (did you mean '{close[0]}'?)" if close else ""
+    close = difflib.get_close_matches(str(name)[:200], sorted(candidates), n=1)
+    return f" (did you mean '{escape(close[0])}'?)" if close else ""
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -201,7 +204,7 @@ def limits_mapping(data: Any, *, source: str) -> tuple[Mapping[str, Any], str]:
 # --- values --------------------------------------------------------------------------------------
 
 def _bad(where: str, what: str, value: Any, code: str = "limits_wrong_type") -> ModelError:
-    return ModelError(f"{where} must be {what}, got {value!r}", code=code)
+    return ModelError(f"{where} must be {what}, got {shown(value)}", code=code)
 
 
 def _number(value: Any, where: str, *, minimum: float, strict: bool) -> float:
@@ -209,10 +212,18 @@ def _number(value: Any, where: str, *, minimum: float, strict: bool) -> float:
     what = f"a finite number {'>' if strict else '≥'} {minimum:g}"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _bad(where, what, value)
-    x = float(value)
+    x = _float(value)
     if not math.isfinite(x) or x < minimum or (strict and x == minimum):
         raise _bad(where, what, value, code="limits_bad_value")
     return x
+
+
+def _float(x: int | float) -> float:
+    """float(x), an integer too large for a float as inf (refused as not finite)."""
+    try:
+        return float(x)
+    except OverflowError:
+        return math.inf
 
 
 def _limit(value: Any, where: str) -> float:
@@ -224,7 +235,7 @@ def _vector(value: Any, where: str, *, nonzero: bool = False) -> np.ndarray:
     if (not isinstance(value, (list, tuple)) or len(value) != 3
             or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in value)):
         raise _bad(where, "a list of 3 numbers", value)
-    v = np.array(value, dtype=float)
+    v = np.array([_float(x) for x in value], dtype=float)
     if not np.all(np.isfinite(v)):
         raise _bad(where, "3 finite numbers", value, code="limits_bad_value")
     if nonzero and not np.any(v):
@@ -232,14 +243,26 @@ def _vector(value: Any, where: str, *, nonzero: bool = False) -> np.ndarray:
     return _frozen(v)
 
 
+def _unit(value: Any, where: str) -> np.ndarray:
+    """A nonzero 3-vector scaled to length 1; scaled by its largest component first, so that
+    neither tiny (1e-320) nor huge (1e308) components under- or overflow the norm."""
+    v = _vector(value, where, nonzero=True)
+    w = v / np.max(np.abs(v))
+    u = w / np.linalg.norm(w)
+    if not (np.all(np.isfinite(u)) and abs(float(np.linalg.norm(u)) - 1.0) < 1e-12):
+        raise _bad(where, "a direction (a vector that normalises to length 1)", value,
+                   code="limits_bad_value")
+    return _frozen(u)
+
+
 def _frame(name: Any, frames: Sequence[str], where: str) -> str:
     if not isinstance(name, str) or not name:
         raise _bad(where, "a link name", name)
     if name not in frames:
-        close = difflib.get_close_matches(name, list(frames), n=3)
-        listed = (f"close: {', '.join(close)}" if close
-                  else f"links: {', '.join(frames)}")
-        raise ModelError(f"{where}: frame '{name}' is not a link of the URDF ({listed})",
+        close = difflib.get_close_matches(name[:200], list(frames), n=3)
+        listed = (f"close: {name_list(close)}" if close
+                  else f"links: {name_list(frames)}")
+        raise ModelError(f"{where}: frame '{escape(name)}' is not a link of the URDF ({listed})",
                          code="limits_unknown_frame")
     return name
 
@@ -248,10 +271,11 @@ def _entries(value: Any, keys: Sequence[str], where: str, *,
              required: Sequence[str] = ()) -> Mapping[str, Any]:
     if not isinstance(value, Mapping):
         raise _bad(where, f"a mapping of {', '.join(keys)}", value, code="limits_bad_entry")
-    for key in value:
-        if key not in keys:
-            raise ModelError(f"{where}: unknown key '{key}'{did_you_mean(key, keys)}",
-                             code="limits_unknown_key")
+    unknown = [f"'{escape(str(key))}'{did_you_mean(str(key), keys)}"
+               for key in value if key not in keys]
+    if unknown:
+        raise ModelError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} "
+                         f"{', '.join(unknown[:20])}", code="limits_unknown_key")
     missing = [k for k in required if k not in value]
     if missing:
         raise ModelError(f"{where}: missing {', '.join(missing)}", code="limits_missing_key")
@@ -310,7 +334,7 @@ def support_polygon(value: Any, where: str) -> SupportPolygon:
                    or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in p)
                    for p in value)):
         raise _bad(where, what, value, code="limits_bad_polygon")
-    v = np.array(value, dtype=float)
+    v = np.array([[_float(x) for x in p] for p in value], dtype=float)
     if not np.all(np.isfinite(v)):
         raise _bad(where, "finite points", value, code="limits_bad_polygon")
     e = np.roll(v, -1, axis=0) - v
@@ -345,6 +369,9 @@ def _base_limits(value: Any, where: str) -> BaseLimits:
         raise ModelError(f"{where}: base_mass and base_com are used only for tipping; give "
                          "support_polygon too (or remove them)", code="limits_missing_key")
     mass = _number(e.get("base_mass", 0.0), f"{where}.base_mass", minimum=0.0, strict=False)
+    if mass > MAX_BASE_MASS_KG:
+        raise _bad(f"{where}.base_mass", f"at most {MAX_BASE_MASS_KG:g} kg", mass,
+                   code="limits_bad_value")
     if mass > 0 and "base_com" not in e:
         raise ModelError(f"{where}: base_mass {mass:g} kg needs base_com (its centre of mass in "
                          "the root frame, m)", code="limits_missing_key")
@@ -364,15 +391,18 @@ def _grasp(value: Any, frames: Sequence[str], where: str) -> GraspLimits:
     faces = e["faces"]
     if isinstance(faces, bool) or not isinstance(faces, int) or faces < 1:
         raise _bad(f"{where}.faces", "a whole number ≥ 1", faces)
-    axis = _vector(e["normal_axis"], f"{where}.normal_axis", nonzero=True)
-    return GraspLimits(
-        frame=_frame(e["frame"], frames, f"{where}.frame"),
-        normal_axis=_frozen(axis / np.linalg.norm(axis)),
-        # μ = 0 is a frictionless grip: only a purely normal force is held
-        friction_coefficient=_number(e["friction_coefficient"], f"{where}.friction_coefficient",
-                                     minimum=0.0, strict=False),
-        grip_force=_limit(e["grip_force"], f"{where}.grip_force"),
-        faces=faces)
+    # μ = 0 is a frictionless grip: only a purely normal force is held
+    mu = _number(e["friction_coefficient"], f"{where}.friction_coefficient", minimum=0.0,
+                 strict=False)
+    grip = _limit(e["grip_force"], f"{where}.grip_force")
+    # the cone's radius μ·grip·faces, and its square in the slip law, must stay finite
+    if not math.isfinite((mu * grip * faces) ** 2):
+        raise ModelError(f"{where}.friction_coefficient: {mu:g} × grip_force {grip:g} N × faces "
+                         f"{faces} is too large (the friction force overflows)",
+                         code="limits_bad_value")
+    return GraspLimits(frame=_frame(e["frame"], frames, f"{where}.frame"),
+                       normal_axis=_unit(e["normal_axis"], f"{where}.normal_axis"),
+                       friction_coefficient=mu, grip_force=grip, faces=faces)
 
 
 def parse_task_limits(mapping: Any, *, frames: Sequence[str], source: str) -> TaskLimits:
@@ -381,17 +411,23 @@ def parse_task_limits(mapping: Any, *, frames: Sequence[str], source: str) -> Ta
     left to :mod:`dyn_node.core.limits`; unknown top-level keys are errors."""
     data, where = limits_mapping(mapping, source=source)
     frames = tuple(frames)
+    parsers = {"frame_limits": lambda v, at: _frame_limits(v, frames, at),
+               "robot_limits": _robot_limits,
+               "task_wrench": lambda v, at: _task_wrench(v, frames, at),
+               "base_limits": _base_limits, "grasp": lambda v, at: _grasp(v, frames, at)}
     kw: dict[str, Any] = {}
-    if "frame_limits" in data:
-        kw["frame_limits"] = _frame_limits(data["frame_limits"], frames, f"{where}: frame_limits")
-    if "robot_limits" in data:
-        kw["robot_limits"] = _robot_limits(data["robot_limits"], f"{where}: robot_limits")
-    if "task_wrench" in data:
-        kw["task_wrench"] = _task_wrench(data["task_wrench"], frames, f"{where}: task_wrench")
-    if "base_limits" in data:
-        kw["base_limits"] = _base_limits(data["base_limits"], f"{where}: base_limits")
-    if "grasp" in data:
-        kw["grasp"] = _grasp(data["grasp"], frames, f"{where}: grasp")
+    problems: list[ModelError] = []
+    for section, parse in parsers.items():
+        if section in data:
+            try:
+                kw[section] = parse(data[section], f"{where}: {section}")
+            except ModelError as exc:   # every section's first problem, in one error
+                problems.append(exc)
+    if len(problems) > 1:
+        raise ModelError(f"{len(problems)} problems: " + "; ".join(map(str, problems)),
+                         code=problems[0].code)
+    if problems:
+        raise problems[0]
     unused = tuple(sorted(k for k in data if k in UNUSED_TOP_LEVEL_KEYS))
     return TaskLimits(source=where, unused_keys=unused, **kw)
 

@@ -12,12 +12,15 @@ Times are seconds from the trajectory's start (time_from_start); arrays are in m
 """
 from __future__ import annotations
 
+import difflib
+from collections import Counter
 from dataclasses import dataclass
 from typing import Literal, Sequence
 
 import numpy as np
 
 from dyn_node.errors import TrajectoryError
+from dyn_node.io.text import escape, name_list
 
 Interpolation = Literal["quintic", "cubic", "spline", "linear"]
 
@@ -66,27 +69,46 @@ def check_joint_names(model_joints: Sequence[str], names: Sequence[str], *,
     if not names:
         raise TrajectoryError(f"{what} has no joint names", code="empty_names")
     if len(set(names)) != len(names):
-        dups = sorted({n for n in names if names.count(n) > 1})
-        raise TrajectoryError(f"duplicate joint names: {', '.join(dups)}", code="duplicate_names")
-    unknown = [n for n in names if n not in model_joints and n not in ignored_joints]
+        dups = sorted(n for n, c in Counter(names).items() if c > 1)
+        raise TrajectoryError(f"duplicate joint names: {name_list(dups)}", code="duplicate_names")
+    known = set(model_joints) | set(ignored_joints)
+    unknown = [n for n in names if n not in known]
+    given = set(names)
+    missing = [n for n in model_joints if n not in given]
     if unknown:
-        raise TrajectoryError(f"joints not in the model: {', '.join(unknown)}", code="unknown_joints")
-    missing = [n for n in model_joints if n not in names]
+        raise TrajectoryError(f"joints not in the model: {name_list(unknown)}"
+                              + _missing_and_close(unknown, missing, what), code="unknown_joints")
     if missing:
-        raise TrajectoryError(f"model joints missing from the {what}: {', '.join(missing)}",
+        raise TrajectoryError(f"model joints missing from the {what}: {name_list(missing)}",
                               code="missing_joints")
     return names
+
+
+def _missing_and_close(unknown: Sequence[str], missing: Sequence[str], what: str) -> str:
+    """``; model joints missing from the <what>: …`` and, for the first few unknown names, the
+    closest missing joint (as the limits parser suggests a key)."""
+    if not missing:
+        return ""
+    hints = []
+    for n in unknown[:5]:
+        close = difflib.get_close_matches(str(n)[:200], missing, n=1, cutoff=0.6)
+        if close:
+            hints.append(f"'{escape(str(n))}' → '{escape(close[0])}'")
+    return (f"; model joints missing from the {what}: {name_list(missing)}"
+            + (f" (did you mean {', '.join(hints)}?)" if hints else ""))
 
 
 def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
                         times: Sequence[float], positions: Sequence[Sequence[float]],
                         velocities: Sequence[Sequence[float]] | None = None,
                         accelerations: Sequence[Sequence[float]] | None = None,
-                        min_points: int = 2, ignored_joints: Sequence[str] = ()) -> Trajectory:
+                        min_points: int = 2, ignored_joints: Sequence[str] = (),
+                        efforts: Sequence[Sequence[float]] | None = None) -> Trajectory:
     """Check a trajectory as joint_trajectory_controller does, plus dyn_node's own rules.
 
     ``velocities``/``accelerations`` are per-point sequences, each empty or one value per name,
-    consistently across points. Names in ``ignored_joints`` (the model's locked joints) may appear
+    consistently across points; ``efforts`` (not used: dyn_node computes the torque) each empty or
+    one per name, as the controller requires. Names in ``ignored_joints`` (the model's locked joints) may appear
     and their values are dropped, as for joint_states. Raises :class:`TrajectoryError` naming the
     first problem found.
     """
@@ -101,6 +123,11 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
         raise TrajectoryError(f"{len(positions)} position rows for {n_pts} times", code="length_mismatch")
     nj = len(names)
     order = np.array([names.index(n) for n in model_joints])
+    for i, r in enumerate(() if efforts is None else efforts):
+        if len(r) and len(r) != nj:
+            raise TrajectoryError(f"point {i}: {len(r)} effort for {nj} joints (joint_trajectory_"
+                                  "controller refuses an effort neither empty nor one per joint)",
+                                  code="length_mismatch")
 
     def matrix(rows: Sequence[Sequence[float]] | None, field: str, required: bool) -> np.ndarray | None:
         if rows is None:
@@ -267,3 +294,42 @@ def from_current_state(traj: Trajectory, positions: np.ndarray, velocities: np.n
     acc = None if traj.accelerations is None else np.vstack([np.zeros_like(q0), traj.accelerations])
     return Trajectory(times=np.concatenate(([0.0], t)), positions=np.vstack([q0, traj.positions]),
                       velocities=np.vstack([v0, vel]), accelerations=acc)
+
+
+#: When the sample budget makes segments coarser, each keeps at least the fewer of
+#: MIN_SEGMENT_STEPS steps (a segment is one polynomial, derivatives of degree ≤ 4, whose peaks
+#: that many uniform steps resolve) and steps of MAX_STEP_GROWTH × the sample period; a
+#: trajectory that cannot give every segment that much is refused as too long to check.
+MIN_SEGMENT_STEPS = 32
+MAX_STEP_GROWTH = 4.0
+
+
+def segment_steps(times: np.ndarray, period: float, max_samples: int) -> np.ndarray:
+    """Steps per segment: ⌈T/period⌉ each (at least 1); when the samples (steps + 1 per segment)
+    would exceed ``max_samples``, the longest segments give up steps first: all are capped at
+    the largest count that fits, none below its floor (see :data:`MIN_SEGMENT_STEPS`), so a
+    short segment keeps its resolution however long the rest is. Raises
+    :class:`TrajectoryError` (``too_long``) when the floors alone do not fit."""
+    T = np.diff(times)
+    with np.errstate(over="ignore", invalid="ignore"):
+        want = np.maximum(1.0, np.ceil(T / period - 1e-9))
+        floor = np.minimum(want, np.minimum(float(MIN_SEGMENT_STEPS),
+                                            np.maximum(1.0, np.ceil(T / (MAX_STEP_GROWTH * period)))))
+    budget = max_samples - len(T)
+    if want.sum() <= budget:
+        return want.astype(np.int64)
+    if floor.sum() > budget:
+        raise TrajectoryError(
+            f"trajectory too long to check: {len(T)} segments over {float(times[-1] - times[0]):.6g} s "
+            f"need {want.sum():.3g} samples at {period * 1e3:.3g} ms, and the bound of {max_samples} "
+            f"samples cannot give each segment {MIN_SEGMENT_STEPS} steps or steps of "
+            f"{MAX_STEP_GROWTH:g}× that period (raise max_samples or split the trajectory)",
+            code="too_long")
+    lo, hi = 1, int(min(want.max(), budget))     # the largest cap c whose counts fit
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if np.maximum(floor, np.minimum(want, mid)).sum() <= budget:
+            lo = mid
+        else:
+            hi = mid - 1
+    return np.maximum(floor, np.minimum(want, lo)).astype(np.int64)

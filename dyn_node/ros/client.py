@@ -164,7 +164,8 @@ class Verdict:
             payload_margin_kg=_float(vals.get("payload_margin_kg")),
             n_points=int(_float(vals.get("n_points"), 0.0)), duration_s=_float(vals.get("duration_s")),
             stamp_ns=int(st.sec) * 1_000_000_000 + int(st.nanosec), frame_id=msg.header.frame_id,
-            values=vals)
+            values=vals, binding_joint=vals.get("binding_joint", ""),
+            binding_constraint=vals.get("binding_constraint", ""))
 
 
 def _float(text: str | None, default: float = math.nan) -> float:

@@ -772,18 +772,20 @@ class DynNode(Node):
         raw: RawTrajectory | None = None
         try:
             raw = parse_joint_trajectory_cdr(data)
-            names, times, (P, V, A, _) = raw.names, raw.times, raw.fields
+            names, times, (P, V, A, E) = raw.names, raw.times, raw.fields
             stamp, frame_id = raw.stamp, raw.frame_id.decode(errors="replace")
         except (ValueError, IndexError, struct.error, UnicodeDecodeError):
             msg = deserialize_message(data, JointTrajectory)  # big-endian or unexpected: rclpy's way
             names, times, P, V, A = trajectory_arrays(msg)
+            E = [p.effort for p in msg.points]
             stamp, frame_id = msg.header.stamp, msg.header.frame_id
         stamp_s = stamp_to_s(stamp)
         start = stamp_s if stamp_s != 0.0 else receipt_s
         error: TrajectoryError | None = None
         traj = None
         try:
-            traj = validate_trajectory(model.joint_names, names, times, P, V, A, min_points=1)
+            traj = validate_trajectory(model.joint_names, names, times, P, V, A, min_points=1,
+                                       efforts=E)
             current = self._core
             if (request == on_demand.REQUEST_EXECUTE and current is not None
                     and current.model.joint_names == model.joint_names):
