@@ -34,6 +34,8 @@ class RetimeResult:
     rounds: int = 0
     smoothing_s: float = 0.0
     path_deviation: float = math.nan
+    #: the input as the check saw it (None for untimed waypoints), for plots beside the output
+    source: Trajectory | None = None
 
     @property
     def gap(self) -> float:

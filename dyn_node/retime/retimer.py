@@ -28,6 +28,8 @@ from dyn_node.retime.result import RetimeResult
 
 #: third-order kinds: their violations widen the smoothing window first
 _RAMP_KINDS = ("jerk", "effort_rate")
+#: the least half-width (grid cells) of a local cap
+_CAP_CELLS = 8
 #: the uniform fallback's factor over the check's time scale (its feasible side)
 _UNIFORM_PAD = 1.001
 
@@ -75,14 +77,20 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     first = check_trajectory(dynamics, nominal, feasibility, start=start)
     k = first.time_scale
     uniform_T = nominal.duration * k if 0 < k < math.inf else math.nan
-    base = dict(duration_in=duration_in, duration_uniform=uniform_T, input_check=first)
+    base = dict(duration_in=duration_in, duration_uniform=uniform_T, input_check=first,
+                source=None if path.untimed else nominal)
     if not math.isfinite(k):
         return RetimeResult(False, None, duration_out=math.nan, lower_bound=math.nan,
                             message=f"no retiming: {first.message}", blocked=_blocked(first),
                             **base)
-    grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], grid_points + 1)
-    x_lb = topp.solve(path, grid, topp.joint_rows(dynamics, path, grid, lower_bound=True),
-                     free_ends=True)
+    for n in (grid_points, grid_points + 1):
+        # a grid point exactly where the path stops inside (q' = q'' = 0 at a waypoint) leaves
+        # TOPP-RA's controllable set undefined there: the next grid steps over it
+        grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], n + 1)
+        x_lb = topp.solve(path, grid, topp.joint_rows(dynamics, path, grid, lower_bound=True),
+                          free_ends=True)
+        if x_lb is not None:
+            break
     lower = topp.duration(grid, x_lb) if x_lb is not None else math.nan
     found = None
     if not moving_start:
@@ -148,8 +156,10 @@ def _adjust(sr: _Search, res: FeasibilityResult, lw: timing.Law, x: np.ndarray) 
         t0 = v.first_time_s - sr.w
         t1 = max(v.peak_time_s, v.first_time_s + v.duration_s) + sr.w
         s0, s1 = (float(timing.smoothed(lw, sr.w, np.array([tt]))[0][0]) for tt in (t0, t1))
-        lo = max(0, int(np.searchsorted(lw.s, s0)) - 1)
-        hi = min(len(x), int(np.searchsorted(lw.s, s1)) + 2)
+        # at least ±_CAP_CELLS grid cells: TOPP-RA only sees its grid points, and near a stop
+        # (q' → 0) the motion between them is what breaks the limit
+        lo = max(0, int(np.searchsorted(lw.s, s0)) - _CAP_CELLS)
+        hi = min(len(x), int(np.searchsorted(lw.s, s1)) + _CAP_CELLS + 1)
         sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
     if widen > 1.0:
         for kind in _RAMP_KINDS:
