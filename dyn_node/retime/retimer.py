@@ -99,7 +99,9 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
                          np.full(len(grid), np.inf), 0.0, limit_margin)
         found = _optimal(search, max_rounds)
     uniform = None
-    if uniform_fallback or found is None:
+    # the stretch lasts ≥ uniform_T × 1.001: only worth building when the search lost to it
+    beaten = found is not None and found["trajectory"].duration <= uniform_T * _UNIFORM_PAD
+    if (uniform_fallback and not beaten) or found is None:
         uniform = _uniform(dynamics, path, traj, k, feasibility, start, point_period,
                            moving_start, path_tolerance)
     pick = min((c for c in (found, uniform) if c is not None),
