@@ -12,7 +12,7 @@ and re-checked likewise) is. Nothing the check has not passed is returned.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -125,19 +125,24 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     if x0 is None:
         return None
     sr.w = max(sr.w, timing.switch_window(sr.dynamics, sr.path, sr.grid, x0) / sr.margin)
+    # the rounds skip the payload margin (it does not decide feasibility); the answer gets the
+    # full check with the caller's options
+    plain = replace(sr.options, compute_payload_margin=False)
+    x = x0
     for rnd in range(1, max_rounds + 1):
-        x = topp.solve(sr.path, sr.grid, sr.rows, cap=sr.cap)
+        if rnd > 1:
+            x = topp.solve(sr.path, sr.grid, sr.rows, cap=sr.cap)
         if x is None:
             return None
         lw = timing.law(sr.grid, x)
         out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, 2 * sr.period)
         if out is None:
             return None
-        res = check_trajectory(sr.dynamics, out, sr.options)
+        res = check_trajectory(sr.dynamics, out, plain)
         if res.feasible:
-            return dict(trajectory=out, check=res, method="optimal", rounds=rnd,
-                        w=sr.w + 2 * sr.period,
-                        deviation=dev)
+            full = res if plain == sr.options else check_trajectory(sr.dynamics, out, sr.options)
+            return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
+                        w=sr.w + 2 * sr.period, deviation=dev)
         if not _adjust(sr, res, lw, x):
             return None
     return None
