@@ -230,3 +230,29 @@ def test_gravity_above_the_limit_is_blocked() -> None:
     res = retime(dyn, ur5_traj())
     assert not res.feasible and res.trajectory is None
     assert "gravity" in res.blocked and math.isnan(res.duration_uniform)
+
+
+def test_stops_and_reversals_are_retimed_by_pieces() -> None:
+    """Quintic points at rest (v = a = 0) that turn back: the path is cut at each stop, each
+    piece retimed by arc length, and the answer stops there too, on the input's curve (SciPy's
+    quintic Hermite through the points)."""
+    dyn = ur5()
+    P = np.array([UR5_WAYPOINTS[0], UR5_WAYPOINTS[1], UR5_WAYPOINTS[0], UR5_WAYPOINTS[2]])
+    z = np.zeros_like(P)
+    traj = Trajectory(times=np.array([0.0, 0.5, 1.0, 1.5]), positions=P, velocities=z,
+                      accelerations=z)
+    res = retime(dyn, traj)
+    assert res.feasible and res.method == "optimal"
+    out = res.trajectory
+    assert check_trajectory(dyn, out).feasible
+    assert res.lower_bound * (1 - 1e-3) <= res.duration_out < res.duration_uniform
+    # every waypoint is passed at rest (v = a = 0 there, as the input stops)
+    for q in P[1:-1]:
+        i = int(np.argmin(np.max(np.abs(out.positions - q), axis=1)))
+        assert np.max(np.abs(out.positions[i] - q)) < 1e-9
+        assert np.max(np.abs(out.velocities[i])) < 1e-9
+    curve = BPoly.from_derivatives(traj.times, np.stack([P, z, z], axis=1))
+    dense = curve(np.linspace(0.0, traj.duration, 300_001))
+    samples = _quintic_scipy(out)(np.linspace(0.0, res.duration_out, 4001))
+    dist, _ = cKDTree(dense).query(samples, p=np.inf)
+    assert np.max(dist) <= 1e-4

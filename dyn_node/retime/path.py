@@ -77,3 +77,76 @@ def build_path(traj: Trajectory) -> Path:
     nominal = Trajectory(times=s, positions=P)    # positions only: the clamped C² spline
     return Path(pp=interpolate(nominal, "spline"), nominal=nominal, untimed=True)
 
+
+
+def stops(path: Path) -> np.ndarray:
+    """Interior knots of a timed path where it stops with q' = q'' = 0 (waypoints at rest with
+    quintic segments): the path is singular there and may turn back."""
+    nom = path.nominal
+    if path.untimed or nom.velocities is None or len(nom.times) < 3:
+        return np.zeros(0, dtype=int)
+    v = nom.velocities[1:-1]
+    a = nom.accelerations[1:-1] if nom.accelerations is not None else np.zeros_like(v)
+    return np.flatnonzero(np.all(v == 0.0, axis=1) & np.all(a == 0.0, axis=1)) + 1
+
+
+def pieces(path: Path) -> list[Path]:
+    """The path cut at its :func:`stops` (each piece a path of its own, from rest to rest)."""
+    cuts = [0, *stops(path).tolist(), len(path.nominal.times) - 1]
+    nom = path.nominal
+    out = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        sl = slice(a, b + 1)
+        sub = Trajectory(times=nom.times[sl], positions=nom.positions[sl],
+                         velocities=None if nom.velocities is None else nom.velocities[sl],
+                         accelerations=None if nom.accelerations is None else nom.accelerations[sl])
+        out.append(Path(pp=interpolate(sub, nom.natural_interpolation), nominal=sub,
+                        untimed=False))
+    return out
+
+
+@dataclass(frozen=True)
+class _Breaks:
+    breaks: np.ndarray
+
+
+class ArcPath:
+    """``path`` by its arc length ℓ (2-norm of q', rad or m): where q' vanishes at an end the
+    path is singular in s (q' ∝ (s − s₀)²), but regular in ℓ (|dq/dℓ| = 1), so TOPP-RA's grid
+    and the smoothing window see a path that starts and stops like any other.
+
+    q_ℓ = q'/|q'|, q_ℓℓ = (q'' − q_ℓ (q_ℓ·q''))/|q'|²; s(ℓ) from a dense table of ℓ(s)
+    (cumulative Simpson, linear inverse): the points stay exactly on the path whatever its error.
+    """
+
+    def __init__(self, path: Path, samples: int = 20001):
+        self.base = path
+        s = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], samples)
+        speed = np.linalg.norm(path.derivatives(s)[1], axis=1)
+        mid = np.linalg.norm(path.derivatives(0.5 * (s[1:] + s[:-1]))[1], axis=1)
+        self._s = s
+        self._l = np.concatenate(([0.0], np.cumsum(np.diff(s) * (speed[:-1] + 4 * mid
+                                                                   + speed[1:]) / 6)))
+        self.pp = _Breaks(np.array([0.0, float(self._l[-1])]))
+        self.nominal, self.untimed = path.nominal, path.untimed
+
+    @property
+    def length(self) -> float:
+        return float(self._l[-1])
+
+    @property
+    def nv(self) -> int:
+        return self.base.nv
+
+    def derivatives(self, ell: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ell = np.clip(np.atleast_1d(np.asarray(ell, dtype=float)), 0.0, self._l[-1])
+        # nudged inside: at the ends q' = 0 exactly and the direction is its limit
+        eps = 1e-9 * self._l[-1]
+        s = np.interp(np.clip(ell, eps, self._l[-1] - eps), self._l, self._s)
+        q, d1, d2 = self.base.derivatives(s)
+        n = np.linalg.norm(d1, axis=1, keepdims=True)
+        n = np.maximum(n, 1e-300)
+        t = d1 / n
+        q2 = (d2 - t * np.sum(t * d2, axis=1, keepdims=True)) / n**2
+        q = self.base.derivatives(np.interp(ell, self._l, self._s))[0]
+        return q, t, q2

@@ -23,7 +23,8 @@ from dyn_node.core.kinds import KIND_CLASS
 from dyn_node.core.trajectory import Trajectory, from_current_state
 from dyn_node.errors import TrajectoryError
 from dyn_node.retime import timing, topp
-from dyn_node.retime.path import Path, build_path, is_still, is_untimed, validate_input
+from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
+                                  validate_input)
 from dyn_node.retime.result import RetimeResult
 
 #: third-order kinds: their violations widen the smoothing window first
@@ -94,10 +95,8 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     lower = topp.duration(grid, x_lb) if x_lb is not None else math.nan
     found = None
     if not moving_start:
-        rows = topp.joint_rows(dynamics, path, grid, scale=limit_margin)
-        search = _Search(dynamics, path, grid, feasibility, path_tolerance, point_period, rows,
-                         np.full(len(grid), np.inf), 0.0, limit_margin)
-        found = _optimal(search, max_rounds)
+        found = _by_pieces(dynamics, path, feasibility, path_tolerance, point_period,
+                           limit_margin, grid_points, max_rounds)
     uniform = None
     # the stretch lasts ≥ uniform_T × 1.001: only worth building when the search lost to it
     beaten = found is not None and found["trajectory"].duration <= uniform_T * _UNIFORM_PAD
@@ -146,6 +145,52 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         if not _adjust(sr, res, lw, x):
             return None
     return None
+
+
+def _by_pieces(dynamics: Dynamics, path: Path, options: FeasibilityOptions, tolerance: float,
+               period: float, margin: float, grid_points: int, max_rounds: int) -> dict | None:
+    """The optimal search on each piece between the path's stops (:func:`pieces`; the whole path
+    when it has none), each by arc length when it starts or ends singular (q' = q'' = 0), the
+    pieces joined at rest and the whole checked again."""
+    parts = pieces(path) if stops(path).size else [path]
+    found = []
+    for part in parts:
+        p = ArcPath(part) if _singular_end(part) else part
+        n = max(100, int(round(grid_points * part.length / path.length)))
+        grid = np.linspace(p.pp.breaks[0], p.pp.breaks[-1], n + 1)
+        rows = topp.joint_rows(dynamics, p, grid, scale=margin)
+        sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
+                     np.full(len(grid), np.inf), 0.0, margin)
+        one = _optimal(sr, max_rounds)
+        if one is None:
+            return None
+        found.append(one)
+    if len(found) == 1:
+        return found[0]
+    out = _join([f["trajectory"] for f in found])
+    res = check_trajectory(dynamics, out, options)
+    if not res.feasible:
+        return None
+    return dict(trajectory=out, check=res, method="optimal",
+                rounds=sum(f["rounds"] for f in found), w=max(f["w"] for f in found),
+                deviation=max(f["deviation"] for f in found))
+
+
+def _singular_end(path: Path) -> bool:
+    _, d1, d2 = path.derivatives(path.pp.breaks[[0, -1]])
+    return bool(np.any(np.all(d1 == 0.0, axis=1) & np.all(d2 == 0.0, axis=1)))
+
+
+def _join(parts: list[Trajectory]) -> Trajectory:
+    """Trajectories from rest to rest, one after the other (each junction point once)."""
+    times, cols = [parts[0].times], [[parts[0].positions], [parts[0].velocities],
+                                     [parts[0].accelerations]]
+    for tr in parts[1:]:
+        times.append(tr.times[1:] + times[-1][-1])
+        for c, x in zip(cols, (tr.positions, tr.velocities, tr.accelerations)):
+            c.append(x[1:])
+    return Trajectory(times=np.concatenate(times), positions=np.vstack(cols[0]),
+                      velocities=np.vstack(cols[1]), accelerations=np.vstack(cols[2]))
 
 
 def _adjust(sr: _Search, res: FeasibilityResult, lw: timing.Law, x: np.ndarray) -> bool:

@@ -40,9 +40,15 @@ class RetimedTrajectory:
                           accelerations=np.array(self.accelerations))
 
 
+#: TOPP-RA's share of each limit here: a time-optimal answer runs the torque at its limit, and
+#: the simulator's tracking feedback needs room on top (at 100 % it saturates); the demo's
+#: uniform slowdown keeps a like margin (× 1.05 in time: inertial torques ÷ 1.1)
+HEADROOM = 0.85
+
+
 def retimed(model: Any, aggressive: Any) -> tuple[RetimedTrajectory | None, RetimeResult]:
     """The aggressive trajectory (a DemoTrajectory) retimed; None when no retiming passed."""
-    res = retime(Dynamics(model), aggressive.validated(model.joint_names))
+    res = retime(Dynamics(model), aggressive.validated(model.joint_names), limit_margin=HEADROOM)
     if not res.feasible:
         return None, res
     out = res.trajectory
