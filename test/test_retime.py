@@ -256,3 +256,24 @@ def test_stops_and_reversals_are_retimed_by_pieces() -> None:
     samples = _quintic_scipy(out)(np.linspace(0.0, res.duration_out, 4001))
     dist, _ = cKDTree(dense).query(samples, p=np.inf)
     assert np.max(dist) <= 1e-4
+
+
+def test_start_state_at_rest_and_moving() -> None:
+    """First point 0.5 s ahead: from a state at rest the answer starts at the robot's position;
+    from a moving state only the uniform stretch is tried, checked with its start segment."""
+    from dyn_node.core.feasibility import StartState
+
+    dyn = ur5()
+    traj = Trajectory(times=np.array([0.5, 1.1, 1.7, 2.3]), positions=UR5_WAYPOINTS.copy())
+    q0 = UR5_WAYPOINTS[0] + np.array([0.1, -0.05, 0.05, 0.0, 0.1, -0.1])
+    rest = StartState(positions=q0, velocities=np.zeros(6), age_s=0.0)
+    res = retime(dyn, traj, start=rest)
+    assert res.feasible and res.method == "optimal"
+    np.testing.assert_allclose(res.trajectory.positions[0], q0, atol=1e-12)
+    np.testing.assert_allclose(res.trajectory.velocities[0], 0.0, atol=1e-12)
+    assert check_trajectory(dyn, res.trajectory, start=rest).feasible
+    moving = StartState(positions=q0, velocities=np.full(6, 0.05), age_s=0.0)
+    res = retime(dyn, traj, start=moving)
+    assert res.feasible and res.method == "uniform"
+    assert res.check.start_segment == "checked"
+    np.testing.assert_allclose(res.trajectory.positions, traj.positions)   # the input's points

@@ -45,10 +45,9 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
         A.append(a), B.append(b), C.append(c), G.append(np.full(a.shape[1], g) if np.isscalar(g)
                                                         else g)
 
-    for kind, sign in (("acceleration", 1.0), ("acceleration", -1.0)):
-        cols = np.isfinite(lim.acceleration)
-        if cols.any():
-            add(sign * d1[:, cols], sign * d2[:, cols], 0 * d1[:, cols], lim.acceleration[cols] * scale)
+    cols = np.isfinite(lim.acceleration)
+    for sign in ((1.0, -1.0) if cols.any() else ()):
+        add(sign * d1[:, cols], sign * d2[:, cols], 0 * d1[:, cols], lim.acceleration[cols] * scale)
     cols = np.isfinite(lim.deceleration)
     if cols.any():
         sg = -np.sign(d1[:, cols])

@@ -52,7 +52,10 @@ def retimed(model: Any, aggressive: Any) -> tuple[RetimedTrajectory | None, Reti
     if not res.feasible:
         return None, res
     out = res.trajectory
-    rows = lambda a: tuple(tuple(float(x) for x in r) for r in a)  # noqa: E731
+
+    def rows(a: np.ndarray) -> tuple[tuple[float, ...], ...]:
+        return tuple(tuple(float(x) for x in r) for r in a)
+
     return RetimedTrajectory(
         "retimed", tuple(float(t) for t in out.times), rows(out.positions),
         f"aggressive retimed ({res.method}): {res.duration_in:.3g} s → {res.duration_out:.3g} s, "
