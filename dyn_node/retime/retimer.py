@@ -150,8 +150,8 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
 def _by_pieces(dynamics: Dynamics, path: Path, options: FeasibilityOptions, tolerance: float,
                period: float, margin: float, grid_points: int, max_rounds: int) -> dict | None:
     """The optimal search on each piece between the path's stops (:func:`pieces`; the whole path
-    when it has none), each by arc length when it starts or ends singular (q' = q'' = 0), the
-    pieces joined at rest and the whole checked again."""
+    when it has none), each by arc length when it starts or ends at rest (q' = 0: singular in
+    s), the pieces joined at rest and the whole checked again."""
     parts = pieces(path) if stops(path).size else [path]
     found = []
     for part in parts:
@@ -177,8 +177,9 @@ def _by_pieces(dynamics: Dynamics, path: Path, options: FeasibilityOptions, tole
 
 
 def _singular_end(path: Path) -> bool:
-    _, d1, d2 = path.derivatives(path.pp.breaks[[0, -1]])
-    return bool(np.any(np.all(d1 == 0.0, axis=1) & np.all(d2 == 0.0, axis=1)))
+    """The path stops at an end (q' = 0 there: every positions-only path, every stop piece)."""
+    d1 = path.derivatives(path.pp.breaks[[0, -1]])[1]
+    return bool(np.any(np.all(d1 == 0.0, axis=1)))
 
 
 def _join(parts: list[Trajectory]) -> Trajectory:
