@@ -378,11 +378,18 @@ def parsing_md(sec: dict) -> str:
             + _table(["format", "file (MB)", "read (s)", "peak RSS (MiB)"], rows))
 
 
+def retime_md(sec: dict) -> str:
+    from .retime_bench import render_md
+    return _status(sec) or render_md(sec["result"])
+
+
 SECTIONS = [("dynamics", "Dynamics", dynamics_md), ("live", "Live path", live_md),
             ("feasibility", "Feasibility check", feasibility_md),
             ("recording", "Recording and audit", recording_md), ("fleet", "Fleet (dyn-fleet on Ray)", fleet_md),
             ("services", "Question services", services_md),
-            ("parsing", "Parsing trajectory files", parsing_md)]
+            ("parsing", "Parsing trajectory files", parsing_md),
+            ("retime", "Retiming (dyn_node.retime)", retime_md)]
+
 
 
 def render(doc: dict) -> str:

@@ -21,7 +21,7 @@ from pathlib import Path
 from . import report
 from .common import REPO, NotAvailable, machine_info, progress
 
-SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet", "services", "parsing")
+SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet", "services", "parsing", "retime")
 OPT_IN = ("libraries",)  # run only when named in --only; kept in bench.json, not rendered
 ALIASES = {"audit": "recording", "memory": "live"}
 
@@ -41,6 +41,8 @@ def _section_runner(name: str):
         from . import services_bench as mod
     elif name == "parsing":
         from . import parse_bench as mod
+    elif name == "retime":
+        from . import retime_bench as mod
     else:
         from . import recording_bench as mod
     return mod.run

@@ -167,8 +167,9 @@ def test_retime_writes_a_trajectory_that_rechecks_feasible(tmp_path, capsys, che
     inp = tmp_path / f"shake.{fmt}"
     inp.write_text(format_trajectory(src, fmt))
     out = tmp_path / f"retimed.{fmt}"
-    code, text, _ = run(capsys, inp, "--retime", out)
-    assert code == 1  # the input is what is judged
+    code, text, _ = run(capsys, inp, "--retime", out, "--retime-method", "uniform")
+    assert code == 0  # with --retime: every file written with a feasible timing
+    assert "INFEASIBLE" in text   # the input's own verdict is still printed
     before = check_cli.check_file(checker, str(inp)).outcome.result
     after = check_cli.check_file(checker, str(out)).outcome.result
     assert read_trajectory(out).format == fmt
@@ -184,12 +185,13 @@ def test_retime_writes_a_trajectory_that_rechecks_feasible(tmp_path, capsys, che
 def test_retime_copies_feasible_and_skips_what_no_slowdown_fixes(tmp_path, capsys):
     limits = tmp_path / "weak.yaml"  # joint2 cannot even hold the arm up at the ready pose
     limits.write_text("joint_limits:\n  panda_joint2:\n    has_effort_limits: true\n    max_effort: 1.0\n")
-    code, text, _ = run(capsys, REACH[2], SHAKE, "--retime", tmp_path / "rt", "--limits", limits)
+    code, text, _ = run(capsys, REACH[2], SHAKE, "--retime", tmp_path / "rt", "--limits", limits,
+                        "--retime-method", "uniform")
     assert code == 1
     assert not (tmp_path / "rt" / "panda_reach.csv").exists()
     assert not (tmp_path / "rt" / "panda_shake.yaml").exists()
     assert text.count("not written: no slowdown makes it feasible") == 2
-    code, text, _ = run(capsys, REACH[2], "--retime", tmp_path / "rt2")
+    code, text, _ = run(capsys, REACH[2], "--retime", tmp_path / "rt2", "--retime-method", "uniform")
     assert code == 0
     assert (tmp_path / "rt2").is_dir() is False  # one input: OUT is the file itself
     assert (tmp_path / "rt2").read_bytes() == REACH[2].read_bytes()
@@ -249,8 +251,9 @@ def test_task_limits_give_a_row_per_place_evidence_and_a_retime_that_passes(tmp_
     e = res.per_frame["panda_hand"]["frame_speed"]
     assert e["ratio"] > 1 and res.worst_joint == "panda_hand"
     out_file = tmp_path / "slow.yaml"
-    code, out, _ = run(capsys, REACH[0], "--limits", limits, "--out", tmp_path, "--retime", out_file)
-    assert code == 1
+    code, out, _ = run(capsys, REACH[0], "--limits", limits, "--out", tmp_path, "--retime", out_file,
+                       "--retime-method", "uniform")
+    assert code == 0 and "INFEASIBLE" in out
     lines = out.splitlines()
     assert lines[1] == (f"  panda_hand: frame_speed {e['value']:.4g} of 0.25 m/s "
                         f"({e['ratio'] * 100:.0f}%) at t = {e['time_s']:.2f} s")

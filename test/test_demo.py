@@ -153,15 +153,19 @@ def test_demo_short_end_to_end(tmp_path):
                       r"/robot_description\))?, ", text)
     assert len(live) == 2 and all((n == "0") == (reason == "") for _t, n, reason in live), live
     summary = text[text.index("4. summary"):]
-    for name in ("comfortable", "aggressive", "slowed"):
+    for name in ("comfortable", "aggressive", "slowed", "retimed"):
         assert re.search(rf"^{name}\s", summary, re.M), summary
     assert "[FAIL]" not in summary, summary
     assert summary.count("[PASS]") >= 4, summary  # 5 once the bag is audited
     # each trajectory was asked on ~/check_trajectory first, and got the execution's verdict
     assert "[PASS] every trajectory checked on ~/check_trajectory before it was sent" in summary
-    assert text.count("  ~/check_trajectory: ") == 3, text[-3000:]
+    assert text.count("  ~/check_trajectory: ") == 4, text[-3000:]   # the retimed one too
     # the infeasible one was also asked for its fastest feasible timing (answered either way)
     assert re.search(r"^  ~/retime_trajectory: (.+ s -> .+ s: |not retimed \()", text, re.M), text[-3000:]
+    # the core retimer's answer to the aggressive trajectory, executed without a live violation
+    assert re.search(r"\[PASS\] retimed: the core retimer's answer passes the exact check", summary)
+    assert re.search(r"\[PASS\] retimed: executed without a live violation \(~/feasibility "
+                     r"(OK|WARN), 0 saturated samples", summary), summary
     assert re.search(r"live effort residual .* RMS [0-9.]+ N·m", summary), summary
     assert re.search(r"^aggressive\s+\S+\s+ERROR\s+panda_joint", summary, re.M)
     # the push scene: contact reported while the 30 N push lasted, its force estimated

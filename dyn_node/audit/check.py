@@ -347,6 +347,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="", metavar="DIR", help="write DIR/<file stem>/evidence.json and report.html")
     p.add_argument("--retime", default="", metavar="OUT",
                    help="write each trajectory timed to be feasible (a file for one input, a directory for several)")
+    p.add_argument("--retime-method", default="optimal", choices=("optimal", "uniform"),
+                   help="optimal (default): the fastest timing along the same path that passes the "
+                        "check (docs/retime.md); uniform: stretch by time_scale")
     return p
 
 
@@ -359,7 +362,7 @@ def run(args: argparse.Namespace, out: Any = None) -> int:
     checker = make_checker(robot_model=args.robot_model, robot_description=args.robot_description,
                            limits=args.limits, params_file=args.params_file)
     dests = retime_destinations(args.trajectories, args.retime) if args.retime else []
-    verdicts = []
+    verdicts, written = [], []
     for i, path in enumerate(args.trajectories):
         v = check_file(checker, path)
         verdicts.append(v)
@@ -371,10 +374,26 @@ def run(args: argparse.Namespace, out: Any = None) -> int:
             d = write_evidence(checker, v, Path(args.out), started)
             print(f"  evidence: {d / 'evidence.json'}, report: {d / 'report.html'}", file=out)
         if dests:
-            rt = retime(checker, v, dests[i])
-            print(f"  retime: {rt.note}" + (f" → {rt.written}" if rt.written else ""), file=out)
+            written.append(_retime_one(checker, v, dests[i], args, out))
+    if dests:   # with --retime: 1 when some file got no feasible retiming (nothing written)
+        return exit_code(violations=not all(written), partial=False,
+                         unusable=any(not v.readable for v in verdicts))
     return exit_code(violations=any(v.readable and not v.feasible for v in verdicts), partial=False,
                      unusable=any(not v.readable for v in verdicts))
+
+
+def _retime_one(checker: Checker, v: FileVerdict, dest: Path, args: argparse.Namespace,
+                out: Any) -> bool:
+    """``--retime`` for one file (its line printed; the plot into ``--out``): written or not."""
+    if args.retime_method == "uniform":
+        rt = retime(checker, v, dest)
+    else:
+        from dyn_node.audit import retime_cli
+        rt = retime_cli.retime_file(checker, v, dest)
+        if args.out and rt.result is not None and rt.written:
+            retime_cli.write_outputs(checker, rt, Path(args.out) / Path(v.path).stem)
+    print(f"  retime: {rt.note}" + (f" → {rt.written}" if rt.written else ""), file=out)
+    return rt.written is not None
 
 
 def main(argv: Sequence[str] | None = None) -> int:

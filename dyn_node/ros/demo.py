@@ -451,11 +451,12 @@ class Stack:
 
         msg = JointTrajectory(joint_names=list(self.model.joint_names))
         msg.header.stamp = Time(sec=start_ns // 10**9, nanosec=start_ns % 10**9)
-        zero = [0.0] * self.model.nv
-        for t, p in zip(traj.times, traj.positions):
+        zero = [[0.0] * self.model.nv] * len(traj.times)
+        vel, acc = getattr(traj, "velocities", zero), getattr(traj, "accelerations", zero)
+        for t, p, v, a in zip(traj.times, traj.positions, vel, acc):
             ns = int(round(t * 1e9))
             msg.points.append(JointTrajectoryPoint(
-                positions=list(p), velocities=zero, accelerations=zero,
+                positions=list(p), velocities=list(v), accelerations=list(a),
                 time_from_start=Duration(sec=ns // 10**9, nanosec=ns % 10**9)))
         return msg
 
@@ -633,6 +634,7 @@ class DemoRun:
     task_checks: list[tuple[bool, str]] = field(default_factory=list)  # the task-limits scene's
     extra_verdicts: int = 0  # ~/feasibility answers of the scenes beyond the three trajectories
     push_checks: list[tuple[bool, str]] = field(default_factory=list)  # the push scene's
+    retime_checks: list[tuple[bool, str]] = field(default_factory=list)  # ros/demo_retime.py
 
     @property
     def logs(self) -> Path:
@@ -739,6 +741,9 @@ def _scene_trajectories(run: DemoRun, short: bool) -> None:
         slowed = aggressive.scaled(k * SAFETY_FACTOR, "slowed",
                                    f"aggressive × {k:.3f} × {SAFETY_FACTOR:g}")
         run.outcomes.append(run_trajectory(run.stack, slowed, _say))
+        from dyn_node.ros.demo_retime import run_retimed   # 3b: the core retimer's answer
+        o, run.retime_checks = run_retimed(run.stack, aggressive, slowed.duration, run_trajectory, _say)
+        run.outcomes += [o] if o is not None else []
 
 
 def _scene_task_limits(run: DemoRun) -> None:
@@ -824,7 +829,7 @@ def _scene_summary(run: DemoRun) -> None:
     _banner("4. summary")
     outcomes = run.outcomes
     _say(summary_table(outcomes))
-    run.checks = acceptance(outcomes) + run.task_checks + run.push_checks
+    run.checks = acceptance(outcomes) + run.task_checks + run.push_checks + run.retime_checks
     _say("")
     for ok, text in run.checks:
         _say(f"  [{'PASS' if ok else 'FAIL'}] {text}")

@@ -1,0 +1,152 @@
+"""The geometric path a retiming follows, and the input checks at the boundary.
+
+A timed trajectory's path is the curve the feasibility check interpolates for it (its natural
+interpolation, :func:`dyn_node.core.trajectory.interpolate`), parameterised by its own time s.
+Untimed waypoints (every ``time_from_start`` zero) get the C² cubic spline through them with
+zero velocity at both ends, parameterised by the cumulative chord length (the ∞-norm of each
+step: rad or m), which is the same spline the check assumes for a positions-only trajectory.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dyn_node.core.trajectory import PiecewisePolynomial, Trajectory, interpolate
+from dyn_node.errors import TrajectoryError
+
+
+@dataclass(frozen=True)
+class Path:
+    """q(s) for s in [0, length]; ``nominal``: a trajectory whose natural interpolation is
+    exactly this curve with time = s (the input itself when it is timed)."""
+
+    pp: PiecewisePolynomial
+    nominal: Trajectory
+    untimed: bool
+
+    @property
+    def length(self) -> float:
+        return float(self.pp.breaks[-1] - self.pp.breaks[0])
+
+    @property
+    def nv(self) -> int:
+        return int(self.pp.coeffs.shape[2])
+
+    def derivatives(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q, q', q'') at path positions s (M,), each M×nv."""
+        q, d1, d2, _ = self.pp.evaluate(np.clip(s, self.pp.breaks[0], self.pp.breaks[-1]))
+        return q, d1, d2
+
+
+def validate_input(traj: Trajectory) -> None:
+    """:class:`TrajectoryError` for what no retiming can take: too few points, non-finite
+    values, times that are neither all zero (untimed) nor strictly increasing from ≥ 0."""
+    if traj.n_points < 2:
+        raise TrajectoryError(f"trajectory has {traj.n_points} point(s); at least 2 are needed "
+                              "to retime", code="too_few_points")
+    for name, arr in (("time_from_start", traj.times), ("positions", traj.positions),
+                      ("velocities", traj.velocities), ("accelerations", traj.accelerations)):
+        if arr is not None and not np.all(np.isfinite(arr)):
+            raise TrajectoryError(f"{name} not finite", code="non_finite")
+    t = traj.times
+    if is_untimed(traj):
+        return
+    if t[0] < 0 or np.any(np.diff(t) <= 0):
+        raise TrajectoryError("time_from_start must be all zero (untimed waypoints) or strictly "
+                              "increasing from ≥ 0", code="bad_times")
+
+
+def is_untimed(traj: Trajectory) -> bool:
+    return bool(np.all(traj.times == 0.0))
+
+
+def is_still(traj: Trajectory) -> bool:
+    """Every point at the first point's position: nothing to move."""
+    return bool(np.all(traj.positions == traj.positions[0]))
+
+
+def build_path(traj: Trajectory) -> Path:
+    """The path of a validated, not still trajectory (see the module docstring)."""
+    if not is_untimed(traj):
+        return Path(pp=interpolate(traj, traj.natural_interpolation), nominal=traj, untimed=False)
+    P = traj.positions
+    keep = np.concatenate(([True], np.any(np.diff(P, axis=0) != 0.0, axis=1)))
+    P = P[keep]                                   # repeated waypoints add nothing to the curve
+    s = np.concatenate(([0.0], np.cumsum(np.max(np.abs(np.diff(P, axis=0)), axis=1))))
+    nominal = Trajectory(times=s, positions=P)    # positions only: the clamped C² spline
+    return Path(pp=interpolate(nominal, "spline"), nominal=nominal, untimed=True)
+
+
+
+def stops(path: Path) -> np.ndarray:
+    """Interior knots of a timed path where it stops with q' = q'' = 0 (waypoints at rest with
+    quintic segments): the path is singular there and may turn back."""
+    nom = path.nominal
+    if path.untimed or nom.velocities is None or len(nom.times) < 3:
+        return np.zeros(0, dtype=int)
+    v = nom.velocities[1:-1]
+    a = nom.accelerations[1:-1] if nom.accelerations is not None else np.zeros_like(v)
+    return np.flatnonzero(np.all(v == 0.0, axis=1) & np.all(a == 0.0, axis=1)) + 1
+
+
+def pieces(path: Path) -> list[Path]:
+    """The path cut at its :func:`stops` (each piece a path of its own, from rest to rest)."""
+    cuts = [0, *stops(path).tolist(), len(path.nominal.times) - 1]
+    nom = path.nominal
+    out = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        sl = slice(a, b + 1)
+        sub = Trajectory(times=nom.times[sl], positions=nom.positions[sl],
+                         velocities=None if nom.velocities is None else nom.velocities[sl],
+                         accelerations=None if nom.accelerations is None else nom.accelerations[sl])
+        out.append(Path(pp=interpolate(sub, nom.natural_interpolation), nominal=sub,
+                        untimed=False))
+    return out
+
+
+@dataclass(frozen=True)
+class _Breaks:
+    breaks: np.ndarray
+
+
+class ArcPath:
+    """``path`` by its arc length ℓ (2-norm of q', rad or m): where q' vanishes at an end the
+    path is singular in s (q' ∝ (s − s₀)²), but regular in ℓ (|dq/dℓ| = 1), so TOPP-RA's grid
+    and the smoothing window see a path that starts and stops like any other.
+
+    q_ℓ = q'/|q'|, q_ℓℓ = (q'' − q_ℓ (q_ℓ·q''))/|q'|²; s(ℓ) from a dense table of ℓ(s)
+    (cumulative Simpson, linear inverse): the points stay exactly on the path whatever its error.
+    """
+
+    def __init__(self, path: Path, samples: int = 20001):
+        self.base = path
+        s = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], samples)
+        speed = np.linalg.norm(path.derivatives(s)[1], axis=1)
+        mid = np.linalg.norm(path.derivatives(0.5 * (s[1:] + s[:-1]))[1], axis=1)
+        self._s = s
+        self._l = np.concatenate(([0.0], np.cumsum(np.diff(s) * (speed[:-1] + 4 * mid
+                                                                   + speed[1:]) / 6)))
+        self.pp = _Breaks(np.array([0.0, float(self._l[-1])]))
+        self.nominal, self.untimed = path.nominal, path.untimed
+
+    @property
+    def length(self) -> float:
+        return float(self._l[-1])
+
+    @property
+    def nv(self) -> int:
+        return self.base.nv
+
+    def derivatives(self, ell: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ell = np.clip(np.atleast_1d(np.asarray(ell, dtype=float)), 0.0, self._l[-1])
+        # nudged inside: at the ends q' = 0 exactly and the direction is its limit
+        eps = 1e-9 * self._l[-1]
+        s = np.interp(np.clip(ell, eps, self._l[-1] - eps), self._l, self._s)
+        q, d1, d2 = self.base.derivatives(s)
+        n = np.linalg.norm(d1, axis=1, keepdims=True)
+        n = np.maximum(n, 1e-300)
+        t = d1 / n
+        q2 = (d2 - t * np.sum(t * d2, axis=1, keepdims=True)) / n**2
+        q = self.base.derivatives(np.interp(ell, self._l, self._s))[0]
+        return q, t, q2

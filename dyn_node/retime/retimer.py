@@ -1,0 +1,283 @@
+"""retime(): TOPP-RA for the first- and second-order kinds, then the exact check decides.
+
+Each round: TOPP-RA on the joint rows (limits × ``limit_margin``, below any local caps), the
+law smoothed over the window w, points dense enough that the controller's quintic stays within
+``path_tolerance`` of the path, and the exact check of those points. A violation of a
+third-order kind (jerk, effort rate) widens w (its switches then ramp longer); any other (or a
+third-order one w did not cure) caps ṡ² around where it happened, by the kind's law in k. The
+first trajectory the check passes is the answer; when none does within ``max_rounds``, or the
+uniform stretch of the input by the check's time scale is shorter, that stretch (re-sampled
+and re-checked likewise) is. Nothing the check has not passed is returned.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.feasibility import (FeasibilityOptions, FeasibilityResult, StartState,
+                                       check_trajectory)
+from dyn_node.core.kinds import KIND_CLASS
+from dyn_node.core.trajectory import Trajectory, from_current_state
+from dyn_node.errors import TrajectoryError
+from dyn_node.retime import timing, topp
+from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
+                                  validate_input)
+from dyn_node.retime.result import RetimeResult
+
+#: third-order kinds: their violations widen the smoothing window first
+_RAMP_KINDS = ("jerk", "effort_rate")
+#: the least half-width (grid cells) of a local cap
+_CAP_CELLS = 8
+#: the uniform fallback's factor over the check's time scale (its feasible side)
+_UNIFORM_PAD = 1.001
+
+
+@dataclass
+class _Search:
+    """One retiming's state across rounds."""
+
+    dynamics: Dynamics
+    path: Path
+    grid: np.ndarray
+    options: FeasibilityOptions
+    tolerance: float
+    period: float
+    rows: topp.Rows
+    cap: np.ndarray
+    w: float
+    margin: float
+    widened: dict[str, int] = field(default_factory=dict)
+
+
+def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = None,
+           feasibility: FeasibilityOptions = FeasibilityOptions(), path_tolerance: float = 1e-4,
+           grid_points: int = 1000, point_period: float = 0.004, max_rounds: int = 30,
+           limit_margin: float = 0.995, uniform_fallback: bool = True) -> RetimeResult:
+    """The fastest trajectory along ``traj``'s path (model order) that passes
+    :func:`~dyn_node.core.feasibility.check_trajectory` with ``feasibility``; see the module
+    docstring and docs/retime.md. ``start``: the robot's state when the first point lies ahead
+    (t0 > 0): the path then starts from it. Raises :class:`TrajectoryError` for input no
+    retiming can take (fewer than 2 points, non-finite values, bad times).
+    ``uniform_fallback``: also consider the uniform stretch (which keeps the input's own end
+    velocities, while the optimal search starts and ends at rest) and answer the shorter."""
+    validate_input(traj)
+    if not (path_tolerance > 0 and grid_points >= 10 and point_period > 0 and max_rounds >= 1
+            and 0 < limit_margin <= 1):
+        raise TrajectoryError("retime options out of range", code="bad_options")
+    duration_in = 0.0 if is_untimed(traj) else traj.duration
+    if is_still(traj):
+        return _still(dynamics, traj, feasibility, start, duration_in)
+    moving_start = start is not None and traj.times[0] > 0 and bool(np.any(start.velocities))
+    if start is not None and traj.times[0] > 0 and not moving_start:
+        traj = from_current_state(traj, start.positions, start.velocities)
+    path = build_path(traj)
+    nominal = path.nominal
+    first = check_trajectory(dynamics, nominal, feasibility, start=start)
+    k = first.time_scale
+    uniform_T = nominal.duration * k if 0 < k < math.inf else math.nan
+    base = dict(duration_in=duration_in, duration_uniform=uniform_T, input_check=first,
+                source=None if path.untimed else nominal)
+    if not math.isfinite(k):
+        return RetimeResult(False, None, duration_out=math.nan, lower_bound=math.nan,
+                            message=f"no retiming: {first.message}", blocked=_blocked(first),
+                            **base)
+    for n in (grid_points, grid_points + 1):
+        # a grid point exactly where the path stops inside (q' = q'' = 0 at a waypoint) leaves
+        # TOPP-RA's controllable set undefined there: the next grid steps over it
+        grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], n + 1)
+        x_lb = topp.solve(path, grid, topp.joint_rows(dynamics, path, grid, lower_bound=True),
+                          free_ends=True)
+        if x_lb is not None:
+            break
+    lower = topp.duration(grid, x_lb) if x_lb is not None else math.nan
+    found = None
+    if not moving_start:
+        found = _by_pieces(dynamics, path, feasibility, path_tolerance, point_period,
+                           limit_margin, grid_points, max_rounds)
+    uniform = None
+    # the stretch lasts ≥ uniform_T × 1.001: only worth building when the search lost to it
+    beaten = found is not None and found["trajectory"].duration <= uniform_T * _UNIFORM_PAD
+    if (uniform_fallback and not beaten) or found is None:
+        uniform = _uniform(dynamics, path, traj, k, feasibility, start, point_period,
+                           moving_start, path_tolerance)
+    pick = min((c for c in (found, uniform) if c is not None),
+               key=lambda c: c["trajectory"].duration, default=None)
+    if pick is None:
+        return RetimeResult(False, None, duration_out=math.nan, lower_bound=lower,
+                            message="no retiming passed the exact check (optimal search and "
+                                    "uniform stretch both failed)", **base)
+    out = pick["trajectory"]
+    msg = (f"retimed ({pick['method']}): {duration_in:.4g} s → {out.duration:.4g} s, uniform "
+           f"{uniform_T:.4g} s, T* {lower:.4g} s; re-check: {pick['check'].message}")
+    return RetimeResult(True, out, duration_out=out.duration, lower_bound=lower, message=msg,
+                        check=pick["check"], method=pick["method"],
+                        rounds=pick.get("rounds", 0), smoothing_s=pick.get("w", 0.0),
+                        path_deviation=pick["deviation"], **base)
+
+
+def _optimal(sr: _Search, max_rounds: int) -> dict | None:
+    """The check-driven rounds (module docstring); None when none passes."""
+    x0 = topp.solve(sr.path, sr.grid, sr.rows)
+    if x0 is None:
+        return None
+    sr.w = max(sr.w, timing.switch_window(sr.dynamics, sr.path, sr.grid, x0) / sr.margin)
+    # the rounds skip the payload margin (it does not decide feasibility); the answer gets the
+    # full check with the caller's options
+    plain = replace(sr.options, compute_payload_margin=False)
+    x = x0
+    for rnd in range(1, max_rounds + 1):
+        if rnd > 1:
+            x = topp.solve(sr.path, sr.grid, sr.rows, cap=sr.cap)
+        if x is None:
+            return None
+        lw = timing.law(sr.grid, x)
+        out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, 2 * sr.period)
+        if out is None:
+            return None
+        res = check_trajectory(sr.dynamics, out, plain)
+        if res.feasible:
+            full = res if plain == sr.options else check_trajectory(sr.dynamics, out, sr.options)
+            return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
+                        w=sr.w + 2 * sr.period, deviation=dev)
+        if not _adjust(sr, res, lw, x):
+            return None
+    return None
+
+
+def _by_pieces(dynamics: Dynamics, path: Path, options: FeasibilityOptions, tolerance: float,
+               period: float, margin: float, grid_points: int, max_rounds: int) -> dict | None:
+    """The optimal search on each piece between the path's stops (:func:`pieces`; the whole path
+    when it has none), each by arc length when it starts or ends at rest (q' = 0: singular in
+    s), the pieces joined at rest and the whole checked again."""
+    parts = pieces(path) if stops(path).size else [path]
+    found = []
+    for part in parts:
+        p = ArcPath(part) if _singular_end(part) else part
+        n = max(100, int(round(grid_points * part.length / path.length)))
+        grid = np.linspace(p.pp.breaks[0], p.pp.breaks[-1], n + 1)
+        rows = topp.joint_rows(dynamics, p, grid, scale=margin)
+        sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
+                     np.full(len(grid), np.inf), 0.0, margin)
+        one = _optimal(sr, max_rounds)
+        if one is None:
+            return None
+        found.append(one)
+    if len(found) == 1:
+        return found[0]
+    out = _join([f["trajectory"] for f in found])
+    res = check_trajectory(dynamics, out, options)
+    if not res.feasible:
+        return None
+    return dict(trajectory=out, check=res, method="optimal",
+                rounds=sum(f["rounds"] for f in found), w=max(f["w"] for f in found),
+                deviation=max(f["deviation"] for f in found))
+
+
+def _singular_end(path: Path) -> bool:
+    """The path stops at an end (q' = 0 there: every positions-only path, every stop piece)."""
+    d1 = path.derivatives(path.pp.breaks[[0, -1]])[1]
+    return bool(np.any(np.all(d1 == 0.0, axis=1)))
+
+
+def _join(parts: list[Trajectory]) -> Trajectory:
+    """Trajectories from rest to rest, one after the other (each junction point once)."""
+    times, cols = [parts[0].times], [[parts[0].positions], [parts[0].velocities],
+                                     [parts[0].accelerations]]
+    for tr in parts[1:]:
+        times.append(tr.times[1:] + times[-1][-1])
+        for c, x in zip(cols, (tr.positions, tr.velocities, tr.accelerations)):
+            c.append(x[1:])
+    return Trajectory(times=np.concatenate(times), positions=np.vstack(cols[0]),
+                      velocities=np.vstack(cols[1]), accelerations=np.vstack(cols[2]))
+
+
+def _adjust(sr: _Search, res: FeasibilityResult, lw: timing.Law, x: np.ndarray) -> bool:
+    """Widen the window or cap ṡ² where ``res`` failed; False when nothing can be changed."""
+    widen = 1.0
+    for v in res.violations:
+        if v.kind == "position" or v.limit <= 0:
+            return False
+        ratio = abs(v.peak_value) / v.limit
+        if v.kind in _RAMP_KINDS and sr.widened.get(v.kind, 0) < 3:
+            widen = max(widen, ratio * 1.02)
+            continue
+        order = max(1, KIND_CLASS[v.kind].order if v.kind in KIND_CLASS else 2)
+        factor = min(0.98, ratio ** (-2.0 / order) * 0.98)
+        t0 = v.first_time_s - sr.w
+        t1 = max(v.peak_time_s, v.first_time_s + v.duration_s) + sr.w
+        s0, s1 = (float(timing.smoothed(lw, sr.w, np.array([tt]))[0][0]) for tt in (t0, t1))
+        # at least ±_CAP_CELLS grid cells: TOPP-RA only sees its grid points, and near a stop
+        # (q' → 0) the motion between them is what breaks the limit
+        lo = max(0, int(np.searchsorted(lw.s, s0)) - _CAP_CELLS)
+        hi = min(len(x), int(np.searchsorted(lw.s, s1)) + _CAP_CELLS + 1)
+        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
+    if widen > 1.0:
+        for kind in _RAMP_KINDS:
+            if any(v.kind == kind for v in res.violations):
+                sr.widened[kind] = sr.widened.get(kind, 0) + 1
+        sr.w = max(sr.w * widen, 2 * sr.period)
+    return True
+
+
+def _dense(path: Path, lw: timing.Law, w: float, period: float, tolerance: float,
+           w2: float = 0.0) -> tuple[Trajectory | None, float]:
+    """Points at ``period``, halved until the quintic between them stays within ``tolerance``
+    of the path (None when even 1/64 of it does not); windows w, w2 (:func:`timing.smoothed`)."""
+    for _ in range(7):
+        out, _s = timing.points(path, lw, w, period, w2)
+        dev = timing.deviation(path, lw, w, out, w2)
+        if dev <= tolerance:
+            return out, dev
+        period /= 2
+    return None, math.nan
+
+
+def _uniform(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
+             options: FeasibilityOptions, start: StartState | None, period: float,
+             moving_start: bool, tolerance: float) -> dict | None:
+    """The input stretched by the check's time scale (× 1.001, then 1.01 when the resampled
+    points miss by rounding), checked; with a moving start state the input's own points
+    stretched (the controller interpolates the segment from that state)."""
+    from dyn_node.core.start_segment import stretched
+
+    k = max(k, 1e-9) if k > 0 else 1.0
+    for pad in (_UNIFORM_PAD, 1.01):
+        kk = k * pad
+        if moving_start:
+            out, dev = stretched(traj, kk), 0.0
+        else:
+            grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], 2)
+            lw = timing.law(grid, np.full(2, 1.0 / kk**2))
+            out, dev = _dense(path, lw, 0.0, period, tolerance)
+            if out is None:
+                return None
+        res = check_trajectory(dynamics, out, options, start=start)
+        if res.feasible:
+            return dict(trajectory=out, check=res, method="uniform", deviation=dev)
+    return None
+
+
+def _still(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
+           start: StartState | None, duration_in: float) -> RetimeResult:
+    """All points equal: nothing to move; returned unchanged when holding there passes."""
+    hold = traj if not is_untimed(traj) else Trajectory(times=np.array([0.0, 1.0]),
+                                                        positions=traj.positions[:2])
+    res = check_trajectory(dynamics, hold, options, start=start)
+    ok = res.feasible
+    return RetimeResult(ok, traj if ok else None, duration_in=duration_in,
+                        duration_out=duration_in if ok else math.nan, duration_uniform=duration_in,
+                        lower_bound=0.0, message="all points equal: nothing to move, returned "
+                        f"unchanged ({res.message})" if ok else f"all points equal; {res.message}",
+                        blocked="" if ok else _blocked(res), check=res, input_check=res,
+                        method="unchanged")
+
+
+def _blocked(res: FeasibilityResult) -> str:
+    """The check's reason when no slowdown helps (its message after the first "; ")."""
+    if math.isfinite(res.time_scale):
+        return ""
+    head, _, tail = res.message.partition("; ")
+    return tail or head

@@ -1,0 +1,132 @@
+"""From ṡ² on a grid to output points: the time law, its smoothing, the points.
+
+TOPP-RA's answer is bang-bang in s̈ (constant per grid step): unbounded jerk and effort rate
+where s̈ switches. The law s(t) is therefore averaged over a moving window of width w (a box
+filter, in closed form): s̈ becomes piecewise linear, its jumps become ramps of length w, and
+the motion takes exactly w longer (it starts and ends at rest); a second short window w2 (two
+output periods) rounds the ramps' corners so that the jerk is continuous too. For one joint with velocity,
+acceleration and jerk limits this is the time-optimal S-curve when w = acceleration/jerk
+(D/v + v/a + a/j), and with many joints it bounds the jerk and effort rate of every switch at
+once. The output points sample the averaged law at a fixed period; each carries q(s), q'ṡ and
+q''ṡ² + q's̈, so the controller's quintic between points stays on the path (measured).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dyn_node.core.trajectory import Trajectory, interpolate
+from dyn_node.retime.path import Path
+
+
+@dataclass(frozen=True)
+class Law:
+    """s(t) with s̈ constant on each grid step: grid s, ṡ, s̈ per step, t at the grid, and the
+    first and second integrals of s at the grid (for the window averages)."""
+
+    s: np.ndarray
+    sd: np.ndarray
+    u: np.ndarray
+    t: np.ndarray
+    integral: np.ndarray
+    integral2: np.ndarray
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1])
+
+
+def law(grid: np.ndarray, x: np.ndarray) -> Law:
+    sd = np.sqrt(np.maximum(x, 0.0))
+    ds = np.diff(grid)
+    dt = 2 * ds / np.maximum(sd[:-1] + sd[1:], 1e-300)
+    u = (sd[1:] - sd[:-1]) / dt
+    t = np.concatenate(([0.0], np.cumsum(dt)))
+    rel = grid - grid[0]
+    step = rel[:-1] * dt + sd[:-1] * dt**2 / 2 + u * dt**3 / 6
+    integral = np.concatenate(([0.0], np.cumsum(step)))
+    step2 = integral[:-1] * dt + rel[:-1] * dt**2 / 2 + sd[:-1] * dt**3 / 6 + u * dt**4 / 24
+    return Law(s=rel, sd=sd, u=u, t=t, integral=integral,
+               integral2=np.concatenate(([0.0], np.cumsum(step2))))
+
+
+def _levels(lw: Law, t: np.ndarray) -> dict[int, np.ndarray]:
+    """The law at times t by derivative order: −2 (∫∫s), −1 (∫s), 0 (s), 1 (ṡ), 2 (s̈); at rest
+    at s = 0 before t = 0 and at the end after T."""
+    i = np.clip(np.searchsorted(lw.t, t, side="right") - 1, 0, len(lw.u) - 1)
+    r = np.clip(t - lw.t[i], 0.0, None)
+    before, after = t < 0, t > lw.t[-1]
+    end, T = lw.s[-1], lw.t[-1]
+    s0, v, u = lw.s[i], lw.sd[i], lw.u[i]
+    past = np.clip(t - T, 0.0, None)
+    out = {
+        2: u, 1: np.maximum(v + u * r, 0.0), 0: s0 + v * r + u * r**2 / 2,
+        -1: lw.integral[i] + s0 * r + v * r**2 / 2 + u * r**3 / 6,
+        -2: lw.integral2[i] + lw.integral[i] * r + s0 * r**2 / 2 + v * r**3 / 6 + u * r**4 / 24,
+    }
+    tail = {2: 0.0, 1: 0.0, 0: end, -1: lw.integral[-1] + end * past,
+            -2: lw.integral2[-1] + lw.integral[-1] * past + end * past**2 / 2}
+    return {k: np.where(before, 0.0, np.where(after, tail[k], val)) for k, val in out.items()}
+
+
+def smoothed(lw: Law, w: float, t: np.ndarray, w2: float = 0.0
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """s, ṡ, s̈ of the law averaged over [t − w, t], then over [t − w2, t] (0: no average);
+    the motion lasts T + w + w2. Two windows make s̈ continuous (jerk bounded and continuous,
+    which the controller's quintic between points follows without overshoot)."""
+    widths = [x for x in (w, w2) if x > 0]
+    shifts = [(0.0, 1.0)]
+    for width in widths:
+        shifts = [(sh + d, sg * (-1.0 if d else 1.0) / width) for sh, sg in shifts
+                  for d in (0.0, width)]
+    n = len(widths)
+    lev = {sh: _levels(lw, t - sh) for sh, _ in shifts}
+    return tuple(sum(sg * lev[sh][d - n] for sh, sg in shifts) for d in (0, 1, 2))
+
+
+def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
+           ) -> tuple[Trajectory, np.ndarray]:
+    """The output trajectory (points every ≤ ``period`` s) and its points' path positions."""
+    total = lw.duration + w + w2
+    n = max(2, int(np.ceil(total / period)) + 1)
+    t = np.linspace(0.0, total, n)
+    s, sd, sdd = smoothed(lw, w, t, w2)
+    s = np.clip(s, 0.0, lw.s[-1])
+    q, d1, d2 = path.derivatives(s + path.pp.breaks[0])
+    return Trajectory(times=t, positions=q, velocities=d1 * sd[:, None],
+                      accelerations=d2 * (sd**2)[:, None] + d1 * sdd[:, None]), s
+
+
+def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
+              per_segment: int = 4) -> float:
+    """Largest |q| difference (any joint) between the controller's quintic through the output
+    points and the path at the same instants, at ``per_segment`` points inside each segment."""
+    t = out.times
+    frac = np.arange(1, per_segment + 1) / (per_segment + 1)
+    tm = (t[:-1, None] + np.diff(t)[:, None] * frac[None, :]).ravel()
+    q_out = interpolate(out, "quintic").evaluate(tm)[0]
+    s = np.clip(smoothed(lw, w, tm, w2)[0], 0.0, lw.s[-1])
+    q_path = path.derivatives(s + path.pp.breaks[0])[0]
+    return float(np.max(np.abs(q_out - q_path)))
+
+
+def switch_window(dynamics, path: Path, grid: np.ndarray, x: np.ndarray) -> float:
+    """The window that spreads every jump of q̈ (over the jerk limit) and of τ (over the effort
+    rate limit) between neighbouring grid steps: the starting width, before the exact check."""
+    lim = dynamics.model.limits
+    if not (np.any(np.isfinite(lim.jerk)) or np.any(np.isfinite(lim.effort_rate))):
+        return 0.0
+    mid = 0.5 * (grid[:-1] + grid[1:])
+    xm = 0.5 * (x[:-1] + x[1:])
+    lw = law(grid, x)
+    q, d1, d2 = path.derivatives(mid)
+    acc = d2 * xm[:, None] + d1 * lw.u[:, None]
+    need = 0.0
+    jumps = np.abs(np.diff(acc, axis=0))
+    if np.any(np.isfinite(lim.jerk)) and len(jumps):
+        need = max(need, float(np.max(jumps / lim.jerk)))
+    if np.any(np.isfinite(lim.effort_rate)) and len(jumps):
+        tau = dynamics.rnea_batch(q, d1 * np.sqrt(xm)[:, None], acc)
+        need = max(need, float(np.max(np.abs(np.diff(tau, axis=0)) / lim.effort_rate)))
+    return need
