@@ -684,7 +684,9 @@ def _scene_stack(run: DemoRun, model: RobotModel, domain: int) -> None:
     children = run.children
     children.append(Child("dyn_sim", [sys.executable, "-m", "dyn_node.ros.sim_node", "--ros-args",
                                       "-p", f"initial_positions:={list(READY)}",
-                                      "-p", f"apply_wrench_hold:={PUSH_S}"],
+                                      "-p", f"apply_wrench_hold:={PUSH_S}",
+                                      # the controller's topic, where dyn_node and this client meet
+                                      "-r", "/joint_trajectory_controller/joint_trajectory:=/joint_trajectory"],
                           run.env, run.logs / "dyn_sim.log"))
     node_ok = _module_available("dyn_node.ros.node")
     if node_ok:

@@ -1,0 +1,107 @@
+"""A FollowJointTrajectory client as MoveIt's controller handler uses one: send a goal, collect
+its feedback, wait for the goal response and the result (waits on futures, never sleeps). Used
+by the gate demo, the gate bench and the tests."""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+
+def duration(t: float) -> Any:
+    from builtin_interfaces.msg import Duration
+
+    sec = int(t)
+    return Duration(sec=sec, nanosec=int(round((t - sec) * 1e9)))
+
+
+def goal(times: Sequence[float], points: Sequence[Sequence[float]], *, names: Sequence[str],
+         velocities: Sequence[Sequence[float]] | None = None,
+         path_tolerance: Sequence[tuple[str, float]] = (), goal_tolerance: Sequence[tuple[str, float]] = (),
+         goal_time: float = 0.0) -> Any:
+    """A FollowJointTrajectory goal (zero stamp: start on receipt); tolerances as (joint, position)."""
+    from control_msgs.action import FollowJointTrajectory
+    from control_msgs.msg import JointTolerance
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    g = FollowJointTrajectory.Goal()
+    g.trajectory.joint_names = list(names)
+    for i, (t, q) in enumerate(zip(times, points)):
+        p = JointTrajectoryPoint(positions=[float(x) for x in q], time_from_start=duration(t))
+        if velocities is not None:
+            p.velocities = [float(x) for x in velocities[i]]
+        g.trajectory.points.append(p)
+    g.path_tolerance = [JointTolerance(name=n, position=float(x)) for n, x in path_tolerance]
+    g.goal_tolerance = [JointTolerance(name=n, position=float(x)) for n, x in goal_tolerance]
+    g.goal_time_tolerance = duration(goal_time)
+    return g
+
+
+def wait_future(fut: Any, timeout: float, what: str) -> Any:
+    done = threading.Event()
+    fut.add_done_callback(lambda _f: done.set())
+    if not done.wait(timeout):
+        raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+    return fut.result()
+
+
+@dataclass
+class Sent:
+    """One goal sent: its handle (None until answered), feedback received, and the result."""
+
+    handle: Any = None
+    feedback: list = field(default_factory=list)
+    feedback_event: threading.Event = field(default_factory=threading.Event)
+
+
+class FjtClient:
+    """An ActionClient on its own node, spun by a background executor."""
+
+    def __init__(self, ctx: Any, action: str, node_name: str = "fjt_client"):
+        from control_msgs.action import FollowJointTrajectory
+        from rclpy.action import ActionClient
+        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.node import Node
+
+        self.node = Node(node_name, context=ctx)
+        self.client = ActionClient(self.node, FollowJointTrajectory, action)
+        self.ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+        self.ex.add_node(self.node)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set() and self.ex.context.ok():
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def wait_for_server(self, timeout: float = 30.0) -> None:
+        if not self.client.wait_for_server(timeout_sec=timeout):
+            raise AssertionError(f"no action server {self.client._action_name} within {timeout} s")
+
+    def send(self, g: Any, timeout: float = 15.0) -> Sent:
+        """Send ``g`` and wait for the goal response; ``sent.handle.accepted`` says which."""
+        sent = Sent()
+
+        def on_feedback(msg: Any) -> None:
+            sent.feedback.append(msg.feedback)
+            sent.feedback_event.set()
+
+        sent.handle = wait_future(self.client.send_goal_async(g, feedback_callback=on_feedback),
+                                  timeout, "the goal response")
+        return sent
+
+    def result(self, sent: Sent, timeout: float = 30.0) -> tuple[int, Any]:
+        """(terminal GoalStatus, FollowJointTrajectory.Result) of an accepted goal."""
+        res = wait_future(sent.handle.get_result_async(), timeout, "the goal's result")
+        return res.status, res.result
+
+    def cancel(self, sent: Sent, timeout: float = 10.0) -> Any:
+        return wait_future(sent.handle.cancel_goal_async(), timeout, "the cancel response")
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10.0)
+        self.client.destroy()
+        self.ex.shutdown(timeout_sec=5.0)
+        self.node.destroy_node()
