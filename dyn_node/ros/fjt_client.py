@@ -17,6 +17,7 @@ def duration(t: float) -> Any:
 
 def goal(times: Sequence[float], points: Sequence[Sequence[float]], *, names: Sequence[str],
          velocities: Sequence[Sequence[float]] | None = None,
+         accelerations: Sequence[Sequence[float]] | None = None,
          path_tolerance: Sequence[tuple[str, float]] = (), goal_tolerance: Sequence[tuple[str, float]] = (),
          goal_time: float = 0.0) -> Any:
     """A FollowJointTrajectory goal (zero stamp: start on receipt); tolerances as (joint, position)."""
@@ -30,11 +31,27 @@ def goal(times: Sequence[float], points: Sequence[Sequence[float]], *, names: Se
         p = JointTrajectoryPoint(positions=[float(x) for x in q], time_from_start=duration(t))
         if velocities is not None:
             p.velocities = [float(x) for x in velocities[i]]
+        if accelerations is not None:
+            p.accelerations = [float(x) for x in accelerations[i]]
         g.trajectory.points.append(p)
     g.path_tolerance = [JointTolerance(name=n, position=float(x)) for n, x in path_tolerance]
     g.goal_tolerance = [JointTolerance(name=n, position=float(x)) for n, x in goal_tolerance]
     g.goal_time_tolerance = duration(goal_time)
     return g
+
+
+def quintic(q0: Sequence[float], q1: Sequence[float], duration_s: float, n: int = 11) -> dict[str, Any]:
+    """A rest-to-rest quintic move as a planner would time it: ``n`` points from t = 0 (q0) to
+    ``duration_s`` (q1) with positions, velocities and accelerations (keywords of :func:`goal`)."""
+    import numpy as np
+
+    s = np.linspace(0.0, 1.0, n)
+    dq = np.asarray(q1, dtype=float) - np.asarray(q0, dtype=float)
+    pos = 10 * s**3 - 15 * s**4 + 6 * s**5
+    vel = (30 * s**2 - 60 * s**3 + 30 * s**4) / duration_s
+    acc = (60 * s - 180 * s**2 + 120 * s**3) / duration_s**2
+    return {"times": (s * duration_s).tolist(), "points": (np.asarray(q0) + np.outer(pos, dq)).tolist(),
+            "velocities": np.outer(vel, dq).tolist(), "accelerations": np.outer(acc, dq).tolist()}
 
 
 def wait_future(fut: Any, timeout: float, what: str) -> Any:

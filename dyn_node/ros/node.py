@@ -135,6 +135,8 @@ class DynNode(Node):
         self._start_workers()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._start_recording()
+        from dyn_node.ros.gate import attach_gate  # the FollowJointTrajectory gate, when configured
+        self.gate = attach_gate(self)
         self._io_thread.start()
 
     def _init_state(self) -> None:
@@ -724,6 +726,17 @@ class DynNode(Node):
             state = feasibility.current_state(last[1:], receipt_ns, core.settings.stale_timeout)
         return receipt_ns, core, state
 
+    def execution_state(self) -> tuple[_Core | None, feasibility.StartState | None]:
+        """(core, the robot's state now) to check a goal from, as _record_with_state does."""
+        clock = self._clock_handle
+        with self._io_lock:
+            with clock:
+                now_ns = clock.get_now().nanoseconds
+            last, core = self._last_state, self._core
+        if core is None or last is None or last[0].joint_names != core.model.joint_names:
+            return core, None
+        return core, feasibility.current_state(last[1:], now_ns, core.settings.stale_timeout)
+
     def _on_trajectory(self, msg: bytes) -> None:
         receipt_ns, core, state = self._record_with_state(self._sub_traj, msg)
         receipt = receipt_ns * 1e-9
@@ -892,6 +905,8 @@ class DynNode(Node):
             worker.join(timeout=0.5)  # a request in progress is abandoned (daemon thread)
 
     def destroy_node(self) -> None:
+        if getattr(self, "gate", None) is not None:
+            self.gate.close()  # cancels what it forwarded, before the node's entities go
         if hasattr(self, "_io_thread"):
             self._stop_io()  # no joint_states (nor their recording) after this
         recording = getattr(self, "recording", None)

@@ -31,7 +31,7 @@ import numpy as np
 from control_msgs.action import FollowJointTrajectory
 from control_msgs.msg import JointTrajectoryControllerState
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
-from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -127,7 +127,10 @@ class JtcFace:
         self.server = ActionServer(self.node, FollowJointTrajectory, "~/follow_joint_trajectory",
                                    execute_callback=self._execute, goal_callback=self._on_goal,
                                    handle_accepted_callback=self._on_accepted,
-                                   cancel_callback=lambda _h: CancelResponse.ACCEPT, callback_group=group)
+                                   cancel_callback=lambda _h: CancelResponse.ACCEPT,
+                                   # its own group: an action waitable run by two threads at once
+                                   # loses requests (shared ready flags)
+                                   callback_group=MutuallyExclusiveCallbackGroup())
         self.executor = MultiThreadedExecutor(num_threads=4, context=sim_node.context)
         self.executor.add_node(self.node)
         self._stop = threading.Event()
