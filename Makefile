@@ -6,6 +6,10 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.dyn_node-installed
 # compiled again whenever a kernel source changes, so no node or test stops to compile
 KERNELS := $(VENV)/.dyn_node-kernels
+# the interface packages under interfaces/ (dyn_node_interfaces, ...), built into the venv
+INTERFACES := $(VENV)/.dyn_node-interfaces
+INTERFACE_FILES := $(shell find interfaces -type f -not -name '*~' 2>/dev/null)
+INTERFACE_PKGS := $(patsubst %/package.xml,%,$(wildcard interfaces/*/package.xml))
 PIP    := $(PY) -m pip --disable-pip-version-check -q
 # Tests bring up their own ROS 2 processes; keep them on this machine and off other domains.
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
@@ -28,13 +32,20 @@ $(KERNELS): $(STAMP) $(wildcard dyn_node/core/*kernels.py)
 	$(PY) -c "import dyn_node.core.kernels, dyn_node.core.frame_kernels, dyn_node.core.law_kernels, dyn_node.core.observer_kernels"
 	@touch $@
 
-demo: $(KERNELS)
+# cmake + rosidl from the pinned wheels (needs cmake, g++ and the interpreter's headers); build.sh
+# orders the packages by their dependencies and skips a control_msgs the venv has from elsewhere
+$(INTERFACES): $(STAMP) $(INTERFACE_FILES)
+	@echo "building the interface packages into $(VENV) (after a change under interfaces/, ~30 s each)"
+	interfaces/build.sh --venv $(VENV) --build-dir build/interfaces $(INTERFACE_PKGS)
+	@touch $@
+
+demo: $(KERNELS) $(INTERFACES)
 	$(PY) -m dyn_node.ros.demo
 
-test: $(KERNELS)
+test: $(KERNELS) $(INTERFACES)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-bench: $(KERNELS)
+bench: $(KERNELS) $(INTERFACES)
 	$(PY) -m benchmarks.run $(BENCH_ARGS)
 
 # Not in CI: the demo stack at 1 kHz with recording and splitting for SOAK_MINUTES (default 30).

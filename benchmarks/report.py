@@ -333,6 +333,24 @@ def fleet_md(sec: dict) -> str:
               f"of {rss['long_s']:g} s (**{_pct(rss['growth'])}**, target ≤ 10 %).")
 
 
+def services_md(sec: dict) -> str:
+    if _status(sec):
+        return f"Services: {_status(sec)}"
+    d = sec["result"]
+    c, f = d["check"], d["floor"]
+    return (f"Round trip of a `~/check_trajectory` call ({d['points']}-point {d['joints']}-DoF Panda "
+            f"trajectory, {d['calls']} calls one at a time) from a client in another process, against "
+            "a bare rclpy service of the same type that returns an empty response at once (the "
+            "floor: the ROS round trip itself), interleaved in blocks in the same run.\n\n"
+            + _table(["service", "median (ms)", "p99 (ms)", "min (ms)"],
+                     [["dyn_node ~/check_trajectory", _f(c["median_ms"]), _f(c["p99_ms"]), _f(c["min_ms"])],
+                      ["bare rclpy service, empty response", _f(f["median_ms"]), _f(f["p99_ms"]),
+                       _f(f["min_ms"])]])
+            + f"\n\nRatio to the floor: median **{d['ratio_median']:.2f}×**, p99 {d['ratio_p99']:.2f}×. "
+              f"The check itself (`on_demand.check` on the same trajectory, in one process) takes "
+              f"{_f(d.get('core_check_ms'))} ms of the median.")
+
+
 def memory_md(doc: dict) -> str:
     rows = []
     live = doc["sections"].get("live", {})
@@ -349,7 +367,8 @@ def memory_md(doc: dict) -> str:
 
 SECTIONS = [("dynamics", "Dynamics", dynamics_md), ("live", "Live path", live_md),
             ("feasibility", "Feasibility check", feasibility_md),
-            ("recording", "Recording and audit", recording_md), ("fleet", "Fleet (dyn-fleet on Ray)", fleet_md)]
+            ("recording", "Recording and audit", recording_md), ("fleet", "Fleet (dyn-fleet on Ray)", fleet_md),
+            ("services", "Question services", services_md)]
 
 
 def render(doc: dict) -> str:

@@ -21,7 +21,7 @@ from pathlib import Path
 from . import report
 from .common import REPO, NotAvailable, machine_info, progress
 
-SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet")
+SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet", "services")
 OPT_IN = ("libraries",)  # run only when named in --only; kept in bench.json, not rendered
 ALIASES = {"audit": "recording", "memory": "live"}
 
@@ -37,6 +37,8 @@ def _section_runner(name: str):
         from . import fleet_bench as mod
     elif name == "libraries":
         from . import libraries_bench as mod
+    elif name == "services":
+        from . import services_bench as mod
     else:
         from . import recording_bench as mod
     return mod.run

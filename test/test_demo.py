@@ -154,6 +154,8 @@ def test_demo_short_end_to_end(tmp_path):
     # each trajectory was asked on ~/check_trajectory first, and got the execution's verdict
     assert "[PASS] every trajectory checked on ~/check_trajectory before it was sent" in summary
     assert text.count("  ~/check_trajectory: ") == 3, text[-3000:]
+    # the infeasible one was also asked for its fastest feasible timing (answered either way)
+    assert re.search(r"^  ~/retime_trajectory: (.+ s -> .+ s: |not retimed \()", text, re.M), text[-3000:]
     assert re.search(r"live effort residual .* RMS [0-9.]+ N·m", summary), summary
     assert re.search(r"^aggressive\s+\S+\s+ERROR\s+panda_joint", summary, re.M)
     # the push scene: contact reported while the 30 N push lasted, its force estimated

@@ -386,23 +386,27 @@ def test_start_segment_not_checked_when_the_state_is_stale(harness):
 
 @pytest.mark.timeout(90)
 def test_check_request_starts_from_the_last_joint_states_too(harness):
-    """~/check_trajectory is checked like joint_trajectory: from the robot's current state (and
-    dyn-audit replays both so)."""
+    """~/check_trajectory with from_current_state is checked like joint_trajectory: from the
+    robot's current state (and dyn-audit replays both so)."""
+    from dyn_node_interfaces.srv import CheckTrajectory
+
     node = harness.node
-    pub = harness.probe.create_publisher(JointTrajectory, "dyn_node/check_trajectory", 10)
-    assert harness.wait(lambda: pub.get_subscription_count() >= 1)
+    cli = harness.probe.create_client(CheckTrajectory, "dyn_node/check_trajectory")
+    assert harness.wait(cli.service_is_ready)
     assert node.set_parameters([Parameter("stale_timeout", value=60.0)])[0].successful
     try:
         harness.make_current([0.0, 0.3], [-2.5, 0.0])
         msg = trajectory(NAMES, START_TIMES, START_P, START_ZERO, START_ZERO)
-        pub.publish(msg)
-        arr = harness.verdict(msg)
+        fut = cli.call_async(CheckTrajectory.Request(trajectory=msg, from_current_state=True))
+        assert harness.wait(fut.done)
+        r = fut.result()
     finally:
         assert node.set_parameters([Parameter("stale_timeout", value=0.5)])[0].successful
-        harness.probe.destroy_publisher(pub)
-    values = kv(arr.status[0])
-    assert values["start_segment"] == "checked"
-    assert values["feasible"] == "false" and values["time_scale_start_segment"] == "true"
+        harness.probe.destroy_client(cli)
+    values = kv(r.statuses[0])
+    assert r.accepted and r.start_segment == values["start_segment"] == "checked"
+    assert list(r.start_state.position) == [0.0, 0.3] and list(r.start_state.velocity) == [-2.5, 0.0]
+    assert not r.feasible and values["feasible"] == "false" and values["time_scale_start_segment"] == "true"
 
 
 # --- task limits (#18): frame_limits and robot_limits statuses on ~/feasibility -----------------

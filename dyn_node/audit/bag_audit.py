@@ -36,6 +36,7 @@ from dyn_node.audit.contact_replay import (CONTACT_ROLES, ContactRecheck, Contac
                                            contact_role, contact_section)
 from dyn_node.core.units import joint_units
 
+from dyn_node.audit.service_replay import ROLE_SERVICE_EVENT, ServiceReplay, service_role
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code  # noqa: F401
 
 if TYPE_CHECKING:
@@ -117,6 +118,8 @@ def _role(topic: str, schema: str) -> str | None:
     contact = contact_role(topic, schema)  # ~/external_torque, ~/external_wrench, ~/observer_events
     if contact is not None:
         return contact
+    if service_role(topic, schema) is not None:  # the question services' events
+        return ROLE_SERVICE_EVENT
     last = topic.rstrip("/").rsplit("/", 1)[-1]
     if schema == "sensor_msgs/msg/JointState":
         if last == ROLE_GRAVITY:
@@ -828,6 +831,7 @@ class ReplayResult:
     trajectory_failure_labels: set[str]
     controller: ControllerTimeline
     contact: Any = None         # audit.contact_replay.ContactResult
+    questions: dict = field(default_factory=dict)  # service questions answered, per service
 
 
 class Replay:
@@ -866,6 +870,7 @@ class Replay:
         # and any run the batch path declines, goes message by message. Both give the same numbers.
         self._run_topic, self._run_len, self._run_t, self._run_d = "", -1, [], []
         self.contact = ContactReplay(first, self.monitor.dynamics, sink=sink.contact if sink is not None else None)
+        self.services = ServiceReplay(sink)  # the question services' request/response pairs
 
     def feed(self, role: str, m: BagMessage) -> bool:
         """Replay one message; False when its role is not an input (a recorded output)."""
@@ -883,6 +888,8 @@ class Replay:
             self._trajectory_request(role, m)
         elif role == ROLE_STATES:
             self._states_request(m)
+        elif role == ROLE_SERVICE_EVENT:
+            self.services.feed(m, self.decoder, self.traj_dynamics, self.settings)
         elif role == ROLE_CTRL:
             self._recorded_status(m)
         elif role in CONTACT_ROLES:
@@ -900,7 +907,7 @@ class Replay:
                             self.js_topics, self.prev_log, self.gaps, self.stale, self.invalid,
                             self.invalid_by_reason, self.out_of_order, self.trajectories,
                             self.trajectories_bad, self.trajectory_failure_labels, self.controller,
-                            contact=self.contact.finish())
+                            contact=self.contact.finish(), questions=self.services.finish())
 
     def _switch(self, cfg: _Config) -> None:
         """What the node does when a parameter is set: a new core from now on."""
@@ -1321,7 +1328,7 @@ def require_inputs(bag: str, reader: BagReader, r: ReplayResult, model: Any) -> 
     if reader.readable_files == 0:
         raise AuditError(f"bag {bag} is unreadable: "
                          + "; ".join(u.reason for u in reader.unreadable[:3]), code="bag_unreadable")
-    n_traj = r.trajectories.total
+    n_traj = r.trajectories.total + sum(q["requests"] for q in r.questions.values())
     if not r.js_topics and n_traj == 0:
         raise AuditError(f"bag {bag} has no joint_states or joint_trajectory messages "
                          f"(topics: {', '.join(sorted(stats.message_counts)) or 'none'})",
@@ -1487,6 +1494,7 @@ def _outputs_section(source: AuditSource, replay: ReplayResult, recheck: Recheck
                               or sorted({c["state"] for c in ctrl.transitions}),
                               "recorded_status_counts": ctrl.recorded},
         "recheck": _recheck_section(recheck, not_comparable(source), rel), "latency": latency,
+        "questions": replay.questions,  # service questions: answered, never violations
         "monitor_counts": {"received": counts.received, "accepted": counts.accepted,
                            "invalid": counts.invalid, "out_of_order": counts.out_of_order,
                            "zero_stamp": counts.zero_stamp,

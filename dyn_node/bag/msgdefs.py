@@ -1,5 +1,6 @@
 """ROS message definitions from the installed interface files (no rclpy): the ``ros2msg``
-schema text rosbag2 writes, the RIHS01 type hash, and whether a type starts with a Header."""
+schema text rosbag2 writes, the RIHS01 type hash, and whether a type starts with a Header.
+Service request, response and introspection event types (``pkg/srv/<Service>_Event``) too."""
 from __future__ import annotations
 
 import functools
@@ -29,17 +30,54 @@ def _split_type(type_name: str) -> tuple[str, str]:
     parts = type_name.strip().split("/")
     if len(parts) == 3 and parts[1] == "msg":
         return parts[0], parts[2]
+    if len(parts) == 3 and parts[1] == "srv" and parts[2].endswith(("_Request", "_Response", "_Event")):
+        return parts[0], f"srv/{parts[2]}"  # see _definition_text
     if len(parts) == 2:
         return parts[0], parts[1]
     raise RecordingError(f"not a ROS message type name: {type_name!r}")
 
 
-def _find_interface_file(pkg: str, name: str, suffix: str) -> Path | None:
+def _find_interface_file(pkg: str, name: str, suffix: str, kind: str = "msg") -> Path | None:
     for share in _share_dirs():
-        f = share / pkg / "msg" / f"{name}{suffix}"
+        f = share / pkg / kind / f"{name}{suffix}"
         if f.is_file():
             return f
     return None
+
+
+# A service's request and response are named pkg/srv/<Service>_Request and _Response; its
+# introspection events pkg/srv/<Service>_Event, whose definition no file holds: rosbag2 builds it
+# from the .srv (both halves) and service_msgs/ServiceEventInfo, and so does message_definition.
+_SRV_PARTS = ("_Request", "_Response")
+
+
+def _service_part(pkg: str, name: str) -> str | None:
+    """The text of ``srv/<Service>_Request`` or ``_Response`` from the installed .srv, else None."""
+    service, part = name[len("srv/"):].rsplit("_", 1)
+    f = _find_interface_file(pkg, service, ".srv", kind="srv")
+    if f is None or f"_{part}" not in _SRV_PARTS:
+        return None
+    halves = f.read_text().split("\n---", 1)
+    text = halves[0] if part == "Request" else (halves[1] if len(halves) > 1 else "")
+    return text.lstrip("\n") if part == "Response" else text
+
+
+def _definition_text(pkg: str, name: str) -> str | None:
+    """A message's own text: ``name`` is 'Type' (share/<pkg>/msg/Type.msg) or
+    'srv/<Service>_Request|_Response|_Event' (built from share/<pkg>/srv/<Service>.srv)."""
+    if not name.startswith("srv/"):
+        f = _find_interface_file(pkg, name, ".msg")
+        if f is None and name.endswith(_SRV_PARTS):  # an event's field: pkg/<Service>_Request
+            return _service_part(pkg, f"srv/{name}")
+        return f.read_text() if f is not None else None
+    if name.endswith("_Event"):
+        service = name[len("srv/"):-len("_Event")]
+        if _find_interface_file(pkg, service, ".srv", kind="srv") is None:
+            return None
+        # field types as pkg/Type: mcap_ros2 (0.6) resolves no other form, rosbags both
+        return (f"service_msgs/ServiceEventInfo info\n"
+                f"{pkg}/{service}_Request[<=1] request\n{pkg}/{service}_Response[<=1] response\n")
+    return _service_part(pkg, name)
 
 
 def _field_dependencies(pkg: str, text: str) -> list[tuple[str, str]]:
@@ -75,10 +113,9 @@ def message_definition(type_name: str) -> str:
     Returns "" when the .msg file is not installed (the bag is still written; readers that need
     the schema then need the type from elsewhere)."""
     pkg, name = _split_type(type_name)
-    main = _find_interface_file(pkg, name, ".msg")
-    if main is None:
+    text = _definition_text(pkg, name)
+    if text is None:
         return ""
-    text = main.read_text()
     parts = [text.rstrip("\n")]
     done: set[tuple[str, str]] = {(pkg, name)}
     stack = list(reversed(_field_dependencies(pkg, text)))
@@ -87,10 +124,9 @@ def message_definition(type_name: str) -> str:
         if dep in done:
             continue
         done.add(dep)
-        f = _find_interface_file(dep[0], dep[1], ".msg")
-        if f is None:
+        dep_text = _definition_text(dep[0], dep[1])
+        if dep_text is None:
             return ""  # incomplete definitions mislead decoders more than none
-        dep_text = f.read_text()
         parts.append(f"{_SEPARATOR}\nMSG: {dep[0]}/{dep[1]}\n{dep_text.rstrip(chr(10))}")
         stack.extend(reversed(_field_dependencies(dep[0], dep_text)))
     return "\n".join(parts) + "\n"
@@ -101,10 +137,14 @@ def type_description_hash(type_name: str) -> str:
     """RIHS01 type hash from the installed ``<Type>.json`` (rosidl), or "" if unavailable."""
     try:
         pkg, name = _split_type(type_name)
-        f = _find_interface_file(pkg, name, ".json")
+        if name.startswith("srv/"):  # all of a service's hashes are in share/<pkg>/srv/<Service>.json
+            f = _find_interface_file(pkg, name[len("srv/"):].rsplit("_", 1)[0], ".json", kind="srv")
+            full = f"{pkg}/{name}"
+        else:
+            f = _find_interface_file(pkg, name, ".json")
+            full = f"{pkg}/msg/{name}"
         if f is None:
             return ""
-        full = f"{pkg}/msg/{name}"
         for h in json.loads(f.read_text()).get("type_hashes", []):
             if h.get("type_name") == full:
                 return str(h.get("hash_string", ""))

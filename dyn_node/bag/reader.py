@@ -13,6 +13,7 @@ Accepts: a rosbag2 directory (``metadata.yaml`` + ``*.mcap``, ours or recorded e
 from __future__ import annotations
 
 import os
+import re
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -777,6 +778,16 @@ def _metadata_by_scan(path: Path, name: str) -> dict[str, str] | None:
     return fr.metadata.get(name)
 
 
+# mcap_ros2 (0.6) takes only [A-Z][A-Za-z0-9]* as a type name, so not a service's request,
+# response or event type (pkg/srv/Name_Request ...): renamed without the underscore for decoding
+# (CDR carries no names, so the decoded message is the same)
+_SERVICE_TYPE = re.compile(r"\b([A-Z][A-Za-z0-9]*)_(Request|Response|Event)\b")
+
+
+def _without_service_underscores(name: str, text: str) -> tuple[str, str]:
+    return _SERVICE_TYPE.sub(r"\1\2", name), _SERVICE_TYPE.sub(r"\1\2", text)
+
+
 class MessageDecoder:
     """Decodes any ros2msg-schema CDR message with mcap_ros2's dynamic decoder (cached per type)."""
 
@@ -791,6 +802,6 @@ class MessageDecoder:
 
             if channel.schema_encoding != "ros2msg":
                 raise ValueError(f"schema encoding '{channel.schema_encoding}' is not ros2msg")
-            types = generate_dynamic(channel.schema_name, channel.schema_data.decode())
-            dec = self._decoders[key] = types[channel.schema_name]
+            name, text = _without_service_underscores(channel.schema_name, channel.schema_data.decode())
+            dec = self._decoders[key] = generate_dynamic(name, text)[name]
         return dec(data)

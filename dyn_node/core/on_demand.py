@@ -23,6 +23,14 @@ from dyn_node.core.trajectory import Trajectory, check_joint_names, validate_tra
 
 #: ``request`` key of every verdict: what was asked.
 REQUEST_EXECUTE, REQUEST_CHECK, REQUEST_INVERSE_DYNAMICS = "execute", "check", "inverse_dynamics"
+REQUEST_RETIME = "retime"
+#: why a question's start segment is not checked when it did not ask for the robot's state
+START_NOT_REQUESTED = "from_current_state not set"
+
+
+def question_start_unknown(from_current_state: bool) -> str:
+    """Why a question's start segment goes unchecked when it has no state (node and audit)."""
+    return feasibility.NO_CURRENT_STATE if from_current_state else START_NOT_REQUESTED
 
 
 @dataclass(frozen=True)
@@ -47,23 +55,34 @@ def options_for(settings: Settings) -> feasibility.FeasibilityOptions:
 
 
 def check(dynamics: Dynamics, settings: Settings, names: Sequence[str], times: Sequence[float],
-          positions: Any, velocities: Any = None, accelerations: Any = None) -> CheckOutcome:
+          positions: Any, velocities: Any = None, accelerations: Any = None, *,
+          start: feasibility.StartState | None = None,
+          start_unknown: str = "no current state given") -> CheckOutcome:
     """Validate and check one trajectory by the node's rules (ros2_control's validation; a single
-    point is valid but cannot be checked) and return what the node would publish."""
+    point is valid but cannot be checked) and return what the node would publish. ``start`` /
+    ``start_unknown``: as for :func:`feasibility.check_trajectory`."""
     model = dynamics.model
     hid = model.name
     duration = float(times[-1]) if len(times) and all(map(math.isfinite, times)) else 0.0
     try:
-        args = (model.joint_names, names, times, positions, velocities, accelerations)
-        # first as a command (one point is valid), then as something to check (two or more),
-        # so a malformed single point is rejected for what is wrong with it, as the node does
-        traj = validate_trajectory(*args, min_points=1)
-        if traj.n_points < 2:
-            validate_trajectory(*args, min_points=2)
-        result = feasibility.check_trajectory(dynamics, traj, options_for(settings))
+        traj = validated(model.joint_names, names, times, positions, velocities, accelerations)
+        result = feasibility.check_trajectory(dynamics, traj, options_for(settings), start=start,
+                                              start_unknown=start_unknown)
     except TrajectoryError as exc:
         return CheckOutcome(feasibility.rejected_statuses(exc, hid, len(times), duration), error=exc)
     return CheckOutcome(result.statuses(hid), result=result, trajectory=traj)
+
+
+def validated(model_joints: Sequence[str], names: Sequence[str], times: Sequence[float],
+              positions: Any, velocities: Any = None, accelerations: Any = None) -> Trajectory:
+    """A trajectory to check or retime, validated by the node's rules; raises TrajectoryError."""
+    args = (model_joints, names, times, positions, velocities, accelerations)
+    # first as a command (one point is valid), then as something to check (two or more),
+    # so a malformed single point is rejected for what is wrong with it, as the node does
+    traj = validate_trajectory(*args, min_points=1)
+    if traj.n_points < 2:
+        validate_trajectory(*args, min_points=2)
+    return traj
 
 
 def with_request(statuses: Sequence[Status], request: str) -> list[Status]:

@@ -126,8 +126,8 @@ class Settings:
     qos_depth: int = _param("integer", 100, "history depth of the joint_states subscription (messages)",
                             1, 100000)
     check_queue_depth: int = _param(
-        "integer", 8, "check-only and inverse-dynamics requests waiting to be answered; one arriving "
-        "when this many wait is answered 'rejected: busy' (requests)", 1, 10000)
+        "integer", 8, "question service calls (check, inverse dynamics, retime) waiting to be answered; "
+        "one arriving when this many wait is answered 'accepted: false, reason: busy' (requests)", 1, 10000)
     # the momentum observer and contact detection (docs/OBSERVER.md): one value applies to every
     # joint, or one per joint in model order (the length is checked against the model)
     observer_gain: tuple[float, ...] = _param(

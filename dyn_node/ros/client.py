@@ -1,26 +1,23 @@
-"""A Python client for dyn_node's on-demand requests, usable from any rclpy node.
+"""A Python client for dyn_node's question services, usable from any rclpy node.
 
-``DynClient(node, namespace="/dyn_node")`` publishes on ``~/check_trajectory`` and
-``~/inverse_dynamics_request`` and matches each answer by a request id in ``frame_id`` (the node
-echoes the whole header), so several requests can be in flight. Blocking calls need ``node`` spun
-meanwhile: they spin an unspun node themselves, wait when another thread spins it, and raise
-:class:`BlockingCallError` in a single-threaded executor's callback (use the ``*_async`` variants
-there). README "Python client" has the whole API.
+``DynClient(node, namespace="/dyn_node")`` calls ``~/check_trajectory``, ``~/compute_inverse_dynamics``
+and ``~/retime_trajectory`` (types from ``dyn_node_interfaces``); several calls can be in flight.
+Blocking calls need ``node`` spun meanwhile: they spin an unspun node themselves, wait when
+another thread spins it, and raise :class:`BlockingCallError` in a single-threaded executor's
+callback (use the ``*_async`` variants there). README "Python client" has the whole API.
 """
 from __future__ import annotations
 
-import copy
-import itertools
 import math
 import sys
 import threading
 import time
-import uuid
-from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
+from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
@@ -29,10 +26,8 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from dyn_node.core.limits import LIMIT_KINDS
 from dyn_node.core.status import ERROR, NAME_PREFIX
-from dyn_node.ros.qos import LATCHED_HISTORY
 
 STATUS_NAME = NAME_PREFIX + "trajectory feasibility"  # feasibility.STATUS_NAME, without its imports
-_POLL_S = 0.01
 
 
 class DynClientError(RuntimeError):
@@ -73,14 +68,17 @@ class Violation:
 
 @dataclass(frozen=True)
 class Verdict:
-    """dyn_node's verdict on one trajectory, parsed from its ``~/feasibility`` DiagnosticArray.
+    """dyn_node's verdict on one trajectory: a ``~/check_trajectory`` response
+    (:meth:`from_response`) or a ``~/feasibility`` DiagnosticArray (:meth:`from_msg`).
 
     ``feasible``: the trajectory can run as timed. ``level``: 0 OK, 1 WARN (feasible, close to a
     limit), 2 ERROR (infeasible or rejected). ``rejected``: it could not be checked at all
     (``reason`` is the code: ``non_finite``, ``bad_times``, ``unknown_joints``, ``busy`` ...; the
     message says what). ``time_scale``: the smallest stretch of the duration that makes it
     feasible (≤ 1 when feasible; inf: no slowdown helps; NaN when rejected). ``worst_*``: the
-    joint, limit kind and peak ratio closest to (or furthest over) its limit.
+    joint, limit kind and peak ratio closest to (or furthest over) its limit; ``binding_*``: what
+    sets ``time_scale``. ``effort``: the torque of each point (points × joints, the request's
+    joint order; empty when rejected).
     ``first_violation_time_s``: s from the trajectory's start (NaN: none). ``ratios[joint][kind]``:
     peak ratio per limit kind (None: that joint has no such limit). ``request``: ``check`` or
     ``execute`` (or ``inverse_dynamics`` for a rejected torque request). ``stamp_ns`` /
@@ -108,6 +106,24 @@ class Verdict:
     stamp_ns: int = 0
     frame_id: str = ""
     values: Mapping[str, str] = field(default_factory=dict)
+    binding_joint: str = ""
+    binding_constraint: str = ""
+    effort: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+
+    @classmethod
+    def from_response(cls, resp: CheckTrajectory.Response) -> "Verdict":
+        """A ``~/check_trajectory`` response (a request not accepted: ``rejected``, ``reason``)."""
+        if any(s.name == STATUS_NAME for s in resp.statuses):
+            v = cls.from_msg(DiagnosticArray(status=list(resp.statuses)))
+        else:  # answered at once (busy, no_model): no statuses
+            v = cls(feasible=False, level=ERROR, message=resp.message, time_scale=math.nan,
+                    worst_joint="", worst_constraint="", worst_ratio=math.nan,
+                    first_violation_time_s=math.nan, ratios={}, violations=(), request="check")
+        effort = np.array([list(p.effort) for p in resp.effort.points], dtype=float)
+        return replace(v, rejected=not resp.accepted, reason=resp.reason or v.reason,
+                       feasible=bool(resp.accepted and resp.feasible),
+                       binding_joint=resp.binding_joint, binding_constraint=resp.binding_constraint,
+                       effort=effort.reshape(len(resp.effort.points), len(resp.effort.joint_names)))
 
     @classmethod
     def from_msg(cls, msg: DiagnosticArray) -> "Verdict":
@@ -169,7 +185,7 @@ def trajectory_message(joint_names: Sequence[str], times: Sequence[float], posit
 
 def states_message(joint_names: Sequence[str], positions: Any, velocities: Any = None,
                    accelerations: Any = None) -> JointTrajectory:
-    """A ``~/inverse_dynamics_request`` from N×k arrays in ``joint_names`` order (velocities and
+    """A ``~/compute_inverse_dynamics`` request's states from N×k arrays in ``joint_names`` order (velocities and
     accelerations may be None: zero)."""
     P = np.atleast_2d(np.asarray(positions, dtype=float))
     msg = JointTrajectory(joint_names=list(joint_names))
@@ -183,12 +199,55 @@ def states_message(joint_names: Sequence[str], positions: Any, velocities: Any =
     return msg
 
 
+@dataclass(frozen=True)
+class Retimed:
+    """dyn_node's answer to ``~/retime_trajectory``. ``accepted`` false: not retimed (``reason``:
+    ``non_finite``, ``busy``, ``retimer_unavailable`` ...; ``message`` says what). ``feasible``: a
+    retimed ``trajectory`` (model joint order) was found; durations in s: the request's, the
+    retimed one's, the request uniformly stretched, and a lower bound along this path.
+    ``verdict``: the check of the output (None without one)."""
+
+    accepted: bool
+    reason: str
+    feasible: bool
+    trajectory: JointTrajectory
+    duration_in: float
+    duration_out: float
+    duration_uniform: float
+    lower_bound: float
+    message: str
+    blocked: str
+    verdict: Verdict | None
+
+    @classmethod
+    def from_response(cls, resp: RetimeTrajectory.Response) -> "Retimed":
+        verdict = None
+        if any(s.name == STATUS_NAME for s in resp.statuses):
+            verdict = Verdict.from_msg(DiagnosticArray(status=list(resp.statuses)))
+        return cls(bool(resp.accepted), resp.reason, bool(resp.accepted and resp.feasible),
+                   resp.trajectory, resp.duration_in, resp.duration_out, resp.duration_uniform,
+                   resp.lower_bound, resp.message, resp.blocked, verdict)
+
+
+def _efforts(resp: ComputeInverseDynamics.Response, names: list[str]) -> np.ndarray:
+    if not resp.accepted:
+        raise RequestRejected(Verdict(
+            feasible=False, level=ERROR, message=resp.message, time_scale=math.nan, worst_joint="",
+            worst_constraint="", worst_ratio=math.nan, first_violation_time_s=math.nan, ratios={},
+            violations=(), request="inverse_dynamics", rejected=True, reason=resp.reason))
+    msg = resp.effort
+    order = [list(msg.joint_names).index(n) for n in names]
+    out = np.array([[p.effort[i] for i in order] for p in msg.points], dtype=float)
+    return out.reshape(len(msg.points), len(names))
+
+
 class DynClient:
-    """Check trajectories and ask for torques from a running dyn_node (see the module doc).
+    """Check trajectories, ask for torques and retimings from a running dyn_node (see the module
+    doc).
 
     ``namespace`` is the dyn_node's fully qualified name (``/dyn_node`` by default; e.g.
     ``/robot1/dyn_node`` for a namespaced one). Construct once per node and keep it: creating the
-    publishers and subscriptions and matching them with dyn_node takes discovery time.
+    service clients and discovering dyn_node's services takes discovery time.
     """
 
     def __init__(self, node: Node, namespace: str = "/dyn_node"):
@@ -196,25 +255,25 @@ class DynClient:
         ns = "/" + namespace.strip("/")
         self.namespace = ns
         self._lock = threading.Lock()
-        self._checks: dict[str, Future] = {}
-        self._efforts: dict[str, tuple[Future, list[str]]] = {}
-        self._ids = itertools.count(1)
-        self._tag = f"dyn_client/{uuid.uuid4().hex[:12]}/"
-        group = MutuallyExclusiveCallbackGroup()  # answers are taken beside the caller's callbacks
-        self._pub_check = node.create_publisher(JointTrajectory, f"{ns}/check_trajectory", 10)
-        self._pub_states = node.create_publisher(JointTrajectory, f"{ns}/inverse_dynamics_request", 10)
-        self._sub_verdict = node.create_subscription(DiagnosticArray, f"{ns}/feasibility", self._on_verdict,
-                                                     LATCHED_HISTORY, callback_group=group)
-        self._sub_effort = node.create_subscription(JointTrajectory, f"{ns}/trajectory_effort",
-                                                    self._on_effort, 100, callback_group=group)
+        self._pending: set[Future] = set()
+        group = MutuallyExclusiveCallbackGroup()  # responses are taken beside the caller's callbacks
+        self._clients = {
+            "check": node.create_client(CheckTrajectory, f"{ns}/check_trajectory", callback_group=group),
+            "efforts": node.create_client(ComputeInverseDynamics, f"{ns}/compute_inverse_dynamics",
+                                          callback_group=group),
+            "retime": node.create_client(RetimeTrajectory, f"{ns}/retime_trajectory", callback_group=group),
+        }
 
     # --- public API --------------------------------------------------------------------------
-    def check(self, traj: JointTrajectory, timeout: float = 10.0) -> Verdict:
-        """dyn_node's verdict on ``traj``, checked exactly like ``joint_trajectory`` but never
-        executed. Raises :class:`NotRunningError`, :class:`RequestTimeout` or
-        :class:`BlockingCallError` (see the module doc); a trajectory dyn_node rejects (NaN,
-        times not increasing, unknown joints, queue full) is a Verdict with ``rejected`` set."""
-        return self._wait(lambda: self.check_async(traj, timeout=timeout), timeout)
+    def check(self, traj: JointTrajectory, timeout: float = 10.0, *,
+              from_current_state: bool = False) -> Verdict:
+        """dyn_node's verdict on ``traj`` (from the robot's current state with
+        ``from_current_state``), checked like ``joint_trajectory`` but never executed. Raises
+        :class:`NotRunningError`, :class:`RequestTimeout` or :class:`BlockingCallError` (see the
+        module doc); a trajectory dyn_node does not accept (NaN, times not increasing, unknown
+        joints, queue full) is a Verdict with ``rejected`` set and the ``reason``."""
+        return self._wait(lambda: self.check_async(traj, timeout=timeout,
+                                                   from_current_state=from_current_state), timeout)
 
     def efforts(self, traj_or_states: JointTrajectory, timeout: float = 10.0) -> np.ndarray:
         """τ(q, q̇, q̈) for each point of ``traj_or_states`` (missing velocities or accelerations
@@ -222,112 +281,89 @@ class DynClient:
         joints). Raises like :meth:`check`, and :class:`RequestRejected` for a malformed request."""
         return self._wait(lambda: self.efforts_async(traj_or_states, timeout=timeout), timeout)
 
-    def check_async(self, traj: JointTrajectory, *, timeout: float = 10.0) -> Future:
-        """Send a check request now; the Future completes with its :class:`Verdict` (or a
-        :class:`NotRunningError` when dyn_node has not matched within ``timeout``)."""
-        fut = Future()
-        self._send(traj, self._pub_check, self._checks, fut, None, timeout)
-        return fut
+    def retime(self, traj: JointTrajectory, timeout: float = 30.0, *,
+               from_current_state: bool = False) -> Retimed:
+        """The fastest trajectory along ``traj``'s path within every limit. Raises like
+        :meth:`check`; a request not retimed is a :class:`Retimed` with ``accepted`` false."""
+        return self._wait(lambda: self.retime_async(traj, timeout=timeout,
+                                                    from_current_state=from_current_state), timeout)
+
+    def check_async(self, traj: JointTrajectory, *, timeout: float = 10.0,
+                    from_current_state: bool = False) -> Future:
+        """Call ``~/check_trajectory`` now; the Future completes with its :class:`Verdict` (or a
+        :class:`NotRunningError` when the service is not there within ``timeout``)."""
+        req = CheckTrajectory.Request(trajectory=_checked(traj), from_current_state=from_current_state)
+        return self._call("check", req, Verdict.from_response, timeout)
 
     def efforts_async(self, traj_or_states: JointTrajectory, *, timeout: float = 10.0) -> Future:
-        """Send an inverse-dynamics request now; the Future completes with the torque array."""
-        fut = Future()
-        self._send(traj_or_states, self._pub_states, self._efforts, fut, list(traj_or_states.joint_names),
-                   timeout)
-        return fut
+        """Call ``~/compute_inverse_dynamics`` now; the Future completes with the torque array."""
+        names = list(_checked(traj_or_states).joint_names)
+        req = ComputeInverseDynamics.Request(states=traj_or_states)
+        return self._call("efforts", req, lambda resp: _efforts(resp, names), timeout)
+
+    def retime_async(self, traj: JointTrajectory, *, timeout: float = 30.0,
+                     from_current_state: bool = False) -> Future:
+        """Call ``~/retime_trajectory`` now; the Future completes with its :class:`Retimed`."""
+        req = RetimeTrajectory.Request(trajectory=_checked(traj), from_current_state=from_current_state)
+        return self._call("retime", req, Retimed.from_response, timeout)
 
     def ready(self) -> bool:
-        """True when dyn_node's request and answer topics are matched with this client's."""
-        return (self._pub_check.get_subscription_count() > 0
-                and self._pub_states.get_subscription_count() > 0
-                and self._sub_verdict.get_publisher_count() > 0
-                and self._sub_effort.get_publisher_count() > 0)
+        """True when dyn_node's three services are discovered."""
+        return all(c.service_is_ready() for c in self._clients.values())
 
     def destroy(self) -> None:
-        """Destroy the client's publishers and subscriptions; pending futures fail."""
-        for ent in (self._pub_check, self._pub_states):
-            self._node.destroy_publisher(ent)
-        for ent in (self._sub_verdict, self._sub_effort):
-            self._node.destroy_subscription(ent)
+        """Destroy the client's service clients; pending futures fail."""
+        for cli in self._clients.values():
+            self._node.destroy_client(cli)
         with self._lock:
-            pending = [f for f in self._checks.values()] + [f for f, _ in self._efforts.values()]
-            self._checks.clear()
-            self._efforts.clear()
+            pending = list(self._pending)
+            self._pending.clear()
         for f in pending:
             if not f.done():
                 f.set_exception(DynClientError("client destroyed before the answer came"))
 
-    # --- sending -----------------------------------------------------------------------------
-    def _send(self, traj: JointTrajectory, pub: Any, table: dict, fut: Future, extra: Any,
-              timeout: float) -> None:
-        if not isinstance(traj, JointTrajectory):
-            raise TypeError(f"a trajectory_msgs/JointTrajectory is needed, not {type(traj).__name__}")
-        rid = f"{self._tag}{next(self._ids)}"
-        msg = copy.copy(traj)          # the header is replaced, the points are shared (read only)
-        msg.header = copy.deepcopy(traj.header)
-        msg.header.frame_id = rid
+    # --- calling -----------------------------------------------------------------------------
+    def _call(self, which: str, req: Any, convert: Callable[[Any], Any], timeout: float) -> Future:
+        fut = Future()
         with self._lock:
-            table[rid] = fut if extra is None else (fut, extra)
-        if self.ready():
-            pub.publish(msg)
-            return
-        # Not matched yet (just created, or dyn_node not up): publish once matched, from a
-        # thread of our own so a callback calling the async variant is never held up.
-        threading.Thread(target=self._publish_when_ready, args=(pub, msg, rid, table, fut, timeout),
-                         name="dyn_client send", daemon=True).start()
+            self._pending.add(fut)
+        cli = self._clients[which]
+        if cli.service_is_ready():
+            self._send(cli, req, convert, fut)
+        else:
+            # Not discovered yet (just created, or dyn_node not up): call once it is, from a thread
+            # of our own so a callback calling the async variant is never held up. A request sent
+            # before discovery may be lost.
+            threading.Thread(target=self._send_when_ready, args=(cli, req, convert, fut, timeout),
+                             name="dyn_client send", daemon=True).start()
+        return fut
 
-    def _publish_when_ready(self, pub: Any, msg: JointTrajectory, rid: str, table: dict, fut: Future,
-                            timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while not self.ready():
+    def _send(self, cli: Any, req: Any, convert: Callable[[Any], Any], fut: Future) -> None:
+        def done(call: Future) -> None:
+            with self._lock:
+                self._pending.discard(fut)
             if fut.done() or fut.cancelled():
                 return
-            if time.monotonic() >= deadline or not self._node.context.ok():
-                with self._lock:
-                    table.pop(rid, None)
-                if not fut.done() and not fut.cancelled():
-                    fut.set_exception(self._not_running(timeout))
-                return
-            time.sleep(_POLL_S)  # the ROS graph has no wait primitive for matches
-        pub.publish(msg)
+            try:
+                fut.set_result(convert(call.result()))
+            except Exception as exc:  # RequestRejected, or a call that failed
+                fut.set_exception(exc)
+        cli.call_async(req).add_done_callback(done)
+
+    def _send_when_ready(self, cli: Any, req: Any, convert: Callable[[Any], Any], fut: Future,
+                         timeout: float) -> None:
+        if cli.wait_for_service(timeout_sec=timeout) and self._node.context.ok():
+            if not (fut.done() or fut.cancelled()):
+                self._send(cli, req, convert, fut)
+            return
+        with self._lock:
+            self._pending.discard(fut)
+        if not fut.done() and not fut.cancelled():
+            fut.set_exception(self._not_running(timeout))
 
     def _not_running(self, timeout: float) -> NotRunningError:
-        return NotRunningError(f"dyn_node is not running at {self.namespace}: nothing matched "
-                               f"{self.namespace}/check_trajectory and its answer topics within "
-                               f"{timeout:g} s")
-
-    # --- answers -------------------------------------------------------------------------------
-    def _on_verdict(self, msg: DiagnosticArray) -> None:
-        rid = msg.header.frame_id
-        if not rid.startswith(self._tag):
-            return
-        with self._lock:
-            fut = self._checks.pop(rid, None)
-            ent = self._efforts.pop(rid, None) if fut is None else None
-        try:
-            verdict = Verdict.from_msg(msg)
-        except ValueError as exc:
-            verdict, err = None, DynClientError(f"unreadable verdict for request {rid}: {exc}")
-        if fut is not None and not fut.done():
-            if verdict is None:
-                fut.set_exception(err)
-            else:
-                fut.set_result(verdict)
-        elif ent is not None and not ent[0].done():
-            ent[0].set_exception(RequestRejected(verdict) if verdict is not None else err)
-
-    def _on_effort(self, msg: JointTrajectory) -> None:
-        rid = msg.header.frame_id
-        if not rid.startswith(self._tag):
-            return
-        with self._lock:
-            ent = self._efforts.pop(rid, None)
-        if ent is None or ent[0].done():
-            return  # a check's torques: the verdict is the answer to a check
-        fut, names = ent
-        order = [list(msg.joint_names).index(n) for n in names]
-        out = np.array([[p.effort[i] for i in order] for p in msg.points], dtype=float)
-        fut.set_result(out.reshape(len(msg.points), len(names)))
+        return NotRunningError(f"dyn_node is not running at {self.namespace}: its services "
+                               f"(check_trajectory, ...) were not there within {timeout:g} s")
 
     # --- blocking ------------------------------------------------------------------------------
     def _wait(self, start: Any, timeout: float) -> Any:
@@ -335,7 +371,7 @@ class DynClient:
         if executor is not None and _inside_single_threaded(executor):
             raise BlockingCallError(
                 "a blocking DynClient call from a callback of the single-threaded executor that "
-                "spins this node would wait for itself: use check_async/efforts_async there, or a "
+                "spins this node would wait for itself: use the *_async variants there, or a "
                 "MultiThreadedExecutor")
         fut = start()
         deadline = time.monotonic() + timeout
@@ -346,7 +382,9 @@ class DynClient:
             fut.add_done_callback(lambda _f: done.set())
             done.wait(max(0.0, deadline - time.monotonic()))
         if not fut.done() and not fut.cancelled():
-            self._forget(fut)
+            with self._lock:
+                self._pending.discard(fut)
+            fut.cancel()
             if not self.ready():
                 raise self._not_running(timeout)
             raise RequestTimeout(f"no answer from dyn_node at {self.namespace} within {timeout:g} s")
@@ -363,13 +401,11 @@ class DynClient:
             ex.remove_node(self._node)
             ex.shutdown(timeout_sec=1.0)
 
-    def _forget(self, fut: Future) -> None:
-        with self._lock:
-            for table in (self._checks, self._efforts):
-                for rid, ent in list(table.items()):
-                    if ent is fut or (isinstance(ent, tuple) and ent[0] is fut):
-                        del table[rid]
-        fut.cancel()
+
+def _checked(traj: Any) -> JointTrajectory:
+    if not isinstance(traj, JointTrajectory):
+        raise TypeError(f"a trajectory_msgs/JointTrajectory is needed, not {type(traj).__name__}")
+    return traj
 
 
 def _inside_single_threaded(executor: Executor) -> bool:

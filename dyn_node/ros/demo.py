@@ -430,7 +430,13 @@ class Stack:
 
     def check(self, traj: DemoTrajectory, start_ns: int, timeout: float = 15.0) -> Any:
         """dyn_node's verdict (client.Verdict) on ``traj`` from ~/check_trajectory, or None."""
-        fut = self.client.check_async(self.message(traj, start_ns), timeout=timeout)
+        fut = self.client.check_async(self.message(traj, start_ns), timeout=timeout, from_current_state=True)
+        self.spin_until(fut.done, timeout)
+        return fut.result() if fut.done() and fut.exception() is None else None
+
+    def retime(self, traj: DemoTrajectory, start_ns: int, timeout: float = 30.0) -> Any:
+        """dyn_node's retiming (client.Retimed) of ``traj`` from ~/retime_trajectory, or None."""
+        fut = self.client.retime_async(self.message(traj, start_ns), timeout=timeout, from_current_state=True)
         self.spin_until(fut.done, timeout)
         return fut.result() if fut.done() and fut.exception() is None else None
 
@@ -525,6 +531,10 @@ def run_trajectory(stack: Stack, traj: DemoTrajectory, say) -> Outcome:
     if v is not None:
         o.check_verdict, o.check_feasible = _LEVELS.get(v.level, str(v.level)), v.feasible
         say(f"  ~/check_trajectory: {o.check_verdict}: {v.message}")
+        if not v.feasible:  # the fastest feasible timing along the same path
+            r = stack.retime(traj, stack.now_ns() + int(LEAD_S * 1e9))
+            say("  ~/retime_trajectory: " + ("no answer" if r is None else f"{r.duration_in:.3g} s -> "
+                f"{r.duration_out:.3g} s: {r.message}" if r.accepted else f"not retimed ({r.reason})"))
     else:
         say("  stage unavailable: check-only request (no answer on ~/check_trajectory)")
     start_ns = stack.now_ns() + int(LEAD_S * 1e9)

@@ -20,7 +20,6 @@ deserialisation as the fallback), so the recorder gets exactly the bytes taken a
 """
 from __future__ import annotations
 
-import collections
 import math
 import queue
 import struct
@@ -54,7 +53,7 @@ from dyn_node.core.contact_monitor import (RESET_MODEL, RESET_PARAMETERS, RESET_
                                            Observed, contact_settings)
 from dyn_node.core.drops import DropCounter
 from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-from dyn_node.errors import DynNodeError, EVALUATION_ERROR, InputError, STATE_ERROR, SettingsError, TrajectoryError
+from dyn_node.errors import DynNodeError, InputError, STATE_ERROR, SettingsError, TrajectoryError
 from dyn_node.core.model import RobotModel
 from dyn_node.core.model_source import build_model, limits_text
 from dyn_node.core.model_status import model_error_status, model_status, waiting_model_status
@@ -65,9 +64,10 @@ from dyn_node.ros.convert import (JointStateOut, RawTrajectory, WrenchStampedOut
                           encode_joint_trajectory_cdr,
                           fill_trajectory_effort, parse_joint_state_cdr, parse_joint_trajectory_cdr,
                           s_to_stamp, status_to_msg, stamp_to_s, to_byte, trajectory_arrays,
-                          trajectory_header_cdr, verdict_array)
+                          verdict_array)
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.qos import LATCHED_HISTORY
+from dyn_node.ros.services import QuestionServices
 from dyn_node.core.selftest import run_self_test
 from dyn_node.core.settings import MODEL_PARAMETERS, PARAMETERS, SPECS, ParamSpec, Settings, settings_from_mapping
 from dyn_node.core.status import STALE, Status
@@ -204,15 +204,6 @@ class DynNode(Node):
         # a 100,000-point trajectory never holds the executor thread while rclpy builds its objects
         self._sub_traj = self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10,
                                                   raw=True)
-        # On-demand requests (reliable, depth 10): answered in order from a queue of their own,
-        # apart from joint_trajectory's, so a planner's questions never delay a command's verdict.
-        self._sub_check = self.create_subscription(JointTrajectory, "~/check_trajectory",
-                                                   self._on_check_request, 10, raw=True)
-        self._sub_id_request = self.create_subscription(JointTrajectory, "~/inverse_dynamics_request",
-                                                        self._on_inverse_dynamics_request, 10, raw=True)
-        self._requests: collections.deque = collections.deque()
-        self._requests_cond = threading.Condition()
-        self._requests_closed = False
         self._srv_self_test = self.create_service(SelfTest, "~/self_test", self._on_self_test)
         self._diag_timer = self.create_timer(s.diagnostics_period, self._on_diagnostics)
         # ~/controller_status ticks on the joint_states thread's wait set, on this node's clock
@@ -230,9 +221,10 @@ class DynNode(Node):
         self._worker_closed = False
         self._worker = threading.Thread(target=self._feasibility_loop, name="dyn_node_feasibility", daemon=True)
         self._worker.start()
-        self._request_worker = threading.Thread(target=self._request_loop, name="dyn_node_requests",
-                                                daemon=True)
-        self._request_worker.start()
+        # questions (check, inverse dynamics, retime): services with a worker of their own, apart
+        # from joint_trajectory's, so a planner's questions never delay a command's verdict
+        self.questions = QuestionServices(self, core=lambda: self._core, start_state=self._start_state_now,
+                                          dynamics=self._worker_dynamics, failed=self._callback_failed)
 
     def _start_recording(self) -> None:
         # Imported here: the bridge declares the record.* parameters and owns the recorder thread.
@@ -245,7 +237,7 @@ class DynNode(Node):
         # Topics the node itself takes or publishes are recorded from their own callbacks and
         # publish calls, with the bytes the node saw and said (subscriptions' QoS is recorded
         # as the offered profile for inputs).
-        for endpoint in (self._sub_js, self._sub_traj, self._sub_check, self._sub_id_request,
+        for endpoint in (self._sub_js, self._sub_traj,
                          self._pub_inverse, self._pub_gravity,
                          self._pub_diag, self._pub_controller, self._pub_feasibility,
                          self._pub_traj_effort, self._pub_external_torque, self._pub_external_wrench,
@@ -824,85 +816,16 @@ class DynNode(Node):
                                                                      model.joint_names))
         self._publish_verdict(self._pub_feasibility, verdict_array(statuses, stamp, frame_id, request))
 
-    # --- on-demand requests ----------------------------------------------------------------
-    def _on_check_request(self, data: bytes) -> None:
-        # checked like joint_trajectory, from the robot's current state too
-        _, _, state = self._record_with_state(self._sub_check, data)
-        self._enqueue_request(data, on_demand.REQUEST_CHECK, state)
-
-    def _on_inverse_dynamics_request(self, data: bytes) -> None:
-        self.recording.record(self._sub_id_request, data)
-        self._enqueue_request(data, on_demand.REQUEST_INVERSE_DYNAMICS)
-
-    def _enqueue_request(self, data: bytes, request: str,
-                         start_state: feasibility.StartState | None = None) -> None:
-        """Queue a request for the request worker, or answer it at once on ~/feasibility when it
-        cannot be queued (no model yet; ``check_queue_depth`` requests waiting: ``rejected:
-        busy``), so no request goes unanswered."""
-        try:
-            core = self._core
-            receipt = self._now_s()
-            if core is None:
-                self._reject_request(data, request, TrajectoryError(
-                    "no robot model yet", code="no_model", failure_label=STATE_ERROR))
-                return
-            with self._requests_cond:
-                waiting = len(self._requests)
-                if waiting < core.settings.check_queue_depth:
-                    self._requests.append((data, receipt, core, request, start_state))
-                    self._requests_cond.notify()
-                    return
-            self._reject_request(data, request, TrajectoryError(
-                f"busy: {waiting} requests already waiting (check_queue_depth)", code="busy",
-                failure_label=EVALUATION_ERROR))
-        except Exception:  # e.g. bytes that are no JointTrajectory: counted and logged
-            self._callback_failed(f"{request} request")
-
-    def _reject_request(self, data: bytes, request: str, error: TrajectoryError) -> None:
-        stamp, frame_id = trajectory_header_cdr(data)
-        self._publish_verdict(self._pub_feasibility, verdict_array(
-            feasibility.rejected_statuses(error, self.hardware_id), stamp, frame_id, request))
-
-    def _request_loop(self) -> None:
-        while True:
-            with self._requests_cond:
-                while not self._requests and not self._requests_closed:
-                    self._requests_cond.wait()
-                if self._requests_closed:
-                    return
-                data, receipt, core, request, start_state = self._requests.popleft()
-            try:
-                if request == on_demand.REQUEST_CHECK:
-                    self._check_trajectory(data, receipt, core, request, start_state)
-                else:
-                    self._answer_inverse_dynamics(data, core)
-            except Exception:
-                self._callback_failed(f"{request} request")
-
-    def _answer_inverse_dynamics(self, data: bytes, core: _Core) -> None:
-        """The request with each point's effort set to τ(q, q̇, q̈) on ~/trajectory_effort, or a
-        rejected verdict on ~/feasibility naming what is wrong with it."""
-        msg = deserialize_message(data, JointTrajectory)
-        pts = msg.points
-        try:
-            Q, V, A = on_demand.states(core.model.joint_names, msg.joint_names, [p.positions for p in pts],
-                                       [p.velocities for p in pts], [p.accelerations for p in pts])
-            tau = on_demand.inverse_dynamics(self._worker_dynamics(core), Q, V, A)
-        except TrajectoryError as exc:
-            self._publish_verdict(self._pub_feasibility, verdict_array(
-                feasibility.rejected_statuses(exc, core.model.name, len(pts)), msg.header.stamp,
-                msg.header.frame_id, on_demand.REQUEST_INVERSE_DYNAMICS))
-            return
-        self._publish_verdict(self._pub_traj_effort, fill_trajectory_effort(msg, tau, core.model.joint_names))
-
-    def _stop_requests(self) -> None:
-        with self._requests_cond:
-            self._requests_closed = True
-            self._requests.clear()
-            self._requests_cond.notify_all()
-        worker = self._request_worker
-        if worker.is_alive() and worker is not threading.current_thread():
-            worker.join(timeout=0.5)  # a request in progress is abandoned (daemon thread)
+    def _start_state_now(self, core: _Core) -> feasibility.StartState | None:
+        """The robot's state a question received now starts from (None: none within stale_timeout)."""
+        clock = self._clock_handle
+        with self._io_lock:
+            with clock:
+                now_ns = clock.get_now().nanoseconds
+            last = self._last_state
+        if last is None or last[0].joint_names != core.model.joint_names:
+            return None
+        return feasibility.current_state(last[1:], now_ns, core.settings.stale_timeout)
 
     def destroy_node(self) -> None:
         if getattr(self, "gate", None) is not None:
@@ -919,7 +842,7 @@ class DynNode(Node):
             pass
         if self._worker.is_alive() and self._worker is not threading.current_thread():
             self._worker.join(timeout=0.5)  # a check in progress is abandoned (daemon thread)
-        self._stop_requests()
+        self.questions.close()
         with self._worker_pub_lock:
             self._worker_closed = True
         super().destroy_node()

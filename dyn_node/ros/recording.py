@@ -29,7 +29,10 @@ from dyn_node.ros.params import parameter_descriptor
 from dyn_node.core.status import ERROR, NAME_PREFIX, OK, WARN, Status
 
 STATUS_NAME = NAME_PREFIX + "recorder"
-DEFAULT_TOPICS = ["joint_states", "joint_trajectory", "~/check_trajectory", "~/inverse_dynamics_request",
+# the question services' introspection events: each request and response with contents
+SERVICE_EVENT_TOPICS = ["~/check_trajectory/_service_event", "~/compute_inverse_dynamics/_service_event",
+                        "~/retime_trajectory/_service_event"]
+DEFAULT_TOPICS = ["joint_states", "joint_trajectory", *SERVICE_EVENT_TOPICS,
                   "robot_description", "/diagnostics",
                   "~/gravity_torque", "~/inverse_dynamics", "~/trajectory_effort",
                   "~/feasibility", "~/controller_status",

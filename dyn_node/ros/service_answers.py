@@ -1,0 +1,167 @@
+"""The answers of dyn_node's question services, as messages: request in, response filled.
+
+The numbers come from the same core functions ``dyn-check`` and the audit use
+(:func:`dyn_node.core.on_demand.check`, :func:`~dyn_node.core.on_demand.inverse_dynamics`, the
+retimer); this module only converts between ``dyn_node_interfaces`` messages and arrays. No
+threads, no node: :mod:`dyn_node.ros.services` calls these on its worker.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+from builtin_interfaces.msg import Duration
+from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from dyn_node.core import feasibility, on_demand
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.settings import Settings
+from dyn_node.core.trajectory import Trajectory
+from dyn_node.errors import TrajectoryError
+from dyn_node.ros.convert import status_to_msg, trajectory_arrays
+
+#: reasons of a response that is not accepted, beyond the TrajectoryError codes (non_finite,
+#: unknown_joints, empty_points, ...)
+BUSY, NO_MODEL, RETIMER_UNAVAILABLE, INTERNAL_ERROR, SHUTTING_DOWN = (
+    "busy", "no_model", "retimer_unavailable", "internal_error", "shutting_down")
+
+
+def reject(response: Any, reason: str, message: str) -> Any:
+    """``response`` not accepted, with the reason code and (where it has one) the message."""
+    response.accepted = False
+    response.reason = reason
+    if hasattr(response, "message"):
+        response.message = message
+    return response
+
+
+def _start_fields(response: Any, joint_names: Sequence[str],
+                  start: feasibility.StartState | None) -> None:
+    if start is None:
+        response.start_state = JointState()
+        response.start_state_age = math.nan
+        return
+    response.start_state = JointState(name=list(joint_names),
+                                      position=np.asarray(start.positions, dtype=float).tolist(),
+                                      velocity=np.asarray(start.velocities, dtype=float).tolist())
+    response.start_state_age = float(start.age_s)
+
+
+def _duration(t: float) -> Duration:
+    sec = math.floor(t)
+    nsec = int(round((t - sec) * 1e9))
+    if nsec >= 1_000_000_000:
+        sec, nsec = sec + 1, nsec - 1_000_000_000
+    return Duration(sec=int(sec), nanosec=nsec)
+
+
+def with_effort(traj: JointTrajectory, effort_model_order: np.ndarray,
+                model_joints: Sequence[str]) -> JointTrajectory:
+    """A copy of ``traj`` whose points carry the N×nv model-order efforts in its joint order."""
+    order = [list(model_joints).index(n) for n in traj.joint_names]
+    eff = np.ascontiguousarray(np.asarray(effort_model_order, dtype=float)[:, order])
+    points = [JointTrajectoryPoint(positions=p.positions, velocities=p.velocities,
+                                   accelerations=p.accelerations, effort=row.tolist(),
+                                   time_from_start=p.time_from_start)
+              for p, row in zip(traj.points, eff)]
+    return JointTrajectory(header=traj.header, joint_names=list(traj.joint_names), points=points)
+
+
+def trajectory_msg(traj: Trajectory, joint_names: Sequence[str], header: Any) -> JointTrajectory:
+    """A model-order :class:`Trajectory` as a JointTrajectory (velocities and accelerations when
+    it has them)."""
+    points = []
+    for i, t in enumerate(np.asarray(traj.times, dtype=float)):
+        p = JointTrajectoryPoint(positions=traj.positions[i].tolist(), time_from_start=_duration(t))
+        if traj.velocities is not None:
+            p.velocities = traj.velocities[i].tolist()
+        if traj.accelerations is not None:
+            p.accelerations = traj.accelerations[i].tolist()
+        points.append(p)
+    return JointTrajectory(header=header, joint_names=list(joint_names), points=points)
+
+
+def answer_check(dynamics: Dynamics, settings: Settings, request: CheckTrajectory.Request,
+                 response: CheckTrajectory.Response,
+                 start: feasibility.StartState | None) -> CheckTrajectory.Response:
+    """The verdict on ``request.trajectory`` (from ``start`` when given), as ``dyn-check``'s."""
+    model = dynamics.model
+    names, times, P, V, A = trajectory_arrays(request.trajectory)
+    outcome = on_demand.check(dynamics, settings, names, times, P, V, A, start=start,
+                              start_unknown=on_demand.question_start_unknown(request.from_current_state))
+    response.statuses = [status_to_msg(s) for s in
+                         on_demand.with_request(outcome.statuses, on_demand.REQUEST_CHECK)]
+    _start_fields(response, model.joint_names, start)
+    if outcome.error is not None:
+        return reject(response, outcome.error.code or "invalid", str(outcome.error))
+    r = outcome.result
+    response.accepted = True
+    response.reason = ""
+    response.feasible = bool(r.feasible)
+    response.time_scale = float(r.time_scale)
+    response.worst_joint, response.worst_constraint = r.worst_joint, r.worst_constraint
+    response.worst_ratio = float(r.worst_ratio)
+    response.first_violation_time = float(r.first_violation_time_s)
+    response.binding_joint, response.binding_constraint = r.time_scale_joint, r.time_scale_constraint
+    response.message = r.message
+    response.start_segment = r.start_segment
+    response.effort = with_effort(request.trajectory, r.waypoint_effort, model.joint_names)
+    return response
+
+
+def answer_inverse_dynamics(dynamics: Dynamics, request: ComputeInverseDynamics.Request,
+                            response: ComputeInverseDynamics.Response) -> ComputeInverseDynamics.Response:
+    """τ(q, q̇, q̈) of each state, exactly as the check computes its sample torques."""
+    model = dynamics.model
+    pts = request.states.points
+    try:
+        Q, V, A = on_demand.states(model.joint_names, request.states.joint_names,
+                                   [p.positions for p in pts], [p.velocities for p in pts],
+                                   [p.accelerations for p in pts])
+        tau = on_demand.inverse_dynamics(dynamics, Q, V, A)
+    except TrajectoryError as exc:
+        return reject(response, exc.code or "invalid", str(exc))
+    response.accepted = True
+    response.reason = ""
+    response.effort = with_effort(request.states, tau, model.joint_names)
+    return response
+
+
+def answer_retime(dynamics: Dynamics, settings: Settings, request: RetimeTrajectory.Request,
+                  response: RetimeTrajectory.Response,
+                  start: feasibility.StartState | None) -> RetimeTrajectory.Response:
+    """The fastest trajectory along the request's path within every limit (the retimer's)."""
+    model = dynamics.model
+    _start_fields(response, model.joint_names, start)
+    names, times, P, V, A = trajectory_arrays(request.trajectory)
+    try:
+        traj = on_demand.validated(model.joint_names, names, times, P, V, A)
+    except TrajectoryError as exc:  # a malformed request says what is wrong, retimer or not
+        return reject(response, exc.code or "invalid", str(exc))
+    try:  # imported here: the service answers (not accepted) when the retimer is not there
+        from dyn_node.retime import retime
+    except ImportError as exc:
+        return reject(response, RETIMER_UNAVAILABLE, f"the retimer is not available: {exc}")
+    try:
+        result = retime(dynamics, traj, start=start, feasibility=on_demand.options_for(settings))
+    except TrajectoryError as exc:
+        return reject(response, exc.code or "invalid", str(exc))
+    response.accepted = True
+    response.reason = ""
+    response.feasible = bool(result.feasible)
+    if result.trajectory is not None:
+        response.trajectory = trajectory_msg(result.trajectory, model.joint_names,
+                                             request.trajectory.header)
+    response.duration_in = float(result.duration_in)
+    response.duration_out = float(result.duration_out)
+    response.duration_uniform = float(result.duration_uniform)
+    response.lower_bound = float(result.lower_bound)
+    response.message = result.message
+    response.blocked = result.blocked
+    if result.check is not None:
+        response.statuses = [status_to_msg(s) for s in on_demand.with_request(
+            result.check.statuses(model.name), on_demand.REQUEST_RETIME)]
+    return response

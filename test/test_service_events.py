@@ -1,0 +1,214 @@
+"""The question services' introspection events in a bag: recorded by dyn_node's recorder by
+default, with schemas built from the .srv as rosbag2 builds them, decoded by the official `mcap`
+reader (mcap-ros2-support) and by `rosbags`, and re-checked by dyn-audit. A bag whose only inputs
+are service calls audits with exit 0, infeasible questions included.
+
+One node process (Panda, recording) serves the module; the bag holds nothing but the calls."""
+from __future__ import annotations
+
+import json
+import math
+import re
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+
+from conftest import REPO, ChildProcess, Collected, Spinner, child_env, python_cmd
+from dyn_node.bag import msgdefs
+from dyn_node.ros.client import states_message, trajectory_message
+from dyn_node.ros.demo import READY, demo_trajectories
+
+NAMES = [f"panda_joint{i}" for i in range(1, 8)]
+SERVICES = ("check_trajectory", "compute_inverse_dynamics", "retime_trajectory")
+EVENTS = {f"/dyn_node/{s}/_service_event" for s in SERVICES}
+QUESTION_TYPES = {f"/dyn_node/{s}/_service_event": t for s, t in
+                  zip(SERVICES, ("CheckTrajectory", "ComputeInverseDynamics", "RetimeTrajectory"))}
+
+
+@pytest.fixture(scope="module")
+def bag(module_ros_context, tmp_path_factory) -> Path:
+    """The bag of a node that was only asked questions (one of each kind, some refused)."""
+    bag_dir = tmp_path_factory.mktemp("service_events")
+    cp = ChildProcess(python_cmd("dyn_node.ros.node", "--ros-args", "-p", "robot_model:=panda",
+                                 "-p", "record.enabled:=true", "-p", f"record.directory:={bag_dir}"),
+                      env=child_env(), cwd=str(REPO))
+    node = Node("service_events_test", context=module_ros_context)
+    spinner = Spinner(module_ros_context, [node])
+    got = Collected()
+    try:
+        clis = {s: node.create_client(t, f"/dyn_node/{s}") for s, t in
+                zip(SERVICES, (CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory))}
+        up = got.wait(lambda: cp.proc.poll() is not None or (
+            all(c.service_is_ready() for c in clis.values())
+            and all(node.count_subscribers(t) for t in EVENTS)), 60.0)
+        assert cp.proc.poll() is None and up, "dyn_node did not come up (or its recorder did not listen)"
+
+        def call(name: str, request):
+            fut = clis[name].call_async(request)
+            done = threading.Event()
+            fut.add_done_callback(lambda _f: done.set())
+            assert done.wait(30), f"no response from {name}"
+            return fut.result()
+
+        comfortable, aggressive = demo_trajectories(short=True)
+        z = np.zeros((len(aggressive.times), 7))
+        shake = trajectory_message(NAMES, aggressive.times, aggressive.positions, z, z)
+        assert not call("check_trajectory", CheckTrajectory.Request(trajectory=shake)).feasible
+        late = trajectory_message(NAMES, [t + 1.0 for t in comfortable.times], comfortable.positions)
+        assert call("check_trajectory", CheckTrajectory.Request(trajectory=late, from_current_state=True)).accepted
+        bad = trajectory_message(NAMES, comfortable.times, comfortable.positions)
+        bad.points[1].positions[0] = math.nan
+        assert call("check_trajectory", CheckTrajectory.Request(trajectory=bad)).reason == "non_finite"
+        q = np.array([READY, [0.3, 0.2, -0.1, -1.5, 0.2, 1.0, 0.1]])
+        assert call("compute_inverse_dynamics",
+                    ComputeInverseDynamics.Request(states=states_message(NAMES, q, q * 0.5, q * 0.1))).accepted
+        call("retime_trajectory", RetimeTrajectory.Request(trajectory=shake))
+        stop = node.create_client(Trigger, "/dyn_node/stop_recording")
+        assert stop.wait_for_service(timeout_sec=10)
+        fut = stop.call_async(Trigger.Request())
+        done = threading.Event()
+        fut.add_done_callback(lambda _f: done.set())
+        assert done.wait(30) and fut.result().success, fut.result()
+        return Path(fut.result().message)
+    finally:
+        spinner.stop()
+        node.destroy_node()
+        cp.stop()
+
+
+def _mcap_files(bag: Path) -> list[Path]:
+    return sorted(bag.glob("*.mcap")) if bag.is_dir() else [bag]
+
+
+def _events(bag: Path) -> dict[str, list[tuple[Any, Any]]]:
+    """Each event topic's messages, decoded twice from the schema embedded in the bag (read with
+    the official mcap reader): by mcap_ros2's dynamic decoder and by rosbags' typesys."""
+    from mcap.reader import make_reader
+    from mcap_ros2._dynamic import generate_dynamic
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    out: dict[str, list[tuple[Any, Any]]] = {}
+    for f in _mcap_files(bag):
+        with open(f, "rb") as fh:
+            for schema, channel, msg in make_reader(fh).iter_messages(topics=sorted(EVENTS)):
+                assert (schema.name, schema.encoding) == (
+                    f"dyn_node_interfaces/srv/{QUESTION_TYPES[channel.topic]}_Event", "ros2msg")
+                text = schema.data.decode()
+                # mcap_ros2 0.6 accepts no '_' in a type name: renamed (CDR carries no names)
+                plain = re.sub(r"_(Request|Response|Event)\b", r"\1", text)
+                mc = generate_dynamic(schema.name.replace("_Event", "Event"), plain)
+                mc_ev = mc[schema.name.replace("_Event", "Event")](msg.data)
+                ts = get_typestore(Stores.EMPTY)
+                types = get_types_from_msg(text, schema.name)
+                ts.register(types)
+                rb_ev = ts.deserialize_cdr(msg.data, next(k for k in types if k.endswith("_Event")))
+                out.setdefault(channel.topic, []).append((mc_ev, rb_ev))
+    return out
+
+
+def test_events_decode_with_mcap_and_rosbags_alike(bag):
+    events = _events(bag)
+    assert set(events) == EVENTS
+    check = events["/dyn_node/check_trajectory/_service_event"]
+    kinds = [mc.info.event_type for mc, _ in check]
+    # per call: request received (1), response sent (2); 3 calls
+    assert kinds.count(1) == 3 and kinds.count(2) == 3 and [rb.info.event_type for _, rb in check] == kinds
+    for mc, rb in check:
+        assert mc.info.sequence_number == rb.info.sequence_number
+        assert len(mc.request) == len(rb.request) and len(mc.response) == len(rb.response)
+    responses = [(mc.response[0], rb.response[0]) for mc, rb in check if mc.info.event_type == 2]
+    assert [m.reason for m, _ in responses] == [r.reason for _, r in responses] == ["", "", "non_finite"]
+    m, r = responses[0]
+    assert m.accepted and not m.feasible and r.accepted and not r.feasible
+    assert m.message == r.message and m.time_scale == r.time_scale and m.worst_joint == r.worst_joint
+    n = len(demo_trajectories(short=True)[1].times)
+    assert len(m.effort.points) == len(r.effort.points) == n
+    np.testing.assert_array_equal(np.array([list(p.effort) for p in m.effort.points]),
+                                  np.array([p.effort for p in r.effort.points]))
+    # the start state the second call was checked from travels in its response
+    assert list(responses[1][0].start_state.name) == NAMES or responses[1][0].start_state.name == []
+    ids = events["/dyn_node/compute_inverse_dynamics/_service_event"]
+    req = next(mc.request[0] for mc, _ in ids if mc.info.event_type == 1)
+    resp = next(rb.response[0] for _, rb in ids if rb.info.event_type == 2)
+    assert list(req.states.joint_names) == NAMES and resp.accepted
+    assert np.asarray(resp.effort.points[0].effort).shape == (7,)
+
+
+def test_event_channels_carry_rosidls_type_hash(bag):
+    from mcap.reader import make_reader
+
+    for f in _mcap_files(bag):
+        with open(f, "rb") as fh:
+            chans = make_reader(fh).get_summary().channels.values()
+        for c in chans:
+            if c.topic in EVENTS:
+                want = msgdefs.type_description_hash(f"dyn_node_interfaces/srv/{QUESTION_TYPES[c.topic]}_Event")
+                share = Path(sys.prefix) / "share/dyn_node_interfaces/srv" / f"{QUESTION_TYPES[c.topic]}.json"
+                hashes = {h["type_name"]: h["hash_string"] for h in json.loads(share.read_text())["type_hashes"]}
+                assert c.metadata["topic_type_hash"] == want == \
+                    hashes[f"dyn_node_interfaces/srv/{QUESTION_TYPES[c.topic]}_Event"]
+
+
+def test_a_bag_of_questions_only_audits_with_exit_0_and_each_answer_identical(bag, tmp_path):
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+
+    res = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "audit"), robot_model="panda",
+                                 report=False))
+    rec = res.record
+    assert res.exit_code == 0, rec["verdict"]
+    rc = rec["outputs"]["recheck"]
+    check = rc["/dyn_node/check_trajectory/_service_event"]
+    # three calls re-answered from the bag alone, identical, the refused one included
+    assert check["matched"] == 3 and check["unmatched"] == 0 and check["unanswered"] == 0
+    assert check["identical"], check
+    ids = rc["/dyn_node/compute_inverse_dynamics/_service_event"]
+    assert ids["matched"] == 1 and ids["identical"], ids
+    q = rec["outputs"]["questions"]
+    assert q["check"]["requests"] == 3 and q["check"]["infeasible"] >= 1
+    assert q["check"]["not_accepted"] == {"non_finite": 1}
+    # a question answered "infeasible" is not a violation of the run
+    assert rec["outputs"]["trajectories_infeasible_or_rejected"] == 0
+    assert rec["verdict"]["result"] == "feasible"
+
+
+def test_a_tampered_answer_is_caught(bag):
+    """The re-check can fail: one recorded response changed after the fact (its time_scale, or
+    one torque) is no longer identical to the re-answer, the others still are."""
+    from dyn_node.audit.service_replay import RESPONSE_SENT, ServiceReplay, service_role
+    from dyn_node.bag.reader import BagReader, MessageDecoder
+    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.model import load_model
+    from dyn_node.core.settings import Settings
+
+    class Tampering(MessageDecoder):
+        def __init__(self, field: str):
+            super().__init__()
+            self.field, self.done = field, False
+
+        def decode(self, channel, data):
+            ev = super().decode(channel, data)
+            if (not self.done and channel.schema_name.endswith("CheckTrajectory_Event")
+                    and ev.info.event_type == RESPONSE_SENT and ev.response[0].accepted):
+                if self.field == "time_scale":
+                    ev.response[0].time_scale = np.nextafter(ev.response[0].time_scale, 0.0)
+                else:
+                    ev.response[0].effort.points[2].effort[3] += 1e-12
+                self.done = True
+            return ev
+
+    dyn, settings = Dynamics(load_model(builtin="panda")), Settings(robot_model="panda")
+    for field in ("time_scale", "effort"):
+        replay, decoder = ServiceReplay(), Tampering(field)
+        for m in BagReader(str(bag)).messages():
+            if service_role(m.topic, m.channel.schema_name):
+                replay.feed(m, decoder, dyn, settings)
+        check, _ = replay._own["/dyn_node/check_trajectory/_service_event"]
+        assert decoder.done and check.matched == 3
+        assert not check.to_dict()["identical"] and 0.0 < check.max_diff < 1e-6, (field, check.to_dict())

@@ -1,0 +1,478 @@
+"""dyn_node's question services through a real dyn_node in another process:
+~/check_trajectory, ~/compute_inverse_dynamics and ~/retime_trajectory with the generated
+dyn_node_interfaces types (a plain rclpy client and DynClient), the request queue, dyn-check
+against the node, and the recorded service events.
+
+One node process (Panda, check_queue_depth 3, recording) serves the whole module."""
+from __future__ import annotations
+
+import importlib.util
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from conftest import REPO, ChildProcess, Collected, Spinner, child_env, kv, python_cmd
+from dyn_node.audit import check as check_cli
+from dyn_node.core import feasibility, on_demand
+from dyn_node.ros.client import (BlockingCallError, DynClient, NotRunningError, RequestRejected, Verdict,
+                                 states_message, trajectory_message)
+from dyn_node.ros.convert import status_to_msg
+from dyn_node.ros.demo import READY, demo_trajectories
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.model import load_model
+from dyn_node.core.settings import Settings
+from dyn_node.audit.trajectory_files import read_trajectory
+
+MODEL = load_model(builtin="panda")
+NAMES = list(MODEL.joint_names)
+DYN = Dynamics(MODEL)
+SETTINGS = Settings(robot_model="panda")
+EXAMPLES = REPO / "examples" / "trajectories"
+LATCHED = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+SUMMARY = "dyn_node: trajectory feasibility"
+HAS_RETIMER = importlib.util.find_spec("dyn_node.retime") is not None
+
+
+@pytest.fixture(scope="module")
+def bag_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("services_bags")
+
+
+@pytest.fixture(scope="module")
+def node_process(bag_dir):
+    cp = ChildProcess(python_cmd("dyn_node.ros.node", "--ros-args", "-p", "robot_model:=panda",
+                                 "-p", "check_queue_depth:=3", "-p", "record.enabled:=true",
+                                 "-p", f"record.directory:={bag_dir}"), env=child_env(), cwd=str(REPO))
+    yield cp
+    cp.stop()
+
+
+class Rig:
+    """A test node with plain rclpy service clients (the generated types), raw publishers and
+    collectors on dyn_node's topics, and a DynClient."""
+
+    def __init__(self, ctx, node_process):
+        self.proc = node_process
+        self.node = Node("services_test", context=ctx)
+        self.got = Collected()
+        n = self.node
+        self.srv_check = n.create_client(CheckTrajectory, "/dyn_node/check_trajectory")
+        self.srv_id = n.create_client(ComputeInverseDynamics, "/dyn_node/compute_inverse_dynamics")
+        self.srv_retime = n.create_client(RetimeTrajectory, "/dyn_node/retime_trajectory")
+        self.pub_exec = n.create_publisher(JointTrajectory, "/joint_trajectory", 10)
+        self.pub_js = n.create_publisher(JointState, "/joint_states", 10)
+        n.create_subscription(DiagnosticArray, "/dyn_node/feasibility", self.got.collector("feas"), LATCHED)
+        n.create_subscription(JointTrajectory, "/dyn_node/trajectory_effort", self.got.collector("effort"), 100)
+        n.create_subscription(DiagnosticStatus, "/dyn_node/controller_status",
+                              self.got.collector("ctrl", stamp_receipt=True), 100)
+        self.client = DynClient(n)
+        self.spinner = Spinner(ctx, [n])
+        def up() -> bool:   # discovered, or the process is gone (no point waiting on)
+            return node_process.proc.poll() is not None or bool(
+                self.client.ready() and self.pub_exec.get_subscription_count()
+                and self.pub_js.get_subscription_count()
+                # the recorder records the service events: wait until it listens to them
+                and all(n.count_subscribers(f"/dyn_node/{s}/_service_event") for s in
+                        ("check_trajectory", "compute_inverse_dynamics", "retime_trajectory")))
+
+        came_up = self.got.wait(up, 60.0)
+        assert node_process.proc.poll() is None, node_process.stop()
+        assert came_up, "dyn_node did not come up within 60 s"
+
+    def call(self, cli, request, timeout: float = 30.0):
+        """The response to one call of a plain rclpy client (spun by the rig's spinner)."""
+        fut = cli.call_async(request)
+        done = threading.Event()
+        fut.add_done_callback(lambda _f: done.set())
+        assert done.wait(timeout), f"no response within {timeout} s"
+        return fut.result()
+
+    def answer(self, key: str, frame_id: str, timeout: float = 30.0):
+        """The first collected message on ``key`` whose header frame_id is ``frame_id``."""
+        def find():
+            return next((m for m in self.got.got[key] if m.header.frame_id == frame_id), None)
+        assert self.got.wait(lambda: find() is not None, timeout), (
+            f"no {key} answer for {frame_id}; got {[m.header.frame_id for m in self.got.got[key]][-20:]}")
+        return find()
+
+    def close(self) -> None:
+        self.spinner.stop()
+        self.client.destroy()
+        self.node.destroy_node()
+
+
+@pytest.fixture(scope="module")
+def rig(module_ros_context, node_process):
+    r = Rig(module_ros_context, node_process)
+    yield r
+    r.close()
+
+
+def summary_values(arr: DiagnosticArray) -> tuple[dict[str, str], DiagnosticStatus]:
+    st = next(s for s in arr.status if s.name == SUMMARY)
+    return kv(st), st
+
+
+def reach(scale: float = 1.0, stamp: Time | None = None, frame_id: str = "") -> JointTrajectory:
+    comfortable, _ = demo_trajectories(short=True)
+    z = np.zeros((len(comfortable.times), 7))
+    msg = trajectory_message(NAMES, [t * scale for t in comfortable.times], comfortable.positions, z, z)
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    return msg
+
+
+def local_check(msg: JointTrajectory) -> on_demand.CheckOutcome:
+    """What the node must answer, from the pure core on the message's own numbers."""
+    pts = msg.points
+    return on_demand.check(DYN, SETTINGS, list(msg.joint_names),
+                           [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
+                           [list(p.positions) for p in pts], [list(p.velocities) for p in pts],
+                           [list(p.accelerations) for p in pts],
+                           start_unknown=on_demand.START_NOT_REQUESTED)
+
+
+def efforts_of(msg: JointTrajectory, names=NAMES) -> np.ndarray:
+    order = [list(msg.joint_names).index(n) for n in names]
+    return np.array([[p.effort[i] for i in order] for p in msg.points])
+
+
+def _timeless(st: DiagnosticStatus) -> dict[str, str]:
+    return {k: v for k, v in kv(st).items() if k != "compute_time_s"}
+
+
+def test_generated_client_gets_the_cores_answer_bit_for_bit(rig):
+    # a plain rclpy client with the generated types, three different trajectories in flight
+    msgs = [reach(scale, Time(sec=100 + i, nanosec=7), f"req-{i}") for i, scale in enumerate((1.0, 0.5, 2.0))]
+    futs = [rig.srv_check.call_async(CheckTrajectory.Request(trajectory=m)) for m in msgs]
+    assert rig.got.wait(lambda: all(f.done() for f in futs), 60)
+    for msg, fut in zip(msgs, futs):
+        r = fut.result()
+        want = local_check(msg)
+        w = want.result
+        assert r.accepted and r.reason == ""
+        assert r.feasible == w.feasible and r.message == w.message
+        assert r.time_scale == w.time_scale and r.worst_ratio == w.worst_ratio
+        assert (r.worst_joint, r.worst_constraint) == (w.worst_joint, w.worst_constraint)
+        assert (r.binding_joint, r.binding_constraint) == (w.time_scale_joint, w.time_scale_constraint)
+        assert r.first_violation_time == w.first_violation_time_s or (
+            math.isnan(r.first_violation_time) and math.isnan(w.first_violation_time_s))
+        np.testing.assert_array_equal(efforts_of(r.effort), w.waypoint_effort)
+        assert (r.effort.header.stamp.sec, r.effort.header.frame_id) == (msg.header.stamp.sec, msg.header.frame_id)
+        # the statuses are ~/feasibility's, with request "check"
+        # the statuses are ~/feasibility's, with request "check" (all but the time it took)
+        want_st = [status_to_msg(x) for x in on_demand.with_request(want.statuses, "check")]
+        assert [(x.name, x.message, _timeless(x)) for x in r.statuses] == \
+            [(x.name, x.message, _timeless(x)) for x in want_st]
+        assert kv(r.statuses[0])["request"] == "check"
+        assert r.start_state.name == [] and math.isnan(r.start_state_age)
+    assert len({f.result().time_scale for f in futs}) == 3  # three different answers: no mix-up
+
+
+def _publish_joint_states(rig, stop: threading.Event) -> None:
+    while not stop.is_set():
+        js = JointState(name=NAMES, position=list(READY), velocity=[0.0] * 7)
+        ns = time.time_ns()
+        js.header.stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
+        rig.pub_js.publish(js)
+        stop.wait(0.01)
+
+
+def _ctrl_after(rig, t0: float) -> list[dict[str, str]]:
+    return [kv(m) for t, m in rig.got.got["ctrl"] if t > t0]
+
+
+def test_questions_are_not_published_and_leave_controller_status_alone(rig):
+    stop = threading.Event()
+    pub = threading.Thread(target=_publish_joint_states, args=(rig, stop), daemon=True)
+    pub.start()
+    try:
+        t0 = time.monotonic()
+        assert rig.got.wait(lambda: any(v["state"] == "idle" for v in _ctrl_after(rig, t0)), 20)
+        # a question: answered in the response only, never on ~/feasibility or ~/trajectory_effort
+        ns = time.time_ns() + 200_000_000
+        t_sent = time.monotonic()
+        r = rig.call(rig.srv_check, CheckTrajectory.Request(
+            trajectory=reach(0.5, Time(sec=ns // 10**9, nanosec=ns % 10**9), "ctrl-check")))
+        assert r.accepted
+        end = t_sent + 0.2 + 0.8 + 0.3  # until well after the trajectory's last point
+        assert rig.got.wait(lambda: any(t > end for t, _ in rig.got.got["ctrl"]), 20)
+        assert {(v["state"], v["trajectory_active"]) for v in _ctrl_after(rig, t_sent)} == {("idle", "false")}
+        # an execution afterwards: its verdict is published (so the check's would have come first)
+        ns = time.time_ns() + 200_000_000
+        t_sent = time.monotonic()
+        rig.pub_exec.publish(reach(0.5, Time(sec=ns // 10**9, nanosec=ns % 10**9), "ctrl-execute"))
+        assert summary_values(rig.answer("feas", "ctrl-execute"))[0]["request"] == "execute"
+        rig.answer("effort", "ctrl-execute")
+        assert not [m for m in rig.got.got["feas"] + rig.got.got["effort"] if m.header.frame_id == "ctrl-check"]
+        end = t_sent + 0.2 + 0.8 + 0.3
+        assert rig.got.wait(lambda: any(t > end for t, _ in rig.got.got["ctrl"]), 20)
+        seen = {(v["state"], v["trajectory_active"]) for v in _ctrl_after(rig, t_sent)}
+        assert ("tracking", "true") in seen or ("deviating", "true") in seen, seen
+        # from_current_state: the segment from the robot's state (READY here) to a first point
+        # 0.5 s ahead is checked, and the state used comes back in the response
+        late = reach()
+        for p in late.points:
+            p.time_from_start.sec += 1
+        r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=late, from_current_state=True))
+        assert r.accepted and r.start_segment == feasibility.START_CHECKED, r.start_segment
+        assert list(r.start_state.name) == NAMES and list(r.start_state.position) == list(READY)
+        assert 0.0 <= r.start_state_age < SETTINGS.stale_timeout
+        start = feasibility.StartState(np.array(READY), np.zeros(7), r.start_state_age)
+        pts = late.points
+        want = on_demand.check(DYN, SETTINGS, NAMES, [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9
+                                                       for p in pts], [list(p.positions) for p in pts],
+                               [list(p.velocities) for p in pts], [list(p.accelerations) for p in pts],
+                               start=start).result
+        assert r.message == want.message and r.time_scale == want.time_scale
+        np.testing.assert_array_equal(efforts_of(r.effort), want.waypoint_effort)
+        # without it, the same trajectory's start segment is not checked, and says why
+        r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=late))
+        assert on_demand.START_NOT_REQUESTED in r.start_segment and not r.start_state.name
+    finally:
+        stop.set()
+        pub.join()
+
+
+def test_a_burst_beyond_the_queue_is_answered_busy_at_once(rig):
+    # long enough that the worker is still on the first when the rest arrive; depth is 3
+    n_pts = 400
+    t = np.linspace(0.0, 40.0, n_pts)
+    P = np.array(READY) + 0.2 * np.sin(t[:, None] * np.arange(1, 8) * 0.1)
+    msg = trajectory_message(NAMES, t, P)
+    futs = [rig.srv_check.call_async(CheckTrajectory.Request(trajectory=msg)) for _ in range(9)]
+    assert rig.got.wait(lambda: all(f.done() for f in futs), 120), "a call was left without a response"
+    rs = [f.result() for f in futs]
+    busy = [r for r in rs if r.reason == "busy"]
+    checked = [r for r in rs if r.accepted]
+    # at least the 3 a full queue holds are checked (4 once the worker has taken the first)
+    assert busy and len(checked) >= 3, [(r.accepted, r.reason) for r in rs]
+    assert len(busy) + len(checked) == len(rs)
+    assert all(not r.accepted and not r.feasible and "check_queue_depth" in r.message for r in busy)
+    want = local_check(msg).result
+    assert all(r.message == want.message and r.time_scale == want.time_scale for r in checked)
+
+
+@pytest.mark.parametrize("case", ["nan", "unknown_joint", "empty", "one_point_nan", "bad_times"])
+def test_malformed_requests_are_answered_with_the_reason(rig, case):
+    msg = reach()
+    if case == "nan":
+        msg.points[1].positions[3] = math.nan
+    elif case == "unknown_joint":
+        msg.joint_names[6] = "nope"
+    elif case == "empty":
+        msg.points = []
+    elif case == "one_point_nan":
+        msg.points = msg.points[:1]
+        msg.points[0].velocities[0] = math.inf
+    else:
+        msg.points[2].time_from_start = msg.points[1].time_from_start
+    want = local_check(msg)
+    assert want.error is not None
+    code = want.error.code
+    r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=msg))
+    assert (r.accepted, r.reason, r.feasible) == (False, code, False)
+    assert r.message == str(want.error) and r.statuses[0].message == want.statuses[0].message
+    r = rig.call(rig.srv_retime, RetimeTrajectory.Request(trajectory=msg))
+    assert (r.accepted, r.reason, r.feasible) == (False, code, False)
+    if case in ("nan", "unknown_joint", "empty"):  # states: no times to be wrong
+        r = rig.call(rig.srv_id, ComputeInverseDynamics.Request(states=msg))
+        want_id = {"nan": "non_finite", "unknown_joint": "unknown_joints", "empty": "empty_points"}[case]
+        assert (r.accepted, r.reason) == (False, want_id) and r.message and not r.effort.points
+
+
+def test_retime_service(rig):
+    if not HAS_RETIMER:
+        r = rig.call(rig.srv_retime, RetimeTrajectory.Request(trajectory=reach(0.3)))
+        assert (r.accepted, r.reason) == (False, "retimer_unavailable")
+        pytest.skip("dyn_node.retime is not importable here: the service answers retimer_unavailable")
+    from dyn_node.retime import retime
+    msg = reach(0.3)  # too fast as timed: the retiming must slow it down
+    got = rig.client.retime(msg, timeout=60)
+    pts = msg.points
+    traj = on_demand.validated(NAMES, NAMES, [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
+                               [list(p.positions) for p in pts], [list(p.velocities) for p in pts],
+                               [list(p.accelerations) for p in pts])
+    want = retime(DYN, traj, start=None, feasibility=on_demand.options_for(SETTINGS))
+    assert got.accepted and got.feasible == want.feasible
+    assert (got.duration_in, got.duration_out, got.duration_uniform, got.lower_bound) == (
+        want.duration_in, want.duration_out, want.duration_uniform, want.lower_bound)
+    assert got.message == want.message
+    if want.trajectory is not None:
+        out = np.array([list(p.positions) for p in got.trajectory.points])
+        np.testing.assert_array_equal(out, want.trajectory.positions)
+        assert got.verdict is not None and got.verdict.feasible
+
+
+def test_client_verdict_equals_the_cores(rig):
+    _, aggressive = demo_trajectories(short=True)
+    z = np.zeros((len(aggressive.times), 7))
+    msg = trajectory_message(NAMES, aggressive.times, aggressive.positions, z, z)
+    v = rig.client.check(msg, timeout=30)
+    want = local_check(msg).result
+    assert not v.feasible and v.level == 2 and not v.rejected and v.request == "check"
+    assert v.message == want.message
+    assert v.time_scale == want.time_scale
+    assert (v.binding_joint, v.binding_constraint) == (want.time_scale_joint, want.time_scale_constraint)
+    np.testing.assert_array_equal(v.effort, want.waypoint_effort)
+    assert (v.worst_joint, v.worst_constraint) == (want.worst_joint, want.worst_constraint)
+    assert v.worst_ratio == want.worst_ratio
+    assert v.first_violation_time_s == want.first_violation_time_s
+    assert {(x.joint, x.kind) for x in v.violations} == {(x.joint, x.kind) for x in want.violations}
+    for x in v.violations:
+        assert x.ratio == want.per_joint[x.joint][x.kind]["ratio"] > 1.0
+    assert v.ratios["panda_joint2"]["effort"] == want.per_joint["panda_joint2"]["effort"]["ratio"]
+    # a rejected one: the node's reason, as a Verdict
+    bad = reach()
+    bad.points[1].positions[3] = math.nan
+    r = rig.client.check(bad, timeout=30)
+    assert r.rejected and r.reason == "non_finite" and not r.feasible
+    assert r.message == local_check(bad).statuses[0].message
+
+
+def test_client_efforts_match_pinocchio(rig):
+    q = np.array([READY, [0.3, 0.2, -0.1, -1.5, 0.2, 1.0, 0.1]])
+    v = np.array([[0.0] * 7, [0.5, -0.4, 0.3, 0.2, -0.1, 0.6, -0.7]])
+    a = np.array([[0.0] * 7, [1.0, 2.0, -1.0, 0.5, 0.0, -2.0, 3.0]])
+    rev = NAMES[::-1]
+    got = rig.client.efforts(states_message(rev, q[:, ::-1], v[:, ::-1], a[:, ::-1]), timeout=30)
+    pm, data = MODEL.pin_model, MODEL.pin_model.createData()
+    for i in range(2):
+        want = pin.rnea(pm, data, q[i], v[i], a[i]) + np.array(pm.damping) * v[i] \
+            + np.array(pm.friction) * np.sign(v[i])
+        np.testing.assert_allclose(got[i], want[::-1], rtol=0, atol=1e-9)  # the request's order
+    # positions alone: gravity
+    g = rig.client.efforts(states_message(NAMES, q[:1]), timeout=30)
+    np.testing.assert_allclose(g[0], pin.computeGeneralizedGravity(pm, data, q[0]), rtol=0, atol=1e-9)
+    with pytest.raises(RequestRejected, match="joints not in the model: nope"):
+        rig.client.efforts(states_message(NAMES[:6] + ["nope"], q[:1]), timeout=30)
+
+
+def test_blocking_call_from_the_only_executor_thread_raises(rig, module_ros_context):
+    node = Node("services_blocking", context=module_ros_context)
+    client = DynClient(node)
+    ex = SingleThreadedExecutor(context=module_ros_context)
+    ex.add_node(node)
+    out: dict = {}
+
+    def cb() -> None:
+        timer.cancel()
+        try:
+            client.check(reach(), timeout=5)
+        except Exception as exc:  # noqa: BLE001 - what is raised is the assertion
+            out["exc"] = exc
+        fut = client.check_async(reach(), timeout=30)  # the async variant is the way there
+        out["fut"] = fut
+
+    timer = node.create_timer(0.01, cb)
+    try:
+        deadline = time.monotonic() + 40
+        while not ("fut" in out and out["fut"].done()) and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        assert isinstance(out.get("exc"), BlockingCallError), out
+        assert out["fut"].done() and out["fut"].result().feasible
+    finally:
+        ex.shutdown()
+        client.destroy()
+        node.destroy_node()
+
+
+def test_client_reports_no_node_running(module_ros_context):
+    node = Node("services_nobody", context=module_ros_context)
+    client = DynClient(node, namespace="/nobody_here")
+    spinner = Spinner(module_ros_context, [node])
+    try:
+        with pytest.raises(NotRunningError, match="not running at /nobody_here"):
+            client.check(reach(), timeout=1.0)
+        with pytest.raises(NotRunningError):
+            client.efforts(states_message(NAMES, [READY]), timeout=1.0)
+        with pytest.raises(NotRunningError):
+            client.retime(reach(), timeout=1.0)
+    finally:
+        spinner.stop()
+        client.destroy()
+        node.destroy_node()
+
+
+@pytest.mark.parametrize("name", ["panda_reach.yaml", "panda_reach.json", "panda_reach.csv",
+                                  "panda_shake.yaml"])
+def test_dyn_check_gives_the_nodes_verdict_and_torques(rig, name):
+    path = EXAMPLES / name
+    checker = check_cli.make_checker(robot_model="panda")
+    mine = check_cli.check_file(checker, str(path))
+    tf = read_trajectory(path)
+    msg = trajectory_message(tf.joint_names, tf.times, tf.positions, tf.velocities, tf.accelerations)
+    got = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=msg))
+    r = mine.outcome.result
+    assert got.accepted and got.message == r.message and got.feasible == r.feasible
+    assert (got.time_scale, got.worst_ratio) == (r.time_scale, r.worst_ratio)
+    np.testing.assert_array_equal(efforts_of(got.effort, tf.joint_names),
+                                  r.waypoint_effort[:, [NAMES.index(n) for n in tf.joint_names]])
+    assert check_cli.verdict_line(mine).endswith(got.message)
+
+
+def test_dyn_check_rejects_like_the_node(rig, tmp_path):
+    text = (EXAMPLES / "panda_reach.csv").read_text().splitlines()
+    cells = text[2].split(",")
+    cells[2] = "nan"
+    (tmp_path / "nan.csv").write_text("\n".join([text[0], text[1], ",".join(cells), text[3]]) + "\n")
+    checker = check_cli.make_checker(robot_model="panda")
+    mine = check_cli.check_file(checker, str(tmp_path / "nan.csv"))
+    tf = read_trajectory(tmp_path / "nan.csv")
+    msg = trajectory_message(tf.joint_names, tf.times, tf.positions, tf.velocities, tf.accelerations)
+    got = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=msg))
+    assert (got.accepted, got.reason) == (False, "non_finite")
+    st = got.statuses[0]
+    assert st.message.startswith("rejected: point 1: positions of panda_joint2 is nan")
+    assert mine.outcome.statuses[0].message == st.message
+    assert check_cli.verdict_line(mine) == f"{tmp_path / 'nan.csv'}: REJECTED: " + \
+        st.message.removeprefix("rejected: ")
+
+
+def test_the_audit_reanswers_every_recorded_question(rig, tmp_path):
+    from std_srvs.srv import Trigger
+
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+
+    _, aggressive = demo_trajectories(short=True)
+    z = np.zeros((len(aggressive.times), 7))
+    shake = trajectory_message(NAMES, aggressive.times, aggressive.positions, z, z)
+    assert not rig.client.check(shake, timeout=30).feasible
+    q = np.array([READY, [0.3, 0.2, -0.1, -1.5, 0.2, 1.0, 0.1]])
+    rig.client.efforts(states_message(NAMES, q, q * 0.5, q * 0.1), timeout=30)
+    with pytest.raises(RequestRejected):
+        rig.client.efforts(states_message(NAMES[:6] + ["nope"], q), timeout=30)
+    cli = rig.node.create_client(Trigger, "/dyn_node/stop_recording")
+    assert cli.wait_for_service(timeout_sec=10)
+    fut = cli.call_async(Trigger.Request())
+    done = threading.Event()
+    fut.add_done_callback(lambda _f: done.set())
+    assert done.wait(30) and fut.result().success, fut.result()
+    res = run_audit(AuditOptions(bag=fut.result().message, out=str(tmp_path / "audit"), report=False))
+    rc = res.record["outputs"]["recheck"]
+    check = rc["/dyn_node/check_trajectory/_service_event"]
+    ids = rc["/dyn_node/compute_inverse_dynamics/_service_event"]
+    # every answer the node gave in this module (busy ones are not replayed), from the bag alone
+    assert check["matched"] >= 10 and check["unmatched"] == 0 and check["identical"], check
+    assert ids["matched"] >= 4 and ids["unmatched"] == 0 and ids["identical"], ids
+    qs = res.record["outputs"]["questions"]
+    assert qs["check"]["not_accepted"]["busy"] >= 1 and qs["check"]["infeasible"] >= 1
+    executed_bad = sum(not t["feasible"] for t in res.record["outputs"]["trajectories"]
+                       if t["request"] == "execute")
+    # a question answered "no" is not a violation of the run
+    assert res.record["outputs"]["trajectories_infeasible_or_rejected"] == executed_bad
