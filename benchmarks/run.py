@@ -21,7 +21,7 @@ from pathlib import Path
 from . import report
 from .common import REPO, NotAvailable, machine_info, progress
 
-SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet", "services")
+SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet", "services", "gate")
 OPT_IN = ("libraries",)  # run only when named in --only; kept in bench.json, not rendered
 ALIASES = {"audit": "recording", "memory": "live"}
 
@@ -39,6 +39,8 @@ def _section_runner(name: str):
         from . import libraries_bench as mod
     elif name == "services":
         from . import services_bench as mod
+    elif name == "gate":
+        from . import gate_bench as mod
     else:
         from . import recording_bench as mod
     return mod.run

@@ -71,30 +71,69 @@ class Sent:
     feedback_event: threading.Event = field(default_factory=threading.Event)
 
 
-class FjtClient:
-    """An ActionClient on its own node, spun by a background executor."""
+class ClientThread:
+    """A FollowJointTrajectory ActionClient on a node and a thread of its own, every request sent
+    from that thread. rclpy (Jazzy) registers a request's future only after sending it, so a
+    response taken by another thread in between is dropped ("Ignoring unexpected result
+    response") and its future never completes: requests and responses must share one thread."""
 
-    def __init__(self, ctx: Any, action: str, node_name: str = "fjt_client"):
+    def __init__(self, ctx: Any, action: str, node_name: str, *, namespace: str = "",
+                 use_global_arguments: bool = True):
         from control_msgs.action import FollowJointTrajectory
         from rclpy.action import ActionClient
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
 
-        self.node = Node(node_name, context=ctx)
+        self.node = Node(node_name, context=ctx, namespace=namespace or None,
+                         use_global_arguments=use_global_arguments, enable_rosout=False,
+                         start_parameter_services=False)
         self.client = ActionClient(self.node, FollowJointTrajectory, action)
-        self.ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+        self.action = action
+        self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.node)
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread = threading.Thread(target=self._spin, name=f"{node_name} client", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
         while not self._stop.is_set() and self.ex.context.ok():
-            self.ex.spin_once(timeout_sec=0.05)
+            self.ex.spin_once(timeout_sec=0.1)
+
+    def call(self, request: Any, timeout: float) -> Any:
+        """Run ``request()`` (it returns an rclpy Future) on the client's thread; that Future, or
+        None when the thread did not get to it within ``timeout`` s."""
+        task = self.ex.create_task(request)
+        done = threading.Event()
+        task.add_done_callback(lambda _t: done.set())
+        if not done.wait(timeout):
+            task.cancel()
+            return None
+        return task.result()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10.0)
+        self.client.destroy()
+        self.ex.shutdown(timeout_sec=5.0)
+        self.node.destroy_node()
+
+
+class FjtClient:
+    """A client as a planner uses one: send, wait for the goal response, the result, cancel."""
+
+    def __init__(self, ctx: Any, action: str, node_name: str = "fjt_client"):
+        self.thread = ClientThread(ctx, action, node_name)
+        self.client = self.thread.client
 
     def wait_for_server(self, timeout: float = 30.0) -> None:
         if not self.client.wait_for_server(timeout_sec=timeout):
-            raise AssertionError(f"no action server {self.client._action_name} within {timeout} s")
+            raise AssertionError(f"no action server {self.thread.action} within {timeout} s")
+
+    def _call(self, request: Any, timeout: float, what: str) -> Any:
+        fut = self.thread.call(request, timeout)
+        if fut is None:
+            raise AssertionError(f"timed out after {timeout} s sending {what}")
+        return wait_future(fut, timeout, what)
 
     def send(self, g: Any, timeout: float = 15.0) -> Sent:
         """Send ``g`` and wait for the goal response; ``sent.handle.accepted`` says which."""
@@ -104,21 +143,17 @@ class FjtClient:
             sent.feedback.append(msg.feedback)
             sent.feedback_event.set()
 
-        sent.handle = wait_future(self.client.send_goal_async(g, feedback_callback=on_feedback),
-                                  timeout, "the goal response")
+        sent.handle = self._call(lambda: self.client.send_goal_async(g, feedback_callback=on_feedback),
+                                 timeout, "the goal response")
         return sent
 
     def result(self, sent: Sent, timeout: float = 30.0) -> tuple[int, Any]:
         """(terminal GoalStatus, FollowJointTrajectory.Result) of an accepted goal."""
-        res = wait_future(sent.handle.get_result_async(), timeout, "the goal's result")
+        res = self._call(sent.handle.get_result_async, timeout, "the goal's result")
         return res.status, res.result
 
     def cancel(self, sent: Sent, timeout: float = 10.0) -> Any:
-        return wait_future(sent.handle.cancel_goal_async(), timeout, "the cancel response")
+        return self._call(sent.handle.cancel_goal_async, timeout, "the cancel response")
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=10.0)
-        self.client.destroy()
-        self.ex.shutdown(timeout_sec=5.0)
-        self.node.destroy_node()
+        self.thread.close()

@@ -32,8 +32,8 @@ import numpy as np
 from action_msgs.msg import GoalStatus
 from control_msgs.action import FollowJointTrajectory
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -48,6 +48,7 @@ from dyn_node.core.trajectory import Trajectory, validate_trajectory
 from dyn_node.errors import PLANNING_ERROR, STATE_ERROR, TrajectoryError
 from dyn_node.gate.decision import FORWARDED, REJECTED, RETIMED, Decision, GateOptions, decide, rejected
 from dyn_node.ros.convert import trajectory_arrays
+from dyn_node.ros.fjt_client import ClientThread
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.sim_action import end_canceled
 
@@ -132,10 +133,12 @@ class Gate:
         self.server_name = node.resolve_topic_name("~/follow_joint_trajectory")
         self.io = Node("_dyn_node_gate", context=node.context, namespace=node.get_namespace(),
                        use_global_arguments=False, enable_rosout=False, start_parameter_services=False)
-        # one group each: an action waitable run by two threads at once loses requests (its
-        # ready flags are shared); execute callbacks run as tasks, outside both groups
-        self.client = ActionClient(self.io, FollowJointTrajectory, self.downstream,
-                                   callback_group=MutuallyExclusiveCallbackGroup())
+        # the downstream client on a thread of its own (see ClientThread: requests and responses
+        # on one thread); the server in a group of its own (an action waitable run by two threads
+        # at once loses requests); execute callbacks run as tasks, outside any group
+        self.down = ClientThread(node.context, self.downstream, "_dyn_node_gate_client",
+                                 namespace=node.get_namespace(), use_global_arguments=False)
+        self.client = self.down.client
         self.server = ActionServer(self.io, FollowJointTrajectory, self.server_name,
                                    execute_callback=self._execute, goal_callback=self._on_goal,
                                    handle_accepted_callback=self._on_accepted,
@@ -210,11 +213,13 @@ class Gate:
         if not self.client.wait_for_server(timeout_sec=self.timeout):
             return self._downstream_failed(g, f"downstream action server {self.downstream} not available "
                                               f"within {self.timeout:g} s (gate.timeout)")
-        fut = self.client.send_goal_async(g.down_goal, feedback_callback=lambda m: self._relay(g, m))
+        fut = self.down.call(lambda: self.client.send_goal_async(g.down_goal,
+                                                                 feedback_callback=lambda m: self._relay(g, m)),
+                             self.timeout)
         done = threading.Event()
-        fut.add_done_callback(lambda _f: done.set())
-        if not done.wait(self.timeout):
-            fut.cancel()
+        if fut is not None:
+            fut.add_done_callback(lambda _f: done.set())
+        if fut is None or not done.wait(self.timeout):
             return self._downstream_failed(g, f"downstream action server {self.downstream} did not answer "
                                               f"the goal request within {self.timeout:g} s (gate.timeout)")
         g.down = fut.result()
@@ -267,14 +272,15 @@ class Gate:
         """Wait for the downstream result, passing a cancel on. The controller is taken for gone
         when it sends no feedback (joint_trajectory_controller sends it at 20 Hz) for
         gate.timeout s: a killed process stays in the DDS graph until its lease ends (20 s)."""
-        fut = g.down.get_result_async()
+        fut = self.down.call(g.down.get_result_async, self.timeout)
         done = threading.Event()
-        fut.add_done_callback(lambda _f: done.set())
+        if fut is not None:
+            fut.add_done_callback(lambda _f: done.set())
         cancel_sent = False
         g.heard = time.monotonic()
         while not done.wait(_POLL_S):
             if handle.is_cancel_requested and not cancel_sent:
-                g.down.cancel_goal_async()
+                self.down.call(g.down.cancel_goal_async, self.timeout)
                 cancel_sent = True
             if time.monotonic() - g.heard > self.timeout:
                 text = (f"dyn_node gate: downstream action server {self.downstream} went away during "
@@ -343,15 +349,17 @@ class Gate:
         waits = []
         for g in goals:
             done = threading.Event()
-            g.down.cancel_goal_async().add_done_callback(lambda _f, e=done: e.set())
-            waits.append(done)
+            fut = self.down.call(g.down.cancel_goal_async, 1.0)
+            if fut is not None:
+                fut.add_done_callback(lambda _f, e=done: e.set())
+                waits.append(done)
         deadline = time.monotonic() + 1.0
         for done in waits:
             done.wait(max(0.0, deadline - time.monotonic()))
         self._stop.set()
         self._thread.join(timeout=5.0)
         self.server.destroy()
-        self.client.destroy()
+        self.down.close()
         self.executor.shutdown(timeout_sec=2.0)
         self.io.destroy_node()
 
