@@ -102,8 +102,10 @@ def stack(module_ros_context, tmp_path_factory):
     from conftest import ChildProcess, child_env
     from dyn_node.ros.fjt_client import FjtClient
 
+    bags = tmp_path_factory.mktemp("gate_bags")
     procs = [ChildProcess(sim_cmd(), env=child_env()),
-             ChildProcess(gate_cmd("gate_reject", f"gate.controller_action:={JTC}"), env=child_env()),
+             ChildProcess(gate_cmd("gate_reject", f"gate.controller_action:={JTC}", "record.enabled:=true",
+                                   f"record.directory:={bags}"), env=child_env()),
              ChildProcess(gate_cmd("gate_check", f"gate.controller_action:={JTC}", "gate.mode:=check"),
                           env=child_env())]
     clients = {m: FjtClient(module_ros_context, f"/gate_{m}/follow_joint_trajectory", f"client_{m}")
@@ -113,7 +115,7 @@ def stack(module_ros_context, tmp_path_factory):
         for c in clients.values():
             c.wait_for_server(90.0)
         probe.wait_ready()
-        yield clients, probe, procs
+        yield clients, probe, procs, bags
     finally:
         probe.close()
         for c in clients.values():
@@ -133,7 +135,7 @@ def test_feasible_goal_forwarded_with_feedback_and_result(stack):
     from action_msgs.msg import GoalStatus
     from control_msgs.action import FollowJointTrajectory
 
-    clients, probe, _ = stack
+    clients, probe, *_ = stack
     client = clients["reject"]
     n = len([r for r in probe.records if r["event"] == "decision"])
     m = len([r for r in probe.records if r["event"] == "result"])
@@ -167,7 +169,7 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
     from dyn_node.core.settings import Settings
     from dyn_node.core.trajectory import validate_trajectory
 
-    clients, probe, _ = stack
+    clients, probe, *_ = stack
     client = clients["reject"]
     n = len([r for r in probe.records if r["event"] == "decision"])
     g = _goal(INFEASIBLE)
@@ -266,7 +268,7 @@ def test_cancel_and_preemption_through_the_gate(stack):
 def test_check_mode_forwards_an_infeasible_goal(stack):
     from action_msgs.msg import GoalStatus
 
-    clients, _, _ = stack
+    clients, *_ = stack
     sent = clients["check"].send(_goal(INFEASIBLE))
     assert sent.handle.accepted
     status, _ = clients["check"].result(sent)
@@ -279,7 +281,7 @@ def test_check_mode_forwards_an_infeasible_goal(stack):
 def test_gate_status_counts(stack):
     """dyn_node: gate counts what ~/gate_decisions recorded (both delivered late by DDS here, so
     wait until they agree) and names the last decision."""
-    _, probe, _ = stack
+    _, probe, *_ = stack
 
     def agree() -> bool:
         st = [s for s in probe.gate_status if kv(s).get("mode") == "reject"]
@@ -294,6 +296,30 @@ def test_gate_status_counts(stack):
     probe.until(agree, 20.0, "the gate status to count the recorded decisions")
     v = kv([s for s in probe.gate_status if kv(s).get("mode") == "reject"][-1])
     assert int(v["rejected"]) >= 4 and int(v["forwarded"]) >= 4 and int(v["retimed"]) == 0
+
+
+@pytest.mark.timeout(120)
+def test_audit_replays_the_gate_decisions_identically(stack):
+    """The reject gate's bag: dyn-audit decides every recorded goal again, identically, and lists
+    the decisions (last test of the stack: it stops the gate to close its bag)."""
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+
+    _, probe, procs, bags = stack
+    probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) >= 8, 20.0, "the records")
+    rc, _, err = procs[1].stop(signal.SIGINT)
+    assert rc == 0, err[-2000:]
+    audit = run_audit(AuditOptions(bag=str(next(bags.iterdir())), out=str(bags / "audit"), report=True))
+    gate = audit.record["outputs"]["questions"]["gate"]
+    live = [r for r in probe.records if r["event"] == "decision"]
+    assert (gate["requests"], gate["answered"], gate["not_replayed"]) == (len(live), len(live), 0)
+    assert (gate["forwarded"], gate["rejected"]) == (sum(r["decision"] == "forwarded" for r in live),
+                                                     sum(r["decision"] == "rejected" for r in live))
+    assert [d["goal_id"] for d in gate["decisions"]] == [r["goal_id"] for r in live]
+    assert [d["verdict"] for d in gate["decisions"]] == [r["verdict"] for r in live]
+    recheck = audit.record["outputs"]["recheck"]["/gate_reject/gate_decisions"]
+    assert (recheck["matched"], recheck["identical"]) == (len(live), True), recheck
+    report = (bags / "audit" / "report.html").read_text()
+    assert "Gate decisions" in report and live[1]["verdict"].split(";")[0] in report
 
 
 @pytest.mark.timeout(150)

@@ -18,7 +18,7 @@ import numpy as np
 
 from dyn_node.core import feasibility
 from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.trajectory import Trajectory
+from dyn_node.core.trajectory import Trajectory, validate_trajectory
 from dyn_node.errors import SettingsError, TrajectoryError
 
 MODES = ("reject", "retime", "check")
@@ -125,6 +125,53 @@ def load_retimer() -> RetimeFn:
     except ImportError as exc:
         raise TrajectoryError(f"gate.mode retime needs dyn_node.retime ({exc})", code="no_retimer") from exc
     return retime
+
+
+def decide_goal(dynamics: Dynamics, settings: Any, options: GateOptions, names: list[str],
+                times: list[float], positions: Any, velocities: Any, accelerations: Any, *,
+                start: feasibility.StartState | None, retimer: RetimeFn | None = None) -> Decision:
+    """A goal's trajectory as received (its joint order, empty fields as sent): validated as the
+    node validates an executed trajectory (at least two points), then :func:`decide` with the
+    check options of ``settings`` (the node's). The gate and the audit's replay both call this."""
+    try:
+        traj = validate_trajectory(dynamics.model.joint_names, names, times, positions, velocities,
+                                   accelerations, min_points=2)
+    except TrajectoryError as exc:
+        return rejected(exc)
+    opts = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
+                                          effort_warn_ratio=settings.effort_warn_ratio)
+    return decide(dynamics, traj, options, start=start, check_options=opts, retimer=retimer)
+
+
+def goal_dict(names: list[str], times: list[float], positions: Any, velocities: Any,
+              accelerations: Any) -> dict[str, Any]:
+    """The goal's trajectory for the record, exactly as received (JSON keeps every finite float;
+    NaN and ±inf become "nan", "inf", "-inf", which float() reads back)."""
+    num = lambda x: float(x) if math.isfinite(x) else str(float(x))  # noqa: E731
+    rows = lambda m: [[num(x) for x in r] for r in m]  # noqa: E731
+    return {"joint_names": list(names), "times": [num(t) for t in times], "positions": rows(positions),
+            "velocities": rows(velocities), "accelerations": rows(accelerations)}
+
+
+def goal_arrays(d: dict[str, Any]) -> tuple[list[str], list[float], list, list, list]:
+    """:func:`goal_dict`'s inverse: (names, times, positions, velocities, accelerations)."""
+    rows = lambda m: [[float(x) for x in r] for r in m]  # noqa: E731
+    return (list(d["joint_names"]), [float(t) for t in d["times"]], rows(d["positions"]),
+            rows(d["velocities"]), rows(d["accelerations"]))
+
+
+def start_dict(start: feasibility.StartState | None) -> dict[str, Any] | None:
+    if start is None:
+        return None
+    return {"positions": [float(x) for x in start.positions], "velocities": [float(x) for x in start.velocities],
+            "age_s": float(start.age_s)}
+
+
+def start_from_dict(d: dict[str, Any] | None) -> feasibility.StartState | None:
+    if d is None:
+        return None
+    return feasibility.StartState(np.asarray(d["positions"], dtype=float), np.asarray(d["velocities"], dtype=float),
+                                  float(d["age_s"]))
 
 
 def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,

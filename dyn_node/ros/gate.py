@@ -40,14 +40,13 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectoryPoint
 
-from dyn_node.core import feasibility
 from dyn_node.core.dynamics import Dynamics, DynamicsOptions
 from dyn_node.core.settings import ParamSpec
 from dyn_node.core.status import ERROR, NAME_PREFIX, OK, WARN, Status
-from dyn_node.core.trajectory import Trajectory, validate_trajectory
+from dyn_node.core.trajectory import Trajectory
 from dyn_node.errors import PLANNING_ERROR, STATE_ERROR, TrajectoryError
-from dyn_node.gate.decision import FORWARDED, REJECTED, RETIMED, Decision, GateOptions, decide, rejected
-from dyn_node.ros.convert import trajectory_arrays
+from dyn_node.gate.decision import (FORWARDED, REJECTED, RETIMED, Decision, GateOptions, decide_goal, goal_dict,
+                                    rejected, start_dict)
 from dyn_node.ros.fjt_client import ClientThread
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.sim_action import end_canceled
@@ -158,22 +157,22 @@ class Gate:
             self.executor.spin_once(timeout_sec=0.1)
 
     # --- the decision (goal callback) -----------------------------------------------------------
-    def _check(self, goal: Any) -> tuple[Decision, list[str]]:
+    def _check(self, goal: Any) -> tuple[Decision, list[str], dict]:
+        """The decision, the model's joint names, and the decision's inputs for the record."""
         core, start = self._state()
+        pts = goal.trajectory.points
+        arrays = (list(goal.trajectory.joint_names),
+                  [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
+                  [p.positions for p in pts], [p.velocities for p in pts], [p.accelerations for p in pts])
+        inputs = {"goal": goal_dict(*arrays), "start": start_dict(start), "retime_all": self.options.retime_all}
         if core is None:
-            return rejected(TrajectoryError("no robot model yet", code="no_model")), []
+            return rejected(TrajectoryError("no robot model yet", code="no_model")), [], inputs
         model, settings = core.model, core.settings
-        names, times, P, V, A = trajectory_arrays(goal.trajectory)
-        try:
-            traj = validate_trajectory(model.joint_names, names, times, P, V, A, min_points=2)
-        except TrajectoryError as exc:
-            return rejected(exc), list(model.joint_names)
-        opts = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
-                                              effort_warn_ratio=settings.effort_warn_ratio)
         with self._check_lock:
             if self._dyn is None or self._dyn.model is not model:
                 self._dyn = Dynamics(model, DynamicsOptions(include_friction=settings.include_friction))
-            return decide(self._dyn, traj, self.options, start=start, check_options=opts), list(model.joint_names)
+            return (decide_goal(self._dyn, settings, self.options, *arrays, start=start),
+                    list(model.joint_names), inputs)
 
     def _on_goal(self, goal: Any) -> GoalResponse:
         try:
@@ -185,11 +184,11 @@ class Gate:
     def _answer(self, goal: Any) -> GoalResponse:
         gid = uuid.uuid4().hex  # the gate's own id: rclpy shows the goal callback no goal id
         try:
-            decision, names = self._check(goal)
+            decision, names, inputs = self._check(goal)
         except Exception as exc:  # a failing check must still answer the client
-            decision, names = rejected(TrajectoryError(f"check failed: {exc!r}", code="evaluation_failed")), []
+            decision, names, inputs = rejected(TrajectoryError(f"check failed: {exc!r}", code="evaluation_failed")), [], {}
         g = _Goal(goal_id=gid, decision=decision)
-        self._record(g, names, goal)
+        self._record(g, names, goal, inputs)
         if not decision.forwards:
             g.abort_text = decision.error_string
             return self._keep(goal, g, GoalResponse.ACCEPT)
@@ -302,12 +301,13 @@ class Gate:
         return res.result
 
     # --- records and status ---------------------------------------------------------------------
-    def _record(self, g: _Goal, names: list[str], goal: Any) -> None:
+    def _record(self, g: _Goal, names: list[str], goal: Any, inputs: dict) -> None:
         d = g.decision
         with self._lock:
             self.counts[d.decision] += 1
             self.last_line, self.last_decision = d.line, d.decision
         rec = d.to_dict(goal_id=g.goal_id, mode=self.options.mode, joint_names=names)
+        rec.update(inputs)
         rec.update(event="decision", downstream=self.downstream, tolerances={
             "path": [[t.name, t.position, t.velocity, t.acceleration] for t in goal.path_tolerance],
             "goal": [[t.name, t.position, t.velocity, t.acceleration] for t in goal.goal_tolerance],
