@@ -11,18 +11,17 @@ import numpy as np
 import pytest
 
 from conftest import Stepper, kv, python_cmd
+from test_sim_action import ARM, READY, moved
+from test_sim_action import sim_cmd as sim_action_cmd
 
 pytest.importorskip("control_msgs", reason="control_msgs not built into the venv (make)")
 
-READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
-ARM = [f"panda_joint{i}" for i in range(1, 8)]
 FINGERS = "panda_finger_joint1,panda_finger_joint2"
 JTC = "/joint_trajectory_controller/follow_joint_trajectory"
 
 
 def sim_cmd(*extra: str) -> list[str]:
-    return python_cmd("dyn_node.ros.sim_node", "--ros-args", "-p", f"initial_positions:={READY}",
-                      "-p", "constraints.goal_time:=2.0", *extra)
+    return sim_action_cmd("constraints.goal_time:=2.0") + list(extra)
 
 
 def gate_cmd(name: str, *params: str, ns: str = "/") -> list[str]:
@@ -30,12 +29,6 @@ def gate_cmd(name: str, *params: str, ns: str = "/") -> list[str]:
     for p in params:
         args += ["-p", p]
     return python_cmd("dyn_node.ros.node", *args)
-
-
-def moved(j: int, dq: float) -> list[float]:
-    q = list(READY)
-    q[j] += dq
-    return q
 
 
 def move(q0, q1, duration_s: float) -> dict:
