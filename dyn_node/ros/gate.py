@@ -364,10 +364,9 @@ class Gate:
         self.io.destroy_node()
 
 
-def attach_gate(node: Any) -> Gate | None:
-    """Declare the gate.* parameters on ``node`` (a DynNode) and start the gate when
-    ``gate.controller_action`` is set; None otherwise."""
-    params = declare_gate_parameters(node)
+def attach_gate(node: Any, params: dict[str, Any]) -> Gate | None:
+    """Start the gate of ``node`` (a DynNode, recording set up) when ``gate.controller_action`` is
+    set in ``params`` (:func:`declare_gate_parameters`); None otherwise."""
     if not params["gate.controller_action"]:
         return None
     gate = Gate(node, params, node.execution_state, node._publish)

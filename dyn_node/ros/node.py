@@ -134,9 +134,12 @@ class DynNode(Node):
         self._create_inputs_and_timers()
         self._start_workers()
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        # the FollowJointTrajectory gate, when configured: its parameters declared before the
+        # recording's first parameter snapshot, so a bag does not see them appear as a change
+        from dyn_node.ros.gate import attach_gate, declare_gate_parameters
+        gate_params = declare_gate_parameters(self)
         self._start_recording()
-        from dyn_node.ros.gate import attach_gate  # the FollowJointTrajectory gate, when configured
-        self.gate = attach_gate(self)
+        self.gate = attach_gate(self, gate_params)
         self._io_thread.start()
 
     def _init_state(self) -> None:
