@@ -474,6 +474,14 @@ def summary_md(doc: dict) -> str:
                      f"scaling efficiency {f['scaling_efficiency']:.2f}; Ray start {_f(f['ray_start_s'])} s"])
     elif fl:
         rows.append(["fleet", fl.get("status", "")])
+    gate = doc["sections"].get("gate", {})
+    if gate.get("result"):
+        g = gate["result"]
+        rows.append([f"FollowJointTrajectory gate, {g['points']}-point goal: send_goal → controller",
+                     f"median {_f(g['gate']['median_ms'])} ms vs {_f(g['proxy']['median_ms'])} ms through a "
+                     f"bare action proxy (adds {_f(g['added_median_ms'])} ms; its check {_f(g['check_ms'])} ms)"])
+    elif gate:
+        rows.append(["gate", gate.get("status", "")])
     lines.append(_table(["measured", "result"], rows))
     lines += ["", "Full tables, what each row measures, and the raw figures: "
               "[docs/BENCHMARKS.md](docs/BENCHMARKS.md), `bench_out/bench.json`."]
