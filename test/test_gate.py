@@ -355,3 +355,35 @@ def test_downstream_absent_and_crashing(module_ros_context, spawn):
         probe.close()
         absent.close()
         crash.close()
+
+
+@pytest.mark.timeout(150)
+def test_clean_shutdown_cancels_what_was_forwarded(module_ros_context, spawn):
+    """SIGINT to dyn_node while a forwarded goal runs: the controller's goal ends CANCELED (its
+    action status topic says so), the robot held before the trajectory's end."""
+    from action_msgs.msg import GoalStatus, GoalStatusArray
+
+    from dyn_node.ros.fjt_client import FjtClient
+
+    ns = "/shutdown"
+    spawn(sim_cmd("-r", f"__ns:={ns}"))
+    gate = spawn(gate_cmd("gate_stop", f"gate.controller_action:={ns}/joint_trajectory_controller/"
+                          "follow_joint_trajectory", ns=ns))
+    client = FjtClient(module_ros_context, f"{ns}/gate_stop/follow_joint_trajectory", "client_stop")
+    probe = Probe(module_ros_context, "gate_stop", ready=("gate_stop",), ns=ns)
+    statuses: list = []
+    probe.node.create_subscription(GoalStatusArray, f"{ns}/joint_trajectory_controller/follow_joint_trajectory"
+                                   "/_action/status", statuses.append, 10)
+    try:
+        client.wait_for_server(90.0)
+        probe.wait_ready()
+        sent = client.send(_goal(move(READY, moved(0, 0.3), 8.0)))
+        assert sent.handle.accepted and sent.feedback_event.wait(15.0)
+        rc, _, err = gate.stop(signal.SIGINT)
+        assert rc == 0, err[-2000:]
+        probe.until(lambda: any(s.status == GoalStatus.STATUS_CANCELED for m in statuses for s in m.status_list),
+                    10.0, "the controller's goal to end CANCELED")
+        assert "Traceback" not in err
+    finally:
+        probe.close()
+        client.close()
