@@ -342,6 +342,14 @@ def test_downstream_absent_and_crashing(module_ros_context, spawn):
         assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
         assert result.error_string == ("dyn_node gate: downstream action server /nobody/follow_joint_trajectory "
                                        "not available within 0.5 s (gate.timeout)")
+        # dyn_node: gate says so: ERROR, state error, the failure counted
+        absent_status = lambda: [st for st in probe.gate_status  # noqa: E731
+                                 if kv(st).get("controller_action") == "/nobody/follow_joint_trajectory"
+                                 and kv(st).get("downstream_failures") == "1"]
+        probe.until(lambda: bool(absent_status()), 20.0, "the absent gate's status")
+        st = absent_status()[-1]
+        assert (st.level, kv(st)["failure_label"]) == (bytes([2]), "state error")
+        assert st.message == "downstream action server /nobody/follow_joint_trajectory not available"
         sent = crash.send(_goal(move(READY, moved(0, 0.3), 6.0)))
         assert sent.handle.accepted and sent.feedback_event.wait(15.0)
         sim.signal(signal.SIGKILL)
