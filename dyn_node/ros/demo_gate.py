@@ -199,7 +199,7 @@ def gate_scene(env: dict[str, str], logs: Path, say: Callable[[str], None]) -> t
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="demo_output/gate", help="directory for the processes' logs")
+    ap.add_argument("--out", default="demo_out/gate", help="directory for the processes' logs")
     ap.add_argument("--domain", type=int, default=int(os.environ.get("ROS_DOMAIN_ID", "42")))
     args = ap.parse_args(argv)
     logs = Path(args.out)
