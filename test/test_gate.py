@@ -389,8 +389,10 @@ def test_clean_shutdown_cancels_what_was_forwarded(module_ros_context, spawn):
         assert sent.handle.accepted and sent.feedback_event.wait(15.0)
         rc, _, err = gate.stop(signal.SIGINT)
         assert rc == 0, err[-2000:]
-        probe.until(lambda: any(s.status == GoalStatus.STATUS_CANCELED for m in statuses for s in m.status_list),
-                    10.0, "the controller's goal to end CANCELED")
+        canceled = lambda: any(s.status == GoalStatus.STATUS_CANCELED  # noqa: E731
+                               for m in statuses for s in m.status_list)
+        probe.steps.until(canceled, 10.0)
+        assert canceled(), f"the controller's goal did not end CANCELED; dyn_node said:\n{err[-3000:]}"
         assert "Traceback" not in err
     finally:
         probe.close()
