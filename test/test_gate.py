@@ -61,6 +61,11 @@ class Probe:
                                       QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 50)
         self.node.create_subscription(JointState, f"{ns}/joint_states", self.js.append, 1000)
+        from control_msgs.msg import JointTrajectoryControllerState
+
+        self.state: list = []  # the controller's reference: it changes only with a new trajectory
+        self.node.create_subscription(JointTrajectoryControllerState,
+                                      f"{ns}/joint_trajectory_controller/controller_state", self.state.append, 100)
         # a gate checks from the robot's state: ready once it computes torques from joint_states
         for g in ready:
             self.node.create_subscription(JointState, f"{ns}/{g}/inverse_dynamics", self.inverse[g].append, 10)
@@ -187,12 +192,15 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
     rec = probe.record("decision", n + 1)
     assert (rec["decision"], rec["reason"], rec["forwarded"]) == ("rejected", "infeasible", None)
     assert rec["time_scale"] == pytest.approx(verdict.time_scale, rel=1e-12)
-    # dyn_sim never moved: its joint_states stamped from the goal on (stamps are wall-clock
-    # start + simulation time) stay where the robot held for 1 s
-    after = lambda: [m for m in probe.js if m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 >= t_sent]  # noqa: E731
-    probe.until(lambda: len(after()) > 500, 20.0, "1 s of joint_states")
-    q = np.array([m.position[:7] for m in after()])
-    assert np.abs(q - q[0]).max() < 1e-6
+    # dyn_sim never moved: from the goal on (stamps are wall-clock start + simulation time) the
+    # controller's reference stays exactly where it held, for 1 s, and the joints within 1 mrad
+    # (the last goal's settling) of where they were, not 0.5 rad away
+    after = lambda xs: [m for m in xs if m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 >= t_sent]  # noqa: E731
+    probe.until(lambda: len(after(probe.js)) > 500 and len(after(probe.state)) > 50, 20.0, "1 s of states")
+    ref = np.array([m.reference.positions for m in after(probe.state)])
+    assert np.array_equal(ref, np.repeat(ref[:1], len(ref), axis=0))
+    q = np.array([m.position[:7] for m in after(probe.js)])
+    assert np.abs(q - q[0]).max() < 1e-3
 
 
 @pytest.mark.timeout(120)

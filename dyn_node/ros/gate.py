@@ -341,21 +341,23 @@ class Gate:
         return Status(STATUS_NAME, OK, line or "no goal yet", values=values)
 
     def close(self) -> None:
-        """Cancel what was forwarded and is still running (waiting up to 1 s for the controller
+        """Cancel what was forwarded and is still running (waiting up to 2 s for the controller
         to confirm), then stop. A crash cancels nothing: the client's own timeout applies."""
         self._closing = True
         with self._lock:
             goals = list(self._running_goals.values())
         waits = []
+        deadline = time.monotonic() + 2.0
         for g in goals:
             done = threading.Event()
-            fut = self.down.call(g.down.cancel_goal_async, 1.0)
+            fut = self.down.call(g.down.cancel_goal_async, max(0.1, deadline - time.monotonic()))
             if fut is not None:
                 fut.add_done_callback(lambda _f, e=done: e.set())
                 waits.append(done)
-        deadline = time.monotonic() + 1.0
-        for done in waits:
-            done.wait(max(0.0, deadline - time.monotonic()))
+        confirmed = sum(done.wait(max(0.0, deadline - time.monotonic())) for done in waits)
+        if goals:
+            self.logger.info(f"gate: shutting down, {len(goals)} forwarded goal(s) cancelled "
+                             f"({confirmed} confirmed by {self.downstream})")
         self._stop.set()
         self._thread.join(timeout=5.0)
         self.server.destroy()
