@@ -351,6 +351,23 @@ def services_md(sec: dict) -> str:
               f"{_f(d.get('core_check_ms'))} ms of the median.")
 
 
+def gate_md(sec: dict) -> str:
+    if _status(sec):
+        return f"Gate: {_status(sec)}"
+    d = sec["result"]
+    g, p = d["gate"], d["proxy"]
+    return (f"Latency from a client's `send_goal` to the downstream server's goal callback for a "
+            f"{d['points']}-point {d['joints']}-DoF Panda FollowJointTrajectory goal ({d['goals']} goals "
+            "one at a time, each checked and forwarded), through dyn_node's gate against a bare rclpy "
+            "action proxy that forwards without checking, interleaved in blocks in the same run.\n\n"
+            + _table(["path", "median (ms)", "p99 (ms)", "min (ms)"],
+                     [["dyn_node gate (reject mode)", _f(g["median_ms"]), _f(g["p99_ms"]), _f(g["min_ms"])],
+                      ["bare action proxy", _f(p["median_ms"]), _f(p["p99_ms"]), _f(p["min_ms"])]])
+            + f"\n\nAdded by the gate: median **{_f(d['added_median_ms'])} ms**, p99 {_f(d['added_p99_ms'])} ms; "
+              f"its check alone (the decision on the same goal, in one process) {_f(d['check_ms'])} ms. "
+              f"Target (check + 2 ms at the median): {'met' if d['target_met'] else 'NOT met'}.")
+
+
 def memory_md(doc: dict) -> str:
     rows = []
     live = doc["sections"].get("live", {})
@@ -388,8 +405,8 @@ SECTIONS = [("dynamics", "Dynamics", dynamics_md), ("live", "Live path", live_md
             ("recording", "Recording and audit", recording_md), ("fleet", "Fleet (dyn-fleet on Ray)", fleet_md),
             ("services", "Question services", services_md),
             ("parsing", "Parsing trajectory files", parsing_md),
-            ("retime", "Retiming (dyn_node.retime)", retime_md)]
-
+            ("retime", "Retiming (dyn_node.retime)", retime_md),
+            ("gate", "FollowJointTrajectory gate", gate_md)]
 
 
 def render(doc: dict) -> str:
@@ -482,6 +499,14 @@ def summary_md(doc: dict, *, full_page: str = "BENCHMARKS.md") -> str:
                      f"scaling efficiency {f['scaling_efficiency']:.2f}; Ray start {_f(f['ray_start_s'])} s"])
     elif fl:
         rows.append(["fleet", fl.get("status", "")])
+    gate = doc["sections"].get("gate", {})
+    if gate.get("result"):
+        g = gate["result"]
+        rows.append([f"FollowJointTrajectory gate, {g['points']}-point goal: send_goal → controller",
+                     f"median {_f(g['gate']['median_ms'])} ms vs {_f(g['proxy']['median_ms'])} ms through a "
+                     f"bare action proxy (adds {_f(g['added_median_ms'])} ms; its check {_f(g['check_ms'])} ms)"])
+    elif gate:
+        rows.append(["gate", gate.get("status", "")])
     lines.append(_table(["measured", "result"], rows))
     lines += ["", "Full tables, what each row measures, and the raw figures: "
               f"[{full_page}]({full_page}), `bench_out/bench.json`."]

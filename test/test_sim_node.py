@@ -80,7 +80,7 @@ def test_executes_trajectory_and_rejects_bad_one(ros_context, spawn):
 
     proc = spawn(sim_cmd())
     node, got = probe(ros_context)
-    pub = node.create_publisher(JointTrajectory, "joint_trajectory", 10)
+    pub = node.create_publisher(JointTrajectory, "/joint_trajectory_controller/joint_trajectory", 10)
     target = list(READY)
     target[0] += 0.3
     target[3] += 0.2

@@ -37,6 +37,7 @@ from dyn_node.audit.contact_replay import (CONTACT_ROLES, ContactRecheck, Contac
                                            contact_role, contact_section)
 from dyn_node.core.units import joint_units
 
+from dyn_node.audit.gate_replay import ROLE_GATE, GateReplay, gate_role
 from dyn_node.audit.service_replay import ROLE_SERVICE_EVENT, ServiceReplay, service_role
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code  # noqa: F401
 
@@ -121,6 +122,8 @@ def _role(topic: str, schema: str) -> str | None:
         return contact
     if service_role(topic, schema) is not None:  # the question services' events
         return ROLE_SERVICE_EVENT
+    if gate_role(topic, schema) is not None:  # the FollowJointTrajectory gate's decisions
+        return ROLE_GATE
     last = topic.rstrip("/").rsplit("/", 1)[-1]
     if schema == "sensor_msgs/msg/JointState":
         if last == ROLE_GRAVITY:
@@ -874,6 +877,7 @@ class Replay:
         self._run_topic, self._run_len, self._run_t, self._run_d = "", -1, [], []
         self.contact = ContactReplay(first, self.monitor.dynamics, sink=sink.contact if sink is not None else None)
         self.services = ServiceReplay(sink)  # the question services' request/response pairs
+        self.gates = GateReplay(sink)  # the gate's decisions, decided again
 
     def feed(self, role: str, m: BagMessage) -> bool:
         """Replay one message; False when its role is not an input (a recorded output)."""
@@ -893,6 +897,8 @@ class Replay:
             self._states_request(m)
         elif role == ROLE_SERVICE_EVENT:
             self.services.feed(m, self.decoder, self.traj_dynamics, self.settings)
+        elif role == ROLE_GATE:
+            self.gates.feed(m, self.decoder, self.traj_dynamics, self.settings)
         elif role == ROLE_CTRL:
             self._recorded_status(m)
         elif role in CONTACT_ROLES:
@@ -911,7 +917,7 @@ class Replay:
                             self.invalid_by_reason, self.out_of_order, self.trajectories,
                             self.trajectories_bad, self.trajectory_failure_labels, self.controller,
                             contact=self.contact.finish(), tally=self.tally,
-                            questions=self.services.finish())
+                            questions={**self.services.finish(), **self.gates.finish()})
 
     def _switch(self, cfg: _Config) -> None:
         """What the node does when a parameter is set: a new core from now on."""

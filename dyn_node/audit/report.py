@@ -463,6 +463,21 @@ def _recheck_section(out: dict) -> list[str]:
     return p
 
 
+def _gate_section(out: dict) -> list[str]:
+    """The FollowJointTrajectory gate's decisions, each decided again by the audit (re-check)."""
+    g = out.get("questions", {}).get("gate")
+    if not g:
+        return []
+    p = ["<h2 id='gate'>Gate decisions</h2>",
+         f"<p>{g['requests']} goals: {g.get('forwarded', 0)} forwarded, {g.get('rejected', 0)} rejected, "
+         f"{g.get('retimed', 0)} retimed; {g['answered']} decided again (re-check: the decisions "
+         f"topic), {g['not_replayed']} not replayed.</p>"]
+    p.append(_table(["goal", "decision", "reason", "verdict"],
+                    [[_e(d["goal_id"][:8]), _e(d["decision"]), _e(d["reason"]), _e(d["verdict"])]
+                     for d in g["decisions"]]))
+    return p
+
+
 def _controller_section(out: dict) -> list[str]:
     """Replayed time in each controller state, and the closing note and tags."""
     cs = out["controller_states"]
@@ -481,7 +496,7 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
                       *trajectories_section(out, images), *_task_section(out, images),
                       *_input_quality_section(record["input_quality"]),
                       *_contact_section(out, images),
-                      *_recheck_section(out), *_controller_section(out)])
+                      *_recheck_section(out), *_gate_section(out), *_controller_section(out)])
 
 
 def write_report(record: dict, series, model, out_dir: str | Path, *, contact_series=None) -> list[Path]:

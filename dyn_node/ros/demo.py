@@ -26,6 +26,7 @@ from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_VIOLATIONS
 from dyn_node.core.model import RobotModel, load_model
 from dyn_node.core.trajectory import Trajectory, interpolate, validate_trajectory
 from dyn_node.ros.demo_output import before_model_in_bag, unanswered_reason, where_line
+from dyn_node.ros.demo_gate import gate_scene
 from dyn_node.ros.demo_push import PUSH_S, push_checks, run_push
 from dyn_node.ros.demo_press import PRESS_SCENE_FILE, scene_press
 
@@ -675,6 +676,8 @@ def run_demo(args: argparse.Namespace) -> int:
     finally:
         _stop_stack(run)
     _say(f"stack stopped ({run.elapsed():.1f} s)")
+    if not args.short:  # processes of its own: ~30 s more
+        _scene_gate(run)
     _scene_summary(run)
     _scene_audit(run)
     return _finish(run, strict=args.strict)
@@ -692,7 +695,9 @@ def _scene_stack(run: DemoRun, model: RobotModel, domain: int) -> None:
     children.append(Child("dyn_sim", [sys.executable, "-m", "dyn_node.ros.sim_node", "--ros-args",
                                       "-p", f"initial_positions:={list(READY)}",
                                       "-p", f"apply_wrench_hold:={PUSH_S}",
-                                      "-p", f"scene_file:={PRESS_SCENE_FILE}"],
+                                      "-p", f"scene_file:={PRESS_SCENE_FILE}",
+                                      # the controller's topic, where dyn_node and this client meet
+                                      "-r", "/joint_trajectory_controller/joint_trajectory:=/joint_trajectory"],
                           run.env, run.logs / "dyn_sim.log"))
     node_ok = _module_available("dyn_node.ros.node")
     if node_ok:
@@ -801,6 +806,16 @@ def _scene_push(run: DemoRun, short: bool) -> None:
     run.push_checks = push_checks(o)
     for _, text in run.push_checks:
         _say("  " + text.removeprefix("push: "))
+
+
+def _scene_gate(run: DemoRun) -> None:
+    """3d. a planner-like client sends goals through dyn_node's gate to dyn_sim (ros/demo_gate.py)."""
+    _say("")
+    _banner("3d. dyn_node between a planner and the controller: the FollowJointTrajectory gate")
+    checks, missing = gate_scene(run.env, run.logs, _say)
+    run.push_checks += checks  # scene checks shown with the push's in the summary
+    for what in missing:
+        run.missing(what)
 
 
 def _save_samples(stack: Stack, out: Path) -> None:

@@ -135,7 +135,12 @@ class DynNode(Node):
         self._create_inputs_and_timers()
         self._start_workers()
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        # the FollowJointTrajectory gate, when configured: its parameters declared before the
+        # recording's first parameter snapshot, so a bag does not see them appear as a change
+        from dyn_node.ros.gate import attach_gate, declare_gate_parameters
+        gate_params = declare_gate_parameters(self)
         self._start_recording()
+        self.gate = attach_gate(self, gate_params)
         if self._core is not None:
             self._announce_model()
         self._io_thread.start()
@@ -731,6 +736,17 @@ class DynNode(Node):
             state = feasibility.current_state(last[1:], receipt_ns, core.settings.stale_timeout)
         return receipt_ns, core, state
 
+    def execution_state(self) -> tuple[_Core | None, feasibility.StartState | None]:
+        """(core, the robot's state now) to check a goal from, as _record_with_state does."""
+        clock = self._clock_handle
+        with self._io_lock:
+            with clock:
+                now_ns = clock.get_now().nanoseconds
+            last, core = self._last_state, self._core
+        if core is None or last is None or last[0].joint_names != core.model.joint_names:
+            return core, None
+        return core, feasibility.current_state(last[1:], now_ns, core.settings.stale_timeout)
+
     def _on_trajectory(self, msg: bytes) -> None:
         receipt_ns, core, state = self._record_with_state(self._sub_traj, msg)
         receipt = receipt_ns * 1e-9
@@ -832,6 +848,8 @@ class DynNode(Node):
         return feasibility.current_state(last[1:], now_ns, core.settings.stale_timeout)
 
     def destroy_node(self) -> None:
+        if getattr(self, "gate", None) is not None:
+            self.gate.close()  # cancels what it forwarded, before the node's entities go
         if hasattr(self, "_io_thread"):
             self._stop_io()  # no joint_states (nor their recording) after this
         recording = getattr(self, "recording", None)

@@ -36,7 +36,7 @@ DEFAULT_TOPICS = ["joint_states", "joint_trajectory", *SERVICE_EVENT_TOPICS,
                   "robot_description", "/diagnostics",
                   "~/gravity_torque", "~/inverse_dynamics", "~/trajectory_effort",
                   "~/feasibility", "~/controller_status",
-                  "~/external_torque", "~/external_wrench", "~/observer_events"]
+                  "~/external_torque", "~/external_wrench", "~/observer_events", "~/gate_decisions"]
 # Subscriber history: deep enough that a busy executor does not lose 1 kHz messages in DDS.
 SUBSCRIBER_DEPTH = 1000
 

@@ -3,8 +3,10 @@
 Publishes ``joint_states`` (sensor_msgs/JointState: positions, velocities and measured effort =
 the applied, saturated actuator torque) at ``publish_rate_hz`` and the URDF on
 ``robot_description`` (std_msgs/String, reliable, transient-local, depth 1, as
-robot_state_publisher does); executes ``joint_trajectory`` (trajectory_msgs/JointTrajectory) as
-ros2_control's joint_trajectory_controller would. Bad trajectories are rejected with a logged
+robot_state_publisher does); executes trajectories as ros2_control's joint_trajectory_controller
+would, with its interfaces: ``/<controller_name>/joint_trajectory``, the FollowJointTrajectory
+action ``/<controller_name>/follow_joint_trajectory`` and ``/<controller_name>/controller_state``
+(:mod:`dyn_node.ros.sim_action`). Bad trajectories are rejected with a logged
 reason and the current motion continues. ``~/apply_wrench`` (geometry_msgs/WrenchStamped: the
 wrench on the robot at the origin of the link named by frame_id, in that link's axes) pushes the
 robot from the next step on for ``apply_wrench_hold`` s, unless a newer message replaces it; a
@@ -49,6 +51,7 @@ from dyn_node.core.settings import ParamSpec
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.qos import LATCHED_HISTORY
 from dyn_node.ros.sim_physics import SCENE_PARAMETERS, SimPhysics, sim_config_extras
+from dyn_node.ros.sim_action import JTC_PARAMETERS, JtcFace
 
 #: Largest backlog (s) a real-time run catches up. When the process was starved of CPU (a loaded
 #: machine), the steps that were due are computed in a burst with their own evenly spaced stamps,
@@ -94,7 +97,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("apply_wrench_hold", _D, 0.5,
              "how long (s) each ~/apply_wrench message pushes the robot, unless a newer one "
              "replaces it", 0.001, 3600.0),
-) + SCENE_PARAMETERS
+) + SCENE_PARAMETERS + JTC_PARAMETERS
 
 
 def _descriptor(p: ParamSpec) -> ParameterDescriptor:
@@ -143,7 +146,6 @@ class SimNode(Node):
         self.desc_pub = self.create_publisher(String, "robot_description", latched)
         self.desc_pub.publish(String(data=self.model.urdf))
         self.clock_pub = None if self.real_time else self.create_publisher(Clock, "/clock", 10)
-        self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10)
         self.create_subscription(WrenchStamped, "~/apply_wrench", self._on_wrench, 10)
         self.applied_pub = self.create_publisher(WrenchStamped, "~/applied_wrench", LATCHED_HISTORY)
         self._announced: Any = None  # the AppliedWrench last said on ~/applied_wrench
@@ -160,6 +162,8 @@ class SimNode(Node):
         self.catch_ups = 0
         self._last_catch_up_log = -1e9
         self._thread = threading.Thread(target=self._run, name="dyn_sim_loop", daemon=True)
+        # the controller's topics and action (/<controller_name>/...), on a node of its own
+        self.jtc = JtcFace(self, self.p, self._on_trajectory, lambda: self.sim.time)
         self.get_logger().info(
             f"simulating {self.model.name} ({self.model.nv} DoF) with MuJoCo at "
             f"{self.p['timestep'] * 1e3:g} ms, joint_states every {self.steps_per_publish} steps, "
@@ -218,7 +222,9 @@ class SimNode(Node):
             except DynNodeError as exc:
                 self.get_logger().error(
                     f"trajectory rejected ({exc.failure_label}, {exc.code}): {exc}")
+                self.jtc.rejected(msg, exc)
                 continue
+            self.jtc.started(msg, act)
             self.get_logger().info(
                 f"executing trajectory: {act.trajectory.n_points} points, "
                 f"{act.trajectory.duration:.3f} s, {act.mode} interpolation, starts in "
@@ -264,6 +270,7 @@ class SimNode(Node):
         self.js_pub.publish(msg)
         self.published += 1
         self.physics.on_publish()
+        self.jtc.update(self.sim, stamp, st)
 
     def _run(self) -> None:
         dt = self.sim.config.timestep
@@ -326,6 +333,7 @@ class SimNode(Node):
 
     def destroy_node(self) -> None:
         self.stop()
+        self.jtc.close()
         super().destroy_node()
 
 

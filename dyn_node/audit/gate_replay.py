@@ -1,0 +1,111 @@
+"""The audit of the FollowJointTrajectory gate: every decision recorded on ``~/gate_decisions``
+decided again by the same core (:func:`dyn_node.gate.decision.decide_goal`, from the goal and the
+start state the record carries, with the configuration in force) and compared: decision, reason,
+verdict line, numbers and the trajectory forwarded, identical. A decision is a command's fate,
+listed in the evidence (``outputs.questions.gate``); a rejection is the gate working, not a
+violation of the run. Retimed decisions are not replayed where ``dyn_node.retime`` is missing.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+from dyn_node.audit.replay_common import Recheck
+from dyn_node.bag.reader import BagMessage, MessageDecoder
+from dyn_node.gate.decision import GateOptions, decide_goal, goal_arrays, start_from_dict
+
+ROLE_GATE = "gate_decisions"
+MAX_LISTED = 200  # decisions listed one by one in the evidence
+
+
+def gate_role(topic: str, schema: str) -> str | None:
+    return ROLE_GATE if topic.endswith("/gate_decisions") and schema == "std_msgs/msg/String" else None
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return a == b
+
+
+class GateReplay:
+    """Re-decides each recorded decision; the comparison goes to the re-check of ``sink`` (a
+    Rechecker, or None) under the decisions topic."""
+
+    def __init__(self, sink: Any = None):
+        self.sink = sink
+        self._own: dict[str, Recheck] = {}
+        self.summary: dict[str, Any] = {"requests": 0, "answered": 0, "forwarded": 0, "rejected": 0,
+                                        "retimed": 0, "not_replayed": 0, "results": {}, "decisions": []}
+
+    def _check(self, topic: str) -> Recheck:
+        if self.sink is None:
+            return self._own.setdefault(topic, Recheck())
+        if topic not in self.sink.checks:
+            from dyn_node.audit.replay_common import Pending
+
+            self.sink.checks[topic], self.sink.pending[topic], self.sink.topics[topic] = Recheck(), Pending(), topic
+        return self.sink.checks[topic]
+
+    def feed(self, m: BagMessage, decoder: MessageDecoder, dynamics: Any, settings: Any) -> None:
+        check = self._check(m.topic)
+        try:
+            rec = json.loads(decoder.decode(m.channel, m.data).data)
+        except Exception:  # noqa: BLE001 - an unreadable record is a discrepancy, not a crash
+            check.unmatched += 1
+            return
+        if rec.get("event") != "decision":
+            key = rec.get("event", "?")
+            self.summary["results"][key] = self.summary["results"].get(key, 0) + 1
+            return
+        s = self.summary
+        s["requests"] += 1
+        s[rec["decision"]] = s.get(rec["decision"], 0) + 1
+        if len(s["decisions"]) < MAX_LISTED:
+            s["decisions"].append({"t_ns": m.log_time_ns, "goal_id": rec["goal_id"], "decision": rec["decision"],
+                                   "reason": rec["reason"], "verdict": rec["verdict"]})
+        if "goal" not in rec or (rec["decision"] == "retimed" or rec.get("mode") == "retime") \
+                and importlib.util.find_spec("dyn_node.retime") is None:
+            s["not_replayed"] += 1
+            return
+        s["answered"] += 1
+        self._compare(rec, dynamics, settings, check, {"t_ns": m.log_time_ns, "goal_id": rec["goal_id"]})
+
+    def _compare(self, rec: dict, dynamics: Any, settings: Any, check: Recheck, where: dict) -> None:
+        d = decide_goal(dynamics, settings, GateOptions(mode=rec["mode"], retime_all=bool(rec.get("retime_all"))),
+                        *goal_arrays(rec["goal"]), start=start_from_dict(rec["start"]))
+        mine = d.to_dict(goal_id=rec["goal_id"], mode=rec["mode"], joint_names=list(dynamics.model.joint_names))
+        differing = [k for k in ("decision", "reason", "feasible", "verdict", "error_string", "worst_joint",
+                                 "worst_constraint", "retime_message") if not _same(rec.get(k), mine.get(k))]
+        worst, at = 0.0, None
+        for k in ("time_scale", "worst_ratio", "duration_in", "duration_out", "duration_uniform"):
+            a, b = rec.get(k), mine.get(k)
+            if _same(a, b):
+                continue
+            diff = abs(a - b) if isinstance(a, float) and isinstance(b, float) else math.inf
+            if not diff <= worst:
+                worst, at = diff, {"field": k, "recorded": a, "recomputed": b}
+        got, want = rec.get("forwarded"), mine.get("forwarded")
+        if (got is None) != (want is None):
+            differing.append("forwarded")
+        elif got is not None:
+            for k in ("positions", "velocities", "accelerations", "times"):
+                a = np.asarray(got[k] if got[k] is not None else [], dtype=float)
+                b = np.asarray(want[k] if want[k] is not None else [], dtype=float)
+                if a.shape != b.shape:
+                    differing.append(f"forwarded.{k}")
+                elif a.size and not np.array_equal(a, b):
+                    diff = float(np.max(np.abs(a - b)))
+                    if not diff <= worst:
+                        worst, at = diff, {"field": f"forwarded.{k}"}
+        check.mismatched_values += len(differing)
+        check.diff(worst, {**where, **(at or {}), **({"differing_fields": differing} if differing else {})})
+
+    def finish(self) -> dict[str, Any]:
+        """``{"gate": summary}`` for the evidence's questions, or {} when no decision was recorded."""
+        s = self.summary
+        return {"gate": dict(s)} if s["requests"] or s["results"] else {}

@@ -1,0 +1,232 @@
+"""One goal's decision: checked from the robot's current state like an executed trajectory, then
+forwarded (feasible, or any verdict in ``check`` mode), rejected (``reject``: infeasible; every
+mode: input that cannot be checked) or retimed (``retime``: infeasible, or any with
+``retime_all``; rejected when no retiming is found or its re-check fails).
+
+The record of a decision (:meth:`Decision.to_dict`) is what the node publishes on
+``~/gate_decisions`` and the bag keeps: the goal id, the decision, the verdict line, the numbers
+behind it, the goal's tolerances and the trajectory forwarded.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from dyn_node.core import feasibility
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.trajectory import Trajectory, validate_trajectory
+from dyn_node.errors import SettingsError, TrajectoryError
+
+MODES = ("reject", "retime", "check")
+FORWARDED, REJECTED, RETIMED = "forwarded", "rejected", "retimed"
+RECORD_VERSION = 1
+
+
+@dataclass(frozen=True)
+class GateOptions:
+    """``mode``: reject | retime | check; ``retime_all``: in retime mode, retime feasible goals too."""
+
+    mode: str = "reject"
+    retime_all: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise SettingsError(f"gate.mode must be one of {', '.join(MODES)}, not {self.mode!r}")
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the gate does with one goal. ``trajectory``: what is forwarded (model order), None when
+    rejected; ``verdict``: the verdict line on the goal as sent (or why it could not be checked);
+    ``reason``: "" when forwarded unchanged, else a code (``infeasible``, ``retime_failed``, a
+    TrajectoryError code such as ``non_finite`` or ``unknown_joints``)."""
+
+    decision: str
+    verdict: str
+    reason: str
+    feasible: bool
+    trajectory: Trajectory | None
+    time_scale: float = math.nan
+    worst: tuple[str, str, float] = ("", "", math.nan)
+    check_time_s: float = 0.0
+    duration_in: float = math.nan
+    duration_out: float = math.nan
+    duration_uniform: float = math.nan
+    retime_message: str = ""
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def forwards(self) -> bool:
+        return self.trajectory is not None
+
+    @property
+    def error_string(self) -> str:
+        """The result's error_string of a rejected goal: the verdict line (and why no retiming)."""
+        if self.reason == "retime_failed":
+            return f"{self.verdict} Retiming failed: {self.retime_message}"
+        return self.verdict
+
+    @property
+    def line(self) -> str:
+        """One line for logs and the gate's status."""
+        if self.decision == RETIMED:
+            return (f"retimed: {self.duration_in:.3f} s → {self.duration_out:.3f} s "
+                    f"(uniform slowdown {self.duration_uniform:.3f} s); was: {self.verdict}")
+        return f"{self.decision}: {self.verdict}"
+
+    def to_dict(self, *, goal_id: str, mode: str, joint_names: list[str]) -> dict[str, Any]:
+        """The JSON-ready record (NaN → null)."""
+        tr = self.trajectory
+        return {
+            "version": RECORD_VERSION, "goal_id": goal_id, "mode": mode, "decision": self.decision,
+            "reason": self.reason, "feasible": self.feasible, "verdict": self.verdict,
+            "error_string": self.error_string if not self.forwards else "",
+            "time_scale": _num(self.time_scale), "worst_joint": self.worst[0],
+            "worst_constraint": self.worst[1], "worst_ratio": _num(self.worst[2]),
+            "check_time_s": self.check_time_s, "duration_in": _num(self.duration_in),
+            "duration_out": _num(self.duration_out), "duration_uniform": _num(self.duration_uniform),
+            "retime_message": self.retime_message,
+            "forwarded": None if tr is None else trajectory_dict(tr, joint_names),
+            **dict(self.extra),
+        }
+
+
+def _num(x: float) -> float | str | None:
+    if isinstance(x, float) and math.isnan(x):
+        return None
+    if isinstance(x, float) and math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return x
+
+
+def trajectory_dict(tr: Trajectory, joint_names: list[str]) -> dict[str, Any]:
+    rows = lambda m: None if m is None else np.asarray(m, dtype=float).tolist()  # noqa: E731
+    return {"joint_names": list(joint_names), "times": rows(tr.times), "positions": rows(tr.positions),
+            "velocities": rows(tr.velocities), "accelerations": rows(tr.accelerations)}
+
+
+def rejected(error: TrajectoryError, check_time_s: float = 0.0) -> Decision:
+    """A goal that cannot be checked (malformed, no model, no retimer): never forwarded."""
+    return Decision(REJECTED, f"rejected: {error}", getattr(error, "code", "error"), False, None,
+                    check_time_s=check_time_s)
+
+
+RetimeFn = Callable[..., Any]
+
+
+def load_retimer() -> RetimeFn:
+    """The retimer (imported when retime mode is used); TrajectoryError when it is not installed."""
+    try:
+        from dyn_node.retime import retime  # noqa: PLC0415 (optional: the retiming subpackage)
+    except ImportError as exc:
+        raise TrajectoryError(f"gate.mode retime needs dyn_node.retime ({exc})", code="no_retimer") from exc
+    return retime
+
+
+def decide_goal(dynamics: Dynamics, settings: Any, options: GateOptions, names: list[str],
+                times: list[float], positions: Any, velocities: Any, accelerations: Any, *,
+                start: feasibility.StartState | None, retimer: RetimeFn | None = None) -> Decision:
+    """A goal's trajectory as received (its joint order, empty fields as sent): validated as the
+    node validates an executed trajectory (at least two points), then :func:`decide` with the
+    check options of ``settings`` (the node's). The gate and the audit's replay both call this."""
+    try:
+        traj = validate_trajectory(dynamics.model.joint_names, names, times, positions, velocities,
+                                   accelerations, min_points=2)
+    except TrajectoryError as exc:
+        return rejected(exc)
+    opts = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
+                                          effort_warn_ratio=settings.effort_warn_ratio)
+    return decide(dynamics, traj, options, start=start, check_options=opts, retimer=retimer)
+
+
+def goal_dict(names: list[str], times: list[float], positions: Any, velocities: Any,
+              accelerations: Any) -> dict[str, Any]:
+    """The goal's trajectory for the record, exactly as received (JSON keeps every finite float;
+    NaN and ±inf become "nan", "inf", "-inf", which float() reads back)."""
+    num = lambda x: float(x) if math.isfinite(x) else str(float(x))  # noqa: E731
+    rows = lambda m: [[num(x) for x in r] for r in m]  # noqa: E731
+    return {"joint_names": list(names), "times": [num(t) for t in times], "positions": rows(positions),
+            "velocities": rows(velocities), "accelerations": rows(accelerations)}
+
+
+def goal_arrays(d: dict[str, Any]) -> tuple[list[str], list[float], list, list, list]:
+    """:func:`goal_dict`'s inverse: (names, times, positions, velocities, accelerations)."""
+    rows = lambda m: [[float(x) for x in r] for r in m]  # noqa: E731
+    return (list(d["joint_names"]), [float(t) for t in d["times"]], rows(d["positions"]),
+            rows(d["velocities"]), rows(d["accelerations"]))
+
+
+def start_dict(start: feasibility.StartState | None) -> dict[str, Any] | None:
+    if start is None:
+        return None
+    return {"positions": [float(x) for x in start.positions], "velocities": [float(x) for x in start.velocities],
+            "age_s": float(start.age_s)}
+
+
+def start_from_dict(d: dict[str, Any] | None) -> feasibility.StartState | None:
+    if d is None:
+        return None
+    return feasibility.StartState(np.asarray(d["positions"], dtype=float), np.asarray(d["velocities"], dtype=float),
+                                  float(d["age_s"]))
+
+
+def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
+           start: feasibility.StartState | None,
+           check_options: feasibility.FeasibilityOptions = feasibility.FeasibilityOptions(),
+           retimer: RetimeFn | None = None) -> Decision:
+    """Check ``traj`` (model order, validated) from ``start`` and decide; see the module docstring.
+    ``retimer`` defaults to :func:`load_retimer`'s, loaded only when a goal is to be retimed."""
+    t0 = time.perf_counter()
+    try:
+        result = feasibility.check_trajectory(dynamics, traj, check_options, start=start,
+                                              start_unknown=feasibility.NO_CURRENT_STATE)
+    except TrajectoryError as exc:
+        return rejected(exc, time.perf_counter() - t0)
+    worst = (result.worst_joint, result.worst_constraint, result.worst_ratio)
+    base = dict(verdict=result.message, feasible=result.feasible, time_scale=result.time_scale,
+                worst=worst, duration_in=traj.duration)
+    wants_retime = options.mode == "retime" and (options.retime_all or not result.feasible)
+    if not wants_retime:
+        elapsed = time.perf_counter() - t0
+        if result.feasible or options.mode == "check":
+            return Decision(FORWARDED, reason="" if result.feasible else "infeasible", trajectory=traj,
+                            check_time_s=elapsed, duration_out=traj.duration, **base)
+        return Decision(REJECTED, reason="infeasible", trajectory=None, check_time_s=elapsed, **base)
+    return _retimed(dynamics, traj, start, check_options, retimer, t0, base)
+
+
+def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState | None,
+             check_options: feasibility.FeasibilityOptions, retimer: RetimeFn | None, t0: float,
+             base: dict[str, Any]) -> Decision:
+    def failed(message: str, uniform: float = math.nan) -> Decision:
+        # a feasible goal (retime_all) whose retiming failed still goes as it came
+        kept = traj if base["feasible"] else None
+        return Decision(FORWARDED if kept is not None else REJECTED, reason="retime_failed",
+                        trajectory=kept, retime_message=message, duration_uniform=uniform,
+                        check_time_s=time.perf_counter() - t0, **base)
+
+    try:
+        fn = retimer or load_retimer()
+        out = fn(dynamics, traj, start=start, feasibility=check_options)
+    except TrajectoryError as exc:
+        return failed(str(exc))
+    uniform = float(out.duration_uniform)
+    if not out.feasible or out.trajectory is None:
+        return failed(out.message, uniform)
+    # re-checked here, as the controller will run it: what is forwarded passed this gate's check
+    try:
+        again = feasibility.check_trajectory(dynamics, out.trajectory, check_options, start=start,
+                                             start_unknown=feasibility.NO_CURRENT_STATE)
+        ok, why = again.feasible, again.message
+    except TrajectoryError as exc:
+        ok, why = False, str(exc)
+    if not ok:
+        return failed(f"the retimed trajectory failed the re-check: {why}", uniform)
+    base["duration_in"] = float(out.duration_in) if out.duration_in > 0 else traj.duration
+    return Decision(RETIMED, reason="", trajectory=out.trajectory, retime_message=out.message,
+                    duration_out=float(out.duration_out), duration_uniform=uniform,
+                    check_time_s=time.perf_counter() - t0, **base)

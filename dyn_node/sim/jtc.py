@@ -1,0 +1,158 @@
+"""joint_trajectory_controller's goal rules (ros2_controllers, Jazzy), pure: what dyn_sim's
+FollowJointTrajectory server decides, without rclpy.
+
+- Goal validation beyond :func:`dyn_node.core.trajectory.validate_trajectory` (which already
+  applies the controller's joint, length and time rules): a non-zero velocity at the last point is
+  rejected (``allow_nonzero_velocity_at_trajectory_end`` false), and so is a trajectory whose
+  stamped end lies in the past.
+- Tolerances: the controller's defaults (``constraints.*`` parameters) overridden per joint by the
+  goal's (a positive value replaces the default, -1 erases it, 0 keeps it; any other negative
+  value, or a joint the controller does not have, makes the controller use its defaults).
+- Monitoring, once per controller update: before the last point's time the path tolerance
+  (PATH_TOLERANCE_VIOLATED); after it the goal tolerance, SUCCESSFUL once inside it, and
+  GOAL_TOLERANCE_VIOLATED when still outside ``goal_time_tolerance`` after the end (a zero
+  goal_time_tolerance waits for ever, as the controller does).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from dyn_node.errors import TrajectoryError
+
+#: FollowJointTrajectory.Result error codes (control_msgs 5.x)
+SUCCESSFUL, INVALID_GOAL, INVALID_JOINTS, OLD_HEADER_TIMESTAMP = 0, -1, -2, -3
+PATH_TOLERANCE_VIOLATED, GOAL_TOLERANCE_VIOLATED = -4, -5
+
+#: the controller's result strings (joint_trajectory_controller.cpp, Jazzy)
+SUCCESS_TEXT = "Goal successfully reached!"
+PATH_TEXT = "Aborted due to path tolerance violation"
+PREEMPTED_TEXT = "Current goal cancelled due to new incoming action."
+_ERASE = -1.0
+_FLOAT_EPS = float(np.finfo(np.float32).eps)
+
+
+@dataclass(frozen=True)
+class JointTolerances:
+    """Per-joint (model order) position, velocity and acceleration tolerances; 0 = not checked."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+
+    @staticmethod
+    def uniform(n: int, position: float = 0.0, velocity: float = 0.0,
+                acceleration: float = 0.0) -> "JointTolerances":
+        return JointTolerances(np.full(n, float(position)), np.full(n, float(velocity)),
+                               np.full(n, float(acceleration)))
+
+
+@dataclass(frozen=True)
+class SegmentTolerances:
+    """``path`` applies while the trajectory plays, ``goal`` after its last point, which must be
+    met within ``goal_time`` s of the end (0: no limit)."""
+
+    path: JointTolerances
+    goal: JointTolerances
+    goal_time: float
+
+
+def default_tolerances(n: int, *, trajectory: float = 0.0, goal: float = 0.0,
+                       stopped_velocity: float = 0.01, goal_time: float = 0.0) -> SegmentTolerances:
+    """The controller's defaults from its ``constraints`` parameters, one value for all joints."""
+    return SegmentTolerances(JointTolerances.uniform(n, trajectory),
+                             JointTolerances.uniform(n, goal, stopped_velocity), float(goal_time))
+
+
+def _resolve(default: float, value: float) -> float:
+    if value > 0.0:
+        return float(value)
+    if abs(value - _ERASE) < _FLOAT_EPS:
+        return 0.0
+    if value < 0.0:
+        raise ValueError(f"illegal tolerance {value}")
+    return float(default)
+
+
+def _override(base: JointTolerances, joints: Sequence[str],
+              entries: Sequence[tuple[str, float, float, float]]) -> JointTolerances:
+    p, v, a = base.position.copy(), base.velocity.copy(), base.acceleration.copy()
+    for name, tp, tv, ta in entries:
+        if name not in joints:
+            raise ValueError(f"unknown joint {name!r}")
+        i = list(joints).index(name)
+        p[i], v[i], a[i] = _resolve(p[i], tp), _resolve(v[i], tv), _resolve(a[i], ta)
+    return JointTolerances(p, v, a)
+
+
+def goal_tolerances(defaults: SegmentTolerances, joints: Sequence[str],
+                    path: Sequence[tuple[str, float, float, float]],
+                    goal: Sequence[tuple[str, float, float, float]],
+                    goal_time: float) -> tuple[SegmentTolerances, str]:
+    """The tolerances a goal runs with, and "" or why the defaults were used instead (the
+    controller logs it and keeps the goal)."""
+    try:
+        return SegmentTolerances(_override(defaults.path, joints, path),
+                                 _override(defaults.goal, joints, goal),
+                                 _resolve(defaults.goal_time, goal_time)), ""
+    except ValueError as exc:
+        return defaults, f"{exc}: using the default tolerances"
+
+
+def check_goal_trajectory(names: Sequence[str], last_velocities: Sequence[float],
+                          end_stamp_s: float | None, now_s: float) -> None:
+    """The controller's goal checks not covered by validate_trajectory; raises TrajectoryError."""
+    for name, v in zip(names, last_velocities):
+        if abs(v) > _FLOAT_EPS:
+            raise TrajectoryError(f"velocity of the last point of joint {name} is not zero: {v:.15f}",
+                                  code="nonzero_end_velocity")
+    if end_stamp_s is not None and end_stamp_s < now_s:
+        raise TrajectoryError(f"trajectory with a non-zero start time ends in the past "
+                              f"({end_stamp_s:.3f} s < now {now_s:.3f} s)", code="bad_times")
+
+
+def _within(err_p: np.ndarray, err_v: np.ndarray, tol: JointTolerances) -> np.ndarray:
+    ok = np.ones(len(err_p), dtype=bool)
+    for e, t in ((err_p, tol.position), (err_v, tol.velocity)):
+        ok &= (t <= 0.0) | (np.abs(e) <= t)
+    return ok  # acceleration error: the simulator has no acceleration state (the controller's 0)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """A goal's end: ``code`` (a Result error code) and the controller's ``text``."""
+
+    code: int
+    text: str
+
+
+def monitor(t: float, end_time: float, err_p: np.ndarray, err_v: np.ndarray,
+            tol: SegmentTolerances, joints: Sequence[str]) -> Outcome | None:
+    """One controller update of an active goal: its end, or None while it continues.
+
+    ``err_*`` = reference − measured (model order) at simulation time ``t``; ``end_time`` is the
+    last point's time. The controller checks the path tolerance up to the end and the goal
+    tolerance after it.
+    """
+    if t < end_time:
+        ok = _within(err_p, err_v, tol.path)
+        if not ok.all():
+            return Outcome(PATH_TOLERANCE_VIOLATED, PATH_TEXT)
+        return None
+    if _within(err_p, err_v, tol.goal).all():
+        return Outcome(SUCCESSFUL, SUCCESS_TEXT)
+    late = t - end_time
+    if tol.goal_time != 0.0 and late > tol.goal_time:
+        bad = [j for j, ok in zip(joints, _within(err_p, err_v, tol.goal)) if not ok]
+        return Outcome(GOAL_TOLERANCE_VIOLATED,
+                       f"Aborted due to goal_time_tolerance exceeding by {late:.6f} seconds "
+                       f"(outside the goal tolerance: {', '.join(bad)})")
+    return None
+
+
+def duration_s(sec: int, nanosec: int) -> float:
+    value = sec + nanosec * 1e-9
+    return value if math.isfinite(value) else math.nan

@@ -1,0 +1,407 @@
+"""The FollowJointTrajectory gate across processes: a client here (as MoveIt's), dyn_node with the
+gate in a child process, dyn_sim as the controller in another. Every decision path and error
+code, feedback relayed, cancel and pre-emption, downstream absent and crashing."""
+from __future__ import annotations
+
+import json
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from conftest import Stepper, kv, python_cmd
+from test_sim_action import ARM, READY, moved
+from test_sim_action import sim_cmd as sim_action_cmd
+
+pytest.importorskip("control_msgs", reason="control_msgs not built into the venv (make)")
+
+FINGERS = "panda_finger_joint1,panda_finger_joint2"
+JTC = "/joint_trajectory_controller/follow_joint_trajectory"
+
+
+def sim_cmd(*extra: str) -> list[str]:
+    return sim_action_cmd("constraints.goal_time:=2.0") + list(extra)
+
+
+def gate_cmd(name: str, *params: str, ns: str = "/") -> list[str]:
+    args = ["--ros-args", "-r", f"__node:={name}", "-r", f"__ns:={ns}", "-p", f"locked_joints:={FINGERS}"]
+    for p in params:
+        args += ["-p", p]
+    return python_cmd("dyn_node.ros.node", *args)
+
+
+def move(q0, q1, duration_s: float) -> dict:
+    from dyn_node.ros.fjt_client import quintic
+
+    return quintic(q0, q1, duration_s)
+
+
+FEASIBLE = move(READY, moved(0, 0.2), 1.5)     # 0.2 rad in 1.5 s
+INFEASIBLE = move(READY, moved(0, 0.5), 0.15)  # 0.5 rad in 0.15 s: ~3× joint 1's speed limit
+HOME = move(READY, READY, 1.0)                 # back to READY (the first point jumps there)
+
+
+class Probe:
+    """Decisions on ~/gate_decisions, /diagnostics and joint_states, collected here."""
+
+    def __init__(self, ctx, gate: str, ready: tuple[str, ...] = (), ns: str = ""):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.node import Node
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+
+        self.node = Node(f"probe_{gate}", context=ctx)
+        self.records: list[dict] = []
+        self.gate_status: list = []
+        self.js: list = []
+        self.inverse: dict[str, list] = {g: [] for g in ready}
+        self.node.create_subscription(String, f"{ns}/{gate}/gate_decisions", self._on_record,
+                                      QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 50)
+        self.node.create_subscription(JointState, f"{ns}/joint_states", self.js.append, 1000)
+        from control_msgs.msg import JointTrajectoryControllerState
+
+        self.state: list = []  # the controller's reference: it changes only with a new trajectory
+        self.node.create_subscription(JointTrajectoryControllerState,
+                                      f"{ns}/joint_trajectory_controller/controller_state", self.state.append, 100)
+        # a gate checks from the robot's state: ready once it computes torques from joint_states
+        for g in ready:
+            self.node.create_subscription(JointState, f"{ns}/{g}/inverse_dynamics", self.inverse[g].append, 10)
+        self.steps = Stepper(ctx, (self.node,), step_s=0.02)
+
+    def _on_record(self, msg) -> None:
+        self.records.append(json.loads(msg.data))
+
+    def _on_diag(self, msg) -> None:
+        self.gate_status += [s for s in msg.status if s.name == "dyn_node: gate"]
+
+    def wait_ready(self, timeout: float = 90.0) -> None:
+        self.until(lambda: all(len(v) > 5 for v in self.inverse.values()), timeout,
+                   f"{', '.join(self.inverse)} to load the model and take joint_states")
+
+    def until(self, cond, timeout: float, what: str) -> None:
+        if not self.steps.until(cond, timeout):
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+    def record(self, goal_id_event: str, n: int, timeout: float = 15.0) -> dict:
+        self.until(lambda: len([r for r in self.records if r["event"] == goal_id_event]) >= n, timeout,
+                   f"{n} {goal_id_event} record(s)")
+        return [r for r in self.records if r["event"] == goal_id_event][n - 1]
+
+    def close(self) -> None:
+        self.steps.close()
+
+
+@pytest.fixture(scope="module")
+def stack(module_ros_context, tmp_path_factory):
+    """dyn_sim, a gate in reject mode and one in check mode, both in front of dyn_sim."""
+    from conftest import ChildProcess, child_env
+    from dyn_node.ros.fjt_client import FjtClient
+
+    bags = tmp_path_factory.mktemp("gate_bags")
+    procs = [ChildProcess(sim_cmd(), env=child_env()),
+             ChildProcess(gate_cmd("gate_reject", f"gate.controller_action:={JTC}", "record.enabled:=true",
+                                   f"record.directory:={bags}"), env=child_env()),
+             ChildProcess(gate_cmd("gate_check", f"gate.controller_action:={JTC}", "gate.mode:=check"),
+                          env=child_env())]
+    clients = {m: FjtClient(module_ros_context, f"/gate_{m}/follow_joint_trajectory", f"client_{m}")
+               for m in ("reject", "check")}
+    probe = Probe(module_ros_context, "gate_reject", ready=("gate_reject", "gate_check"))
+    try:
+        for c in clients.values():
+            c.wait_for_server(90.0)
+        probe.wait_ready()
+        yield clients, probe, procs, bags
+    finally:
+        probe.close()
+        for c in clients.values():
+            c.close()
+        for p in procs:
+            p.stop(timeout=10.0)
+
+
+def _goal(spec: dict, **kw):
+    from dyn_node.ros.fjt_client import goal
+
+    return goal(**spec, names=ARM, **kw)
+
+
+@pytest.mark.timeout(120)
+def test_feasible_goal_forwarded_with_feedback_and_result(stack):
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    clients, probe, *_ = stack
+    client = clients["reject"]
+    n = len([r for r in probe.records if r["event"] == "decision"])
+    m = len([r for r in probe.records if r["event"] == "result"])
+    sent = client.send(_goal(FEASIBLE))
+    assert sent.handle.accepted
+    status, result = client.result(sent)
+    assert (status, result.error_code, result.error_string) == (
+        GoalStatus.STATUS_SUCCEEDED, FollowJointTrajectory.Result.SUCCESSFUL, "Goal successfully reached!")
+    # dyn_sim's 20 Hz feedback relayed: its joint order, desired − actual = error
+    assert len(sent.feedback) >= 10
+    f = sent.feedback[-1]
+    assert list(f.joint_names) == ARM
+    np.testing.assert_allclose(np.array(f.desired.positions) - np.array(f.actual.positions),
+                               f.error.positions, atol=1e-12)
+    rec = probe.record("decision", n + 1)
+    assert (rec["decision"], rec["feasible"], rec["reason"], rec["mode"]) == ("forwarded", True, "", "reject")
+    assert rec["forwarded"]["joint_names"] == ARM
+    assert rec["forwarded"]["positions"] == FEASIBLE["points"]  # unchanged
+    res = probe.record("result", m + 1)
+    assert (res["goal_id"], res["status"], res["error_code"]) == (rec["goal_id"], GoalStatus.STATUS_SUCCEEDED, 0)
+
+
+@pytest.mark.timeout(120)
+def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    from dyn_node.core import feasibility
+    from dyn_node.core.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.core.model import load_model
+    from dyn_node.core.settings import Settings
+    from dyn_node.core.trajectory import validate_trajectory
+
+    clients, probe, *_ = stack
+    client = clients["reject"]
+    n = len([r for r in probe.records if r["event"] == "decision"])
+    g = _goal(INFEASIBLE)
+    t_sent = time.time()
+    sent = client.send(g)
+    assert sent.handle.accepted  # accepted, then ended at once: the string reaches MoveIt
+    status, result = client.result(sent)
+    assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
+    # the verdict line of the core's check of the same trajectory (first point at t = 0: no
+    # start segment, so the verdict does not depend on the state it was checked from)
+    model = load_model(builtin="panda")
+    times = [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in g.trajectory.points]
+    traj = validate_trajectory(model.joint_names, ARM, times, INFEASIBLE["points"],
+                               INFEASIBLE["velocities"], INFEASIBLE["accelerations"])
+    node = Settings()  # the node's defaults: friction included, its sample period
+    verdict = feasibility.check_trajectory(
+        Dynamics(model, DynamicsOptions(include_friction=node.include_friction)), traj,
+        feasibility.FeasibilityOptions(sample_period=node.sample_period, effort_warn_ratio=node.effort_warn_ratio))
+    assert not verdict.feasible and result.error_string == verdict.message
+    assert "velocity" in result.error_string and "slower" in result.error_string
+    assert sent.feedback == []
+    rec = probe.record("decision", n + 1)
+    assert (rec["decision"], rec["reason"], rec["forwarded"]) == ("rejected", "infeasible", None)
+    assert rec["time_scale"] == pytest.approx(verdict.time_scale, rel=1e-12)
+    # dyn_sim never moved: from the goal on (stamps are wall-clock start + simulation time) the
+    # controller's reference stays exactly where it held, for 1 s, and the joints within 1 mrad
+    # (the last goal's settling) of where they were, not 0.5 rad away
+    after = lambda xs: [m for m in xs if m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 >= t_sent]  # noqa: E731
+    probe.until(lambda: len(after(probe.js)) > 500 and len(after(probe.state)) > 50, 20.0, "1 s of states")
+    ref = np.array([m.reference.positions for m in after(probe.state)])
+    assert np.array_equal(ref, np.repeat(ref[:1], len(ref), axis=0))
+    q = np.array([m.position[:7] for m in after(probe.js)])
+    assert np.abs(q - q[0]).max() < 1e-3
+
+
+@pytest.mark.timeout(120)
+def test_malformed_goals_rejected_with_the_reason(stack):
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    client = stack[0]["reject"]
+    nan = moved(0, float("nan"))
+    from dyn_node.ros.fjt_client import goal
+
+    cases = [(goal([0.5, 1.0], [READY, nan], names=ARM), "rejected: point 1: positions of panda_joint1 is nan"),
+             (goal([1.0], [READY], names=ARM), "rejected: trajectory has 1 point(s); at least 2 are needed"),
+             (goal([0.5, 1.0], [READY, READY], names=ARM[:6] + ["elbow"]),
+              "rejected: joints not in the model: elbow")]
+    for g, text in cases:
+        sent = client.send(g)
+        status, result = client.result(sent)
+        assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
+        assert result.error_string.startswith(text), result.error_string
+
+
+@pytest.mark.timeout(120)
+def test_controller_results_pass_through_unchanged(stack):
+    """The controller's goal rejection (non-zero end velocity, which the check allows) and its
+    PATH_TOLERANCE_VIOLATED come back to the client as the controller sent them."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    client = stack[0]["reject"]
+    from dyn_node.ros.fjt_client import goal
+
+    g = goal([0.0, 1.0], [READY, moved(0, 0.1)], names=ARM, velocities=[[0.0] * 7, [0.01] + [0.0] * 6])
+    assert not client.send(g).handle.accepted
+    sent = client.send(_goal(move(READY, moved(3, 0.2), 0.6), path_tolerance=[("panda_joint4", 1e-6)]))
+    status, result = client.result(sent)
+    assert (status, result.error_code, result.error_string) == (
+        GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.PATH_TOLERANCE_VIOLATED,
+        "Aborted due to path tolerance violation")
+    # back to READY for the next tests
+    assert client.result(client.send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
+
+
+@pytest.mark.timeout(120)
+def test_cancel_and_preemption_through_the_gate(stack):
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    client = stack[0]["reject"]
+    first = client.send(_goal(move(READY, moved(0, 0.3), 4.0)))
+    assert first.feedback_event.wait(15.0)
+    second = client.send(_goal(HOME))
+    status, result = client.result(first)
+    assert (status, result.error_code, result.error_string) == (
+        GoalStatus.STATUS_CANCELED, FollowJointTrajectory.Result.INVALID_GOAL,
+        "Current goal cancelled due to new incoming action.")
+    assert client.result(second)[0] == GoalStatus.STATUS_SUCCEEDED
+    third = client.send(_goal(move(READY, moved(0, 0.3), 4.0)))
+    assert third.feedback_event.wait(15.0)
+    assert len(client.cancel(third).goals_canceling) == 1
+    assert client.result(third)[0] == GoalStatus.STATUS_CANCELED
+    assert client.result(client.send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
+
+
+@pytest.mark.timeout(120)
+def test_check_mode_forwards_an_infeasible_goal(stack):
+    from action_msgs.msg import GoalStatus
+
+    clients, *_ = stack
+    sent = clients["check"].send(_goal(INFEASIBLE))
+    assert sent.handle.accepted
+    status, _ = clients["check"].result(sent)
+    assert status == GoalStatus.STATUS_SUCCEEDED  # dyn_sim limits effort only: it ran, too fast
+    assert len(sent.feedback) >= 1
+    assert clients["check"].result(clients["check"].send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
+
+
+@pytest.mark.timeout(60)
+def test_gate_status_counts(stack):
+    """dyn_node: gate counts what ~/gate_decisions recorded (both delivered late by DDS here, so
+    wait until they agree) and names the last decision."""
+    _, probe, *_ = stack
+
+    def agree() -> bool:
+        st = [s for s in probe.gate_status if kv(s).get("mode") == "reject"]
+        decisions = [r for r in probe.records if r["event"] == "decision"]
+        if not st or len(decisions) < 8:
+            return False
+        v = kv(st[-1])
+        return (int(v["forwarded"]), int(v["rejected"]), v["last_decision"].split(":")[0]) == (
+            sum(r["decision"] == "forwarded" for r in decisions),
+            sum(r["decision"] == "rejected" for r in decisions), decisions[-1]["decision"])
+
+    probe.until(agree, 20.0, "the gate status to count the recorded decisions")
+    v = kv([s for s in probe.gate_status if kv(s).get("mode") == "reject"][-1])
+    assert int(v["rejected"]) >= 4 and int(v["forwarded"]) >= 4 and int(v["retimed"]) == 0
+
+
+@pytest.mark.timeout(120)
+def test_audit_replays_the_gate_decisions_identically(stack):
+    """The reject gate's bag: dyn-audit decides every recorded goal again, identically, and lists
+    the decisions (last test of the stack: it stops the gate to close its bag)."""
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+
+    _, probe, procs, bags = stack
+    probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) >= 8, 20.0, "the records")
+    rc, _, err = procs[1].stop(signal.SIGINT)
+    assert rc == 0, err[-2000:]
+    audit = run_audit(AuditOptions(bag=str(next(bags.iterdir())), out=str(bags / "audit"), report=True))
+    gate = audit.record["outputs"]["questions"]["gate"]
+    live = [r for r in probe.records if r["event"] == "decision"]
+    assert (gate["requests"], gate["answered"], gate["not_replayed"]) == (len(live), len(live), 0)
+    assert (gate["forwarded"], gate["rejected"]) == (sum(r["decision"] == "forwarded" for r in live),
+                                                     sum(r["decision"] == "rejected" for r in live))
+    assert [d["goal_id"] for d in gate["decisions"]] == [r["goal_id"] for r in live]
+    assert [d["verdict"] for d in gate["decisions"]] == [r["verdict"] for r in live]
+    recheck = audit.record["outputs"]["recheck"]["/gate_reject/gate_decisions"]
+    assert (recheck["matched"], recheck["identical"]) == (len(live), True), recheck
+    report = (bags / "audit" / "report.html").read_text()
+    assert "Gate decisions" in report and live[1]["verdict"].split(";")[0] in report
+
+
+@pytest.mark.timeout(150)
+def test_downstream_absent_and_crashing(module_ros_context, spawn):
+    """In a namespace of their own (their own joint_states): a gate whose controller does not
+    exist, and one whose controller is killed mid-goal."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    from dyn_node.ros.fjt_client import FjtClient
+
+    ns = "/crash"
+    sim = spawn(sim_cmd("-r", f"__ns:={ns}", "-p", "controller_name:=crashing"))
+    spawn(gate_cmd("gate_absent", "gate.controller_action:=/nobody/follow_joint_trajectory",
+                   "gate.timeout:=0.5", ns=ns))
+    spawn(gate_cmd("gate_crash", f"gate.controller_action:={ns}/crashing/follow_joint_trajectory",
+                   "gate.timeout:=1.0", ns=ns))
+    absent = FjtClient(module_ros_context, f"{ns}/gate_absent/follow_joint_trajectory", "client_absent")
+    crash = FjtClient(module_ros_context, f"{ns}/gate_crash/follow_joint_trajectory", "client_crash")
+    probe = Probe(module_ros_context, "gate_crash", ready=("gate_absent", "gate_crash"), ns=ns)
+    try:
+        absent.wait_for_server(90.0)
+        crash.wait_for_server(90.0)
+        probe.wait_ready()
+        sent = absent.send(_goal(FEASIBLE))
+        status, result = absent.result(sent, timeout=10.0)
+        assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
+        assert result.error_string == ("dyn_node gate: downstream action server /nobody/follow_joint_trajectory "
+                                       "not available within 0.5 s (gate.timeout)")
+        # dyn_node: gate says so: ERROR, state error, the failure counted
+        absent_status = lambda: [st for st in probe.gate_status  # noqa: E731
+                                 if kv(st).get("controller_action") == "/nobody/follow_joint_trajectory"
+                                 and kv(st).get("downstream_failures") == "1"]
+        probe.until(lambda: bool(absent_status()), 20.0, "the absent gate's status")
+        st = absent_status()[-1]
+        assert (st.level, kv(st)["failure_label"]) == (bytes([2]), "state error")
+        assert st.message == "downstream action server /nobody/follow_joint_trajectory not available"
+        sent = crash.send(_goal(move(READY, moved(0, 0.3), 6.0)))
+        assert sent.handle.accepted and sent.feedback_event.wait(15.0)
+        sim.signal(signal.SIGKILL)
+        status, result = crash.result(sent, timeout=20.0)
+        assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
+        assert result.error_string == (f"dyn_node gate: downstream action server {ns}/crashing/follow_joint_trajectory "
+                                       "went away during the goal (no feedback and no result for 1 s)")
+        rec = probe.record("downstream_lost", 1)
+        assert rec["status"] == GoalStatus.STATUS_ABORTED
+    finally:
+        probe.close()
+        absent.close()
+        crash.close()
+
+
+@pytest.mark.timeout(150)
+def test_clean_shutdown_cancels_what_was_forwarded(module_ros_context, spawn):
+    """SIGINT to dyn_node while a forwarded goal runs: the controller's goal ends CANCELED (its
+    action status topic says so), the robot held before the trajectory's end."""
+    from action_msgs.msg import GoalStatus, GoalStatusArray
+
+    from dyn_node.ros.fjt_client import FjtClient
+
+    ns = "/shutdown"
+    spawn(sim_cmd("-r", f"__ns:={ns}"))
+    gate = spawn(gate_cmd("gate_stop", f"gate.controller_action:={ns}/joint_trajectory_controller/"
+                          "follow_joint_trajectory", ns=ns))
+    client = FjtClient(module_ros_context, f"{ns}/gate_stop/follow_joint_trajectory", "client_stop")
+    probe = Probe(module_ros_context, "gate_stop", ready=("gate_stop",), ns=ns)
+    statuses: list = []
+    probe.node.create_subscription(GoalStatusArray, f"{ns}/joint_trajectory_controller/follow_joint_trajectory"
+                                   "/_action/status", statuses.append, 10)
+    try:
+        client.wait_for_server(90.0)
+        probe.wait_ready()
+        sent = client.send(_goal(move(READY, moved(0, 0.3), 8.0)))
+        assert sent.handle.accepted and sent.feedback_event.wait(15.0)
+        rc, _, err = gate.stop(signal.SIGINT)
+        assert rc == 0, err[-2000:]
+        canceled = lambda: any(s.status == GoalStatus.STATUS_CANCELED  # noqa: E731
+                               for m in statuses for s in m.status_list)
+        probe.steps.until(canceled, 10.0)
+        assert canceled(), f"the controller's goal did not end CANCELED; dyn_node said:\n{err[-3000:]}"
+        assert "Traceback" not in err
+    finally:
+        probe.close()
+        client.close()

@@ -1,0 +1,131 @@
+"""The gate's decisions without ROS (dyn_node.gate.decision): what is forwarded, rejected or retimed
+in each mode, and the record the bag keeps."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+
+import numpy as np
+import pytest
+
+from dyn_node.core import feasibility
+from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.model import load_model
+from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.errors import SettingsError, TrajectoryError
+from dyn_node.gate.decision import FORWARDED, REJECTED, RETIMED, GateOptions, decide, rejected
+
+READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+HAS_RETIMER = importlib.util.find_spec("dyn_node.retime") is not None
+
+
+def quintic(dq: float, duration: float, n: int = 31):
+    """Joint 1 moves dq rad rest to rest in ``duration`` s (peak speed 15/8·dq/duration at the middle)."""
+    model = load_model(builtin="panda")
+    s = np.linspace(0.0, 1.0, n)
+    d = np.zeros(7)
+    d[0] = dq
+    pos = READY + np.outer(10 * s**3 - 15 * s**4 + 6 * s**5, d)
+    vel = np.outer((30 * s**2 - 60 * s**3 + 30 * s**4) / duration, d)
+    acc = np.outer((60 * s - 180 * s**2 + 120 * s**3) / duration**2, d)
+    traj = validate_trajectory(model.joint_names, list(model.joint_names), s * duration, pos, vel, acc)
+    return Dynamics(model), traj
+
+
+@pytest.fixture(scope="module")
+def fast():
+    return quintic(0.5, 0.15)  # 6.25 rad/s peak on joint 1, limit 2.175 rad/s
+
+
+@pytest.fixture(scope="module")
+def slow():
+    return quintic(0.2, 1.5)
+
+
+def test_modes_validated():
+    with pytest.raises(SettingsError, match="gate.mode must be one of reject, retime, check"):
+        GateOptions(mode="forward")
+
+
+def test_feasible_goal_forwarded_unchanged_in_every_mode(slow):
+    dyn, traj = slow
+    for mode in ("reject", "check"):
+        d = decide(dyn, traj, GateOptions(mode=mode), start=None)
+        assert (d.decision, d.reason, d.feasible) == (FORWARDED, "", True)
+        assert d.trajectory is traj and d.forwards
+
+
+def test_infeasible_goal_rejected_with_the_verdict_line(fast):
+    dyn, traj = fast
+    d = decide(dyn, traj, GateOptions(mode="reject"), start=None)
+    assert (d.decision, d.reason, d.feasible, d.trajectory) == (REJECTED, "infeasible", False, None)
+    # closed form: quintic peak speed 15/8 · 0.5 rad / 0.15 s against the URDF's 2.175 rad/s
+    ratio = 15 / 8 * 0.5 / 0.15 / 2.175
+    assert d.worst[0:2] == ("panda_joint1", "velocity")
+    assert d.worst[2] == pytest.approx(ratio, rel=1e-9)
+    assert d.time_scale == pytest.approx(ratio, rel=1e-3)  # speed binds: k = ratio
+    assert d.error_string == d.verdict
+    assert d.verdict.startswith("infeasible: panda_joint1 velocity 287% of 2.17 rad/s")
+    assert d.verdict.endswith("run 2.87× slower")
+
+
+def test_check_mode_forwards_an_infeasible_goal_with_its_verdict(fast):
+    dyn, traj = fast
+    d = decide(dyn, traj, GateOptions(mode="check"), start=None)
+    assert (d.decision, d.reason, d.feasible) == (FORWARDED, "infeasible", False)
+    assert d.trajectory is traj and d.verdict.startswith("infeasible: ")
+
+
+def test_start_state_checked_when_the_first_point_lies_ahead():
+    """A goal whose first point is 0.1 s ahead and 0.3 rad away: the controller's move from the
+    current state to it is checked too (a quintic from rest: peak 15/8·0.3/0.1 rad/s)."""
+    dyn, traj = quintic(0.2, 1.5)
+    ahead = type(traj)(times=traj.times + 0.1, positions=traj.positions, velocities=traj.velocities,
+                       accelerations=traj.accelerations)
+    start = feasibility.StartState(positions=READY - np.array([0.3, 0, 0, 0, 0, 0, 0]),
+                                   velocities=np.zeros(7), age_s=0.0)
+    d = decide(dyn, ahead, GateOptions(), start=start)
+    assert d.decision == REJECTED and "velocity" in d.verdict
+    assert decide(dyn, ahead, GateOptions(), start=None).decision == FORWARDED  # no state: not checked
+
+
+def test_rejected_input_and_record(fast):
+    d = rejected(TrajectoryError("joints not in the model: elbow", code="unknown_joints"))
+    assert (d.decision, d.reason, d.error_string) == (REJECTED, "unknown_joints",
+                                                      "rejected: joints not in the model: elbow")
+    dyn, traj = fast
+    rec = decide(dyn, traj, GateOptions(), start=None).to_dict(goal_id="g1", mode="reject",
+                                                                joint_names=list(dyn.model.joint_names))
+    back = json.loads(json.dumps(rec, allow_nan=False))
+    assert (back["goal_id"], back["decision"], back["forwarded"], back["duration_out"]) == ("g1", "rejected", None, None)
+    assert back["error_string"] == back["verdict"]
+    fwd = decide(*quintic(0.2, 1.5), GateOptions(), start=None)
+    rec = json.loads(json.dumps(fwd.to_dict(goal_id="g2", mode="reject", joint_names=["a"] * 7), allow_nan=False))
+    np.testing.assert_array_equal(rec["forwarded"]["positions"], fwd.trajectory.positions)
+    assert rec["forwarded"]["times"] == fwd.trajectory.times.tolist()
+
+
+@pytest.mark.skipif(HAS_RETIMER, reason="dyn_node.retime is installed")
+def test_retime_mode_without_the_retimer_rejects_with_the_reason(fast, slow):
+    dyn, traj = fast
+    d = decide(dyn, traj, GateOptions(mode="retime"), start=None)
+    assert (d.decision, d.reason) == (REJECTED, "retime_failed")
+    assert "gate.mode retime needs dyn_node.retime" in d.error_string
+    assert d.error_string.startswith(d.verdict)
+    # a feasible goal that retime_all could not retime still goes as it came
+    d = decide(*slow, GateOptions(mode="retime", retime_all=True), start=None)
+    assert (d.decision, d.reason, d.trajectory is slow[1]) == (FORWARDED, "retime_failed", True)
+
+
+def test_retime_mode_forwards_a_retimed_trajectory_that_passes_the_check(fast):
+    if not HAS_RETIMER:
+        pytest.skip("dyn_node.retime (the retiming issue) is not in this tree yet")
+    dyn, traj = fast
+    d = decide(dyn, traj, GateOptions(mode="retime"), start=None)
+    assert d.decision == RETIMED and d.trajectory is not None
+    again = feasibility.check_trajectory(dyn, d.trajectory)  # what is forwarded passes the check
+    assert again.feasible
+    np.testing.assert_allclose(d.trajectory.positions[[0, -1]], traj.positions[[0, -1]], atol=1e-9)
+    assert traj.duration < d.duration_out <= d.duration_uniform * (1 + 1e-9)
+    assert math.isclose(d.duration_in, traj.duration)
