@@ -180,10 +180,13 @@ def test_demo_short_end_to_end(tmp_path):
         assert re.search(rf"/dyn_node/{topic}\s+matched [1-9]\d*, unmatched 0, not answered live 0, "
                          r"max \|difference\| 0\.0, identical True", text), text[-3000:]
     assert re.search(r"- (contact|collision) from [0-9.]+ s to [0-9.]+ s: peak [0-9.]+ N at panda_link8", text)
-    # dyn-audit's line adds up: the executed trajectories and the check-only questions apart
-    # (the aggressive trajectory is the executed "no"; two of the checks asked before sending said no)
-    assert re.search(r"; 1 of 4 executed trajectories infeasible or rejected; 2 of 5 questions "
-                     r"answered infeasible or rejected \(check 5\)", text), text[-3000:]
+    # dyn-audit's line adds up: the executed trajectories and the questions apart, the questions
+    # asked through the services counted. Executed: comfortable, aggressive (the "no"), slowed,
+    # the slowed transfer, the press scene's press and release. Questions: five checks (two said
+    # no: aggressive, the fast transfer) and one retime, a "no" unless it was retimed.
+    retime_no = 0 if re.search(r"^  ~/retime_trajectory: retimed: ", text, re.M) else 1
+    assert re.search(rf"; 1 of 6 executed trajectories infeasible or rejected; {2 + retime_no} of 6 "
+                     r"questions answered infeasible or rejected \(check 5, retime 1\)", text), text[-3000:]
     # 3b: the TCP speed limit, before execution with its time_scale, and the slowed transfer
     assert re.search(r"\[PASS\] fast transfer: infeasible before execution on the TCP speed "
                      r"\(worst panda_hand frame_speed, peak 0\.64\d* m/s of 0\.25 m/s\), "

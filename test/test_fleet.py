@@ -354,6 +354,7 @@ def _expected_row(rec: dict) -> dict:
     out, iq, inp = rec["outputs"], rec["input_quality"], rec["inputs"]
     trajs = out["trajectories"]
     executed = [t for t in trajs if t["request"] == "execute"]
+    services = list(out.get("questions", {}).values())
     cands = [(_num(p["peak_utilisation"]), p["joint"], "effort", "live", _num(p["peak_time_s"]))
              for p in out["effort"]["per_joint"]]
     cands += [(_num(v["peak_ratio"]), v["joint"], v["kind"], "live", _num(v["peak_time_s"]))
@@ -369,8 +370,10 @@ def _expected_row(rec: dict) -> dict:
            "joint_states": out["monitor_counts"]["received"],
            "joint_states_accepted": out["monitor_counts"]["accepted"],
            "trajectories": len(executed), "trajectories_bad": sum(not t["feasible"] for t in executed),
-           "questions": len(trajs) - len(executed),
-           "questions_infeasible": sum(not t["feasible"] for t in trajs if t["request"] != "execute"),
+           # request-topic questions are listed; service questions counted per service
+           "questions": len(trajs) - len(executed) + sum(q["answered"] for q in services),
+           "questions_infeasible": sum(not t["feasible"] for t in trajs if t["request"] != "execute")
+           + sum(q["infeasible"] + sum(q["not_accepted"].values()) for q in services),
            "verdict": rec["verdict"]["result"], "partial": rec["verdict"]["partial"],
            "worst_ratio": best[0], "worst_joint": best[1], "worst_constraint": best[2],
            "worst_source": best[3], "worst_time_s": best[4],

@@ -6,6 +6,7 @@ are service calls audits with exit 0, infeasible questions included.
 One node process (Panda, recording) serves the module; the bag holds nothing but the calls."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import re
@@ -21,6 +22,7 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from conftest import REPO, ChildProcess, Collected, Spinner, child_env, python_cmd
+from service_event_counts import question_counts
 from dyn_node.bag import msgdefs
 from dyn_node.ros.client import states_message, trajectory_message
 from dyn_node.ros.demo import READY, demo_trajectories
@@ -66,6 +68,11 @@ def bag(module_ros_context, tmp_path_factory) -> Path:
         bad = trajectory_message(NAMES, comfortable.times, comfortable.positions)
         bad.points[1].positions[0] = math.nan
         assert call("check_trajectory", CheckTrajectory.Request(trajectory=bad)).reason == "non_finite"
+        # an effort list neither empty nor one per joint: refused as joint_trajectory_controller does
+        two = trajectory_message(NAMES, comfortable.times, comfortable.positions)
+        two.points[1].effort = [1.0, 2.0]
+        assert call("check_trajectory", CheckTrajectory.Request(trajectory=two)).reason == "length_mismatch"
+        assert call("retime_trajectory", RetimeTrajectory.Request(trajectory=two)).reason == "length_mismatch"
         q = np.array([READY, [0.3, 0.2, -0.1, -1.5, 0.2, 1.0, 0.1]])
         assert call("compute_inverse_dynamics",
                     ComputeInverseDynamics.Request(states=states_message(NAMES, q, q * 0.5, q * 0.1))).accepted
@@ -118,13 +125,14 @@ def test_events_decode_with_mcap_and_rosbags_alike(bag):
     assert set(events) == EVENTS
     check = events["/dyn_node/check_trajectory/_service_event"]
     kinds = [mc.info.event_type for mc, _ in check]
-    # per call: request received (1), response sent (2); 3 calls
-    assert kinds.count(1) == 3 and kinds.count(2) == 3 and [rb.info.event_type for _, rb in check] == kinds
+    # per call: request received (1), response sent (2); 4 calls
+    assert kinds.count(1) == 4 and kinds.count(2) == 4 and [rb.info.event_type for _, rb in check] == kinds
     for mc, rb in check:
         assert mc.info.sequence_number == rb.info.sequence_number
         assert len(mc.request) == len(rb.request) and len(mc.response) == len(rb.response)
     responses = [(mc.response[0], rb.response[0]) for mc, rb in check if mc.info.event_type == 2]
-    assert [m.reason for m, _ in responses] == [r.reason for _, r in responses] == ["", "", "non_finite"]
+    assert [m.reason for m, _ in responses] == [r.reason for _, r in responses] == ["", "", "non_finite",
+                                                                                 "length_mismatch"]
     m, r = responses[0]
     assert m.accepted and not m.feasible and r.accepted and not r.feasible
     assert m.message == r.message and m.time_scale == r.time_scale and m.worst_joint == r.worst_joint
@@ -165,14 +173,20 @@ def test_a_bag_of_questions_only_audits_with_exit_0_and_each_answer_identical(ba
     assert res.exit_code == 0, rec["verdict"]
     rc = rec["outputs"]["recheck"]
     check = rc["/dyn_node/check_trajectory/_service_event"]
-    # three calls re-answered from the bag alone, identical, the refused one included
-    assert check["matched"] == 3 and check["unmatched"] == 0 and check["unanswered"] == 0
+    # four calls re-answered from the bag alone, identical, the refused ones included
+    assert check["matched"] == 4 and check["unmatched"] == 0 and check["unanswered"] == 0
     assert check["identical"], check
     ids = rc["/dyn_node/compute_inverse_dynamics/_service_event"]
     assert ids["matched"] == 1 and ids["identical"], ids
     q = rec["outputs"]["questions"]
-    assert q["check"]["requests"] == 3 and q["check"]["infeasible"] >= 1
-    assert q["check"]["not_accepted"] == {"non_finite": 1}
+    assert q["check"]["requests"] == 4 and q["check"]["infeasible"] >= 1
+    assert q["check"]["not_accepted"] == {"non_finite": 1, "length_mismatch": 1}
+    retime = rc["/dyn_node/retime_trajectory/_service_event"]
+    # the refused one re-answered; the other only where the retimer is there to answer it again
+    has_retimer = importlib.util.find_spec("dyn_node.retime") is not None
+    assert retime["matched"] == (2 if has_retimer else 1) and retime["identical"], retime
+    assert q["retime"]["not_accepted"] == ({"length_mismatch": 1} if has_retimer else
+                                           {"length_mismatch": 1, "retimer_unavailable": 1})
     # a question answered "infeasible" is not a violation of the run
     assert rec["outputs"]["trajectories_infeasible_or_rejected"] == 0
     assert rec["verdict"]["result"] == "feasible"
@@ -210,7 +224,7 @@ def test_a_tampered_answer_is_caught(bag):
             if service_role(m.topic, m.channel.schema_name):
                 replay.feed(m, decoder, dyn, settings)
         check, _ = replay._own["/dyn_node/check_trajectory/_service_event"]
-        assert decoder.done and check.matched == 3
+        assert decoder.done and check.matched == 4
         assert not check.to_dict()["identical"] and 0.0 < check.max_diff < 1e-6, (field, check.to_dict())
 
 
@@ -246,3 +260,121 @@ def test_a_bag_with_the_old_request_topics_still_audits(tmp_path):
     assert len(checks) == 1 and checks[0]["accepted"] and not checks[0]["feasible"]
     assert res.exit_code == 0 and res.record["outputs"]["trajectories_infeasible_or_rejected"] == 0
     assert res.record["outputs"]["questions"] == {}
+
+
+def test_the_audit_refuses_an_effort_list_of_the_wrong_length_as_the_node_does(tmp_path):
+    """joint_trajectory (and the old check topic) replayed with the controller's effort rule:
+    two efforts for seven joints are rejected, seven are not."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    JT, JTP, D = (ts.types[t] for t in ("trajectory_msgs/msg/JointTrajectory",
+                                        "trajectory_msgs/msg/JointTrajectoryPoint",
+                                        "builtin_interfaces/msg/Duration"))
+    H, T = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    empty = np.array([], dtype=float)
+
+    def traj(k: int, effort) -> object:
+        pts = [JTP(positions=np.asarray(READY, float) + 0.1 * i, velocities=empty, accelerations=empty,
+                   effort=np.asarray(effort if i == 1 else [], float), time_from_start=D(sec=2 * i, nanosec=0))
+               for i in range(2)]
+        return JT(header=H(stamp=T(sec=100 + k, nanosec=0), frame_id=""), joint_names=NAMES, points=pts)
+
+    bag = tmp_path / "efforts"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        ex = w.add_connection("/joint_trajectory", JT.__msgtype__, typestore=ts)
+        ck = w.add_connection("/dyn_node/check_trajectory", JT.__msgtype__, typestore=ts)
+        w.write(ex, 10**9, ts.serialize_cdr(traj(0, [1.0, 2.0]), JT.__msgtype__))
+        w.write(ck, 2 * 10**9, ts.serialize_cdr(traj(1, [1.0, 2.0]), JT.__msgtype__))
+        w.write(ex, 3 * 10**9, ts.serialize_cdr(traj(2, [0.5] * 7), JT.__msgtype__))
+    res = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "audit"), robot_model="panda", report=False))
+    t = res.record["outputs"]["trajectories"]
+    assert [(e["request"], e["accepted"], e.get("error_code")) for e in t] == [
+        ("execute", False, "length_mismatch"), ("check", False, "length_mismatch"), ("execute", True, None)]
+    assert "point 1: 2 effort for 7 joints" in t[0]["message"]
+
+
+def _counts_line(counts: dict[str, tuple[int, int]]) -> str:
+    """The audit's questions sentence, written here from the independently decoded calls."""
+    n, no = sum(c[0] for c in counts.values()), sum(c[1] for c in counts.values())
+    kinds = ", ".join(f"{k} {c[0]}" for k, c in sorted(counts.items()))
+    return f"{no} of {n} questions answered infeasible or rejected ({kinds})"
+
+
+def test_service_questions_are_counted_in_the_summary_and_trajectory_counts(bag, tmp_path):
+    """Each recorded call counted once (request and response events are one call), its "no" from
+    the recorded response, decoded here by mcap + rosbags: refused calls count as "no"."""
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+
+    want = question_counts(bag)
+    # what the fixture asked: 4 checks (shake infeasible, NaN and effort refused), 1 torque
+    # question, 2 retimes (the effort one refused; the other retimed or not)
+    assert {k: n for k, (n, _) in want.items()} == {"check": 4, "inverse_dynamics": 1, "retime": 2}
+    assert want["check"][1] == 3 and want["inverse_dynamics"][1] == 0 and want["retime"][1] >= 1
+    rec = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "audit"), robot_model="panda",
+                                 report=True)).record
+    c = rec["outputs"]["trajectory_counts"]
+    assert (c["executed"], c["executed_infeasible_or_rejected"]) == (0, 0)
+    assert (c["questions"], c["questions_infeasible_or_rejected"]) == (7, sum(no for _, no in want.values()))
+    assert c["by_request"] == {k: {"total": n, "infeasible_or_rejected": no} for k, (n, no) in want.items()}
+    assert rec["verdict"]["summary"] == "all feasible: 0 executed trajectories; " + _counts_line(want)
+    html = (tmp_path / "audit" / "report.html").read_text()
+    assert f"<b>{c['questions_infeasible_or_rejected']} of 7</b> answered infeasible or rejected" in html
+
+
+def test_a_fleet_row_counts_the_service_questions(bag, tmp_path):
+    from dyn_node.fleet import engine as fleet
+
+    want = question_counts(bag)
+    cfg = fleet.FleetConfig(robot_model="panda", report=False)
+    job = fleet.BagJob(str(bag), fleet.bag_id(bag), str(tmp_path / "out"), cfg, fleet.config_hash(cfg))
+    row = fleet.audit_bag(job).row
+    assert row["verdict"] == "feasible" and row["exit_code"] == 0, row
+    assert (row["trajectories"], row["trajectories_bad"]) == (0, 0)
+    assert (row["questions"], row["questions_infeasible"]) == (
+        sum(n for n, _ in want.values()), sum(no for _, no in want.values()))
+
+
+def test_a_bag_with_service_events_and_old_request_topics_counts_each_once(bag, tmp_path):
+    """The old request topics and the services in one bag: every question counted, none twice
+    (the service events copied byte for byte from the node's bag, beside two topic requests)."""
+    from mcap.reader import make_reader
+    from rclpy.serialization import serialize_message
+
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+    from dyn_node.bag.metadata import TopicInfo
+    from dyn_node.bag.recorder import Recorder, RecorderConfig
+
+    _, aggressive = demo_trajectories(short=True)
+    z = np.zeros((len(aggressive.times), 7))
+    shake = trajectory_message(NAMES, aggressive.times, aggressive.positions, z, z)
+    shake.header.frame_id = "q1"
+    states = states_message(NAMES, np.array([READY]))
+    states.header.frame_id = "q2"
+    rec = Recorder(RecorderConfig(directory=str(tmp_path), prefix="both", fsync=False), clock_ns=lambda: 1)
+    rec.add_topic(TopicInfo("/dyn_node/check_trajectory", "trajectory_msgs/msg/JointTrajectory"))
+    rec.add_topic(TopicInfo("/dyn_node/inverse_dynamics_request", "trajectory_msgs/msg/JointTrajectory"))
+    rec.write("/dyn_node/check_trajectory", serialize_message(shake), 10)
+    rec.write("/dyn_node/inverse_dynamics_request", serialize_message(states), 20)
+    t, added = 100, set()
+    for f in sorted(bag.glob("*.mcap")):
+        with open(f, "rb") as fh:
+            for schema, channel, msg in make_reader(fh).iter_messages(topics=sorted(EVENTS)):
+                if channel.topic not in added:
+                    rec.add_topic(TopicInfo(channel.topic, schema.name))
+                    added.add(channel.topic)
+                rec.write(channel.topic, msg.data, t)
+                t += 10
+    both = Path(rec.close(timeout=60.0).path)
+    want = question_counts(bag)
+    want["check"] = (want["check"][0] + 1, want["check"][1] + 1)  # the shake asked on the topic too
+    want["inverse_dynamics"] = (want["inverse_dynamics"][0] + 1, want["inverse_dynamics"][1])
+    r = run_audit(AuditOptions(bag=str(both), out=str(tmp_path / "audit"), robot_model="panda",
+                               report=False)).record
+    c = r["outputs"]["trajectory_counts"]
+    assert c["by_request"] == {k: {"total": n, "infeasible_or_rejected": no} for k, (n, no) in want.items()}
+    assert c["questions"] == 9 and c["executed"] == 0
+    assert r["verdict"]["summary"] == "all feasible: 0 executed trajectories; " + _counts_line(want)

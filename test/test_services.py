@@ -25,6 +25,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from conftest import REPO, ChildProcess, Collected, Spinner, child_env, kv, python_cmd
+from service_event_counts import question_counts
 from dyn_node.audit import check as check_cli
 from dyn_node.core import feasibility, on_demand
 from dyn_node.ros.client import (BlockingCallError, DynClient, NotRunningError, RequestRejected, Verdict,
@@ -146,7 +147,8 @@ def local_check(msg: JointTrajectory) -> on_demand.CheckOutcome:
                            [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
                            [list(p.positions) for p in pts], [list(p.velocities) for p in pts],
                            [list(p.accelerations) for p in pts],
-                           start_unknown=on_demand.START_NOT_REQUESTED)
+                           start_unknown=on_demand.START_NOT_REQUESTED,
+                           efforts=[list(p.effort) for p in pts])
 
 
 def efforts_of(msg: JointTrajectory, names=NAMES) -> np.ndarray:
@@ -300,7 +302,8 @@ def test_a_burst_beyond_the_queue_is_answered_busy_at_once(rig):
     assert all(r.message == want.message and r.time_scale == want.time_scale for r in checked)
 
 
-@pytest.mark.parametrize("case", ["nan", "unknown_joint", "empty", "one_point_nan", "bad_times"])
+@pytest.mark.parametrize("case", ["nan", "unknown_joint", "empty", "one_point_nan", "bad_times",
+                                  "effort_length"])
 def test_malformed_requests_are_answered_with_the_reason(rig, case):
     msg = reach()
     if case == "nan":
@@ -312,11 +315,14 @@ def test_malformed_requests_are_answered_with_the_reason(rig, case):
     elif case == "one_point_nan":
         msg.points = msg.points[:1]
         msg.points[0].velocities[0] = math.inf
-    else:
+    elif case == "bad_times":
         msg.points[2].time_from_start = msg.points[1].time_from_start
+    else:  # two efforts for seven joints: joint_trajectory_controller refuses it
+        msg.points[1].effort = [1.0, 2.0]
     want = local_check(msg)
     assert want.error is not None
     code = want.error.code
+    assert case != "effort_length" or (code == "length_mismatch" and "2 effort for 7 joints" in str(want.error))
     r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=msg))
     assert (r.accepted, r.reason, r.feasible) == (False, code, False)
     assert r.message == str(want.error) and r.statuses[0].message == want.statuses[0].message
@@ -326,6 +332,18 @@ def test_malformed_requests_are_answered_with_the_reason(rig, case):
         r = rig.call(rig.srv_id, ComputeInverseDynamics.Request(states=msg))
         want_id = {"nan": "non_finite", "unknown_joint": "unknown_joints", "empty": "empty_points"}[case]
         assert (r.accepted, r.reason) == (False, want_id) and r.message and not r.effort.points
+
+
+def test_an_effort_list_empty_or_one_per_joint_is_accepted(rig):
+    """The controller's rule refuses only other lengths: full and empty effort lists are asked."""
+    full, empty = reach(), reach()
+    for p in full.points:
+        p.effort = [0.5] * 7
+    for msg in (full, empty):
+        r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=msg))
+        assert r.accepted and r.reason == "" and r.message == local_check(msg).result.message
+        r = rig.call(rig.srv_retime, RetimeTrajectory.Request(trajectory=msg))
+        assert r.reason != "length_mismatch" and (r.accepted or r.reason == "retimer_unavailable")
 
 
 def test_retime_service(rig):
@@ -504,6 +522,14 @@ def test_the_audit_reanswers_every_recorded_question(rig, tmp_path):
     assert ids["matched"] >= 4 and ids["unmatched"] == 0 and ids["identical"], ids
     qs = res.record["outputs"]["questions"]
     assert qs["check"]["not_accepted"]["busy"] >= 1 and qs["check"]["infeasible"] >= 1
+    # every call counted once in the accounting, its "no" as the recorded response says (decoded
+    # here by mcap + rosbags): a busy answer is a question answered "rejected"
+    want = question_counts(Path(fut.result().message))
+    c = res.record["outputs"]["trajectory_counts"]
+    assert {k: v for k, v in c["by_request"].items() if k != "execute"} == {
+        k: {"total": n, "infeasible_or_rejected": no} for k, (n, no) in want.items()}
+    assert want["check"][1] >= qs["check"]["not_accepted"]["busy"] + qs["check"]["infeasible"]
+    assert c["questions"] == sum(n for n, _ in want.values())
     executed_bad = sum(not t["feasible"] for t in res.record["outputs"]["trajectories"]
                        if t["request"] == "execute")
     # a question answered "no" is not a violation of the run

@@ -5,6 +5,14 @@ is a violation of the run. A check, retime or inverse-dynamics request is a *que
 "no" is an answer, listed but never a violation. Every trajectory entry of an evidence record
 carries ``request`` (``execute`` or the question's kind); the counts of both live here so the
 audit, its report, dyn-fleet and the demo say the same thing.
+
+Questions come from two sources, each counted once: the request topics of older bags
+(``~/check_trajectory``, ``~/inverse_dynamics_request``: one per message, answered as the audit
+re-answers it) and the question services (``<service>/_service_event``: one per recorded
+request/response pair, answered as the node's recorded response says; the client's own events
+and a response without its request are not counted). A response not accepted counts as a
+question answered "rejected" whatever its reason (invalid request, or ``busy``/``no_model``,
+given without looking at the request), as a request topic's rejected request did.
 """
 from __future__ import annotations
 
@@ -15,7 +23,7 @@ EXECUTE = "execute"
 CHECK, RETIME, INVERSE_DYNAMICS = "check", "retime", "inverse_dynamics"
 QUESTION_KINDS: tuple[str, ...] = (CHECK, RETIME, INVERSE_DYNAMICS)
 
-#: bag role → request kind; a new request (topic or ``_service_event``) role maps here
+#: bag role → request kind of the request topics (service events carry their kind in their type)
 REQUEST_OF_ROLE: dict[str, str] = {
     "joint_trajectory": EXECUTE,
     "check_trajectory": CHECK,

@@ -2,7 +2,7 @@
 
 The bag is streamed (constant memory) through the same Monitor, ControllerTracker and
 check_trajectory the node runs, and the node's recorded outputs are recomputed and compared.
-Usage, outputs and exit codes: README "Offline audit"; batch replay and configuration changes:
+Usage, outputs and exit codes: docs/audit.md; batch replay and configuration changes:
 docs/BAGS.md.
 """
 from __future__ import annotations
@@ -876,7 +876,8 @@ class Replay:
         # and any run the batch path declines, goes message by message. Both give the same numbers.
         self._run_topic, self._run_len, self._run_t, self._run_d = "", -1, [], []
         self.contact = ContactReplay(first, self.monitor.dynamics, sink=sink.contact if sink is not None else None)
-        self.services = ServiceReplay(sink)  # the question services' request/response pairs
+        # the question services' request/response pairs, counted in the same tally
+        self.services = ServiceReplay(sink, tally=self.tally)
         self.gates = GateReplay(sink)  # the gate's decisions, decided again
 
     def feed(self, role: str, m: BagMessage) -> bool:
@@ -1090,7 +1091,8 @@ class Replay:
             times = [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts]
             args = (self.model.joint_names, list(msg.joint_names), times, [p.positions for p in pts],
                     [p.velocities for p in pts], [p.accelerations for p in pts])
-            traj = validate_trajectory(*args, min_points=1)
+            # the effort lists only validated (joint_trajectory_controller's rule), as the node does
+            traj = validate_trajectory(*args, min_points=1, efforts=[p.effort for p in pts])
             if traj.n_points < 2:
                 validate_trajectory(*args, min_points=2)
         except TrajectoryError as exc:

@@ -2,7 +2,7 @@
 
 Each file (see :mod:`dyn_node.audit.trajectory_files`) is checked exactly as dyn_node checks a
 trajectory it receives (:func:`dyn_node.core.on_demand.check`); one verdict line per file. Options,
-``--retime`` and exit codes: README "Checking trajectory files". No rclpy import: this runs in a
+``--retime`` and exit codes: docs/dyn-check.md. No rclpy import: this runs in a
 CI job without ROS.
 """
 from __future__ import annotations

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 EXIT_OK, EXIT_VIOLATIONS, EXIT_UNUSABLE, EXIT_PARTIAL = 0, 1, 2, 3
 
-#: What each code means, for --help texts and the README.
+#: What each code means, for --help texts and docs/audit.md "Exit codes".
 MEANINGS: dict[int, str] = {
     EXIT_OK: "everything feasible",
     EXIT_VIOLATIONS: "violations found",

@@ -46,18 +46,33 @@ def _verdict_pill(t: dict) -> str:
     return f"<span class='pill {'bad' if is_executed(t) else 'warn'}'>{word}</span>"
 
 
+def _services_table(questions: dict) -> list[str]:
+    """The question services' answers per service (their pairs are re-checked, not listed)."""
+    if not questions:
+        return []
+    rows = [[_e(kind), str(q.get("answered", 0)), str(q.get("accepted", 0)), str(q.get("feasible", 0)),
+             str(q.get("infeasible", 0)),
+             _e(", ".join(f"{r or '?'} {n}" for r, n in sorted((q.get("not_accepted") or {}).items())))]
+            for kind, q in sorted(questions.items())]
+    return [_table(["service question", "answered", "accepted", "feasible", "infeasible",
+                    "not accepted (reason)"], rows, (1, 2, 3, 4))]
+
+
 def trajectories_section(out: dict, images: dict[str, bytes]) -> list[str]:
     """One row per trajectory with what was asked (execute, or the question's kind) and its
     verdict pill; the counts of both apart; the time-scale/payload plot."""
     p = ["<h2 id='trajectories'>Trajectories</h2>"]
     trajs = out["trajectories"]
-    if not trajs:
-        return p + ["<p>No trajectories in the input.</p>"]
     c = counts_of(out)
+    if not trajs and not c["questions"]:
+        return p + ["<p>No trajectories in the input.</p>"]
     p.append(f"<p>Executed: <b>{c['executed_bad']} of {c['executed']}</b> infeasible or rejected "
-             f"(violations of the run). Questions (check, retime, inverse dynamics): "
-             f"<b>{c['questions_no']} of {c['questions']}</b> answered infeasible or rejected "
-             "(answers, not violations).</p>")
+             f"(violations of the run). Questions (check, retime, inverse dynamics; request topics "
+             f"and services): <b>{c['questions_no']} of {c['questions']}</b> answered infeasible or "
+             "rejected (answers, not violations).</p>")
+    p += _services_table(out.get("questions") or {})
+    if not trajs:
+        return p
     rows = [[str(t["index"]), _e(request_of(t)), _num(t["time_s"], "{:.3f}"), _verdict_pill(t),
              _num(t.get("time_scale")), _num(t.get("payload_margin_kg")), _e(t.get("worst_joint")),
              _e(t.get("worst_constraint")), _num(t.get("worst_ratio")), _num(t.get("n_points")),

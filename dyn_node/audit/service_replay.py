@@ -5,7 +5,9 @@ core, and the answer compared with the recorded response.
 
 A question is not an execution: an infeasible answer is listed, never a violation of the run.
 Responses the node gave without looking at the request (``busy``, ``no_model``, shutting down)
-depend on its load, not on the request, and are counted, not replayed.
+depend on its load, not on the request, and are counted, not replayed. Each answered pair also
+goes once into the audit's :class:`~dyn_node.audit.accounting.RequestTally` (its kind, and "no"
+when not accepted or, for a check or retime, not feasible), beside the request topics' questions.
 """
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from dyn_node.audit.accounting import CHECK, INVERSE_DYNAMICS, RETIME, RequestTally
 from dyn_node.audit.replay_common import Pending, Recheck, worst_status_difference
 from dyn_node.bag.reader import BagMessage, MessageDecoder
 from dyn_node.core import feasibility, on_demand
@@ -24,9 +27,9 @@ from dyn_node.errors import TrajectoryError
 ROLE_SERVICE_EVENT = "service_event"
 EVENT_SUFFIX = "/_service_event"
 #: event type → the question it asks
-QUESTIONS = {"dyn_node_interfaces/srv/CheckTrajectory_Event": "check",
-             "dyn_node_interfaces/srv/ComputeInverseDynamics_Event": "inverse_dynamics",
-             "dyn_node_interfaces/srv/RetimeTrajectory_Event": "retime"}
+QUESTIONS = {"dyn_node_interfaces/srv/CheckTrajectory_Event": CHECK,
+             "dyn_node_interfaces/srv/ComputeInverseDynamics_Event": INVERSE_DYNAMICS,
+             "dyn_node_interfaces/srv/RetimeTrajectory_Event": RETIME}
 # service_msgs/ServiceEventInfo event types the server side publishes
 REQUEST_RECEIVED, RESPONSE_SENT = 1, 2
 #: answers given without looking at the request: not reproducible from the bag
@@ -69,11 +72,13 @@ class _Diff:
             self.fields.append(name)
 
 
-def _arrays(traj: Any) -> tuple[list[str], list[float], list, list, list]:
+def _arrays(traj: Any) -> tuple[list[str], list[float], list, list, list, list]:
+    """Names, times, positions, velocities, accelerations and efforts (only validated)."""
     pts = traj.points
     times = [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts]
     return (list(traj.joint_names), times, [list(p.positions) for p in pts],
-            [list(p.velocities) for p in pts], [list(p.accelerations) for p in pts])
+            [list(p.velocities) for p in pts], [list(p.accelerations) for p in pts],
+            [list(p.effort) for p in pts])
 
 
 def _effort(traj: Any) -> np.ndarray:
@@ -97,10 +102,12 @@ def _statuses(statuses: Sequence[Any]) -> dict[str, dict[str, str]]:
 class ServiceReplay:
     """Pairs each request with its response (by client and sequence number) and re-answers it
     with the configuration in force; the comparison goes to the re-check of ``sink`` (a
-    :class:`~dyn_node.audit.bag_audit.Rechecker`, or None) under the event topic's name."""
+    :class:`~dyn_node.audit.bag_audit.Rechecker`, or None) under the event topic's name; each
+    answered pair is added once to ``tally`` (the audit's, shared with the request topics)."""
 
-    def __init__(self, sink: Any = None):
+    def __init__(self, sink: Any = None, *, tally: RequestTally | None = None):
         self.sink = sink
+        self.tally = tally if tally is not None else RequestTally()
         self._requests: dict[tuple[str, bytes, int], Any] = {}
         self._own: dict[str, tuple[Recheck, Pending]] = {}
         #: question → {requests, answered, accepted, feasible, infeasible, not accepted reasons}
@@ -146,18 +153,21 @@ class ServiceReplay:
     def _compare(self, kind: str, request: Any, resp: Any, dynamics: Any, settings: Any,
                  check: Recheck, stats: dict, where: dict) -> None:
         stats["answered"] += 1
+        # the node's answer as recorded; a busy/no_model refusal is a "no" like an invalid request
+        self.tally.add(kind, answered_yes=bool(resp.accepted) and (kind == INVERSE_DYNAMICS
+                                                                   or bool(resp.feasible)))
         if resp.accepted:
             stats["accepted"] += 1
-            if kind != "inverse_dynamics":
+            if kind != INVERSE_DYNAMICS:
                 stats["feasible" if resp.feasible else "infeasible"] += 1
         else:
             stats["not_accepted"][resp.reason] = stats["not_accepted"].get(resp.reason, 0) + 1
             if resp.reason in NOT_REPLAYED:
                 return
         d = _Diff()
-        if kind == "check":
+        if kind == CHECK:
             _check(d, request, resp, dynamics, settings)
-        elif kind == "inverse_dynamics":
+        elif kind == INVERSE_DYNAMICS:
             _inverse_dynamics(d, request, resp, dynamics)
         elif not _retime(d, request, resp, dynamics, settings):
             stats.setdefault("not_replayed", {}).setdefault("retimer_unavailable", 0)
@@ -180,9 +190,10 @@ def _rejected(d: _Diff, resp: Any, exc: TrajectoryError) -> None:
 
 
 def _check(d: _Diff, request: Any, resp: Any, dynamics: Any, settings: Any) -> None:
-    names, times, P, V, A = _arrays(request.trajectory)
+    names, times, P, V, A, E = _arrays(request.trajectory)
     out = on_demand.check(dynamics, settings, names, times, P, V, A, start=_start(resp),
-                          start_unknown=on_demand.question_start_unknown(request.from_current_state))
+                          start_unknown=on_demand.question_start_unknown(request.from_current_state),
+                          efforts=E)
     mine = on_demand.with_request(out.statuses, on_demand.REQUEST_CHECK)
     worst, where, mismatched = worst_status_difference(resp.statuses, _statuses(mine))
     d.values += mismatched
@@ -227,9 +238,9 @@ def _inverse_dynamics(d: _Diff, request: Any, resp: Any, dynamics: Any) -> None:
 
 def _retime(d: _Diff, request: Any, resp: Any, dynamics: Any, settings: Any) -> bool:
     """False when the retimer is not available here (nothing compared)."""
-    names, times, P, V, A = _arrays(request.trajectory)
+    names, times, P, V, A, E = _arrays(request.trajectory)
     try:
-        traj = on_demand.validated(dynamics.model.joint_names, names, times, P, V, A)
+        traj = on_demand.validated(dynamics.model.joint_names, names, times, P, V, A, efforts=E)
     except TrajectoryError as exc:
         _rejected(d, resp, exc)
         return True

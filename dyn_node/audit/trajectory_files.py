@@ -1,6 +1,6 @@
 """Trajectory files for ``dyn-check``: JointTrajectory as YAML or JSON, or a CSV table; pure.
 
-Formats: README "Checking trajectory files". Reading checks only the *shape*
+Formats: docs/dyn-check.md. Reading checks only the *shape*
 (:class:`TrajectoryFileError` names file, line and field); values the node would refuse (NaN,
 unknown joints, times not increasing) are kept, so the check rejects them with the node's reason.
 """

@@ -3,7 +3,7 @@
 Pure (no rclpy): the ROS adapter (:mod:`dyn_node.ros.recording`) hands it the bytes it received,
 never re-serialized. :meth:`Recorder.write` never blocks on disk and never raises (a full queue
 counts a drop), and per topic ``received == written + dropped`` once closed. Guarantees and the
-bag layout: README "Recording" and docs/BAGS.md. Message definitions, metadata.yaml and the MCAP
+bag layout: docs/recording.md and docs/BAGS.md. Message definitions, metadata.yaml and the MCAP
 writer are :mod:`~dyn_node.bag.msgdefs`, :mod:`~dyn_node.bag.metadata`, :mod:`~dyn_node.bag.writer`.
 """
 from __future__ import annotations

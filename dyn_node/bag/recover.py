@@ -3,7 +3,7 @@
 The file is read record by record from the start, never trusting the summary for data; damaged
 chunks are skipped and reading goes on. Exit status 0 nothing lost, 3 something lost, 1 nothing
 recoverable, 4 no space for the output (nothing written). Outputs appear whole or not at all
-(written beside, then renamed). Usage: README "Recovering a crashed or damaged bag"; the rules: docs/BAGS.md.
+(written beside, then renamed). Usage: docs/recording.md "Recovering a crashed or damaged bag"; the rules: docs/BAGS.md.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """On-demand answers without ROS: the verdict on one trajectory, and torques for given states.
 
-The node's ``~/check_trajectory`` and ``~/inverse_dynamics_request`` and the ``dyn-check`` command
-answer through these functions (the node's execute path, ``joint_trajectory``, applies the same
+The node's question services (``~/check_trajectory``, ``~/compute_inverse_dynamics``,
+``~/retime_trajectory``) and the ``dyn-check`` command answer through these functions (the node's execute path, ``joint_trajectory``, applies the same
 rules inline because it hands the validated trajectory to the controller tracker in between).
 Arrays cross in the message's joint order on the way in and come back in model order; pure
 (no rclpy).
@@ -57,15 +57,17 @@ def options_for(settings: Settings) -> feasibility.FeasibilityOptions:
 def check(dynamics: Dynamics, settings: Settings, names: Sequence[str], times: Sequence[float],
           positions: Any, velocities: Any = None, accelerations: Any = None, *,
           start: feasibility.StartState | None = None,
-          start_unknown: str = "no current state given") -> CheckOutcome:
+          start_unknown: str = "no current state given", efforts: Any = None) -> CheckOutcome:
     """Validate and check one trajectory by the node's rules (ros2_control's validation; a single
     point is valid but cannot be checked) and return what the node would publish. ``start`` /
-    ``start_unknown``: as for :func:`feasibility.check_trajectory`."""
+    ``start_unknown``: as for :func:`feasibility.check_trajectory`; ``efforts``: the points'
+    effort lists, only validated (each empty or one per joint, as the controller requires)."""
     model = dynamics.model
     hid = model.name
     duration = float(times[-1]) if len(times) and all(map(math.isfinite, times)) else 0.0
     try:
-        traj = validated(model.joint_names, names, times, positions, velocities, accelerations)
+        traj = validated(model.joint_names, names, times, positions, velocities, accelerations,
+                         efforts=efforts)
         result = feasibility.check_trajectory(dynamics, traj, options_for(settings), start=start,
                                               start_unknown=start_unknown)
     except TrajectoryError as exc:
@@ -74,12 +76,14 @@ def check(dynamics: Dynamics, settings: Settings, names: Sequence[str], times: S
 
 
 def validated(model_joints: Sequence[str], names: Sequence[str], times: Sequence[float],
-              positions: Any, velocities: Any = None, accelerations: Any = None) -> Trajectory:
-    """A trajectory to check or retime, validated by the node's rules; raises TrajectoryError."""
+              positions: Any, velocities: Any = None, accelerations: Any = None, *,
+              efforts: Any = None) -> Trajectory:
+    """A trajectory to check or retime, validated by the node's rules (``efforts``: as for
+    joint_trajectory, each point's empty or one per joint); raises TrajectoryError."""
     args = (model_joints, names, times, positions, velocities, accelerations)
     # first as a command (one point is valid), then as something to check (two or more),
     # so a malformed single point is rejected for what is wrong with it, as the node does
-    traj = validate_trajectory(*args, min_points=1)
+    traj = validate_trajectory(*args, min_points=1, efforts=efforts)
     if traj.n_points < 2:
         validate_trajectory(*args, min_points=2)
     return traj

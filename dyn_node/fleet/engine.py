@@ -2,7 +2,7 @@
 
 Every bag is one Ray task running :func:`dyn_node.audit.bag_audit.run_audit`, the pure audit ``dyn-audit``
 runs; the driver only schedules, stops tasks that overrun, and writes the Parquet tables and
-fleet.html. Options, isolation, resume, the tables and exit codes: README "Fleet audit". This
+fleet.html. Options, isolation, resume, the tables and exit codes: docs/fleet.md. This
 module never imports rclpy; Ray is imported only when the engine starts.
 """
 from __future__ import annotations

@@ -25,7 +25,7 @@ OK, VIOLATIONS, PARTIAL, UNUSABLE, TIMEOUT, CRASHED = (
     "ok", "violations", "partial", "unusable", "timeout", "crashed")
 _CATEGORY = {EXIT_OK: OK, EXIT_VIOLATIONS: VIOLATIONS, EXIT_PARTIAL: PARTIAL, EXIT_UNUSABLE: UNUSABLE}
 
-# --- the tables' columns: (name, Arrow type, unit, meaning); the README table is made of these ---
+# --- the tables' columns: (name, Arrow type, unit, meaning); docs/fleet.md's table is made of these ---
 ROW_COLUMNS: list[tuple[str, str, str, str]] = [
     ("bag_id", "string", "", "directory name of the bag's outputs under DIR/bags/ (bag name + path hash)"),
     ("path", "string", "", "absolute path of the bag (rosbag2 directory or .mcap file)"),

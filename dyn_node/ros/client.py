@@ -4,7 +4,7 @@
 and ``~/retime_trajectory`` (types from ``dyn_node_interfaces``); several calls can be in flight.
 Blocking calls need ``node`` spun meanwhile: they spin an unspun node themselves, wait when
 another thread spins it, and raise :class:`BlockingCallError` in a single-threaded executor's
-callback (use the ``*_async`` variants there). README "Python client" has the whole API.
+callback (use the ``*_async`` variants there). docs/node.md "Python client" has the whole API.
 """
 from __future__ import annotations
 

@@ -528,7 +528,8 @@ def run_trajectory(stack: Stack, traj: DemoTrajectory, say) -> Outcome:
         say(f"  ~/check_trajectory: {o.check_verdict}: {v.message}")
         if not v.feasible:  # the fastest feasible timing along the same path
             r = stack.retime(traj, stack.now_ns() + int(LEAD_S * 1e9))
-            say("  ~/retime_trajectory: " + ("no answer" if r is None else f"{r.duration_in:.3g} s -> "
+            say("  ~/retime_trajectory: " + ("no answer" if r is None else
+                f"{'retimed' if r.feasible else 'no feasible timing'}: {r.duration_in:.3g} s -> "
                 f"{r.duration_out:.3g} s: {r.message}" if r.accepted else f"not retimed ({r.reason})"))
     else:
         say("  stage unavailable: check-only request (no answer on ~/check_trajectory)")

@@ -1,7 +1,7 @@
 """The dyn_node ROS 2 node: a thin adapter around :mod:`dyn_node.core.monitor` and the feasibility check.
 
 Run it with ``ros2 run dyn_node dyn_node`` or ``python -m dyn_node.ros.node``; parameters, topics and
-diagnostics are listed in the README. Everything numeric happens in the pure core; this module only
+diagnostics are listed in docs/node.md. Everything numeric happens in the pure core; this module only
 converts messages, owns timers, publishers and parameters, and swaps immutable pieces atomically.
 
 Threads: joint_states are taken on a thread of their own (a hidden helper node ``_dyn_node_io``

@@ -84,6 +84,11 @@ def trajectory_msg(traj: Trajectory, joint_names: Sequence[str], header: Any) ->
     return JointTrajectory(header=header, joint_names=list(joint_names), points=points)
 
 
+def point_efforts(traj: JointTrajectory) -> list[Sequence[float]]:
+    """Each point's effort list: validated as joint_trajectory_controller does, never used."""
+    return [p.effort for p in traj.points]
+
+
 def answer_check(dynamics: Dynamics, settings: Settings, request: CheckTrajectory.Request,
                  response: CheckTrajectory.Response,
                  start: feasibility.StartState | None) -> CheckTrajectory.Response:
@@ -91,7 +96,8 @@ def answer_check(dynamics: Dynamics, settings: Settings, request: CheckTrajector
     model = dynamics.model
     names, times, P, V, A = trajectory_arrays(request.trajectory)
     outcome = on_demand.check(dynamics, settings, names, times, P, V, A, start=start,
-                              start_unknown=on_demand.question_start_unknown(request.from_current_state))
+                              start_unknown=on_demand.question_start_unknown(request.from_current_state),
+                              efforts=point_efforts(request.trajectory))
     response.statuses = [status_to_msg(s) for s in
                          on_demand.with_request(outcome.statuses, on_demand.REQUEST_CHECK)]
     _start_fields(response, model.joint_names, start)
@@ -138,7 +144,8 @@ def answer_retime(dynamics: Dynamics, settings: Settings, request: RetimeTraject
     _start_fields(response, model.joint_names, start)
     names, times, P, V, A = trajectory_arrays(request.trajectory)
     try:
-        traj = on_demand.validated(model.joint_names, names, times, P, V, A)
+        traj = on_demand.validated(model.joint_names, names, times, P, V, A,
+                                   efforts=point_efforts(request.trajectory))
     except TrajectoryError as exc:  # a malformed request says what is wrong, retimer or not
         return reject(response, exc.code or "invalid", str(exc))
     try:  # imported here: the service answers (not accepted) when the retimer is not there
