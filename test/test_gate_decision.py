@@ -67,7 +67,7 @@ def test_infeasible_goal_rejected_with_the_verdict_line(fast):
     assert d.time_scale == pytest.approx(ratio, rel=1e-3)  # speed binds: k = ratio
     assert d.error_string == d.verdict
     assert d.verdict.startswith("infeasible: panda_joint1 velocity 287% of 2.17 rad/s")
-    assert d.verdict.endswith("run 2.87× slower")
+    assert d.verdict.endswith("run 2.87× slower: velocity of panda_joint1 binds")
 
 
 def test_check_mode_forwards_an_infeasible_goal_with_its_verdict(fast):

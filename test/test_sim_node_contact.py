@@ -54,7 +54,7 @@ def test_press_publishes_truth_and_physics_status(ros_context, spawn):
     node.create_subscription(ContactTruth, "/dyn_sim/contact_truth", truth.append, LATCHED_HISTORY)
     node.create_subscription(DiagnosticArray, "/diagnostics",
                              lambda m: diag.extend(s for s in m.status if s.name == "dyn_sim: physics"), 100)
-    pub = node.create_publisher(JointTrajectory, "joint_trajectory", 10)
+    pub = node.create_publisher(JointTrajectory, "/joint_trajectory_controller/joint_trajectory", 10)
     try:
         spin_until(ros_context, node, lambda: len(diag) >= 2 and pub.get_subscription_count() > 0, 45,
                    "dyn_sim and two physics statuses")
