@@ -175,8 +175,9 @@ def test_demo_short_end_to_end(tmp_path):
                          r"max \|difference\| 0\.0, identical True", text), text[-3000:]
     assert re.search(r"- (contact|collision) from [0-9.]+ s to [0-9.]+ s: peak [0-9.]+ N at panda_link8", text)
     # dyn-audit's line adds up: the executed trajectories and the check-only questions apart
-    # (the aggressive trajectory is the executed "no"; two of the checks asked before sending said no)
-    assert re.search(r"; 1 of 4 executed trajectories infeasible or rejected; 2 of 5 questions "
+    # (the aggressive trajectory is the executed "no"; two of the checks asked before sending said no;
+    # executed: comfortable, aggressive, slowed, the slowed transfer, the press and its release)
+    assert re.search(r"; 1 of 6 executed trajectories infeasible or rejected; 2 of 5 questions "
                      r"answered infeasible or rejected \(check 5\)", text), text[-3000:]
     # 3b: the TCP speed limit, before execution with its time_scale, and the slowed transfer
     assert re.search(r"\[PASS\] fast transfer: infeasible before execution on the TCP speed "
