@@ -150,7 +150,13 @@ def test_default_step_is_classical_rk4(panda, seed):
     a3 = sim.forward_acceleration(q + h / 2 * v2, v3, tau)
     v4 = v + h * a3
     a4 = sim.forward_acceleration(q + h * v3, v4, tau)
+    mj_data = mujoco.MjData(sim.mj)  # MuJoCo's own mj_step from the same state: the same step
+    sim.robot.set_state(mj_data, q, v)
+    mj_data.qfrc_applied[sim.robot.dof_ids] = tau
+    mujoco.mj_step(sim.mj, mj_data)
     st = sim.step()
+    np.testing.assert_array_equal(sim.data.qpos, mj_data.qpos)
+    np.testing.assert_array_equal(sim.data.qvel, mj_data.qvel)
     np.testing.assert_allclose(st.q, q + h / 6 * (v1 + 2 * v2 + 2 * v3 + v4), rtol=0, atol=1e-12)
     np.testing.assert_allclose(st.v, v + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4), rtol=0, atol=1e-12)
     # the 1e-12 above tells the integrators apart: Euler's step (still selectable) lands > 1e-5 away

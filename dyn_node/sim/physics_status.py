@@ -77,7 +77,7 @@ class PhysicsMonitor:
         self.mj = mj
         self._rk4 = mj.opt.integrator == int(mujoco.mjtIntegrator.mjINT_RK4)
         self._forces = np.zeros((len(SOURCES), mj.nv))  # RK4: the start state's, per source
-        self._energy_start = math.nan  # RK4: E_k (after the stages data.energy is about E_k+1's)
+        self._energy_start = np.full(2, math.nan)  # RK4: E_k (after the stages data.energy is about E_k+1's)
         self._v, self._v_start = np.zeros(mj.nv), np.zeros(mj.nv)
         self._warn = np.zeros(len(WARNINGS), dtype=int)
         self._pending: tuple[float, np.ndarray] | None = None  # E_k and step k's work
@@ -90,7 +90,7 @@ class PhysicsMonitor:
     def start_forces(self, d: mujoco.MjData) -> None:
         """RK4 only: ``d`` after mj_forward at the step's start state (before the stages)."""
         _source_forces(d, self._forces)
-        self._energy_start = float(d.energy.sum())
+        self._energy_start[:] = d.energy
 
     def after(self, d: mujoco.MjData) -> None:
         """Account the step just taken (Euler: ``d``'s forward quantities are those of its
@@ -102,7 +102,7 @@ class PhysicsMonitor:
         vm += d.qvel
         vm *= half  # h·(v_k + v_k+1)/2
         if self._rk4:
-            E = self._energy_start
+            energy = self._energy_start
             work = self._forces @ vm  # held: joint torques, push
             # state-dependent (damping, constraints): the trapezoid's first half now, the
             # previous step's second half from this start state's power
@@ -110,8 +110,9 @@ class PhysicsMonitor:
             if self._pending is not None:
                 self._pending[1][2:] += work[2:]
         else:
-            E = float(d.energy.sum())
+            energy = d.energy
             work = _source_forces(d, self._forces) @ vm
+        E = float(energy.sum())
         if self._pending is not None:
             E_prev, w_prev = self._pending
             p.energy_error += (E - E_prev) - sum(w_prev)
@@ -121,7 +122,7 @@ class PhysicsMonitor:
         else:
             p.energy_start = E
         p.energy_end = E
-        p.peak_kinetic = max(p.peak_kinetic, float(d.energy[1]))
+        p.peak_kinetic = max(p.peak_kinetic, float(energy[1]))
         self._pending = (E, work.copy())
         p.steps += 1
         n = int(d.solver_niter[0])
