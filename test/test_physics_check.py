@@ -13,7 +13,7 @@ import pytest
 from dyn_node.audit.evidence import SCHEMA_PATH
 from dyn_node.core.model import load_model
 from dyn_node.ros.sim_node import main as dyn_sim_main
-from dyn_node.sim.physics_check import free_motion_run
+from dyn_node.sim.physics_check import contact_failures, free_motion_run
 
 M1, M2, L1, L2, G = 1.5, 1.0, 0.5, 0.4, 9.81  # planar_2link.urdf: point masses at the link tips
 
@@ -45,13 +45,16 @@ def test_free_motion_energy_is_the_closed_form(arm):
     assert run["peak_kinetic_j"] > 5.0  # a real swing, not a robot at rest
 
 
-def test_euler_is_first_order_and_rk4_far_better(arm):
+def test_euler_is_first_order_and_rk4_fourth_order(arm):
     errs = [free_motion_run(arm, np.array([0.3, 0.2]), integrator="euler", timestep=h, duration=2.0)
             ["energy_error_rel"] for h in (0.002, 0.001, 0.0005)]
     for a, b in zip(errs, errs[1:]):
         assert 1.7 < a / b < 2.3  # first order: the error halves with the timestep
-    rk4 = free_motion_run(arm, np.array([0.3, 0.2]), integrator="rk4", timestep=0.001, duration=2.0)
-    assert rk4["energy_error_rel"] < 1e-3 * errs[1]
+    rk4 = [free_motion_run(arm, np.array([0.3, 0.2]), integrator="rk4", timestep=h, duration=2.0)
+           ["energy_error_rel"] for h in (0.004, 0.002, 0.001)]
+    for a, b in zip(rk4, rk4[1:]):
+        assert 12 < a / b < 20  # fourth order: ÷16 per halving (measured 15.1, 15.5)
+    assert rk4[2] < 1e-6 * errs[1]  # dyn_sim's default at 1 ms (2.3e-9) against Euler's 1.1 %
 
 
 def _validated(path) -> dict:
@@ -62,19 +65,21 @@ def _validated(path) -> dict:
 
 def test_command_exit_codes_and_evidence(tmp_path):
     out = tmp_path / "pc"
+    # no --integrator: dyn_sim's default (RK4, 1 ms) is the nominal run
     code = dyn_sim_main(["dyn_sim", "--check-physics", "--out", str(out), "--robot-model",
-                         "planar_2link", "--integrator", "rk4", "--only", "free_motion"])
+                         "planar_2link", "--only", "free_motion"])
     assert code == 0
     rec = _validated(out / "free_motion" / "evidence.json")
     fm = rec["outputs"]["physics"]
     assert rec["figures"]["energy_error_rel"] == fm["nominal"]["energy_error_rel"] < 1e-2
-    assert fm["nominal"]["integrator"] == "rk4" and rec["verdict"]["exit_code"] == 0
+    assert fm["nominal"]["integrator"] == "rk4" and fm["nominal"]["timestep_s"] == 0.001
+    assert rec["verdict"]["exit_code"] == 0
     assert {(r["integrator"], r["timestep_s"]) for r in fm["runs"]} >= {("euler", 0.001), ("euler", 0.0005)}
     assert all(h["error_ratio"] > 1 for h in fm["halving"] if h["integrator"] == "euler")
     assert (out / "free_motion" / "energy.png").stat().st_size > 1000
-    # Euler at 4 ms drifts past 1 %: exit 1, labelled
+    # Euler (still selectable) at 4 ms drifts past 1 %: exit 1, labelled
     assert dyn_sim_main(["dyn_sim", "--check-physics", "--out", str(out), "--robot-model", "planar_2link",
-                         "--timestep", "0.004", "--only", "free_motion"]) == 1
+                         "--integrator", "euler", "--timestep", "0.004", "--only", "free_motion"]) == 1
     rec = _validated(out / "free_motion" / "evidence.json")
     assert rec["failure_labels"] == ["evaluation error"] and rec["figures"]["energy_error_rel"] >= 1e-2
     for bad in (["--timestep", "-1"], ["--robot-model", "nao"], ["--integrator", "verlet"], []):
@@ -94,4 +99,9 @@ def test_contact_check(tmp_path):
     assert by["stiffer (solref 0.01 s)"]["max_penetration_m"] < fig["max_penetration_m"] \
         < by["softer (solref 0.04 s)"]["max_penetration_m"]
     assert math.isclose(by["timestep 0.5 ms"]["normal_force_n"], fig["normal_force_n"], rel_tol=0.02)
+    # the nominal press runs dyn_sim's default RK4; Euler holds the same press
+    assert ph["nominal"]["solver"]["integrator"] == "rk4"
+    euler = by["integrator euler (MuJoCo default)"]
+    assert euler["solver"]["integrator"] == "euler" and not contact_failures(euler)
+    assert math.isclose(euler["normal_force_n"], fig["normal_force_n"], rel_tol=0.02)
     assert rec["verdict"]["exit_code"] == 0 and rec["failure_labels"] == []

@@ -50,6 +50,25 @@ def test_press_with_a_push_closes_the_budget():
     assert st.level == OK and v["energy_error_rel"] < 1e-2
 
 
+def test_rk4_budget_closes_through_the_contact_onset():
+    """Under RK4 (the default) damping and contact forces change within a step; the budget takes
+    their power at each step's start state (trapezoid). Half-second periods over the whole press
+    (approach, first touch, hold) stay below 1 % (measured ≤ 0.79 % at the touch, ≤ 4.4e-4
+    elsewhere); the Euler accounting applied to RK4's steps reached 3.7 % at the touch."""
+    panda = load_model(builtin="panda")
+    sim = Simulator(panda, SimConfig(scene=PRESS_SCENE, initial_positions=READY, energy=True))
+    assert sim.config.solver.integrator == "rk4"
+    sim.execute(list(panda.joint_names), *plan_press(sim).waypoints())
+    rel, constraint_work = [], 0.0
+    for _ in range(10):
+        sim.run(0.5)
+        st = sim.physics.report(sim.data)
+        assert st.level == OK, st.message
+        rel.append(float(st.values["energy_error_rel"]))
+        constraint_work += abs(float(st.values["work_constraints_j"]))
+    assert max(rel) < 1e-2 and constraint_work > 1e-3  # the table did work: the contact was accounted
+
+
 def test_a_diverging_step_is_an_error(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning to MUJOCO_LOG.TXT in the cwd
     arm = load_model(builtin="planar_2link")

@@ -2,12 +2,14 @@
 of MuJoCo's forward dynamics with Pinocchio's inverse dynamics (two independent engines)."""
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import pytest
 
 from dyn_node.core.dynamics import Dynamics
 from dyn_node.errors import TrajectoryError
 from dyn_node.core.model import load_model
+from dyn_node.sim.scene import SolverSettings
 from dyn_node.sim.simulator import SimConfig, Simulator
 
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
@@ -94,8 +96,8 @@ def test_measured_effort_is_the_applied_torque(panda):
     for _ in range(300):
         q0, v0 = sim.q, sim.v
         st = sim.step()
-        # Recover the acceleration MuJoCo integrated (semi-implicit Euler: v1 = v0 + dt·qacc, with
-        # damping implicit) and check the reported effort explains it: τ = M q̈ + h.
+        # MuJoCo's acceleration at the step's starting state under the reported effort (what
+        # any integrator starts from) must be what that effort explains: τ = M q̈ + h.
         qacc = sim.forward_acceleration(q0, v0, st.effort)
         worst = max(worst, float(np.abs(dyn.rnea(q0, v0, qacc) - st.effort).max()))
         assert np.all(np.abs(st.effort) <= sim.effort_limit + 1e-12)
@@ -118,13 +120,50 @@ def test_mujoco_forward_matches_pinocchio_inverse(panda, seed):
     v = rng.uniform(-2.0, 2.0, panda.nv)
     a_des = rng.uniform(-5.0, 5.0, panda.nv)
     tau = Dynamics(panda).rnea(q, v, a_des)  # Pinocchio, damping included
-    sim = sim_at(panda)
+    sim = sim_at(panda, solver=SolverSettings(integrator="euler"))
     sim.reset(q, v)
     sim.set_open_loop_torque(tau)
     np.testing.assert_allclose(sim.forward_acceleration(q, v, tau), a_des, atol=1e-6)
-    # The same through the simulator's own step: MuJoCo's qacc of the stepped state.
+    # The same through the simulator's own step: Euler's mj_step leaves the qacc of the state
+    # it started from (RK4 leaves a later stage's: test_default_step_is_classical_rk4).
     sim.step()
     np.testing.assert_allclose(sim.data.qacc[sim.robot.dof_ids], a_des, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_default_step_is_classical_rk4(panda, seed):
+    """dyn_sim's default integrator: one step equals the textbook RK4 tableau (1/6, 1/3, 1/3,
+    1/6) over MuJoCo's forward accelerations with the applied torque held, hinge joints only."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(panda.limits.position_lower, panda.limits.position_upper)
+    v = rng.uniform(-2.0, 2.0, panda.nv)
+    tau = Dynamics(panda).rnea(q, v, rng.uniform(-5.0, 5.0, panda.nv))
+    sim = sim_at(panda)
+    assert sim.mj.opt.integrator == int(mujoco.mjtIntegrator.mjINT_RK4)
+    sim.reset(q, v)
+    sim.set_open_loop_torque(tau)
+    h = sim.config.timestep
+    v1, a1 = v, sim.forward_acceleration(q, v, tau)
+    v2 = v + h / 2 * a1
+    a2 = sim.forward_acceleration(q + h / 2 * v1, v2, tau)
+    v3 = v + h / 2 * a2
+    a3 = sim.forward_acceleration(q + h / 2 * v2, v3, tau)
+    v4 = v + h * a3
+    a4 = sim.forward_acceleration(q + h * v3, v4, tau)
+    mj_data = mujoco.MjData(sim.mj)  # MuJoCo's own mj_step from the same state: the same step
+    sim.robot.set_state(mj_data, q, v)
+    mj_data.qfrc_applied[sim.robot.dof_ids] = tau
+    mujoco.mj_step(sim.mj, mj_data)
+    st = sim.step()
+    np.testing.assert_array_equal(sim.data.qpos, mj_data.qpos)
+    np.testing.assert_array_equal(sim.data.qvel, mj_data.qvel)
+    np.testing.assert_allclose(st.q, q + h / 6 * (v1 + 2 * v2 + 2 * v3 + v4), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(st.v, v + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4), rtol=0, atol=1e-12)
+    # the 1e-12 above tells the integrators apart: Euler's step (still selectable) lands > 1e-5 away
+    euler = sim_at(panda, solver=SolverSettings(integrator="euler"))
+    euler.reset(q, v)
+    euler.set_open_loop_torque(tau)
+    assert np.abs(euler.step().v - st.v).max() > 1e-5
 
 
 def test_first_segment_from_current_state_when_first_time_positive(panda):

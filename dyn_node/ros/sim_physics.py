@@ -28,7 +28,7 @@ _DEF = SolverSettings()
 SCENE_PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("scene_file", "string", "", "YAML of static objects the robot collides with "
               "(docs/SIMULATOR.md); empty: no scene, contacts off"),
-    ParamSpec("integrator", "string", _DEF.integrator, "MuJoCo integrator: euler, rk4, implicit, implicitfast"),
+    ParamSpec("integrator", "string", _DEF.integrator, "MuJoCo integrator: rk4, euler, implicit, implicitfast"),
     ParamSpec("solver", "string", _DEF.solver, "MuJoCo constraint solver (with a scene): newton, cg, pgs"),
     ParamSpec("solver_iterations", "integer", _DEF.iterations, "solver iteration limit", 1, 10000),
     ParamSpec("solver_tolerance", "double", _DEF.tolerance, "solver tolerance (MuJoCo's)", 0.0, 1.0),

@@ -196,7 +196,8 @@ def mujoco_from_model(model: RobotModel, *, damping: bool = True, armature: bool
     enable those constraints; ``effort_limits``: clamp actuator force to the URDF effort;
     ``payload``: include ``model.payload``; ``timestep`` in s. ``scene``: static objects the
     robot collides with (contacts on, self-collisions off, :func:`dyn_node.sim.scene.add_scene`)
-    under ``solver`` (default MuJoCo's settings).
+    under ``solver`` (default :class:`SolverSettings`: dyn_sim's, RK4; without a scene the
+    integrator stays MuJoCo's Euler).
     """
     contacts = contacts or scene is not None
     text, patched = mujoco_urdf(model, contacts=contacts)

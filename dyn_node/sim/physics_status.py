@@ -1,8 +1,12 @@
 """The simulator's physics status: solver state, penetration and the energy budget, per period.
 
 Energy budget (mjENBL_ENERGY must be on): E = kinetic + potential (gravity) energy of the state
-each step starts from; the work done over a step by a generalized force f is h·f·(v_k + v_k+1)/2,
-which is exactly the change of kinetic energy a constant f causes with a constant mass matrix.
+each step starts from. The work done over a step by a generalized force f held over it is
+h·f·(v_k + v_k+1)/2 (exactly the change of kinetic energy a constant f causes with a constant
+mass matrix): every force under Euler, which takes them at the start state; the joint torques and
+the push under RK4. RK4's stages see damping and constraint forces change within the step: their
+work is the trapezoid of the power, h·(f_k·v_k + f_k+1·v_k+1)/2, f of each step's start state
+(:meth:`PhysicsMonitor.start_forces`).
 Sources: ``actuators`` (qfrc_applied + qfrc_actuator: dyn_sim's joint torques), ``push`` (the
 external wrench, xfrc_applied), ``damping`` (qfrc_passive) and ``constraints`` (qfrc_constraint:
 contacts and limits). The energy error is ΔE − Σ work, summed over the period; its ratio to the
@@ -71,27 +75,44 @@ class PhysicsMonitor:
 
     def __init__(self, mj: mujoco.MjModel):
         self.mj = mj
-        self._v = np.zeros(mj.nv)
+        self._rk4 = mj.opt.integrator == int(mujoco.mjtIntegrator.mjINT_RK4)
+        self._forces = np.zeros((len(SOURCES), mj.nv))  # RK4: the start state's, per source
+        self._energy_start = np.full(2, math.nan)  # RK4: E_k (after the stages data.energy is about E_k+1's)
+        self._v, self._v_start = np.zeros(mj.nv), np.zeros(mj.nv)
         self._warn = np.zeros(len(WARNINGS), dtype=int)
         self._pending: tuple[float, np.ndarray] | None = None  # E_k and step k's work
         self.period = PhysicsPeriod()
 
     def before(self, d: mujoco.MjData) -> None:
         self._v[:] = d.qvel
+        self._v_start[:] = d.qvel
+
+    def start_forces(self, d: mujoco.MjData) -> None:
+        """RK4 only: ``d`` after mj_forward at the step's start state (before the stages)."""
+        _source_forces(d, self._forces)
+        self._energy_start[:] = d.energy
 
     def after(self, d: mujoco.MjData) -> None:
-        """Account the step just taken (``d``'s forward quantities are those of its start).
-        Kept lean (it runs every step): MuJoCo's warning counters are read at report time."""
+        """Account the step just taken (Euler: ``d``'s forward quantities are those of its
+        start; RK4: :meth:`start_forces` had them). Kept lean (it runs every step): MuJoCo's
+        warning counters are read at report time."""
         p = self.period
-        E = float(d.energy.sum())
+        half = 0.5 * self.mj.opt.timestep
         vm = self._v
         vm += d.qvel
-        vm *= 0.5 * self.mj.opt.timestep  # h·(v_k + v_k+1)/2
-        act = float(d.qfrc_applied @ vm) + float(d.qfrc_actuator @ vm)
-        passive = float(d.qfrc_passive @ vm)
-        # xfrc_applied's share of qfrc_smooth = passive − bias + applied + actuator + xfrc
-        push = float(d.qfrc_smooth @ vm) + float(d.qfrc_bias @ vm) - passive - act
-        work = (act, push, passive, float(d.qfrc_constraint @ vm))
+        vm *= half  # h·(v_k + v_k+1)/2
+        if self._rk4:
+            energy = self._energy_start
+            work = self._forces @ vm  # held: joint torques, push
+            # state-dependent (damping, constraints): the trapezoid's first half now, the
+            # previous step's second half from this start state's power
+            work[2:] = self._forces[2:] @ (half * self._v_start)
+            if self._pending is not None:
+                self._pending[1][2:] += work[2:]
+        else:
+            energy = d.energy
+            work = _source_forces(d, self._forces) @ vm
+        E = float(energy.sum())
         if self._pending is not None:
             E_prev, w_prev = self._pending
             p.energy_error += (E - E_prev) - sum(w_prev)
@@ -101,8 +122,8 @@ class PhysicsMonitor:
         else:
             p.energy_start = E
         p.energy_end = E
-        p.peak_kinetic = max(p.peak_kinetic, float(d.energy[1]))
-        self._pending = (E, np.array(work))
+        p.peak_kinetic = max(p.peak_kinetic, float(energy[1]))
+        self._pending = (E, work.copy())
         p.steps += 1
         n = int(d.solver_niter[0])
         if n:
@@ -127,6 +148,15 @@ class PhysicsMonitor:
         if p.diverging:
             self._pending = None  # MuJoCo reset the state: the next budget starts afresh
         return physics_status(p, iterations_limit=self.mj.opt.iterations)
+
+
+def _source_forces(d: mujoco.MjData, out: np.ndarray) -> np.ndarray:
+    """``out`` = the generalized forces in ``d`` per source (rows in SOURCES' order)."""
+    np.add(d.qfrc_applied, d.qfrc_actuator, out=out[0])
+    # xfrc_applied's share of qfrc_smooth = passive − bias + applied + actuator + xfrc
+    out[1] = d.qfrc_smooth + d.qfrc_bias - d.qfrc_passive - out[0]
+    out[2], out[3] = d.qfrc_passive, d.qfrc_constraint
+    return out
 
 
 def physics_status(p: PhysicsPeriod, *, iterations_limit: int) -> PhysicsStatus:

@@ -231,7 +231,7 @@ class Simulator:
                                                     solver=config.solver)
         self.mj = self.robot.model
         self.mj.opt.timestep = config.timestep
-        # the integrator applies with or without a scene (MuJoCo's default Euler unless asked)
+        # the integrator applies with or without a scene (dyn_sim's default RK4 unless asked)
         self.mj.opt.integrator = int(INTEGRATORS[config.solver.integrator])
         self._rk4 = config.solver.integrator == "rk4"
         if config.energy:
@@ -484,6 +484,22 @@ class Simulator:
         b = w.mount.body_id
         d.xfrc_applied[b] = body_wrench(w.mount, d.xmat[b].reshape(3, 3), d.xpos[b], d.xipos[b], w.wrench)
 
+    def _rk4_step(self) -> None:
+        """mj_step's RK4 branch, written out: the push needs the start state's kinematics and the
+        physics monitor its forces, which RK4's later stages overwrite in ``data``."""
+        m, d = self.mj, self.data
+        if self.wrench is not None:
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_comPos(m, d)
+            self._push()
+        mujoco.mj_checkPos(m, d)
+        mujoco.mj_checkVel(m, d)
+        mujoco.mj_forward(m, d)
+        mujoco.mj_checkAcc(m, d)
+        if self.physics is not None:
+            self.physics.start_forces(d)
+        mujoco.mj_RungeKutta(m, d, 4)
+
     def step(self, n: int = 1) -> SimState:
         """Advance n steps of ``timestep`` s and return the state after the last one."""
         if n <= 0:
@@ -499,13 +515,9 @@ class Simulator:
                 self.clear_wrench()
             if self.physics is not None:
                 self.physics.before(self.data)
-            if self.wrench is None:
-                mujoco.mj_step(self.mj, self.data)
-            elif self._rk4:
-                # RK4 has no step1/step2 split: this state's kinematics first, then a full step
-                mujoco.mj_kinematics(self.mj, self.data)
-                mujoco.mj_comPos(self.mj, self.data)
-                self._push()
+            if self._rk4:
+                self._rk4_step()
+            elif self.wrench is None:
                 mujoco.mj_step(self.mj, self.data)
             else:
                 # step1 computes this state's kinematics, which the push's rotation and lever
