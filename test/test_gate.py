@@ -327,6 +327,13 @@ def test_audit_replays_the_gate_decisions_identically(stack):
     assert audit.record["verdict"]["result"] == "violations" and "planning error" in audit.record["failure_labels"]
     assert f"{n_bad} of {n_goals} executed trajectories ({n_goals} gate goals) infeasible or rejected" \
         in audit.record["verdict"]["summary"]
+    from dyn_node.fleet import engine as fleet
+    from dyn_node.fleet.rows import row_from_record
+
+    cfg = fleet.FleetConfig(report=False)
+    job = fleet.BagJob(str(bag), fleet.bag_id(bag), str(bags / "fleet"), cfg, fleet.config_hash(cfg))
+    row = row_from_record(job, audit.record, audit.exit_code, "digest").row
+    assert (row["trajectories"], row["trajectories_bad"], row["questions"]) == (n_goals, n_bad, 0)
     assert (gate["requests"], gate["answered"], gate["not_replayed"]) == (len(live), len(live), 0)
     assert (gate["forwarded"], gate["rejected"]) == (sum(r["decision"] == "forwarded" for r in live),
                                                      sum(r["decision"] == "rejected" for r in live))
