@@ -98,3 +98,23 @@ def test_a_new_question_kind_slots_in():
     assert request_of_role("joint_trajectory") == "execute"
     assert request_of_role("check_trajectory") == "check"
     assert request_of_role("retime_trajectory") != "execute"  # unknown roles are never executions
+
+
+def test_gate_goals_are_executed_trajectories():
+    """A gate goal is sent to be executed: counted with joint_trajectory's, never as a question;
+    a rejected goal or one forwarded infeasible (check mode) is a "no", a retimed one is not."""
+    from dyn_node.audit.gate_replay import executed_feasible
+
+    recs = [{"decision": "forwarded", "feasible": True}, {"decision": "rejected", "feasible": False},
+            {"decision": "rejected", "feasible": True},  # e.g. rejected for a NaN before any check
+            {"decision": "forwarded", "feasible": False}, {"decision": "retimed", "feasible": False}]
+    assert [executed_feasible(r) for r in recs] == [True, False, False, False, True]
+    t = RequestTally()
+    t.add("execute", answered_yes=True)
+    t.add("check", answered_yes=False)
+    for r in recs:
+        t.add("gate_goal", answered_yes=executed_feasible(r))
+    assert (t.executed, t.executed_bad, t.questions, t.questions_no) == (6, 3, 1, 1)
+    assert t.to_dict()["by_request"]["gate_goal"] == {"total": 5, "infeasible_or_rejected": 3}
+    assert t.sentence() == ("3 of 6 executed trajectories (5 gate goals) infeasible or rejected; "
+                            "1 of 1 question answered infeasible or rejected (check 1)")

@@ -160,10 +160,17 @@ def test_demo_short_end_to_end(tmp_path):
     # each trajectory was asked on ~/check_trajectory first, and got the execution's verdict
     assert "[PASS] every trajectory checked on ~/check_trajectory before it was sent" in summary
     assert text.count("  ~/check_trajectory: ") == 4, text[-3000:]   # the retimed one too
-    # the infeasible one was also asked for its fastest feasible timing (answered either way)
-    assert re.search(r"^  ~/retime_trajectory: (.+ s -> .+ s: |not retimed \()", text, re.M), text[-3000:]
-    # the core retimer's answer to the aggressive trajectory, executed without a live violation
-    assert re.search(r"\[PASS\] retimed: the core retimer's answer passes the exact check", summary)
+    # the aggressive one asked on ~/retime_trajectory: a real retimed answer (the one path to the
+    # retimed trajectory), faster than the uniform slowdown, no shorter than its lower bound
+    m = re.search(r"^  ~/retime_trajectory: retimed: ([0-9.]+) s -> ([0-9.]+) s \(uniform ([0-9.]+) s, "
+                  r"T\* ([0-9.]+) s\): ", text, re.M)
+    assert m, text[-3000:]
+    d_in, d_out, uniform, bound = (float(x) for x in m.groups())
+    assert d_in < d_out < uniform and bound * (1 - 1e-2) <= d_out, m[0]  # printed to 3 digits
+    assert "not retimed" not in text and "retimer_unavailable" not in text
+    assert re.search(r"sent 'retimed' \(aggressive retimed by ~/retime_trajectory: ", text), text[-3000:]
+    # that answer executed without a live violation
+    assert re.search(r"\[PASS\] retimed: ~/retime_trajectory's answer passes the exact check \([0-9.]+ s; ", summary)
     assert re.search(r"\[PASS\] retimed: executed without a live violation \(~/feasibility "
                      r"(OK|WARN), 0 saturated samples", summary), summary
     assert re.search(r"live effort residual .* RMS [0-9.]+ N·m", summary), summary
@@ -182,11 +189,11 @@ def test_demo_short_end_to_end(tmp_path):
     assert re.search(r"- (contact|collision) from [0-9.]+ s to [0-9.]+ s: peak [0-9.]+ N at panda_link8", text)
     # dyn-audit's line adds up: the executed trajectories and the questions apart, the questions
     # asked through the services counted. Executed: comfortable, aggressive (the "no"), slowed,
-    # the slowed transfer, the press scene's press and release. Questions: five checks (two said
-    # no: aggressive, the fast transfer) and one retime, a "no" unless it was retimed.
-    retime_no = 0 if re.search(r"^  ~/retime_trajectory: retimed: ", text, re.M) else 1
-    assert re.search(rf"; 1 of 6 executed trajectories infeasible or rejected; {2 + retime_no} of 6 "
-                     r"questions answered infeasible or rejected \(check 5, retime 1\)", text), text[-3000:]
+    # retimed, the slowed transfer, the press scene's press and release. Questions: six checks
+    # (the four of scene 3, the fast and the slowed transfer; two said no: aggressive, the fast
+    # transfer) and one retime, answered with a retimed trajectory.
+    assert re.search(r"; 1 of 7 executed trajectories infeasible or rejected; 2 of 7 "
+                     r"questions answered infeasible or rejected \(check 6, retime 1\)", text), text[-3000:]
     # 3b: the TCP speed limit, before execution with its time_scale, and the slowed transfer
     assert re.search(r"\[PASS\] fast transfer: infeasible before execution on the TCP speed "
                      r"\(worst panda_hand frame_speed, peak 0\.64\d* m/s of 0\.25 m/s\), "

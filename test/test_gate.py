@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import Stepper, kv, python_cmd
+from service_event_counts import gate_goal_counts
 from test_sim_action import ARM, READY, moved
 from test_sim_action import sim_cmd as sim_action_cmd
 
@@ -309,9 +310,30 @@ def test_audit_replays_the_gate_decisions_identically(stack):
     probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) >= 8, 20.0, "the records")
     rc, _, err = procs[1].stop(signal.SIGINT)
     assert rc == 0, err[-2000:]
-    audit = run_audit(AuditOptions(bag=str(next(bags.iterdir())), out=str(bags / "audit"), report=True))
-    gate = audit.record["outputs"]["questions"]["gate"]
+    bag = next(bags.iterdir())
+    audit = run_audit(AuditOptions(bag=str(bag), out=str(bags / "audit"), report=True))
+    out = audit.record["outputs"]
+    gate = out["gate"]
     live = [r for r in probe.records if r["event"] == "decision"]
+    # a goal is an executed trajectory, not a question: counted from the bag by the official
+    # mcap reader and rosbags, and from what the node published live
+    n_goals, n_bad = gate_goal_counts(bag)
+    assert (n_goals, n_bad) == (len(live), sum(r["decision"] == "rejected" for r in live))
+    assert n_bad >= 4 and "gate" not in out["questions"]
+    c = out["trajectory_counts"]
+    assert c["by_request"]["gate_goal"] == {"total": n_goals, "infeasible_or_rejected": n_bad}
+    assert (c["executed"], c["executed_infeasible_or_rejected"], c["questions"]) == (n_goals, n_bad, 0)
+    assert out["trajectories_infeasible_or_rejected"] == n_bad
+    assert audit.record["verdict"]["result"] == "violations" and "planning error" in audit.record["failure_labels"]
+    assert f"{n_bad} of {n_goals} executed trajectories ({n_goals} gate goals) infeasible or rejected" \
+        in audit.record["verdict"]["summary"]
+    from dyn_node.fleet import engine as fleet
+    from dyn_node.fleet.rows import row_from_record
+
+    cfg = fleet.FleetConfig(report=False)
+    job = fleet.BagJob(str(bag), fleet.bag_id(bag), str(bags / "fleet"), cfg, fleet.config_hash(cfg))
+    row = row_from_record(job, audit.record, audit.exit_code, "digest").row
+    assert (row["trajectories"], row["trajectories_bad"], row["questions"]) == (n_goals, n_bad, 0)
     assert (gate["requests"], gate["answered"], gate["not_replayed"]) == (len(live), len(live), 0)
     assert (gate["forwarded"], gate["rejected"]) == (sum(r["decision"] == "forwarded" for r in live),
                                                      sum(r["decision"] == "rejected" for r in live))

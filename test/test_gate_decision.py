@@ -2,9 +2,9 @@
 in each mode, and the record the bag keeps."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -17,7 +17,6 @@ from dyn_node.errors import SettingsError, TrajectoryError
 from dyn_node.gate.decision import FORWARDED, REJECTED, RETIMED, GateOptions, decide, rejected
 
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
-HAS_RETIMER = importlib.util.find_spec("dyn_node.retime") is not None
 
 
 def quintic(dq: float, duration: float, n: int = 31):
@@ -106,8 +105,8 @@ def test_rejected_input_and_record(fast):
     assert rec["forwarded"]["times"] == fwd.trajectory.times.tolist()
 
 
-@pytest.mark.skipif(HAS_RETIMER, reason="dyn_node.retime is installed")
-def test_retime_mode_without_the_retimer_rejects_with_the_reason(fast, slow):
+def test_retime_mode_without_the_retimer_rejects_with_the_reason(fast, slow, monkeypatch):
+    monkeypatch.setitem(sys.modules, "dyn_node.retime", None)  # as where it is not installed
     dyn, traj = fast
     d = decide(dyn, traj, GateOptions(mode="retime"), start=None)
     assert (d.decision, d.reason) == (REJECTED, "retime_failed")
@@ -119,8 +118,6 @@ def test_retime_mode_without_the_retimer_rejects_with_the_reason(fast, slow):
 
 
 def test_retime_mode_forwards_a_retimed_trajectory_that_passes_the_check(fast):
-    if not HAS_RETIMER:
-        pytest.skip("dyn_node.retime (the retiming issue) is not in this tree yet")
     dyn, traj = fast
     d = decide(dyn, traj, GateOptions(mode="retime"), start=None)
     assert d.decision == RETIMED and d.trajectory is not None
@@ -129,3 +126,21 @@ def test_retime_mode_forwards_a_retimed_trajectory_that_passes_the_check(fast):
     np.testing.assert_allclose(d.trajectory.positions[[0, -1]], traj.positions[[0, -1]], atol=1e-9)
     assert traj.duration < d.duration_out <= d.duration_uniform * (1 + 1e-9)
     assert math.isclose(d.duration_in, traj.duration)
+
+
+def test_retime_mode_uses_the_nodes_limit_margin(fast):
+    """decide_goal passes the node's retime.limit_margin to the retimer: a lower share of each
+    limit gives a longer forwarded trajectory (joint 1's speed binds), still passing the check."""
+    from dyn_node.core.settings import settings_from_mapping
+    from dyn_node.gate.decision import decide_goal
+
+    dyn, traj = fast
+    names = list(dyn.model.joint_names)
+    args = (names, traj.times.tolist(), traj.positions.tolist(), traj.velocities.tolist(),
+            traj.accelerations.tolist())
+    got = {m: decide_goal(dyn, settings_from_mapping({"retime.limit_margin": m}), GateOptions(mode="retime"),
+                          *args, start=None) for m in (0.995, 0.85)}
+    assert all(d.decision == RETIMED for d in got.values())
+    assert got[0.85].duration_out > got[0.995].duration_out * 1.05
+    for d in got.values():
+        assert feasibility.check_trajectory(dyn, d.trajectory).feasible

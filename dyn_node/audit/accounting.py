@@ -1,7 +1,8 @@
 """Executed trajectories and questions, counted apart.
 
-A trajectory sent on ``joint_trajectory`` (or through the gate) is *executed*: its "infeasible"
-is a violation of the run. A check, retime or inverse-dynamics request is a *question*: its
+A trajectory sent on ``joint_trajectory`` or as a FollowJointTrajectory goal through the gate is
+*executed*: its "infeasible" is a violation of the run (a goal the gate rejected was sent to be
+executed: it counts as executed and rejected; a retimed goal as what was forwarded, feasible). A check, retime or inverse-dynamics request is a *question*: its
 "no" is an answer, listed but never a violation. Every trajectory entry of an evidence record
 carries ``request`` (``execute`` or the question's kind); the counts of both live here so the
 audit, its report, dyn-fleet and the demo say the same thing.
@@ -19,7 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
-EXECUTE = "execute"
+EXECUTE, GATE_GOAL = "execute", "gate_goal"
+#: request kinds sent to be executed (the rest are questions)
+EXECUTED_KINDS: frozenset[str] = frozenset({EXECUTE, GATE_GOAL})
 CHECK, RETIME, INVERSE_DYNAMICS = "check", "retime", "inverse_dynamics"
 QUESTION_KINDS: tuple[str, ...] = (CHECK, RETIME, INVERSE_DYNAMICS)
 
@@ -45,7 +48,7 @@ def request_of(entry: dict) -> str:
 
 
 def is_executed(entry: dict) -> bool:
-    return request_of(entry) == EXECUTE
+    return request_of(entry) in EXECUTED_KINDS
 
 
 @dataclass
@@ -69,19 +72,19 @@ class RequestTally:
 
     @property
     def executed(self) -> int:
-        return self.total.get(EXECUTE, 0)
+        return sum(n for k, n in self.total.items() if k in EXECUTED_KINDS)
 
     @property
     def executed_bad(self) -> int:
-        return self.no.get(EXECUTE, 0)
+        return sum(n for k, n in self.no.items() if k in EXECUTED_KINDS)
 
     @property
     def questions(self) -> int:
-        return sum(n for k, n in self.total.items() if k != EXECUTE)
+        return sum(n for k, n in self.total.items() if k not in EXECUTED_KINDS)
 
     @property
     def questions_no(self) -> int:
-        return sum(n for k, n in self.no.items() if k != EXECUTE)
+        return sum(n for k, n in self.no.items() if k not in EXECUTED_KINDS)
 
     def to_dict(self) -> dict[str, Any]:
         """The evidence's ``outputs.trajectory_counts``."""
@@ -91,8 +94,10 @@ class RequestTally:
                                for k, n in sorted(self.total.items())}}
 
     def executed_text(self) -> str:
-        """``1 executed trajectory`` / ``4 executed trajectories``."""
-        return f"{self.executed} executed trajector{'y' if self.executed == 1 else 'ies'}"
+        """``1 executed trajectory`` / ``4 executed trajectories (3 gate goals)``."""
+        goals = self.total.get(GATE_GOAL, 0)
+        return (f"{self.executed} executed trajector{'y' if self.executed == 1 else 'ies'}"
+                + (f" ({goals} gate goal{'' if goals == 1 else 's'})" if goals else ""))
 
     def sentence(self) -> str:
         """``1 of 4 executed trajectories infeasible or rejected; 2 of 5 questions answered
@@ -102,7 +107,7 @@ class RequestTally:
 
     def questions_sentence(self) -> str:
         """``2 of 5 questions answered infeasible or rejected (check 5)``."""
-        kinds = ", ".join(f"{k} {n}" for k, n in sorted(self.total.items()) if k != EXECUTE)
+        kinds = ", ".join(f"{k} {n}" for k, n in sorted(self.total.items()) if k not in EXECUTED_KINDS)
         return (f"{self.questions_no} of {self.questions} question{'' if self.questions == 1 else 's'}"
                 f" answered infeasible or rejected ({kinds})")
 

@@ -831,12 +831,13 @@ class ReplayResult:
     invalid_by_reason: dict[str, int]
     out_of_order: list[dict]
     trajectories: Capped
-    trajectories_bad: int       # executed trajectories infeasible or rejected
+    trajectories_bad: int       # executed trajectories infeasible or rejected (gate goals too)
     trajectory_failure_labels: set[str]
     controller: ControllerTimeline
     contact: Any = None         # audit.contact_replay.ContactResult
     tally: RequestTally = field(default_factory=RequestTally)  # executed vs questions, exact
     questions: dict = field(default_factory=dict)  # service questions answered, per service
+    gate: dict = field(default_factory=dict)  # the gate's decisions (its goals are executed)
 
 
 class Replay:
@@ -878,7 +879,7 @@ class Replay:
         self.contact = ContactReplay(first, self.monitor.dynamics, sink=sink.contact if sink is not None else None)
         # the question services' request/response pairs, counted in the same tally
         self.services = ServiceReplay(sink, tally=self.tally)
-        self.gates = GateReplay(sink)  # the gate's decisions, decided again
+        self.gates = GateReplay(sink, tally=self.tally)  # the gate's goals: executed, decided again
 
     def feed(self, role: str, m: BagMessage) -> bool:
         """Replay one message; False when its role is not an input (a recorded output)."""
@@ -916,9 +917,10 @@ class Replay:
         return ReplayResult(self.live, self.monitor.counts, self.model, self.settings,
                             self.js_topics, self.prev_log, self.gaps, self.stale, self.invalid,
                             self.invalid_by_reason, self.out_of_order, self.trajectories,
-                            self.trajectories_bad, self.trajectory_failure_labels, self.controller,
-                            contact=self.contact.finish(), tally=self.tally,
-                            questions={**self.services.finish(), **self.gates.finish()})
+                            self.trajectories_bad + self.gates.bad,
+                            self.trajectory_failure_labels | ({PLANNING_ERROR} if self.gates.bad else set()),
+                            self.controller, contact=self.contact.finish(), tally=self.tally,
+                            questions=self.services.finish(), gate=self.gates.finish())
 
     def _switch(self, cfg: _Config) -> None:
         """What the node does when a parameter is set: a new core from now on."""
@@ -1343,7 +1345,7 @@ def require_inputs(bag: str, reader: BagReader, r: ReplayResult, model: Any) -> 
     if reader.readable_files == 0:
         raise AuditError(f"bag {bag} is unreadable: "
                          + "; ".join(u.reason for u in reader.unreadable[:3]), code="bag_unreadable")
-    n_traj = r.trajectories.total + sum(q["requests"] for q in r.questions.values())
+    n_traj = r.trajectories.total + sum(q["requests"] for q in r.questions.values()) + r.gate.get("requests", 0)
     if not r.js_topics and n_traj == 0:
         raise AuditError(f"bag {bag} has no joint_states or joint_trajectory messages "
                          f"(topics: {', '.join(sorted(stats.message_counts)) or 'none'})",
@@ -1511,6 +1513,7 @@ def _outputs_section(source: AuditSource, replay: ReplayResult, recheck: Recheck
                               "recorded_status_counts": ctrl.recorded},
         "recheck": _recheck_section(recheck, not_comparable(source), rel), "latency": latency,
         "questions": replay.questions,  # service questions: answered, never violations
+        "gate": replay.gate,  # the gate's decisions; its goals are counted as executed
         "monitor_counts": {"received": counts.received, "accepted": counts.accepted,
                            "invalid": counts.invalid, "out_of_order": counts.out_of_order,
                            "zero_stamp": counts.zero_stamp,

@@ -1,9 +1,12 @@
 """The audit of the FollowJointTrajectory gate: every decision recorded on ``~/gate_decisions``
 decided again by the same core (:func:`dyn_node.gate.decision.decide_goal`, from the goal and the
 start state the record carries, with the configuration in force) and compared: decision, reason,
-verdict line, numbers and the trajectory forwarded, identical. A decision is a command's fate,
-listed in the evidence (``outputs.questions.gate``); a rejection is the gate working, not a
-violation of the run. Retimed decisions are not replayed where ``dyn_node.retime`` is missing.
+verdict line, numbers and the trajectory forwarded, identical. A goal was sent to be executed: it
+counts as an executed trajectory (request kind ``gate_goal``, :mod:`dyn_node.audit.accounting`),
+infeasible or rejected when the gate rejected it or forwarded it infeasible (``check`` mode); a
+retimed goal counts as the feasible trajectory it forwarded. The decisions themselves are listed
+apart in the evidence (``outputs.gate``). Retimed decisions are not replayed where
+``dyn_node.retime`` is missing.
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from dyn_node.audit.accounting import GATE_GOAL, RequestTally
 from dyn_node.audit.replay_common import Recheck
 from dyn_node.bag.reader import BagMessage, MessageDecoder
 from dyn_node.gate.decision import GateOptions, decide_goal, goal_arrays, start_from_dict
@@ -36,8 +40,10 @@ class GateReplay:
     """Re-decides each recorded decision; the comparison goes to the re-check of ``sink`` (a
     Rechecker, or None) under the decisions topic."""
 
-    def __init__(self, sink: Any = None):
+    def __init__(self, sink: Any = None, *, tally: RequestTally | None = None):
         self.sink = sink
+        self.tally = tally if tally is not None else RequestTally()
+        self.bad = 0  # goals executed infeasible or rejected
         self._own: dict[str, Recheck] = {}
         self.summary: dict[str, Any] = {"requests": 0, "answered": 0, "forwarded": 0, "rejected": 0,
                                         "retimed": 0, "not_replayed": 0, "results": {}, "decisions": []}
@@ -64,6 +70,9 @@ class GateReplay:
             return
         s = self.summary
         s["requests"] += 1
+        ok = executed_feasible(rec)
+        self.tally.add(GATE_GOAL, answered_yes=ok)
+        self.bad += not ok
         s[rec["decision"]] = s.get(rec["decision"], 0) + 1
         if len(s["decisions"]) < MAX_LISTED:
             s["decisions"].append({"t_ns": m.log_time_ns, "goal_id": rec["goal_id"], "decision": rec["decision"],
@@ -106,6 +115,13 @@ class GateReplay:
         check.diff(worst, {**where, **(at or {}), **({"differing_fields": differing} if differing else {})})
 
     def finish(self) -> dict[str, Any]:
-        """``{"gate": summary}`` for the evidence's questions, or {} when no decision was recorded."""
+        """The evidence's ``outputs.gate``: counts and each decision ({} when none was recorded)."""
         s = self.summary
-        return {"gate": dict(s)} if s["requests"] or s["results"] else {}
+        return dict(s) if s["requests"] or s["results"] else {}
+
+
+def executed_feasible(rec: dict) -> bool:
+    """Whether a decision's goal counts as an executed trajectory that was feasible: a retimed
+    goal forwarded what the check passed; a forwarded one is as its verdict; a rejected one no."""
+    decision = rec.get("decision")
+    return decision == "retimed" or (decision == "forwarded" and rec.get("feasible") is True)

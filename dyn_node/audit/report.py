@@ -465,7 +465,7 @@ def _recheck_section(out: dict) -> list[str]:
 
 def _gate_section(out: dict) -> list[str]:
     """The FollowJointTrajectory gate's decisions, each decided again by the audit (re-check)."""
-    g = out.get("questions", {}).get("gate")
+    g = out.get("gate") or out.get("questions", {}).get("gate")  # records before gate goals were executed
     if not g:
         return []
     p = ["<h2 id='gate'>Gate decisions</h2>",

@@ -249,7 +249,8 @@ def _retime(d: _Diff, request: Any, resp: Any, dynamics: Any, settings: Any) -> 
     except ImportError:
         return False
     try:
-        r = retime(dynamics, traj, start=_start(resp), feasibility=on_demand.options_for(settings))
+        r = retime(dynamics, traj, start=_start(resp), feasibility=on_demand.options_for(settings),
+                   limit_margin=settings.retime_limit_margin)
     except TrajectoryError as exc:
         _rejected(d, resp, exc)
         return True

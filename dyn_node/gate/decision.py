@@ -140,7 +140,8 @@ def decide_goal(dynamics: Dynamics, settings: Any, options: GateOptions, names: 
         return rejected(exc)
     opts = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
                                           effort_warn_ratio=settings.effort_warn_ratio)
-    return decide(dynamics, traj, options, start=start, check_options=opts, retimer=retimer)
+    return decide(dynamics, traj, options, start=start, check_options=opts, retimer=retimer,
+                  limit_margin=settings.retime_limit_margin)
 
 
 def goal_dict(names: list[str], times: list[float], positions: Any, velocities: Any,
@@ -177,9 +178,10 @@ def start_from_dict(d: dict[str, Any] | None) -> feasibility.StartState | None:
 def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
            start: feasibility.StartState | None,
            check_options: feasibility.FeasibilityOptions = feasibility.FeasibilityOptions(),
-           retimer: RetimeFn | None = None) -> Decision:
+           retimer: RetimeFn | None = None, limit_margin: float = 0.995) -> Decision:
     """Check ``traj`` (model order, validated) from ``start`` and decide; see the module docstring.
-    ``retimer`` defaults to :func:`load_retimer`'s, loaded only when a goal is to be retimed."""
+    ``retimer`` defaults to :func:`load_retimer`'s, loaded only when a goal is to be retimed;
+    ``limit_margin``: the retimer's (the node's ``retime.limit_margin``)."""
     t0 = time.perf_counter()
     try:
         result = feasibility.check_trajectory(dynamics, traj, check_options, start=start,
@@ -196,12 +198,12 @@ def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
             return Decision(FORWARDED, reason="" if result.feasible else "infeasible", trajectory=traj,
                             check_time_s=elapsed, duration_out=traj.duration, **base)
         return Decision(REJECTED, reason="infeasible", trajectory=None, check_time_s=elapsed, **base)
-    return _retimed(dynamics, traj, start, check_options, retimer, t0, base)
+    return _retimed(dynamics, traj, start, check_options, (retimer, limit_margin), t0, base)
 
 
 def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState | None,
-             check_options: feasibility.FeasibilityOptions, retimer: RetimeFn | None, t0: float,
-             base: dict[str, Any]) -> Decision:
+             check_options: feasibility.FeasibilityOptions, retimer: tuple[RetimeFn | None, float],
+             t0: float, base: dict[str, Any]) -> Decision:
     def failed(message: str, uniform: float = math.nan) -> Decision:
         # a feasible goal (retime_all) whose retiming failed still goes as it came
         kept = traj if base["feasible"] else None
@@ -210,8 +212,8 @@ def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState
                         check_time_s=time.perf_counter() - t0, **base)
 
     try:
-        fn = retimer or load_retimer()
-        out = fn(dynamics, traj, start=start, feasibility=check_options)
+        fn = retimer[0] or load_retimer()
+        out = fn(dynamics, traj, start=start, feasibility=check_options, limit_margin=retimer[1])
     except TrajectoryError as exc:
         return failed(str(exc))
     uniform = float(out.duration_uniform)

@@ -29,6 +29,7 @@ from dyn_node.ros.demo_output import before_model_in_bag, unanswered_reason, whe
 from dyn_node.ros.demo_gate import gate_scene
 from dyn_node.ros.demo_push import PUSH_S, push_checks, run_push
 from dyn_node.ros.demo_press import PRESS_SCENE_FILE, scene_press
+from dyn_node.ros.demo_retime import LIMIT_MARGIN as RETIME_LIMIT_MARGIN
 
 READY = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
 #: Named Panda poses (rad): the 'ready' pose of franka_ros, the arm stretched forward
@@ -526,11 +527,6 @@ def run_trajectory(stack: Stack, traj: DemoTrajectory, say) -> Outcome:
     if v is not None:
         o.check_verdict, o.check_feasible = _LEVELS.get(v.level, str(v.level)), v.feasible
         say(f"  ~/check_trajectory: {o.check_verdict}: {v.message}")
-        if not v.feasible:  # the fastest feasible timing along the same path
-            r = stack.retime(traj, stack.now_ns() + int(LEAD_S * 1e9))
-            say("  ~/retime_trajectory: " + ("no answer" if r is None else
-                f"{'retimed' if r.feasible else 'no feasible timing'}: {r.duration_in:.3g} s -> "
-                f"{r.duration_out:.3g} s: {r.message}" if r.accepted else f"not retimed ({r.reason})"))
     else:
         say("  stage unavailable: check-only request (no answer on ~/check_trajectory)")
     start_ns = stack.now_ns() + int(LEAD_S * 1e9)
@@ -706,6 +702,7 @@ def _scene_stack(run: DemoRun, model: RobotModel, domain: int) -> None:
             sys.executable, "-m", "dyn_node.ros.node", "--ros-args",
             "-p", f"locked_joints:={FINGERS}",
             "-p", f"tracking_tolerance:={TRACKING_TOLERANCE}",
+            "-p", f"retime.limit_margin:={RETIME_LIMIT_MARGIN}",  # room for dyn_sim's feedback
             "-p", "record.enabled:=true", "-p", f"record.directory:={run.bag_dir}"],
             run.env, run.logs / "dyn_node.log"))
     else:
@@ -747,8 +744,8 @@ def _scene_trajectories(run: DemoRun, short: bool) -> None:
         slowed = aggressive.scaled(k * SAFETY_FACTOR, "slowed",
                                    f"aggressive × {k:.3f} × {SAFETY_FACTOR:g}")
         run.outcomes.append(run_trajectory(run.stack, slowed, _say))
-        from dyn_node.ros.demo_retime import run_retimed   # 3b: the core retimer's answer
-        o, run.retime_checks = run_retimed(run.stack, aggressive, slowed.duration, run_trajectory, _say)
+        from dyn_node.ros.demo_retime import run_retimed   # 3b: ~/retime_trajectory's answer
+        o, run.retime_checks = run_retimed(run.stack, aggressive, slowed.duration, LEAD_S, run_trajectory, _say)
         run.outcomes += [o] if o is not None else []
 
 

@@ -153,7 +153,8 @@ def answer_retime(dynamics: Dynamics, settings: Settings, request: RetimeTraject
     except ImportError as exc:
         return reject(response, RETIMER_UNAVAILABLE, f"the retimer is not available: {exc}")
     try:
-        result = retime(dynamics, traj, start=start, feasibility=on_demand.options_for(settings))
+        result = retime(dynamics, traj, start=start, feasibility=on_demand.options_for(settings),
+                        limit_margin=settings.retime_limit_margin)
     except TrajectoryError as exc:
         return reject(response, exc.code or "invalid", str(exc))
     response.accepted = True
