@@ -31,34 +31,55 @@ class Rows:
     xmax: np.ndarray
 
 
-def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float = 1.0,
-               lower_bound: bool = False) -> Rows:
-    """The rows of the joint kinds at the grid, limits multiplied by ``scale``."""
-    lim = dynamics.model.limits
+@dataclass(frozen=True)
+class Terms:
+    """The path's derivatives and torque coefficients at a grid (see the module docstring):
+    computed once per grid, shared by the lower bound's rows and the retiming's."""
+
+    d1: np.ndarray
+    d2: np.ndarray
+    a: np.ndarray | None
+    b: np.ndarray | None
+    c: np.ndarray | None
+    w: np.ndarray | None
+
+
+def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
     q, d1, d2 = path.derivatives(grid)
+    if not np.any(np.isfinite(dynamics.model.limits.effort)):
+        return Terms(d1, d2, None, None, None, None)
+    a = dynamics.terms_batch(q, np.zeros_like(q), d1).inertial
+    terms = dynamics.terms_batch(q, d1, d2)
+    return Terms(d1, d2, a, terms.inertial, terms.static,
+                 dynamics.friction_coefficients[0] * d1)
+
+
+def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float = 1.0,
+               lower_bound: bool = False, terms: Terms | None = None) -> Rows:
+    """The rows of the joint kinds at the grid, limits multiplied by ``scale`` (``terms``:
+    :func:`joint_terms` of this path and grid, when already computed)."""
+    lim = dynamics.model.limits
+    t = joint_terms(dynamics, path, grid) if terms is None else terms
+    d1, d2 = t.d1, t.d2
     with np.errstate(divide="ignore"):
         xv = np.min(np.where(np.abs(d1) > 0, (lim.velocity * scale / np.abs(d1)) ** 2, np.inf),
                     axis=1)
     A, B, C, G = [], [], [], []
 
     def add(a, b, c, g):
-        A.append(a), B.append(b), C.append(c), G.append(np.full(a.shape[1], g) if np.isscalar(g)
-                                                        else g)
+        A.append(a), B.append(b), C.append(c), G.append(g)
 
     cols = np.isfinite(lim.acceleration)
     for sign in ((1.0, -1.0) if cols.any() else ()):
         add(sign * d1[:, cols], sign * d2[:, cols], 0 * d1[:, cols], lim.acceleration[cols] * scale)
-    cols = np.isfinite(lim.deceleration)
+    # |q̈| ≤ acceleration ≤ deceleration already bounds a joint's deceleration: no row for it
+    cols = np.isfinite(lim.deceleration) & ~(lim.deceleration >= lim.acceleration)
     if cols.any():
         sg = -np.sign(d1[:, cols])
         add(sg * d1[:, cols], sg * d2[:, cols], 0 * d1[:, cols], lim.deceleration[cols] * scale)
     cols = np.isfinite(lim.effort)
     if cols.any():
-        zero = np.zeros_like(q)
-        a = dynamics.terms_batch(q, zero, d1).inertial
-        terms = dynamics.terms_batch(q, d1, d2)
-        b, c = terms.inertial, terms.static
-        w = dynamics.friction_coefficients[0] * d1
+        a, b, c, w = t.a, t.b, t.c, t.w
         lo_w = hi_w = np.zeros_like(w)
         if lower_bound and np.any(w):
             # w·ṡ lies between 0 and w·√xv: each side takes its most favourable end
