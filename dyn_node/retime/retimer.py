@@ -31,6 +31,8 @@ from dyn_node.retime.result import RetimeResult
 _RAMP_KINDS = ("jerk", "effort_rate")
 #: the least half-width (grid cells) of a local cap
 _CAP_CELLS = 8
+#: rounds checked with the caller's options in full (payload margin too)
+_FULL_ROUNDS = 2
 #: the uniform fallback's factor over the check's time scale (its feasible side)
 _UNIFORM_PAD = 1.001
 
@@ -121,28 +123,32 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
 
 def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     """The check-driven rounds (module docstring); None when none passes."""
-    x0 = topp.solve(sr.path, sr.grid, sr.rows)
+    reach = topp.Reach(sr.path, sr.grid, sr.rows)
+    x0 = reach.solve()
     if x0 is None:
         return None
     sr.w = max(sr.w, timing.switch_window(sr.dynamics, sr.path, sr.grid, x0) / sr.margin)
-    # the rounds skip the payload margin (it does not decide feasibility); the answer gets the
-    # full check with the caller's options
+    # later rounds skip the payload margin (it does not decide feasibility); the answer gets
+    # the full check with the caller's options
     plain = replace(sr.options, compute_payload_margin=False)
     x, solved_cap = x0, sr.cap.copy()
     for rnd in range(1, max_rounds + 1):
         if not np.array_equal(sr.cap, solved_cap):
             # only a cap changes TOPP-RA's answer (a wider window smooths the same law)
             solved_cap = sr.cap.copy()
-            x = topp.solve(sr.path, sr.grid, sr.rows, cap=sr.cap)
+            x = reach.solve(cap=sr.cap)
         if x is None:
             return None
         lw = timing.law(sr.grid, x)
         out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, 2 * sr.period)
         if out is None:
             return None
-        res = check_trajectory(sr.dynamics, out, plain)
+        # the first rounds, which usually pass, check in full at once (a second check of the
+        # answer costs more than the payload margin of a round that fails)
+        opts = sr.options if rnd <= _FULL_ROUNDS else plain
+        res = check_trajectory(sr.dynamics, out, opts)
         if res.feasible:
-            full = res if plain == sr.options else check_trajectory(sr.dynamics, out, sr.options)
+            full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
                         w=sr.w + 2 * sr.period, deviation=dev)
         if not _adjust(sr, res, lw, x):

@@ -94,33 +94,84 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
     return Rows(np.hstack(A), np.hstack(B), np.hstack(C), np.concatenate(G), xv)
 
 
+class Reach:
+    """One TOPP-RA instance (seidel solver, 1000-step grids: its set-up is a third of a pass)
+    on fixed rows, solved again under caps on ṡ² without rebuilding it. A cap is the bound
+    x ≤ cap at a grid point: the controllable set there is TOPP-RA's intersected with it (the
+    projection of the stage's polygon onto x is an interval, so this equals adding the cap to
+    the rows), and only the sets at and below the highest changed cap are computed again;
+    TOPP-RA's own forward pass then runs on them."""
+
+    def __init__(self, path: Path, grid: np.ndarray, rows: Rows):
+        import toppra.algorithm as algo      # scipy behind it: imported when retiming only
+
+        reach = self
+
+        class _TOPPRA(algo.TOPPRA):
+            def compute_controllable_sets(self, sdmin, sdmax):
+                return reach._controllable(self, sdmin, sdmax)
+
+        self.path, self.grid, self.rows = path, grid, rows
+        cons = _constraint(rows, np.minimum(rows.xmax, 1e12), path.nv)
+        self.inst = _TOPPRA([cons], _toppra_path(path), gridpoints=grid,
+                            solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+        self.cap = np.full(len(grid), np.inf)
+        self._done: tuple | None = None      # (ends, cap, K) of the last backward pass
+
+    def _controllable(self, inst, sdmin: float, sdmax: float) -> np.ndarray:
+        n = len(self.grid) - 1
+        ends = (sdmin, sdmax)
+        if self._done is not None and self._done[0] == ends:
+            changed = np.flatnonzero(self._done[1] != self.cap)
+            if changed.size == 0:
+                return self._done[2].copy()
+            K, top = self._done[2].copy(), min(int(changed[-1]), n - 1)
+        else:
+            K, top = np.zeros((n + 1, 2)), n - 1
+        K[n] = [sdmin**2, min(sdmax**2, self.cap[n])]
+        inst.solver_wrapper.setup_solver()
+        for i in range(top, -1, -1):
+            K[i] = inst._one_step(i, K[i + 1])     # TOPP-RA's own step (toppra 0.6.10)
+            K[i, 0] = max(K[i, 0], 0.0)
+            K[i, 1] = min(K[i, 1], self.cap[i])
+            if np.isnan(K[i]).any() or K[i, 0] > K[i, 1]:
+                K[: i + 1] = np.nan
+                break
+        inst.solver_wrapper.close_solver()
+        self._done = (ends, self.cap.copy(), K.copy())
+        return K
+
+    def solve(self, *, cap: np.ndarray | None = None, sd_start: float = 0.0,
+              free_ends: bool = False) -> np.ndarray | None:
+        """TOPP-RA's time-optimal x = ṡ² at the grid (N+1,) under ``cap``, None when the path
+        is not controllable (no timing meets the rows, e.g. gravity alone above an effort
+        limit).
+
+        ``free_ends``: where the path itself stops (q' = 0 at an end) the robot is at rest at
+        any ṡ, so ṡ is left free there (the bound: else a first-order grid error of the forced
+        ṡ = 0). The retiming keeps ṡ = 0 at the ends: its smoothing window starts from ṡ = 0."""
+        self.cap = np.full(len(self.grid), np.inf) if cap is None else np.asarray(cap, float)
+        path, grid, inst = self.path, self.grid, self.inst
+        ends = np.max(np.abs(path.derivatives(grid[[0, -1]])[1]), axis=1)
+        sd_end = 0.0
+        if free_ends and ends[1] == 0.0:
+            # every row is free of u where q' = 0: ṡ² up to the tightest of them
+            xmax = np.minimum(self.rows.xmax, self.cap)
+            sd_end = math.sqrt(_free_end_x(self.rows, xmax)) * (1 - 1e-9)
+        if free_ends and ends[0] == 0.0 and sd_start == 0.0:
+            K = inst.compute_controllable_sets(sd_end, sd_end)
+            if np.all(np.isfinite(K[0])):
+                sd_start = math.sqrt(max(K[0, 1], 0.0)) * (1 - 1e-9)
+        sdd, sd, _ = inst.compute_parameterization(sd_start, sd_end)
+        if sd is None or not np.all(np.isfinite(sd)):
+            return None
+        return np.maximum(np.asarray(sd, dtype=float), 0.0) ** 2
+
+
 def solve(path: Path, grid: np.ndarray, rows: Rows, *, cap: np.ndarray | None = None,
           sd_start: float = 0.0, free_ends: bool = False) -> np.ndarray | None:
-    """TOPP-RA's time-optimal x = ṡ² at the grid (N+1,), None when the path is not
-    controllable (no timing meets the rows, e.g. gravity alone above an effort limit).
-
-    ``free_ends``: where the path itself stops (q' = 0 at an end) the robot is at rest at any
-    ṡ, so ṡ is left free there (the bound: else a first-order grid error of the forced ṡ = 0).
-    The retiming keeps ṡ = 0 at the ends: its smoothing window starts from ṡ = 0."""
-    import toppra.algorithm as algo          # scipy behind it: imported when retiming only
-
-    xmax = rows.xmax if cap is None else np.minimum(rows.xmax, cap)
-    cons = _constraint(rows, np.minimum(xmax, 1e12), path.nv)
-    inst = algo.TOPPRA([cons], _toppra_path(path), gridpoints=grid, solver_wrapper="seidel",
-                       parametrizer="ParametrizeConstAccel")
-    ends = np.max(np.abs(path.derivatives(grid[[0, -1]])[1]), axis=1)
-    sd_end = 0.0
-    if free_ends and ends[1] == 0.0:
-        # every row is free of u where q' = 0: ṡ² up to the tightest of them
-        sd_end = math.sqrt(_free_end_x(rows, xmax)) * (1 - 1e-9)
-    if free_ends and ends[0] == 0.0 and sd_start == 0.0:
-        K = inst.compute_controllable_sets(sd_end, sd_end)
-        if np.all(np.isfinite(K[0])):
-            sd_start = math.sqrt(max(K[0, 1], 0.0)) * (1 - 1e-9)
-    sdd, sd, _ = inst.compute_parameterization(sd_start, sd_end)
-    if sd is None or not np.all(np.isfinite(sd)):
-        return None
-    return np.maximum(np.asarray(sd, dtype=float), 0.0) ** 2
+    """One :meth:`Reach.solve` on a new instance."""
+    return Reach(path, grid, rows).solve(cap=cap, sd_start=sd_start, free_ends=free_ends)
 
 
 def _free_end_x(rows: Rows, xmax: np.ndarray) -> float:
