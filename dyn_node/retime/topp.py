@@ -94,6 +94,10 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
     return Rows(np.hstack(A), np.hstack(B), np.hstack(C), np.concatenate(G), xv)
 
 
+#: ṡ² below which a controllable set's lower end over a cap is taken as rounding
+_ROUNDING = 1e-9
+
+
 class Reach:
     """One TOPP-RA instance (seidel solver, 1000-step grids: its set-up is a third of a pass)
     on fixed rows, solved again under caps on ṡ² without rebuilding it. A cap is the bound
@@ -134,6 +138,9 @@ class Reach:
             K[i] = inst._one_step(i, K[i + 1])     # TOPP-RA's own step (toppra 0.6.10)
             K[i, 0] = max(K[i, 0], 0.0)
             K[i, 1] = min(K[i, 1], self.cap[i])
+            # a lower end above the cap by rounding only (1e-16 where the cap is 0 at rest)
+            if K[i, 0] > K[i, 1] and K[i, 0] <= K[i, 1] + _ROUNDING:
+                K[i, 0] = K[i, 1]
             if np.isnan(K[i]).any() or K[i, 0] > K[i, 1]:
                 K[: i + 1] = np.nan
                 break
