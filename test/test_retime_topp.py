@@ -3,6 +3,7 @@ against TOPP-RA run from scratch with the cap inside its own rows (its LP's x bo
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import toppra.algorithm as algo
 
 from dyn_node.retime import topp
@@ -39,3 +40,40 @@ def test_caps_on_a_reused_instance_match_toppra_from_scratch() -> None:
         assert topp.duration(grid, x) > topp.duration(grid, x0)
     # a cap no timing can meet from rest (ṡ² below zero): not controllable
     assert reach.solve(cap=np.full(len(grid), -1.0)) is None
+
+
+def test_frame_speed_bounds_the_lower_bound() -> None:
+    """A point 0.5 m from the one joint's axis limited to 0.25 m/s is a 0.5 rad/s joint speed
+    limit: T* is the bang-bang time D/v + v/a = 2/0.5 + 0.5/2 = 4.25 s (without the frame limit
+    2.5 s), and equals TOPP-RA run directly with that joint velocity limit on the same line;
+    the answer passes the check's frame_speed kind."""
+    import toppra as ta
+    import toppra.constraint as tc
+
+    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.model import load_model
+    from dyn_node.retime import retime
+    from test_retime import LINE, ONE_JOINT
+
+    limits = {"joint_limits": {"j": {"has_acceleration_limits": True, "max_acceleration": 2.0}},
+              "frame_limits": {"arm": {"point": [0.5, 0.0, 0.0], "max_linear_speed": 0.25}}}
+    dyn = Dynamics(load_model(urdf=ONE_JOINT).with_limits(limits))
+    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
+    assert res.lower_bound == pytest.approx(4.25, rel=1e-6)
+    path = ta.SplineInterpolator(LINE.times, LINE.positions,
+                                 bc_type=((1, LINE.velocities[0]), (1, LINE.velocities[1])))
+    cons = [tc.JointVelocityConstraint(np.array([[-0.5, 0.5]])),
+            tc.JointAccelerationConstraint(np.array([[-2.0, 2.0]]),
+                                           discretization_scheme=tc.DiscretizationType.Interpolation)]
+    inst = algo.TOPPRA(cons, path, gridpoints=np.linspace(0.0, LINE.duration, 2001),
+                       solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+    assert res.lower_bound == pytest.approx(inst.compute_trajectory(0, 0).duration, rel=1e-6)
+    assert res.feasible and res.method == "optimal"
+    # within 2 % of T* (here a 0.3 % acceleration overshoot at the last switch costs one capped
+    # round: 4.32 s)
+    assert 4.25 * (1 - 1e-6) <= res.duration_out <= 4.25 * 1.02
+    check = check_trajectory(dyn, res.trajectory)
+    # the frame speed binds: the answer cruises near its limit (× 0.995, less the capped round)
+    assert check.feasible
+    assert 0.97 <= check.per_frame["arm"]["frame_speed"]["ratio"] <= 1.0

@@ -42,16 +42,37 @@ class Terms:
     b: np.ndarray | None
     c: np.ndarray | None
     w: np.ndarray | None
+    #: (|J q'| at the grid, its limit) per configured frame speed (linear, angular)
+    speeds: tuple = ()
 
 
 def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
     q, d1, d2 = path.derivatives(grid)
+    speeds = _frame_speeds(dynamics, q, d1)
     if not np.any(np.isfinite(dynamics.model.limits.effort)):
-        return Terms(d1, d2, None, None, None, None)
+        return Terms(d1, d2, None, None, None, None, speeds)
     a = dynamics.terms_batch(q, np.zeros_like(q), d1).inertial
     terms = dynamics.terms_batch(q, d1, d2)
     return Terms(d1, d2, a, terms.inertial, terms.static,
-                 dynamics.friction_coefficients[0] * d1)
+                 dynamics.friction_coefficients[0] * d1, speeds)
+
+
+def _frame_speeds(dynamics: Dynamics, q: np.ndarray, d1: np.ndarray) -> tuple:
+    """The frame kinds' speed per unit ṡ (the check's own frame pass at q̇ = q', q̈ = 0)."""
+    from dyn_node.core import task_motion
+
+    entries = [(f, key) for f in dynamics.model.task_limits.frame_limits
+               for key in ("max_linear_speed", "max_angular_speed")
+               if math.isfinite(getattr(f, key))]
+    if not entries:
+        return ()
+    task = task_motion.build(dynamics, q, d1, np.zeros_like(q))
+    out = []
+    for f, key in entries:
+        terms = task.frame(task_motion.FRAME_ROLE + f.frame)
+        v = terms.linear_velocity if key == "max_linear_speed" else terms.angular_velocity
+        out.append((np.sqrt(np.einsum("ij,ij->i", v, v)), float(getattr(f, key))))
+    return tuple(out)
 
 
 def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float = 1.0,
@@ -64,6 +85,9 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
     with np.errstate(divide="ignore"):
         xv = np.min(np.where(np.abs(d1) > 0, (lim.velocity * scale / np.abs(d1)) ** 2, np.inf),
                     axis=1)
+        for per_unit, limit in t.speeds:
+            # a frame's speed is |J q'|·ṡ: exactly a bound on ṡ²
+            xv = np.minimum(xv, np.where(per_unit > 0, (limit * scale / per_unit) ** 2, np.inf))
     A, B, C, G = [], [], [], []
 
     def add(a, b, c, g):
