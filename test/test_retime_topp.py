@@ -77,3 +77,23 @@ def test_frame_speed_bounds_the_lower_bound() -> None:
     # the frame speed binds: the answer cruises near its limit (× 0.995, less the capped round)
     assert check.feasible
     assert 0.97 <= check.per_frame["arm"]["frame_speed"]["ratio"] <= 1.0
+
+
+def test_kinetic_energy_bounds_the_lower_bound() -> None:
+    """Robot kinetic energy ≤ 0.025 J on the one joint (I = izz + m·r² = 0.02 + 2·0.3² =
+    0.2 kg·m² about its axis): q̇ ≤ √(2E/I) = 0.5 rad/s, so T* is again 4.25 s."""
+    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.model import load_model
+    from dyn_node.retime import retime
+    from test_retime import LINE, ONE_JOINT
+
+    limits = {"joint_limits": {"j": {"has_acceleration_limits": True, "max_acceleration": 2.0}},
+              "robot_limits": {"max_kinetic_energy": 0.025}}
+    dyn = Dynamics(load_model(urdf=ONE_JOINT).with_limits(limits))
+    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
+    assert res.lower_bound == pytest.approx(4.25, rel=1e-6)
+    assert res.feasible and 4.25 * (1 - 1e-6) <= res.duration_out <= 4.25 * 1.02
+    check = check_trajectory(dyn, res.trajectory)
+    assert check.feasible
+    assert 0.95 <= check.per_frame["robot_limits"]["kinetic_energy"]["ratio"] <= 1.0

@@ -42,7 +42,7 @@ class Terms:
     b: np.ndarray | None
     c: np.ndarray | None
     w: np.ndarray | None
-    #: (|J q'| at the grid, its limit) per configured frame speed (linear, angular)
+    #: the first-order task kinds per unit ṡ (:func:`_frame_speeds`)
     speeds: tuple = ()
 
 
@@ -58,20 +58,26 @@ def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
 
 
 def _frame_speeds(dynamics: Dynamics, q: np.ndarray, d1: np.ndarray) -> tuple:
-    """The frame kinds' speed per unit ṡ (the check's own frame pass at q̇ = q', q̈ = 0)."""
+    """The first-order task kinds per unit ṡ, by the check's own frame pass at q̇ = q', q̈ = 0:
+    (value, limit, p) with the bound x ≤ (limit/value)^p: frame speeds (|J q'|, p = 2) and the
+    robot's kinetic energy (½ q'ᵀM q', p = 1)."""
     from dyn_node.core import task_motion
 
-    entries = [(f, key) for f in dynamics.model.task_limits.frame_limits
+    tl = dynamics.model.task_limits
+    entries = [(f, key) for f in tl.frame_limits
                for key in ("max_linear_speed", "max_angular_speed")
                if math.isfinite(getattr(f, key))]
-    if not entries:
+    energy = tl.robot_limits.max_kinetic_energy if tl.robot_limits is not None else math.inf
+    if not entries and not math.isfinite(energy):
         return ()
     task = task_motion.build(dynamics, q, d1, np.zeros_like(q))
     out = []
     for f, key in entries:
         terms = task.frame(task_motion.FRAME_ROLE + f.frame)
         v = terms.linear_velocity if key == "max_linear_speed" else terms.angular_velocity
-        out.append((np.sqrt(np.einsum("ij,ij->i", v, v)), float(getattr(f, key))))
+        out.append((np.sqrt(np.einsum("ij,ij->i", v, v)), float(getattr(f, key)), 2))
+    if math.isfinite(energy):
+        out.append((np.asarray(task.batch.inertia.kinetic_energy, dtype=float), energy, 1))
     return tuple(out)
 
 
@@ -85,9 +91,11 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
     with np.errstate(divide="ignore"):
         xv = np.min(np.where(np.abs(d1) > 0, (lim.velocity * scale / np.abs(d1)) ** 2, np.inf),
                     axis=1)
-        for per_unit, limit in t.speeds:
-            # a frame's speed is |J q'|·ṡ: exactly a bound on ṡ²
-            xv = np.minimum(xv, np.where(per_unit > 0, (limit * scale / per_unit) ** 2, np.inf))
+        for per_unit, limit, p in t.speeds:
+            # a frame's speed is |J q'|·ṡ, the kinetic energy ½ q'ᵀM q'·ṡ²: bounds on ṡ²
+            # (an energy goes as a speed squared: its margin is scale²)
+            bound = (limit * scale / per_unit) ** 2 if p == 2 else limit * scale**2 / per_unit
+            xv = np.minimum(xv, np.where(per_unit > 0, bound, np.inf))
     A, B, C, G = [], [], [], []
 
     def add(a, b, c, g):
