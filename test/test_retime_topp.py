@@ -97,3 +97,24 @@ def test_kinetic_energy_bounds_the_lower_bound() -> None:
     check = check_trajectory(dyn, res.trajectory)
     assert check.feasible
     assert 0.95 <= check.per_frame["robot_limits"]["kinetic_energy"]["ratio"] <= 1.0
+
+
+def test_task_wrench_torque_in_the_effort_rows() -> None:
+    """A 0.5 N·m task torque about the one joint's axis with a 1 N·m effort limit (I = 0.2
+    kg·m²): |q̈| ≤ (1 ∓ 0.5)/0.2 = 2.5 one way and 7.5 the other, so rest to rest over 2 rad
+    at 1 rad/s takes D/v + v/(2·2.5) + v/(2·7.5) = 2.2667 s whichever way the torque points
+    (without it 2 + 2·1/(2·5) = 2.2 s)."""
+    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.model import load_model
+    from dyn_node.retime import retime
+    from test_retime import LINE, ONE_JOINT
+
+    limits = {"joint_limits": {"j": {"has_effort_limits": True, "max_effort": 1.0}},
+              "task_wrench": {"frame": "arm", "force": [0.0, 0.0, 0.0],
+                              "torque": [0.0, 0.0, 0.5]}}
+    dyn = Dynamics(load_model(urdf=ONE_JOINT).with_limits(limits))
+    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
+    assert res.lower_bound == pytest.approx(2.0 + 1 / 5 + 1 / 15, rel=1e-5)
+    assert res.feasible and res.duration_out >= res.lower_bound * (1 - 1e-6)
+    assert check_trajectory(dyn, res.trajectory).feasible

@@ -47,30 +47,35 @@ class Terms:
 
 
 def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
+    from dyn_node.core import task_motion
+
     q, d1, d2 = path.derivatives(grid)
-    speeds = _frame_speeds(dynamics, q, d1)
+    # the check's own frame pass at q̇ = q', q̈ = 0 (None without task limits)
+    task = task_motion.build(dynamics, q, d1, np.zeros_like(q))
+    speeds = _frame_speeds(dynamics.model.task_limits, task)
     if not np.any(np.isfinite(dynamics.model.limits.effort)):
         return Terms(d1, d2, None, None, None, None, speeds)
     a = dynamics.terms_batch(q, np.zeros_like(q), d1).inertial
     terms = dynamics.terms_batch(q, d1, d2)
-    return Terms(d1, d2, a, terms.inertial, terms.static,
-                 dynamics.friction_coefficients[0] * d1, speeds)
+    c = terms.static
+    if task is not None and task.task_torque is not None:
+        # a task wrench's torque depends on q only: part of c, as the check's effort has it
+        c = c + task.task_torque
+    return Terms(d1, d2, a, terms.inertial, c, dynamics.friction_coefficients[0] * d1, speeds)
 
 
-def _frame_speeds(dynamics: Dynamics, q: np.ndarray, d1: np.ndarray) -> tuple:
-    """The first-order task kinds per unit ṡ, by the check's own frame pass at q̇ = q', q̈ = 0:
+def _frame_speeds(tl, task) -> tuple:
+    """The first-order task kinds per unit ṡ, from the frame pass at q̇ = q', q̈ = 0:
     (value, limit, p) with the bound x ≤ (limit/value)^p: frame speeds (|J q'|, p = 2) and the
     robot's kinetic energy (½ q'ᵀM q', p = 1)."""
     from dyn_node.core import task_motion
 
-    tl = dynamics.model.task_limits
     entries = [(f, key) for f in tl.frame_limits
                for key in ("max_linear_speed", "max_angular_speed")
                if math.isfinite(getattr(f, key))]
     energy = tl.robot_limits.max_kinetic_energy if tl.robot_limits is not None else math.inf
-    if not entries and not math.isfinite(energy):
+    if task is None or (not entries and not math.isfinite(energy)):
         return ()
-    task = task_motion.build(dynamics, q, d1, np.zeros_like(q))
     out = []
     for f, key in entries:
         terms = task.frame(task_motion.FRAME_ROLE + f.frame)
