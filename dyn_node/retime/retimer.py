@@ -31,6 +31,8 @@ from dyn_node.retime.result import RetimeResult
 _RAMP_KINDS = ("jerk", "effort_rate")
 #: the least half-width (grid cells) of a local cap
 _CAP_CELLS = 8
+#: rounds checked with the caller's options in full (payload margin too)
+_FULL_ROUNDS = 2
 #: the uniform fallback's factor over the check's time scale (its feasible side)
 _UNIFORM_PAD = 1.001
 
@@ -84,19 +86,20 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
         return RetimeResult(False, None, duration_out=math.nan, lower_bound=math.nan,
                             message=f"no retiming: {first.message}", blocked=_blocked(first),
                             **base)
-    for n in (grid_points, grid_points + 1):
-        # a grid point exactly where the path stops inside (q' = q'' = 0 at a waypoint) leaves
-        # TOPP-RA's controllable set undefined there: the next grid steps over it
-        grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], n + 1)
-        x_lb = topp.solve(path, grid, topp.joint_rows(dynamics, path, grid, lower_bound=True),
-                          free_ends=True)
-        if x_lb is not None:
-            break
+    parts = None if moving_start else _search_paths(dynamics, path, grid_points)
+    x_lb = None
+    if parts is not None and len(parts) == 1:
+        # one piece: T* on the search's own path, grid and torque coefficients (computed once)
+        p, grid, terms = parts[0]
+        x_lb = topp.solve(p, grid, topp.joint_rows(dynamics, p, grid, lower_bound=True,
+                                                   terms=terms), free_ends=True)
+    if x_lb is None:
+        x_lb, grid = _lower_bound(dynamics, path, grid_points)
     lower = topp.duration(grid, x_lb) if x_lb is not None else math.nan
     found = None
-    if not moving_start:
-        found = _by_pieces(dynamics, path, feasibility, path_tolerance, point_period,
-                           limit_margin, grid_points, max_rounds)
+    if parts is not None:
+        found = _by_pieces(dynamics, parts, feasibility, path_tolerance, point_period,
+                           limit_margin, max_rounds)
     uniform = None
     # the stretch lasts ≥ uniform_T × 1.001: only worth building when the search lost to it
     beaten = found is not None and found["trajectory"].duration <= uniform_T * _UNIFORM_PAD
@@ -120,26 +123,32 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
 
 def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     """The check-driven rounds (module docstring); None when none passes."""
-    x0 = topp.solve(sr.path, sr.grid, sr.rows)
+    reach = topp.Reach(sr.path, sr.grid, sr.rows)
+    x0 = reach.solve()
     if x0 is None:
         return None
     sr.w = max(sr.w, timing.switch_window(sr.dynamics, sr.path, sr.grid, x0) / sr.margin)
-    # the rounds skip the payload margin (it does not decide feasibility); the answer gets the
-    # full check with the caller's options
+    # later rounds skip the payload margin (it does not decide feasibility); the answer gets
+    # the full check with the caller's options
     plain = replace(sr.options, compute_payload_margin=False)
-    x = x0
+    x, solved_cap = x0, sr.cap.copy()
     for rnd in range(1, max_rounds + 1):
-        if rnd > 1:
-            x = topp.solve(sr.path, sr.grid, sr.rows, cap=sr.cap)
+        if not np.array_equal(sr.cap, solved_cap):
+            # only a cap changes TOPP-RA's answer (a wider window smooths the same law)
+            solved_cap = sr.cap.copy()
+            x = reach.solve(cap=sr.cap)
         if x is None:
             return None
         lw = timing.law(sr.grid, x)
         out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, 2 * sr.period)
         if out is None:
             return None
-        res = check_trajectory(sr.dynamics, out, plain)
+        # the first rounds, which usually pass, check in full at once (a second check of the
+        # answer costs more than the payload margin of a round that fails)
+        opts = sr.options if rnd <= _FULL_ROUNDS else plain
+        res = check_trajectory(sr.dynamics, out, opts)
         if res.feasible:
-            full = res if plain == sr.options else check_trajectory(sr.dynamics, out, sr.options)
+            full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
                         w=sr.w + 2 * sr.period, deviation=dev)
         if not _adjust(sr, res, lw, x):
@@ -147,18 +156,41 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     return None
 
 
-def _by_pieces(dynamics: Dynamics, path: Path, options: FeasibilityOptions, tolerance: float,
-               period: float, margin: float, grid_points: int, max_rounds: int) -> dict | None:
-    """The optimal search on each piece between the path's stops (:func:`pieces`; the whole path
-    when it has none), each by arc length when it starts or ends at rest (q' = 0: singular in
-    s), the pieces joined at rest and the whole checked again."""
+def _search_paths(dynamics: Dynamics, path: Path, grid_points: int) -> list[tuple]:
+    """The pieces between the path's stops (:func:`pieces`; the whole path when it has none),
+    each by arc length when it starts or ends at rest (q' = 0: singular in s), with its grid
+    and its :func:`topp.joint_terms` there."""
     parts = pieces(path) if stops(path).size else [path]
-    found = []
+    out = []
     for part in parts:
         p = ArcPath(part) if _singular_end(part) else part
         n = max(100, int(round(grid_points * part.length / path.length)))
         grid = np.linspace(p.pp.breaks[0], p.pp.breaks[-1], n + 1)
-        rows = topp.joint_rows(dynamics, p, grid, scale=margin)
+        out.append((p, grid, topp.joint_terms(dynamics, p, grid)))
+    return out
+
+
+def _lower_bound(dynamics: Dynamics, path: Path, grid_points: int
+                 ) -> tuple[np.ndarray | None, np.ndarray]:
+    """T*'s ṡ² on the whole path by s (the path may pass its stops moving) and its grid."""
+    for n in (grid_points, grid_points + 1):
+        # a grid point exactly where the path stops inside (q' = q'' = 0 at a waypoint) leaves
+        # TOPP-RA's controllable set undefined there: the next grid steps over it
+        grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], n + 1)
+        x_lb = topp.solve(path, grid, topp.joint_rows(dynamics, path, grid, lower_bound=True),
+                          free_ends=True)
+        if x_lb is not None:
+            break
+    return x_lb, grid
+
+
+def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptions,
+               tolerance: float, period: float, margin: float, max_rounds: int) -> dict | None:
+    """The optimal search on each of :func:`_search_paths`' pieces, the pieces joined at rest
+    and the whole checked again."""
+    found = []
+    for p, grid, terms in parts:
+        rows = topp.joint_rows(dynamics, p, grid, scale=margin, terms=terms)
         sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
                      np.full(len(grid), np.inf), 0.0, margin)
         one = _optimal(sr, max_rounds)

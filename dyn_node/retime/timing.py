@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dyn_node.core.trajectory import Trajectory, interpolate
-from dyn_node.retime.path import Path
+from dyn_node.retime.path import Path, evaluate
 
 
 @dataclass(frozen=True)
@@ -51,38 +51,43 @@ def law(grid: np.ndarray, x: np.ndarray) -> Law:
                integral2=np.concatenate(([0.0], np.cumsum(step2))))
 
 
-def _levels(lw: Law, t: np.ndarray) -> dict[int, np.ndarray]:
-    """The law at times t by derivative order: −2 (∫∫s), −1 (∫s), 0 (s), 1 (ṡ), 2 (s̈); at rest
-    at s = 0 before t = 0 and at the end after T."""
+def _levels(lw: Law, t: np.ndarray, keys: tuple[int, ...]) -> dict[int, np.ndarray]:
+    """The law at times t by derivative order (``keys`` of them): −2 (∫∫s), −1 (∫s), 0 (s),
+    1 (ṡ), 2 (s̈); at rest at s = 0 before t = 0 and at the end after T."""
     i = np.clip(np.searchsorted(lw.t, t, side="right") - 1, 0, len(lw.u) - 1)
     r = np.clip(t - lw.t[i], 0.0, None)
     before, after = t < 0, t > lw.t[-1]
-    end, T = lw.s[-1], lw.t[-1]
+    end = lw.s[-1]
     s0, v, u = lw.s[i], lw.sd[i], lw.u[i]
-    past = np.clip(t - T, 0.0, None)
-    out = {
-        2: u, 1: np.maximum(v + u * r, 0.0), 0: s0 + v * r + u * r**2 / 2,
-        -1: lw.integral[i] + s0 * r + v * r**2 / 2 + u * r**3 / 6,
-        -2: lw.integral2[i] + lw.integral[i] * r + s0 * r**2 / 2 + v * r**3 / 6 + u * r**4 / 24,
+    past = np.clip(t - lw.t[-1], 0.0, None)
+    law_at = {
+        2: lambda: u, 1: lambda: np.maximum(v + u * r, 0.0),
+        0: lambda: s0 + v * r + u * r**2 / 2,
+        -1: lambda: lw.integral[i] + s0 * r + v * r**2 / 2 + u * r**3 / 6,
+        -2: lambda: (lw.integral2[i] + lw.integral[i] * r + s0 * r**2 / 2 + v * r**3 / 6
+                     + u * r**4 / 24),
     }
-    tail = {2: 0.0, 1: 0.0, 0: end, -1: lw.integral[-1] + end * past,
-            -2: lw.integral2[-1] + lw.integral[-1] * past + end * past**2 / 2}
-    return {k: np.where(before, 0.0, np.where(after, tail[k], val)) for k, val in out.items()}
+    tail = {2: lambda: 0.0, 1: lambda: 0.0, 0: lambda: end,
+            -1: lambda: lw.integral[-1] + end * past,
+            -2: lambda: lw.integral2[-1] + lw.integral[-1] * past + end * past**2 / 2}
+    return {k: np.where(before, 0.0, np.where(after, tail[k](), law_at[k]())) for k in keys}
 
 
-def smoothed(lw: Law, w: float, t: np.ndarray, w2: float = 0.0
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def smoothed(lw: Law, w: float, t: np.ndarray, w2: float = 0.0, orders: int = 3
+             ) -> tuple[np.ndarray, ...]:
     """s, ṡ, s̈ of the law averaged over [t − w, t], then over [t − w2, t] (0: no average);
     the motion lasts T + w + w2. Two windows make s̈ continuous (jerk bounded and continuous,
-    which the controller's quintic between points follows without overshoot)."""
+    which the controller's quintic between points follows without overshoot). ``orders``: how
+    many of s, ṡ, s̈ are wanted."""
     widths = [x for x in (w, w2) if x > 0]
     shifts = [(0.0, 1.0)]
     for width in widths:
         shifts = [(sh + d, sg * (-1.0 if d else 1.0) / width) for sh, sg in shifts
                   for d in (0.0, width)]
     n = len(widths)
-    lev = {sh: _levels(lw, t - sh) for sh, _ in shifts}
-    return tuple(sum(sg * lev[sh][d - n] for sh, sg in shifts) for d in (0, 1, 2))
+    keys = tuple(d - n for d in range(orders))
+    lev = {sh: _levels(lw, t - sh, keys) for sh, _ in shifts}
+    return tuple(sum(sg * lev[sh][d - n] for sh, sg in shifts) for d in range(orders))
 
 
 def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
@@ -105,9 +110,9 @@ def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
     t = out.times
     frac = np.arange(1, per_segment + 1) / (per_segment + 1)
     tm = (t[:-1, None] + np.diff(t)[:, None] * frac[None, :]).ravel()
-    q_out = interpolate(out, "quintic").evaluate(tm)[0]
-    s = np.clip(smoothed(lw, w, tm, w2)[0], 0.0, lw.s[-1])
-    q_path = path.derivatives(s + path.pp.breaks[0])[0]
+    q_out = evaluate(interpolate(out, "quintic"), tm, 1)[0]
+    s = np.clip(smoothed(lw, w, tm, w2, orders=1)[0], 0.0, lw.s[-1])
+    q_path = path.positions(s + path.pp.breaks[0])
     return float(np.max(np.abs(q_out - q_path)))
 
 

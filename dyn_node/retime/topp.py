@@ -31,34 +31,92 @@ class Rows:
     xmax: np.ndarray
 
 
-def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float = 1.0,
-               lower_bound: bool = False) -> Rows:
-    """The rows of the joint kinds at the grid, limits multiplied by ``scale``."""
-    lim = dynamics.model.limits
+@dataclass(frozen=True)
+class Terms:
+    """The path's derivatives and torque coefficients at a grid (see the module docstring):
+    computed once per grid, shared by the lower bound's rows and the retiming's."""
+
+    d1: np.ndarray
+    d2: np.ndarray
+    a: np.ndarray | None
+    b: np.ndarray | None
+    c: np.ndarray | None
+    w: np.ndarray | None
+    #: the first-order task kinds per unit ṡ (:func:`_frame_speeds`)
+    speeds: tuple = ()
+
+
+def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
+    from dyn_node.core import task_motion
+
     q, d1, d2 = path.derivatives(grid)
+    # the check's own frame pass at q̇ = q', q̈ = 0 (None without task limits)
+    task = task_motion.build(dynamics, q, d1, np.zeros_like(q))
+    speeds = _frame_speeds(dynamics.model.task_limits, task)
+    if not np.any(np.isfinite(dynamics.model.limits.effort)):
+        return Terms(d1, d2, None, None, None, None, speeds)
+    a = dynamics.terms_batch(q, np.zeros_like(q), d1).inertial
+    terms = dynamics.terms_batch(q, d1, d2)
+    c = terms.static
+    if task is not None and task.task_torque is not None:
+        # a task wrench's torque depends on q only: part of c, as the check's effort has it
+        c = c + task.task_torque
+    return Terms(d1, d2, a, terms.inertial, c, dynamics.friction_coefficients[0] * d1, speeds)
+
+
+def _frame_speeds(tl, task) -> tuple:
+    """The first-order task kinds per unit ṡ, from the frame pass at q̇ = q', q̈ = 0:
+    (value, limit, p) with the bound x ≤ (limit/value)^p: frame speeds (|J q'|, p = 2) and the
+    robot's kinetic energy (½ q'ᵀM q', p = 1)."""
+    from dyn_node.core import task_motion
+
+    entries = [(f, key) for f in tl.frame_limits
+               for key in ("max_linear_speed", "max_angular_speed")
+               if math.isfinite(getattr(f, key))]
+    energy = tl.robot_limits.max_kinetic_energy if tl.robot_limits is not None else math.inf
+    if task is None or (not entries and not math.isfinite(energy)):
+        return ()
+    out = []
+    for f, key in entries:
+        terms = task.frame(task_motion.FRAME_ROLE + f.frame)
+        v = terms.linear_velocity if key == "max_linear_speed" else terms.angular_velocity
+        out.append((np.sqrt(np.einsum("ij,ij->i", v, v)), float(getattr(f, key)), 2))
+    if math.isfinite(energy):
+        out.append((np.asarray(task.batch.inertia.kinetic_energy, dtype=float), energy, 1))
+    return tuple(out)
+
+
+def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float = 1.0,
+               lower_bound: bool = False, terms: Terms | None = None) -> Rows:
+    """The rows of the joint kinds at the grid, limits multiplied by ``scale`` (``terms``:
+    :func:`joint_terms` of this path and grid, when already computed)."""
+    lim = dynamics.model.limits
+    t = joint_terms(dynamics, path, grid) if terms is None else terms
+    d1, d2 = t.d1, t.d2
     with np.errstate(divide="ignore"):
         xv = np.min(np.where(np.abs(d1) > 0, (lim.velocity * scale / np.abs(d1)) ** 2, np.inf),
                     axis=1)
+        for per_unit, limit, p in t.speeds:
+            # a frame's speed is |J q'|·ṡ, the kinetic energy ½ q'ᵀM q'·ṡ²: bounds on ṡ²
+            # (an energy goes as a speed squared: its margin is scale²)
+            bound = (limit * scale / per_unit) ** 2 if p == 2 else limit * scale**2 / per_unit
+            xv = np.minimum(xv, np.where(per_unit > 0, bound, np.inf))
     A, B, C, G = [], [], [], []
 
     def add(a, b, c, g):
-        A.append(a), B.append(b), C.append(c), G.append(np.full(a.shape[1], g) if np.isscalar(g)
-                                                        else g)
+        A.append(a), B.append(b), C.append(c), G.append(g)
 
     cols = np.isfinite(lim.acceleration)
     for sign in ((1.0, -1.0) if cols.any() else ()):
         add(sign * d1[:, cols], sign * d2[:, cols], 0 * d1[:, cols], lim.acceleration[cols] * scale)
-    cols = np.isfinite(lim.deceleration)
+    # |q̈| ≤ acceleration ≤ deceleration already bounds a joint's deceleration: no row for it
+    cols = np.isfinite(lim.deceleration) & ~(lim.deceleration >= lim.acceleration)
     if cols.any():
         sg = -np.sign(d1[:, cols])
         add(sg * d1[:, cols], sg * d2[:, cols], 0 * d1[:, cols], lim.deceleration[cols] * scale)
     cols = np.isfinite(lim.effort)
     if cols.any():
-        zero = np.zeros_like(q)
-        a = dynamics.terms_batch(q, zero, d1).inertial
-        terms = dynamics.terms_batch(q, d1, d2)
-        b, c = terms.inertial, terms.static
-        w = dynamics.friction_coefficients[0] * d1
+        a, b, c, w = t.a, t.b, t.c, t.w
         lo_w = hi_w = np.zeros_like(w)
         if lower_bound and np.any(w):
             # w·ṡ lies between 0 and w·√xv: each side takes its most favourable end
@@ -73,33 +131,91 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
     return Rows(np.hstack(A), np.hstack(B), np.hstack(C), np.concatenate(G), xv)
 
 
+#: ṡ² below which a controllable set's lower end over a cap is taken as rounding
+_ROUNDING = 1e-9
+
+
+class Reach:
+    """One TOPP-RA instance (seidel solver, 1000-step grids: its set-up is a third of a pass)
+    on fixed rows, solved again under caps on ṡ² without rebuilding it. A cap is the bound
+    x ≤ cap at a grid point: the controllable set there is TOPP-RA's intersected with it (the
+    projection of the stage's polygon onto x is an interval, so this equals adding the cap to
+    the rows), and only the sets at and below the highest changed cap are computed again;
+    TOPP-RA's own forward pass then runs on them."""
+
+    def __init__(self, path: Path, grid: np.ndarray, rows: Rows):
+        import toppra.algorithm as algo      # scipy behind it: imported when retiming only
+
+        reach = self
+
+        class _TOPPRA(algo.TOPPRA):
+            def compute_controllable_sets(self, sdmin, sdmax):
+                return reach._controllable(self, sdmin, sdmax)
+
+        self.path, self.grid, self.rows = path, grid, rows
+        cons = _constraint(rows, np.minimum(rows.xmax, 1e12), path.nv)
+        self.inst = _TOPPRA([cons], _toppra_path(path), gridpoints=grid,
+                            solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+        self.cap = np.full(len(grid), np.inf)
+        self._done: tuple | None = None      # (ends, cap, K) of the last backward pass
+
+    def _controllable(self, inst, sdmin: float, sdmax: float) -> np.ndarray:
+        n = len(self.grid) - 1
+        ends = (sdmin, sdmax)
+        if self._done is not None and self._done[0] == ends:
+            changed = np.flatnonzero(self._done[1] != self.cap)
+            if changed.size == 0:
+                return self._done[2].copy()
+            K, top = self._done[2].copy(), min(int(changed[-1]), n - 1)
+        else:
+            K, top = np.zeros((n + 1, 2)), n - 1
+        K[n] = [sdmin**2, min(sdmax**2, self.cap[n])]
+        inst.solver_wrapper.setup_solver()
+        for i in range(top, -1, -1):
+            K[i] = inst._one_step(i, K[i + 1])     # TOPP-RA's own step (toppra 0.6.10)
+            K[i, 0] = max(K[i, 0], 0.0)
+            K[i, 1] = min(K[i, 1], self.cap[i])
+            # a lower end above the cap by rounding only (1e-16 where the cap is 0 at rest)
+            if K[i, 0] > K[i, 1] and K[i, 0] <= K[i, 1] + _ROUNDING:
+                K[i, 0] = K[i, 1]
+            if np.isnan(K[i]).any() or K[i, 0] > K[i, 1]:
+                K[: i + 1] = np.nan
+                break
+        inst.solver_wrapper.close_solver()
+        self._done = (ends, self.cap.copy(), K.copy())
+        return K
+
+    def solve(self, *, cap: np.ndarray | None = None, sd_start: float = 0.0,
+              free_ends: bool = False) -> np.ndarray | None:
+        """TOPP-RA's time-optimal x = ṡ² at the grid (N+1,) under ``cap``, None when the path
+        is not controllable (no timing meets the rows, e.g. gravity alone above an effort
+        limit).
+
+        ``free_ends``: where the path itself stops (q' = 0 at an end) the robot is at rest at
+        any ṡ, so ṡ is left free there (the bound: else a first-order grid error of the forced
+        ṡ = 0). The retiming keeps ṡ = 0 at the ends: its smoothing window starts from ṡ = 0."""
+        self.cap = np.full(len(self.grid), np.inf) if cap is None else np.asarray(cap, float)
+        path, grid, inst = self.path, self.grid, self.inst
+        ends = np.max(np.abs(path.derivatives(grid[[0, -1]])[1]), axis=1)
+        sd_end = 0.0
+        if free_ends and ends[1] == 0.0:
+            # every row is free of u where q' = 0: ṡ² up to the tightest of them
+            xmax = np.minimum(self.rows.xmax, self.cap)
+            sd_end = math.sqrt(_free_end_x(self.rows, xmax)) * (1 - 1e-9)
+        if free_ends and ends[0] == 0.0 and sd_start == 0.0:
+            K = inst.compute_controllable_sets(sd_end, sd_end)
+            if np.all(np.isfinite(K[0])):
+                sd_start = math.sqrt(max(K[0, 1], 0.0)) * (1 - 1e-9)
+        sdd, sd, _ = inst.compute_parameterization(sd_start, sd_end)
+        if sd is None or not np.all(np.isfinite(sd)):
+            return None
+        return np.maximum(np.asarray(sd, dtype=float), 0.0) ** 2
+
+
 def solve(path: Path, grid: np.ndarray, rows: Rows, *, cap: np.ndarray | None = None,
           sd_start: float = 0.0, free_ends: bool = False) -> np.ndarray | None:
-    """TOPP-RA's time-optimal x = ṡ² at the grid (N+1,), None when the path is not
-    controllable (no timing meets the rows, e.g. gravity alone above an effort limit).
-
-    ``free_ends``: where the path itself stops (q' = 0 at an end) the robot is at rest at any
-    ṡ, so ṡ is left free there (the bound: else a first-order grid error of the forced ṡ = 0).
-    The retiming keeps ṡ = 0 at the ends: its smoothing window starts from ṡ = 0."""
-    import toppra.algorithm as algo          # scipy behind it: imported when retiming only
-
-    xmax = rows.xmax if cap is None else np.minimum(rows.xmax, cap)
-    cons = _constraint(rows, np.minimum(xmax, 1e12), path.nv)
-    inst = algo.TOPPRA([cons], _toppra_path(path), gridpoints=grid, solver_wrapper="seidel",
-                       parametrizer="ParametrizeConstAccel")
-    ends = np.max(np.abs(path.derivatives(grid[[0, -1]])[1]), axis=1)
-    sd_end = 0.0
-    if free_ends and ends[1] == 0.0:
-        # every row is free of u where q' = 0: ṡ² up to the tightest of them
-        sd_end = math.sqrt(_free_end_x(rows, xmax)) * (1 - 1e-9)
-    if free_ends and ends[0] == 0.0 and sd_start == 0.0:
-        K = inst.compute_controllable_sets(sd_end, sd_end)
-        if np.all(np.isfinite(K[0])):
-            sd_start = math.sqrt(max(K[0, 1], 0.0)) * (1 - 1e-9)
-    sdd, sd, _ = inst.compute_parameterization(sd_start, sd_end)
-    if sd is None or not np.all(np.isfinite(sd)):
-        return None
-    return np.maximum(np.asarray(sd, dtype=float), 0.0) ** 2
+    """One :meth:`Reach.solve` on a new instance."""
+    return Reach(path, grid, rows).solve(cap=cap, sd_start=sd_start, free_ends=free_ends)
 
 
 def _free_end_x(rows: Rows, xmax: np.ndarray) -> float:

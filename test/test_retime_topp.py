@@ -1,0 +1,120 @@
+"""The retimer's reused TOPP-RA instance (:class:`dyn_node.retime.topp.Reach`) under caps on ṡ²
+against TOPP-RA run from scratch with the cap inside its own rows (its LP's x bound)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import toppra.algorithm as algo
+
+from dyn_node.retime import topp
+from dyn_node.retime.path import ArcPath, build_path
+from test_retime import ur5, ur5_traj
+
+
+def _direct(path, grid, rows, cap):
+    """TOPP-RA's own controllable sets and forward pass, the cap in the x bound of its LP."""
+    cons = topp._constraint(rows, np.minimum(np.minimum(rows.xmax, cap), 1e12), path.nv)
+    inst = algo.TOPPRA([cons], topp._toppra_path(path), gridpoints=grid,
+                       solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+    _, sd, _ = inst.compute_parameterization(0.0, 0.0)
+    return np.asarray(sd) ** 2
+
+
+def test_caps_on_a_reused_instance_match_toppra_from_scratch() -> None:
+    dyn = ur5()
+    path = ArcPath(build_path(ur5_traj()))
+    grid = np.linspace(0.0, path.length, 401)
+    rows = topp.joint_rows(dyn, path, grid, scale=0.995)
+    reach = topp.Reach(path, grid, rows)
+    x0 = reach.solve()
+    assert np.allclose(x0, _direct(path, grid, rows, np.full(len(grid), np.inf)),
+                       rtol=1e-9, atol=1e-12)
+    cap = np.full(len(grid), np.inf)
+    # two successive caps, the second below the first's region: each a partial backward pass
+    for lo, hi in ((250, 300), (60, 90)):
+        cap[lo:hi] = np.minimum(cap[lo:hi], 0.5 * x0[lo:hi])
+        x = reach.solve(cap=cap)
+        ref = _direct(path, grid, rows, cap)
+        assert np.allclose(x, ref, rtol=1e-9, atol=1e-12)
+        assert np.all(x[lo:hi] <= cap[lo:hi] * (1 + 1e-12))
+        assert topp.duration(grid, x) > topp.duration(grid, x0)
+    # a cap no timing can meet from rest (ṡ² below zero): not controllable
+    assert reach.solve(cap=np.full(len(grid), -1.0)) is None
+
+
+def test_frame_speed_bounds_the_lower_bound() -> None:
+    """A point 0.5 m from the one joint's axis limited to 0.25 m/s is a 0.5 rad/s joint speed
+    limit: T* is the bang-bang time D/v + v/a = 2/0.5 + 0.5/2 = 4.25 s (without the frame limit
+    2.5 s), and equals TOPP-RA run directly with that joint velocity limit on the same line;
+    the answer passes the check's frame_speed kind."""
+    import toppra as ta
+    import toppra.constraint as tc
+
+    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.model import load_model
+    from dyn_node.retime import retime
+    from test_retime import LINE, ONE_JOINT
+
+    limits = {"joint_limits": {"j": {"has_acceleration_limits": True, "max_acceleration": 2.0}},
+              "frame_limits": {"arm": {"point": [0.5, 0.0, 0.0], "max_linear_speed": 0.25}}}
+    dyn = Dynamics(load_model(urdf=ONE_JOINT).with_limits(limits))
+    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
+    assert res.lower_bound == pytest.approx(4.25, rel=1e-6)
+    path = ta.SplineInterpolator(LINE.times, LINE.positions,
+                                 bc_type=((1, LINE.velocities[0]), (1, LINE.velocities[1])))
+    cons = [tc.JointVelocityConstraint(np.array([[-0.5, 0.5]])),
+            tc.JointAccelerationConstraint(np.array([[-2.0, 2.0]]),
+                                           discretization_scheme=tc.DiscretizationType.Interpolation)]
+    inst = algo.TOPPRA(cons, path, gridpoints=np.linspace(0.0, LINE.duration, 2001),
+                       solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+    assert res.lower_bound == pytest.approx(inst.compute_trajectory(0, 0).duration, rel=1e-6)
+    assert res.feasible and res.method == "optimal"
+    # within 2 % of T* (here a 0.3 % acceleration overshoot at the last switch costs one capped
+    # round: 4.32 s)
+    assert 4.25 * (1 - 1e-6) <= res.duration_out <= 4.25 * 1.02
+    check = check_trajectory(dyn, res.trajectory)
+    # the frame speed binds: the answer cruises near its limit (× 0.995, less the capped round)
+    assert check.feasible
+    assert 0.97 <= check.per_frame["arm"]["frame_speed"]["ratio"] <= 1.0
+
+
+def test_kinetic_energy_bounds_the_lower_bound() -> None:
+    """Robot kinetic energy ≤ 0.025 J on the one joint (I = izz + m·r² = 0.02 + 2·0.3² =
+    0.2 kg·m² about its axis): q̇ ≤ √(2E/I) = 0.5 rad/s, so T* is again 4.25 s."""
+    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.model import load_model
+    from dyn_node.retime import retime
+    from test_retime import LINE, ONE_JOINT
+
+    limits = {"joint_limits": {"j": {"has_acceleration_limits": True, "max_acceleration": 2.0}},
+              "robot_limits": {"max_kinetic_energy": 0.025}}
+    dyn = Dynamics(load_model(urdf=ONE_JOINT).with_limits(limits))
+    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
+    assert res.lower_bound == pytest.approx(4.25, rel=1e-6)
+    assert res.feasible and 4.25 * (1 - 1e-6) <= res.duration_out <= 4.25 * 1.02
+    check = check_trajectory(dyn, res.trajectory)
+    assert check.feasible
+    assert 0.95 <= check.per_frame["robot_limits"]["kinetic_energy"]["ratio"] <= 1.0
+
+
+def test_task_wrench_torque_in_the_effort_rows() -> None:
+    """A 0.5 N·m task torque about the one joint's axis with a 1 N·m effort limit (I = 0.2
+    kg·m²): |q̈| ≤ (1 ∓ 0.5)/0.2 = 2.5 one way and 7.5 the other, so rest to rest over 2 rad
+    at 1 rad/s takes D/v + v/(2·2.5) + v/(2·7.5) = 2.2667 s whichever way the torque points
+    (without it 2 + 2·1/(2·5) = 2.2 s)."""
+    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.model import load_model
+    from dyn_node.retime import retime
+    from test_retime import LINE, ONE_JOINT
+
+    limits = {"joint_limits": {"j": {"has_effort_limits": True, "max_effort": 1.0}},
+              "task_wrench": {"frame": "arm", "force": [0.0, 0.0, 0.0],
+                              "torque": [0.0, 0.0, 0.5]}}
+    dyn = Dynamics(load_model(urdf=ONE_JOINT).with_limits(limits))
+    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
+    assert res.lower_bound == pytest.approx(2.0 + 1 / 5 + 1 / 15, rel=1e-5)
+    assert res.feasible and res.duration_out >= res.lower_bound * (1 - 1e-6)
+    assert check_trajectory(dyn, res.trajectory).feasible
