@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_bag_reader import T0, BagWriter, joint_state  # noqa: E402
 
 from dyn_node.audit.bag_audit import AuditOptions, main, run_audit  # noqa: E402
-from dyn_node.audit.replay_common import MAX_BINS, SeriesBins  # noqa: E402
+from dyn_node.audit.replay.common import MAX_BINS, SeriesBins  # noqa: E402
 from dyn_node.bag.reader import BagReader, decode_joint_state  # noqa: E402
 from dyn_node.audit.evidence import schema  # noqa: E402
 from dyn_node.core.model import load_model  # noqa: E402
@@ -686,7 +686,7 @@ def test_bag_written_by_the_rosbags_library(tmp_path, capsys):
 def test_batched_live_episodes_equal_a_message_by_message_update():
     """LiveStats finds violation episodes run by run over a batch; the oracle is Episodes.update
     called per message, per joint, per kind (same episodes, peaks, close order and total)."""
-    from dyn_node.audit.bag_audit import Episodes, LiveStats
+    from dyn_node.audit.replay.stats import Episodes, LiveStats
 
     rng = np.random.default_rng(5)
     nv, n = 3, 5000
@@ -731,7 +731,7 @@ def test_batched_replay_gives_exactly_the_per_message_evidence(tmp_path, monkeyp
     """Runs of regular joint_states are replayed in batches (Monitor.process_batch); the evidence
     must be exactly what message-by-message replay gives (MIN_BATCH raised past every run), with
     gaps, invalid and out-of-order messages, trajectories being tracked and outputs re-checked."""
-    import dyn_node.audit.bag_audit as audit_mod
+    import dyn_node.audit.replay.inputs as audit_mod  # the batch threshold lives with the replay
     from dyn_node.core.monitor import Monitor
 
     trajs = [(300, trajectory_msg(T0 + 300 * MS)), (1200, trajectory_msg(T0 + 1200 * MS, scale=0.3))]

@@ -160,7 +160,7 @@ def test_the_gap_resets_the_replay_where_the_node_reset(audited):
 
 
 def test_batched_and_per_message_replays_agree(recorded, audited, monkeypatch):
-    import dyn_node.audit.bag_audit as ba
+    import dyn_node.audit.replay.inputs as ba  # the batch threshold lives with the replay
 
     path, _, tmp = recorded
     monkeypatch.setattr(ba, "MIN_BATCH", 10**9)  # every message on its own
@@ -229,7 +229,7 @@ def test_a_replay_off_by_a_hair_is_found(recorded, monkeypatch):
     external torques and wrenches that differ from the recorded ones (by less than 1e-3), not identical."""
     from dataclasses import replace
 
-    import dyn_node.audit.contact_replay as cr
+    import dyn_node.audit.replay.contact as cr
     from dyn_node.core.contact_monitor import ContactMonitor, contact_settings
 
     path, _, tmp = recorded

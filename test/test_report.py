@@ -109,7 +109,7 @@ def test_effort_plot_draws_the_measured_effort_signed():
     import numpy as np
     from PIL import Image
 
-    from dyn_node.audit.replay_common import SeriesBins
+    from dyn_node.audit.replay.common import SeriesBins
     from dyn_node.audit.report_plots import _ORANGE, effort_plot
 
     s = SeriesBins(1, 0, width_ns=10 * MS)

@@ -195,7 +195,7 @@ def test_a_bag_of_questions_only_audits_with_exit_0_and_each_answer_identical(ba
 def test_a_tampered_answer_is_caught(bag):
     """The re-check can fail: one recorded response changed after the fact (its time_scale, or
     one torque) is no longer identical to the re-answer, the others still are."""
-    from dyn_node.audit.service_replay import RESPONSE_SENT, ServiceReplay, service_role
+    from dyn_node.audit.replay.services import RESPONSE_SENT, ServiceReplay, service_role
     from dyn_node.bag.reader import BagReader, MessageDecoder
     from dyn_node.core.dynamics import Dynamics
     from dyn_node.core.model import load_model

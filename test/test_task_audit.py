@@ -18,7 +18,7 @@ from dyn_node.audit.bag_audit import task_limits_differences  # noqa: E402
 from dyn_node.audit.check import place_lines  # noqa: E402
 from dyn_node.audit.evidence import (EvidenceError, per_frame_curves, per_frame_section,  # noqa: E402
                                      task_limits_section, validate)
-from dyn_node.audit.replay_common import worst_status_difference  # noqa: E402
+from dyn_node.audit.replay.common import worst_status_difference  # noqa: E402
 from dyn_node.audit.report import render_html, task_plot, task_rows  # noqa: E402
 from dyn_node.core.model import load_model  # noqa: E402
 

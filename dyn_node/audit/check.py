@@ -73,7 +73,7 @@ class Checker:
 def make_checker(*, robot_model: str = "", robot_description: str = "", limits: str = "",
                  params_file: str = "") -> Checker:
     """Build the model and settings; raises :class:`CheckError` when there is no usable model."""
-    from dyn_node.audit.bag_audit import parameters_from_yaml
+    from dyn_node.audit.replay.config import parameters_from_yaml
     from dyn_node.core.dynamics import Dynamics, DynamicsOptions
     from dyn_node.core.model_source import build_model
     from dyn_node.core.settings import SPECS, settings_from_mapping

@@ -1,6 +1,6 @@
 """dyn-fleet: audit many bags as Ray tasks and answer for the fleet.
 
-Every bag is one Ray task running :func:`dyn_node.audit.bag_audit.run_audit`, the pure audit ``dyn-audit``
+Every bag is one Ray task running :func:`dyn_node.audit.pipeline.run_audit`, the pure audit ``dyn-audit``
 runs; the driver only schedules, stops tasks that overrun, and writes the Parquet tables and
 fleet.html. Options, isolation, resume, the tables and exit codes: docs/fleet.md. This
 module never imports rclpy; Ray is imported only when the engine starts.
@@ -181,7 +181,8 @@ def worker_model_cache() -> "ModelCache":
 def audit_bag(job: BagJob) -> BagOutcome:
     """Audit one bag exactly as ``dyn-audit`` does (same :func:`run_audit`, same options) and make
     its rows. Never raises for a bad bag: every failure is a row with its error."""
-    from dyn_node.audit.bag_audit import AuditError, AuditOptions, run_audit
+    from dyn_node.audit.options import AuditError, AuditOptions
+    from dyn_node.audit.pipeline import run_audit
     from dyn_node.bag.reader import BagError
     from dyn_node.errors import DynNodeError
 

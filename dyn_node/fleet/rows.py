@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from dyn_node.audit.accounting import counts_of, is_executed
-from dyn_node.audit.bag_audit import LiveStats
+from dyn_node.audit.replay.stats import LiveStats
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS
 from dyn_node.core.limits import LIMIT_KINDS
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from dyn_node.audit.accounting import GATE_GOAL, RequestTally
-from dyn_node.audit.replay_common import Recheck
+from dyn_node.audit.replay.common import Recheck
 from dyn_node.bag.reader import BagMessage, MessageDecoder
 from dyn_node.gate.decision import GateOptions, decide_goal, goal_arrays, start_from_dict
 
@@ -52,7 +52,7 @@ class GateReplay:
         if self.sink is None:
             return self._own.setdefault(topic, Recheck())
         if topic not in self.sink.checks:
-            from dyn_node.audit.replay_common import Pending
+            from dyn_node.audit.replay.common import Pending
 
             self.sink.checks[topic], self.sink.pending[topic], self.sink.topics[topic] = Recheck(), Pending(), topic
         return self.sink.checks[topic]

@@ -17,7 +17,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from dyn_node.audit.replay_common import (Pending, Recheck, SeriesBins, output_stamp_ns,
+from dyn_node.audit.replay.common import (Pending, Recheck, SeriesBins, output_stamp_ns,
                                          worst_status_difference)
 from dyn_node.bag.cdr import decode_joint_state
 from dyn_node.errors import CONTROL_ERROR

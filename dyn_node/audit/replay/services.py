@@ -18,7 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from dyn_node.audit.accounting import CHECK, INVERSE_DYNAMICS, RETIME, RequestTally
-from dyn_node.audit.replay_common import Pending, Recheck, worst_status_difference
+from dyn_node.audit.replay.common import Pending, Recheck, worst_status_difference
 from dyn_node.bag.reader import BagMessage, MessageDecoder
 from dyn_node.core import feasibility, on_demand
 from dyn_node.core.status import format_value
@@ -102,7 +102,7 @@ def _statuses(statuses: Sequence[Any]) -> dict[str, dict[str, str]]:
 class ServiceReplay:
     """Pairs each request with its response (by client and sequence number) and re-answers it
     with the configuration in force; the comparison goes to the re-check of ``sink`` (a
-    :class:`~dyn_node.audit.bag_audit.Rechecker`, or None) under the event topic's name; each
+    :class:`~dyn_node.audit.replay.recheck.Rechecker`, or None) under the event topic's name; each
     answered pair is added once to ``tally`` (the audit's, shared with the request topics)."""
 
     def __init__(self, sink: Any = None, *, tally: RequestTally | None = None):

@@ -1,5 +1,5 @@
-"""What the bag audit's replay (:mod:`~dyn_node.audit.bag_audit`) and the contact replay
-(:mod:`~dyn_node.audit.contact_replay`) share: time-binned series, the pending recomputed outputs
+"""What the bag audit's replay (:mod:`~dyn_node.audit.replay.inputs`) and the contact replay
+(:mod:`~dyn_node.audit.replay.contact`) share: time-binned series, the pending recomputed outputs
 and their comparison with the recorded ones, and the stamp the node gives a zero-stamped input's
 output. A module apart so that neither imports the other for them."""
 from __future__ import annotations
