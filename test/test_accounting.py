@@ -103,7 +103,7 @@ def test_a_new_question_kind_slots_in():
 def test_gate_goals_are_executed_trajectories():
     """A gate goal is sent to be executed: counted with joint_trajectory's, never as a question;
     a rejected goal or one forwarded infeasible (check mode) is a "no", a retimed one is not."""
-    from dyn_node.audit.gate_replay import executed_feasible
+    from dyn_node.audit.replay.gates import executed_feasible
 
     recs = [{"decision": "forwarded", "feasible": True}, {"decision": "rejected", "feasible": False},
             {"decision": "rejected", "feasible": True},  # e.g. rejected for a NaN before any check
