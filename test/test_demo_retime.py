@@ -10,7 +10,7 @@ from dyn_node.core.dynamics import Dynamics
 from dyn_node.core.feasibility import check_trajectory
 from dyn_node.core.model import load_model
 from dyn_node.ros.demo import demo_trajectories
-from dyn_node.ros.demo_retime import retime_checks, retimed
+from dyn_node.ros.demo.retime import retime_checks, retimed
 
 
 @pytest.fixture(scope="module")
