@@ -73,7 +73,7 @@ def press() -> dict:
     from dyn_node.core.contact_monitor import ContactMonitor, ContactSettings
     from dyn_node.core.dynamics import Dynamics
     from dyn_node.core.model import load_model
-    from dyn_node.ros.demo_press import wrench_at_frame
+    from dyn_node.ros.demo.press import wrench_at_frame
     from dyn_node.sim.press import PRESS_SCENE, plan_press
     from dyn_node.sim.simulator import SimConfig, Simulator
 

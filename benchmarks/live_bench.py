@@ -37,16 +37,16 @@ def ros_env() -> dict[str, str]:
 
 
 def _dyn_node_reason() -> str | None:
-    return _missing("ros/node.py")
+    return _missing("ros/node")
 
 
 def _recording_reason() -> str | None:
-    return _missing("ros/node.py", "ros/recording.py", "bag/recorder.py")
+    return _missing("ros/node", "ros/recording.py", "bag/recorder.py")
 
 
 def _contact_reason() -> str | None:
     # a node that does not publish the outputs yet is reported by the probe ("no publisher on")
-    return _missing("ros/node.py", "core/contact_monitor.py")
+    return _missing("ros/node", "core/contact_monitor.py")
 
 
 def _missing(*paths: str) -> str | None:

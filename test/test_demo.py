@@ -244,7 +244,7 @@ def test_push_checks_against_the_applied_force_and_the_push_time():
     """The push scene's PASS lines: reported within the push (0.3 s) after it was sent, and the
     settled estimate within 10 % + 1 N of the applied force (vector difference), averaged over
     the part of the push dyn_sim says it applied, 0.1 s after it began."""
-    from dyn_node.ros.demo_push import PushOutcome, push_checks, settle_estimate
+    from dyn_node.ros.demo.push import PushOutcome, push_checks, settle_estimate
 
     F = np.array([0.0, 0.0, -30.0])
     o = PushOutcome("panda_link8", F, sent_s=100.2, reported_s=100.235, reported_state="contact")

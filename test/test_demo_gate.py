@@ -1,4 +1,4 @@
-"""The demo's gate scene end to end (python -m dyn_node.ros.demo_gate): its own dyn_sim and gates."""
+"""The demo's gate scene end to end (python -m dyn_node.ros.demo.gate): its own dyn_sim and gates."""
 from __future__ import annotations
 
 import os
@@ -17,7 +17,7 @@ pytest.importorskip("control_msgs", reason="control_msgs not built into the venv
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> str:
     """The scene's output (it exited 0)."""
-    proc = subprocess.Popen([sys.executable, "-m", "dyn_node.ros.demo_gate", "--out", str(tmp_path_factory.mktemp("gate")),
+    proc = subprocess.Popen([sys.executable, "-m", "dyn_node.ros.demo.gate", "--out", str(tmp_path_factory.mktemp("gate")),
                              "--domain", str(TEST_DOMAIN)], cwd=str(REPO), env=child_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:

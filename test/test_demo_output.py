@@ -10,7 +10,7 @@ from rclpy.serialization import serialize_message
 
 from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
 from dyn_node.ros.demo import audit_recheck_lines
-from dyn_node.ros.demo_output import before_model_in_bag, unanswered_reason, where_line
+from dyn_node.ros.demo.output import before_model_in_bag, unanswered_reason, where_line
 
 
 def _diag(before_model: int, name: str = "dyn_node: joint_states") -> bytes:

@@ -8,7 +8,7 @@ import pytest
 
 from dyn_node.core.model import load_model
 from dyn_node.ros.demo import DemoTrajectory
-from dyn_node.ros.demo_press import PressOutcome, press_checks, press_trajectories, wrench_at_frame
+from dyn_node.ros.demo.press import PressOutcome, press_checks, press_trajectories, wrench_at_frame
 from dyn_node.sim.press import PRESS_SCENE, READY, plan_press
 from dyn_node.sim.simulator import SimConfig, Simulator
 

@@ -17,7 +17,7 @@ from dyn_node.core.settings import Settings, settings_from_mapping
 from dyn_node.errors import SettingsError
 from dyn_node.retime import retime
 from dyn_node.ros.demo import READY, demo_trajectories
-from dyn_node.ros.demo_retime import LIMIT_MARGIN, from_answer, retime_checks
+from dyn_node.ros.demo.retime import LIMIT_MARGIN, from_answer, retime_checks
 from dyn_node.ros.service_answers import answer_retime
 
 

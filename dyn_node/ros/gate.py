@@ -49,7 +49,7 @@ from dyn_node.gate.decision import (FORWARDED, REJECTED, RETIMED, Decision, Gate
                                     rejected, start_dict)
 from dyn_node.ros.fjt_client import ClientThread
 from dyn_node.ros.params import KINDS, parameter_descriptor
-from dyn_node.ros.sim_action import end_canceled
+from dyn_node.ros.sim.action import end_canceled
 
 STATUS_NAME = NAME_PREFIX + "gate"
 Result = FollowJointTrajectory.Result
@@ -152,7 +152,7 @@ class Gate:
         self.logger.info(f"gate: {self.server_name} → {self.downstream} ({self.options.mode})")
 
     def _spin(self) -> None:
-        # spin_once with a stop flag (see dyn_node.ros.sim_action.JtcFace._spin)
+        # spin_once with a stop flag (see dyn_node.ros.sim.action.JtcFace._spin)
         while not self._stop.is_set() and self.executor.context.ok():
             self.executor.spin_once(timeout_sec=0.1)
 

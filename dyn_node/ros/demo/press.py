@@ -20,7 +20,7 @@ import pinocchio as pin
 
 from dyn_node.core.model import RobotModel
 
-PRESS_SCENE_FILE = Path(__file__).resolve().parents[2] / "config" / "press_scene.yaml"
+PRESS_SCENE_FILE = Path(__file__).resolve().parents[3] / "config" / "press_scene.yaml"
 HOLD_S = 2.0               # held after the press point is reached
 SETTLED_WINDOW_S = 0.5     # the steady state: the last half second of the hold
 DETECT_WITHIN_S = 0.5      # contact must be reported this soon after the first touch

@@ -9,7 +9,7 @@ as MoveIt's would be) sends three goals through dyn_node's gate to dyn_sim, the 
    ``dyn_node.retime`` is not installed.
 
 It runs its own dyn_sim and dyn_node processes in the namespace ``/gate_demo`` after the main
-stack has stopped (or alone: ``python -m dyn_node.ros.demo_gate``). :func:`gate_scene` returns
+stack has stopped (or alone: ``python -m dyn_node.ros.demo.gate``). :func:`gate_scene` returns
 (ok, text) check lines like the other scenes.
 """
 from __future__ import annotations
@@ -26,7 +26,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-READY = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
+from dyn_node.ros.demo.processes import Child
+from dyn_node.ros.demo.run import DemoRun, banner, say
+from dyn_node.ros.demo.trajectories import FINGERS, READY
+
 ARM = [f"panda_joint{i}" for i in range(1, 8)]
 NS = "/gate_demo"
 CONTROLLER = f"{NS}/joint_trajectory_controller/follow_joint_trajectory"
@@ -39,13 +42,11 @@ def _moved(dq: float) -> list[float]:
 
 
 def _children(env: dict[str, str], logs: Path, retime: bool) -> list[Any]:
-    from dyn_node.ros.demo import FINGERS, Child
-
     py = [sys.executable, "-m"]
     out = [Child("gate_sim", py + ["dyn_node.ros.sim_node", "--ros-args", "-r", f"__ns:={NS}",
                                    "-p", f"initial_positions:={list(READY)}", "-p", "constraints.goal_time:=2.0"],
                  env, logs / "gate_dyn_sim.log")]
-    from dyn_node.ros.demo_retime import LIMIT_MARGIN
+    from dyn_node.ros.demo.retime import LIMIT_MARGIN
 
     for mode in ("reject", "retime") if retime else ("reject",):
         # a time-optimal retiming runs a torque at its limit: room for dyn_sim's tracking feedback
@@ -216,6 +217,16 @@ def main(argv: list[str] | None = None) -> int:
     for part in unavailable:
         print(f"unavailable: {part}")
     return 0 if all(ok for ok, _ in checks) else 2
+
+
+def scene_gate(run: DemoRun) -> None:
+    """3d. a planner-like client sends goals through dyn_node's gate to dyn_sim (ros/demo/gate.py)."""
+    say("")
+    banner("3d. dyn_node between a planner and the controller: the FollowJointTrajectory gate")
+    checks, missing = gate_scene(run.env, run.logs, say)
+    run.push_checks += checks  # scene checks shown with the push's in the summary
+    for what in missing:
+        run.missing(what)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from dyn_node.ros.demo.run import DemoRun, banner, say
+from dyn_node.ros.demo.trajectories import demo_trajectories
+
 PUSH_FORCE = (0.0, 0.0, -30.0)   # N, in the contact frame's axes (the flange: along its −z)
 PUSH_S = 0.3                     # how long dyn_sim holds it (its apply_wrench_hold)
 PUSH_AT_S = 0.5                  # into the trajectory
@@ -131,3 +134,20 @@ def run_push(stack: Any, traj: Any, say: Callable[[str], None]) -> PushOutcome |
         stack.node.destroy_subscription(sub)
         stack.node.destroy_subscription(sub_truth)
         stack.node.destroy_publisher(pub)
+
+
+def scene_push(run: DemoRun, short: bool) -> None:
+    """3c. dyn_sim pushes the flange during the comfortable trajectory (ros/demo/push.py)."""
+    say("")
+    banner("3c. a push: 30 N at the flange for 0.3 s during the comfortable trajectory")
+    if len(run.children) < 2:
+        run.missing("push scene (no dyn_node)")
+        return
+    o = run_push(run.stack, demo_trajectories(short)[0], say)
+    if o is None:
+        run.missing("push scene (dyn_node publishes no ~/external_wrench)")
+        return
+    run.extra_verdicts += o.verdict_seen
+    run.push_checks = push_checks(o)
+    for _, text in run.push_checks:
+        say("  " + text.removeprefix("push: "))
