@@ -1,4 +1,4 @@
-"""Each constraint kind through the Constraint interface (dyn_node.core.constraints).
+"""Each constraint kind through the Constraint interface (dyn_node.core.check.constraints).
 
 One rest-to-rest quintic segment of the planar 2-link arm, whose q, q̇, q̈, q⃛ are closed forms,
 with gravity off (so every torque kind can be met by slowing down). Per kind: the value per
@@ -14,13 +14,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from dyn_node.core import constraints as C
-from dyn_node.core import feasibility as F
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import FeasibilityOptions, StartState, check_trajectory
-from dyn_node.core.model import load_model
-from dyn_node.core.start_segment import stretched
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.check import constraints as C
+from dyn_node.core.check import feasibility as F
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import FeasibilityOptions, StartState, check_trajectory
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.check.start_segment import stretched
+from dyn_node.core.check.trajectory import validate_trajectory
 
 PLANAR = load_model(builtin="planar_2link").with_gravity([0.0, 0.0, 0.0])
 NAMES = list(PLANAR.joint_names)

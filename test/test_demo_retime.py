@@ -6,9 +6,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import check_trajectory
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import check_trajectory
+from dyn_node.core.robot.model import load_model
 from dyn_node.ros.demo import demo_trajectories
 from dyn_node.ros.demo_retime import retime_checks, retimed
 

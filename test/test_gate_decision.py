@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.core import feasibility
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import load_model
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.check import feasibility
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.check.trajectory import validate_trajectory
 from dyn_node.errors import SettingsError, TrajectoryError
 from dyn_node.gate.decision import FORWARDED, REJECTED, RETIMED, GateOptions, decide, rejected
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.core import kernels as K
+from dyn_node.core.compiled import kernels as K
 
 
 def _real_roots(coeffs) -> list[float]:
@@ -131,7 +131,7 @@ def test_rms_windows_match_a_direct_windowed_integral(seed):
 
 
 def test_segment_derivative_is_exact_for_quadratics_and_stays_inside_segments():
-    from dyn_node.core.feasibility import _sample
+    from dyn_node.core.check.feasibility import _sample
     smp = _sample(np.array([0.0, 0.5, 0.53, 1.2]), 0.05, 10_000)   # one segment of one step
     t = smp.t
     # a different quadratic per segment, so a difference across a boundary would show
@@ -156,8 +156,8 @@ def test_gravity_rows_agree_with_pinocchio(name):
     from robots import BRANCHED_URDF
     import pinocchio as pin
 
-    from dyn_node.core.dynamics import gravity_tables
-    from dyn_node.core.model import Payload, load_model
+    from dyn_node.core.robot.dynamics import gravity_tables
+    from dyn_node.core.robot.model import Payload, load_model
 
     if name == "tree":
         model = load_model(urdf=BRANCHED_URDF, payload=Payload(1.5, (0.02, -0.03, 0.05), "f"),

@@ -83,7 +83,7 @@ def test_everything_but_the_ros_adapter_imports_without_rclpy():
     assert out["ros_loaded"] == []
     # the walk found the core (not an empty package), and every allowlist entry names a module
     # that exists, so a renamed adapter module cannot leave a stale entry behind
-    assert {"dyn_node.core.feasibility", "dyn_node.core.monitor", "dyn_node.audit.bag_audit",
+    assert {"dyn_node.core.check.feasibility", "dyn_node.core.live.monitor", "dyn_node.audit.bag_audit",
             "dyn_node.sim.simulator", "dyn_node.bag.reader"} <= set(out["imported"])
     assert sorted(n.removeprefix("dyn_node.") for n in out["skipped"]) == sorted(ADAPTER)
 

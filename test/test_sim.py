@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import TrajectoryError
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 from dyn_node.sim.simulator import SimConfig, Simulator
 
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])

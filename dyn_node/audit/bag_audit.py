@@ -21,7 +21,7 @@ import numpy as np
 import yaml
 
 from dyn_node import __version__
-from dyn_node.core.allocator import retain_freed_memory
+from dyn_node.core.live.allocator import retain_freed_memory
 from dyn_node.bag.reader import BagMessage, BagReader, MessageDecoder
 from dyn_node.bag.metadata import LIMITS_SHA256_KEY, LIMITS_YAML_KEY
 from dyn_node.bag.cdr import decode_joint_state, decode_joint_state_batch
@@ -35,14 +35,14 @@ from dyn_node.audit.replay_common import (MAX_PENDING, Pending, Recheck, SeriesB
                                           worst_status_difference)
 from dyn_node.audit.contact_replay import (CONTACT_ROLES, ContactRecheck, ContactReplay, contact_findings,
                                            contact_role, contact_section)
-from dyn_node.core.units import joint_units
+from dyn_node.core.robot.units import joint_units
 
 from dyn_node.audit.gate_replay import ROLE_GATE, GateReplay, gate_role
 from dyn_node.audit.service_replay import ROLE_SERVICE_EVENT, ServiceReplay, service_role
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code  # noqa: F401
 
 if TYPE_CHECKING:
-    from dyn_node.core.model_source import ModelCache
+    from dyn_node.core.robot.model_source import ModelCache
 
 MAX_EPISODES = 1000      # violation episodes listed (the rest are counted)
 MAX_EXAMPLES = 50        # invalid / out-of-order examples and gaps listed
@@ -409,7 +409,7 @@ class _Config:
 def recorded_limits(meta: dict, path: str, findings: list[str]) -> str:
     """The limits text a metadata record carries (the node's model was built from it); a
     finding when its sha256 does not match the record's or the file at ``path`` differs."""
-    from dyn_node.core.limits_file import limits_sha256
+    from dyn_node.core.robot.limits_file import limits_sha256
 
     text = meta[LIMITS_YAML_KEY]
     sha = limits_sha256(text)
@@ -560,7 +560,7 @@ class Audit:
         from dataclasses import replace
 
         from dyn_node.errors import SettingsError
-        from dyn_node.core.settings import SPECS, Settings, settings_from_mapping
+        from dyn_node.core.robot.settings import SPECS, Settings, settings_from_mapping
 
         params = parameters_from_yaml(meta.get("parameters", ""))
         known = {k: v for k, v in params.items() if k in SPECS}
@@ -584,7 +584,7 @@ class Audit:
             overrides["robot_model"] = self.opts.robot_model
         elif settings.robot_model and not settings.robot_description:
             # A built-in model ships with the package; check it is the one the bag recorded.
-            from dyn_node.core.model import BUILTIN_MODELS, builtin_urdf, urdf_hash
+            from dyn_node.core.robot.model import BUILTIN_MODELS, builtin_urdf, urdf_hash
 
             name = settings.robot_model
             desc = desc_in_bag or topic_desc
@@ -621,7 +621,7 @@ class Audit:
     def _resolve(self, meta: dict, topic_desc: str, *, first: bool,
                  since_ns: int | None = None) -> "_Config":
         """The configuration of one metadata record, and how it differs from the node's."""
-        from dyn_node.core.model_source import build_model
+        from dyn_node.core.robot.model_source import build_model
 
         findings: list[str] = []
         settings, overrides, missing, limits = self._bag_settings(meta, topic_desc, findings,
@@ -928,9 +928,9 @@ class Replay:
     def _use(self, cfg: _Config) -> None:
         """A core (monitor, tracker, dynamics, live limits) for ``cfg``; a previous core's
         counts and the plan it was tracking carry over."""
-        from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-        from dyn_node.core.monitor import Monitor
-        from dyn_node.core.tracker import ControllerTracker
+        from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+        from dyn_node.core.live.monitor import Monitor
+        from dyn_node.core.live.tracker import ControllerTracker
 
         self.settings, self.model = cfg.settings, cfg.model
         self.monitor = Monitor(cfg.model, cfg.settings,
@@ -1072,8 +1072,8 @@ class Replay:
                 self.sink.expect_efforts(key, res.waypoint_effort)
 
     def _trajectory(self, m: BagMessage, index: int):
-        from dyn_node.core.feasibility import NO_CURRENT_STATE, FeasibilityOptions, check_trajectory, current_state
-        from dyn_node.core.trajectory import validate_trajectory
+        from dyn_node.core.check.feasibility import NO_CURRENT_STATE, FeasibilityOptions, check_trajectory, current_state
+        from dyn_node.core.check.trajectory import validate_trajectory
 
         entry: dict[str, Any] = {"index": index, "topic": m.topic, "time_s": 0.0, "t_ns": m.log_time_ns,
                                  "stamp_ns": 0, "accepted": False, "feasible": False}
@@ -1122,7 +1122,7 @@ class Replay:
     def _states_request(self, m: BagMessage) -> None:
         """Recompute the node's answer to an ~/inverse_dynamics_request (torques, or the rejected
         verdict), keyed by the request's header like the node's answer."""
-        from dyn_node.core import on_demand
+        from dyn_node.core.check import on_demand
 
         try:
             msg = self.decoder.decode(m.channel, m.data)
@@ -1174,7 +1174,7 @@ def _verdict_entry(entry: dict[str, Any], res: Any) -> dict[str, Any]:
     # curves for the report's plot; only the first trajectories', to keep the record small
     add_per_frame(entry, res, curves=entry["index"] < MAX_CURVE_TRAJECTORIES, result_dict=d)
     if not isinstance(entry.get("level"), str):
-        from dyn_node.core.status import LEVEL_NAMES
+        from dyn_node.core.robot.status import LEVEL_NAMES
         entry["level"] = LEVEL_NAMES.get(entry.get("level"), str(entry.get("level")))
     return entry
 
@@ -1324,10 +1324,10 @@ class Rechecker:
 def _statuses(res: Any, model_name: str) -> dict[str, dict[str, str]]:
     """The ~/feasibility statuses the node publishes for a result (or a rejected entry), by name,
     with their values formatted as the node formats them."""
-    from dyn_node.core.status import format_value
+    from dyn_node.core.robot.status import format_value
 
     if isinstance(res, dict):  # rejected: the node published rejected_statuses
-        from dyn_node.core.feasibility import rejected_statuses
+        from dyn_node.core.check.feasibility import rejected_statuses
 
         err = TrajectoryError(res["message"].removeprefix("rejected: "), code=res["error_code"] or "error")
         statuses = rejected_statuses(err, model_name, res.get("n_points", 0), res.get("duration_s", 0.0))

@@ -21,10 +21,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_VIOLATIONS
-from dyn_node.core.model import RobotModel, load_model
-from dyn_node.core.trajectory import Trajectory, interpolate, validate_trajectory
+from dyn_node.core.robot.model import RobotModel, load_model
+from dyn_node.core.check.trajectory import Trajectory, interpolate, validate_trajectory
 from dyn_node.ros.demo_output import before_model_in_bag, unanswered_reason, where_line
 from dyn_node.ros.demo_gate import gate_scene
 from dyn_node.ros.demo_push import PUSH_S, push_checks, run_push
@@ -598,7 +598,7 @@ def run_trajectory(stack: Stack, traj: DemoTrajectory, say) -> Outcome:
 
 def _local_verdict(model: RobotModel, traj: DemoTrajectory, o: Outcome, say) -> None:
     try:
-        from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
+        from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
     except ImportError as exc:
         say(f"  stage unavailable: local feasibility check ({exc})")
         return
@@ -762,7 +762,7 @@ def _scene_task_limits(run: DemoRun) -> None:
     if len(run.children) < 2 or not run.children[1].alive() or not DEMO_TASK_LIMITS.is_file():
         run.missing("task-limits scene (no dyn_node, or config/demo_task_limits.yaml missing)")
         return
-    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.check.feasibility import check_trajectory
 
     t0 = time.monotonic()
     fast = task_transfer()

@@ -13,8 +13,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.trajectory import Trajectory
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.trajectory import Trajectory
 from dyn_node.retime import RetimeResult, retime
 
 

@@ -1,4 +1,4 @@
-"""The dyn_node ROS 2 node: a thin adapter around :mod:`dyn_node.core.monitor` and the feasibility check.
+"""The dyn_node ROS 2 node: a thin adapter around :mod:`dyn_node.core.live.monitor` and the feasibility check.
 
 Run it with ``ros2 run dyn_node dyn_node`` or ``python -m dyn_node.ros.node``; parameters, topics and
 diagnostics are listed in docs/node.md. Everything numeric happens in the pure core; this module only
@@ -12,7 +12,7 @@ executor that spins this node. A callback never sees a
 half-applied model or settings: a new model is built aside and one reference, ``self._core``, is
 replaced, and each message reads it once. ``_io_lock`` serialises each message's work with the
 timers and the workers that read or feed the same monitor, tracker and recorder. Trajectory
-feasibility runs on a worker thread with its own :class:`~dyn_node.core.dynamics.Dynamics` so
+feasibility runs on a worker thread with its own :class:`~dyn_node.core.robot.dynamics.Dynamics` so
 joint_states keep flowing while a long trajectory is checked. Both outputs are published as CDR
 bytes laid out once per model (:meth:`~dyn_node.ros.convert.JointStateOut.encode`) and the input
 is read from its CDR bytes (:func:`~dyn_node.ros.convert.parse_joint_state_cdr`, rclpy's
@@ -47,18 +47,18 @@ from trajectory_msgs.msg import JointTrajectory
 
 # at start, not at the first trajectory: loading the compiled kernels holds the GIL for about
 # 0.7 s, which then stalled joint_states handling by up to 170 ms (seen in make demo)
-from dyn_node.core import feasibility, on_demand
-from dyn_node.core.allocator import retain_freed_memory
-from dyn_node.core.contact_monitor import (RESET_MODEL, RESET_PARAMETERS, RESET_RECORDING, ContactMonitor,
-                                           Observed, contact_settings)
-from dyn_node.core.drops import DropCounter
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.check import feasibility, on_demand
+from dyn_node.core.live.allocator import retain_freed_memory
+from dyn_node.core.contacts.contact_monitor import (RESET_MODEL, RESET_PARAMETERS, RESET_RECORDING, ContactMonitor,
+                                                    Observed, contact_settings)
+from dyn_node.core.live.drops import DropCounter
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import DynNodeError, InputError, STATE_ERROR, SettingsError, TrajectoryError
-from dyn_node.core.model import RobotModel
-from dyn_node.core.model_source import build_model, limits_text
-from dyn_node.core.model_status import model_error_status, model_status, waiting_model_status
-from dyn_node.core.monitor import JOINT_STATES, Monitor
-from dyn_node.core.monitor_results import Counts
+from dyn_node.core.robot.model import RobotModel
+from dyn_node.core.robot.model_source import build_model, limits_text
+from dyn_node.core.robot.model_status import model_error_status, model_status, waiting_model_status
+from dyn_node.core.live.monitor import JOINT_STATES, Monitor
+from dyn_node.core.live.monitor_results import Counts
 from dyn_node.ros.main import end_process, spin_until_signalled
 from dyn_node.ros.convert import (JointStateOut, RawTrajectory, WrenchStampedOut, diagnostic_array,
                           encode_joint_trajectory_cdr,
@@ -69,11 +69,11 @@ from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.qos import LATCHED_HISTORY
 from dyn_node.ros.startup_log import FirstStateAnnouncer, model_ready_line
 from dyn_node.ros.services import QuestionServices
-from dyn_node.core.selftest import run_self_test
-from dyn_node.core.settings import MODEL_PARAMETERS, PARAMETERS, SPECS, ParamSpec, Settings, settings_from_mapping
-from dyn_node.core.status import STALE, Status
-from dyn_node.core.tracker import ControllerTracker
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.robot.selftest import run_self_test
+from dyn_node.core.robot.settings import MODEL_PARAMETERS, PARAMETERS, SPECS, ParamSpec, Settings, settings_from_mapping
+from dyn_node.core.robot.status import STALE, Status
+from dyn_node.core.live.tracker import ControllerTracker
+from dyn_node.core.check.trajectory import validate_trajectory
 
 JOINT_STATES_QOS_RELIABILITY = ReliabilityPolicy.BEST_EFFORT  # matches reliable and best-effort publishers
 _DRAIN = 256  # most queued joint_states handled per executor wake-up
