@@ -100,7 +100,8 @@ def test_sample_values_match_mujoco_and_the_peaks_are_theirs():
         ref[i, 2] = np.linalg.norm(res[3:] + g)
     kinds = ("frame_speed", "frame_angular_speed", "frame_acceleration")
     from dyn_node.core.check import constraints
-    built = {c.kind: c for c in constraints.build(m)}
+    from dyn_node.core.check.kinds import KINDS
+    built = {c.kind: c for c in constraints.build(m, KINDS)}
     got = np.column_stack([built[k].value[rows, 0] for k in (*kinds, "kinetic_energy")])
     np.testing.assert_allclose(got, ref, rtol=0, atol=TOL)
     assert ref.min(axis=0)[0] < 1e-6 < ref.max(axis=0).min()   # rest at the ends, moving between
@@ -119,7 +120,8 @@ def test_sample_values_match_finite_differences_of_forward_kinematics():
     model = panda(ALL)
     m = motion(model, traj())
     from dyn_node.core.check import constraints
-    built = {c.kind: c for c in constraints.build(m)}
+    from dyn_node.core.check.kinds import KINDS
+    built = {c.kind: c for c in constraints.build(m, KINDS)}
     pm = model.pin_model.copy()
     data = pm.createData()
     fid = pm.getFrameId("panda_link8")

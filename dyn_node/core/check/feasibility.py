@@ -368,7 +368,7 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
     # the prepended current state is not one of the message's points
     waypoint_effort = motion.tau[waypoints[1:] if work is not traj else waypoints].copy()
     effort_step = _effort_steps(motion, work, warnings)
-    kinds = constraints.build(motion)
+    kinds = constraints.build(motion, KINDS)
     warnings += [w for c in kinds for w in c.warnings]
     # the payload margin beside the rest when parallel
     margin_job = None if tau1 is None else _Job(

@@ -27,7 +27,7 @@ from dyn_node.core.robot.task_limits import (TASK_SECTIONS, TaskLimits, check_ti
                                              locate_limits, parse_task_limits)
 
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
-_PACKAGE_URDF_DIR = Path(__file__).resolve().parents[1] / "urdf"
+_PACKAGE_URDF_DIR = Path(__file__).resolve().parents[2] / "urdf"
 
 #: Built-in models: name → (where the URDF lives, joints locked by default with their positions).
 BUILTIN_MODELS: dict[str, tuple[str, dict[str, float]]] = {
