@@ -29,7 +29,7 @@ $(STAMP): requirements.txt setup.py package.xml
 
 $(KERNELS): $(STAMP) $(wildcard dyn_node/core/compiled/*.py)
 	@echo "compiling the Numba kernels (after an install or a kernel change, ~30 s; cached in dyn_node/__pycache__)"
-	$(PY) -c "import dyn_node.core.compiled.kernels, dyn_node.core.compiled.frame_kernels, dyn_node.core.compiled.law_kernels, dyn_node.core.compiled.observer_kernels"
+	$(PY) -c "import importlib, pkgutil, dyn_node.core.compiled as c; [importlib.import_module(m.name) for m in pkgutil.iter_modules(c.__path__, c.__name__ + '.')]"
 	@touch $@
 
 # cmake + rosidl from the pinned wheels (needs cmake, g++ and the interpreter's headers); build.sh

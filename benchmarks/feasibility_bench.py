@@ -19,7 +19,7 @@ import numpy as np
 import pinocchio as pin
 
 from dyn_node.core.live.allocator import retain_freed_memory
-from dyn_node.core.compiled import kernels
+from dyn_node.core.compiled import kernels, rigid_kernels
 from dyn_node.core.robot.dynamics import Dynamics, gravity_tables
 from dyn_node.core.robot.model import load_model
 
@@ -134,7 +134,7 @@ def _measure(mode: str, repeats: int) -> dict:
     pool, Z = pin.ModelPool(dyn._pm, 1), np.zeros_like(Q)
 
     def gravity_kernel():
-        kernels.gravity_rows(Q, *tables, G.T)
+        rigid_kernels.gravity_rows(Q, *tables, G.T)
 
     def gravity_rnea():
         # what the check used before the kernel: Pinocchio's RNEA at v = a = 0

@@ -13,7 +13,7 @@ import pytest
 from robots import BRANCHED_URDF, with_friction_urdf
 
 from dyn_node.core.check import feasibility, on_demand, task_motion
-from dyn_node.core.compiled import kernels
+from dyn_node.core.compiled import rigid_kernels
 from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
 from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
 from dyn_node.core.check.frames import FrameKinematics, FramePoint
@@ -122,7 +122,7 @@ def traj(T: float = 1.2, n: int = 6) -> feasibility.Trajectory:
 def _no_pinocchio_pass(monkeypatch) -> list[int]:
     """Count Pinocchio's batched RNEA and the compiled gravity pass."""
     calls = [0]
-    rigid, gravity = Dynamics._rigid_columns, kernels.gravity_rows
+    rigid, gravity = Dynamics._rigid_columns, rigid_kernels.gravity_rows
 
     def counted(f):
         def run(*args, **kwargs):
@@ -131,7 +131,7 @@ def _no_pinocchio_pass(monkeypatch) -> list[int]:
         return run
 
     monkeypatch.setattr(Dynamics, "_rigid_columns", counted(rigid))
-    monkeypatch.setattr(kernels, "gravity_rows", counted(gravity))
+    monkeypatch.setattr(rigid_kernels, "gravity_rows", counted(gravity))
     return calls
 
 

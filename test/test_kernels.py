@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from dyn_node.core.compiled import kernels as K
+from dyn_node.core.compiled import rigid_kernels
 
 
 def _real_roots(coeffs) -> list[float]:
@@ -173,10 +174,10 @@ def test_gravity_rows_agree_with_pinocchio(name):
     tables = gravity_tables(pm)
     assert tables is not None
     out = np.full((len(Q), pm.nv), np.nan)
-    K.gravity_rows(Q, *tables, out)
+    rigid_kernels.gravity_rows(Q, *tables, out)
     data = pm.createData()
     ref = np.array([pin.computeGeneralizedGravity(pm, data, q) for q in Q])
     assert np.abs(ref).max() > 1.0          # the states load every joint
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-11)
     empty = np.empty((0, pm.nv))
-    K.gravity_rows(Q[:0], *tables, empty)    # no state: nothing written, no error
+    rigid_kernels.gravity_rows(Q[:0], *tables, empty)    # no state: nothing written, no error

@@ -17,7 +17,7 @@ import math
 import numpy as np
 from numba import njit, types
 
-from dyn_node.core.compiled.kernels import joint_frame
+from dyn_node.core.compiled.rigid_kernels import joint_frame
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -360,7 +360,7 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
       over the bodies' momentum rates and weights (:func:`_rnea_backward`).
 
     Model tables (rows 0..n−1, row 0 the world and the bodies fixed to it): ``parent``,
-    ``revolute``, ``index``, ``placement``, ``axis`` as :func:`dyn_node.core.compiled.kernels.gravity_rows`;
+    ``revolute``, ``index``, ``placement``, ``axis`` as :func:`dyn_node.core.compiled.rigid_kernels.gravity_rows`;
     ``inertia[i]`` = mass, centre of mass (3, joint frame), rotational inertia about it (xx, xy,
     xz, yy, yz, zz, joint axes); ``gravity`` (3, world); ``root`` that frame's placement in
     the world (12). Frames: ``fjoint[f]`` its joint, ``fplace[f]`` its placement in the joint

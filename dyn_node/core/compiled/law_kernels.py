@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit, types
 
-from dyn_node.core.compiled.kernels import _JIT
+from dyn_node.core.compiled.jit import _JIT
 
 _f8 = types.float64
 _V = types.Array(_f8, 1, "A", readonly=True)

@@ -15,7 +15,7 @@ subtree from body i about the world origin:
 * p_i = z·(L − p×P) (revolute), z·P (prismatic), + armature·q̇: the generalized momentum M(q)q̇;
 * (Cᵀq̇)_i = (ω_i×z)·(L − p×P) + (v_i×z)·P (revolute), (ω_i×z)·P (prismatic): from
   ṗ = Mq̈ + Ṁq̇ with Ṁ = C + Cᵀ, p_i = S_i·H_i and Ṡ_i = v_i×S_i, so Cᵀq̇ = Ṁq̇ − Cq̇ = (v_i×S_i)·H_i;
-* g_i from the subtree's mass and first moment, as :func:`dyn_node.core.compiled.kernels.gravity_rows`.
+* g_i from the subtree's mass and first moment, as :func:`dyn_node.core.compiled.rigid_kernels.gravity_rows`.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, types
 
 from dyn_node.core.compiled.frame_kernels import _mul9, _rot, joint_step
-from dyn_node.core.compiled.kernels import _B, _I, _JIT, _M, _V, _f8
+from dyn_node.core.compiled.jit import _B, _I, _JIT, _M, _V, _f8
 
 _C1 = types.Array(_f8, 1, "C")
 _C2 = types.Array(_f8, 2, "C")

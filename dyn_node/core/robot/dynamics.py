@@ -61,7 +61,7 @@ def joint_axis(joint_model: Any) -> tuple[bool, np.ndarray] | None:
 
 
 def gravity_tables(pm: pin.Model) -> tuple[np.ndarray, ...] | None:
-    """The arrays :func:`dyn_node.core.compiled.kernels.gravity_rows` takes after Q, from a Pinocchio model's
+    """The arrays :func:`dyn_node.core.compiled.rigid_kernels.gravity_rows` takes after Q, from a Pinocchio model's
     joint placements, axes, body inertias and gravity; None when a joint is not a one-DoF
     revolute or prismatic one (Pinocchio's own pass is used then)."""
     n = pm.njoints
@@ -214,10 +214,10 @@ class Dynamics:
         N×nv and column-major (every joint's samples contiguous, for per-joint reductions).
 
         The full torque is Pinocchio's batched RNEA; gravity, which the split needs apart, comes
-        from :func:`dyn_node.core.compiled.kernels.gravity_rows` on this model's tables (single-threaded,
+        from :func:`dyn_node.core.compiled.rigid_kernels.gravity_rows` on this model's tables (single-threaded,
         whatever ``threads``), or from Pinocchio's RNEA at v = a = 0 when the model has a joint
         the kernel does not handle."""
-        from dyn_node.core.compiled import kernels  # here, not at import: Numba is only for batched checks
+        from dyn_node.core.compiled import rigid_kernels  # here, not at import: Numba only for batched checks
 
         Q, V, A = (np.ascontiguousarray(x, dtype=float) for x in (Q, V, A))
         if self._gravity_tables is None:
@@ -227,7 +227,7 @@ class Dynamics:
             # about 0.3 of the time of Pinocchio's RNEA at v = a = 0 here (make bench); equal to
             # computeGeneralizedGravity to 1e-11 N·m (test_kernels)
             G = np.empty((self.nv, len(Q)), order="F")
-            kernels.gravity_rows(Q, *self._gravity_tables, G.T)
+            rigid_kernels.gravity_rows(Q, *self._gravity_tables, G.T)
         return self.split_terms(G, self._rigid_columns(Q, V, A, threads), V, A)
 
     def split_terms(self, G: np.ndarray, F: np.ndarray, V: np.ndarray,
