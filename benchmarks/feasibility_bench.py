@@ -188,7 +188,7 @@ def _measure_in_child(mode: str, repeats: int) -> dict:
 
 
 def run(quick: bool = False, smoke: bool = False) -> dict:
-    why = module_available("core.feasibility")
+    why = module_available("core.check.feasibility")
     if why:
         raise NotAvailable(why)
 

@@ -20,7 +20,7 @@ from dyn_node.core.contacts.contact import (COLLISION, CONTACT, NONE, ContactDet
                                             ContactOptions)
 from dyn_node.core.compiled import observer_kernels as ok
 from dyn_node.core.robot.dynamics import Dynamics
-from dyn_node.core.live.live_energy import EnergyPeaks, EnergyPeriod, LiveEnergy
+from dyn_node.core.contacts.live_energy import EnergyPeaks, EnergyPeriod, LiveEnergy
 from dyn_node.core.contacts.observer import (EFFORT_MISSING, RESET_GAP, MomentumObserver, ObserverEstimate,
                                              ObserverOptions, ObserverReset, WrenchEstimate,
                                              per_joint)
