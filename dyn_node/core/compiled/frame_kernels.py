@@ -312,6 +312,32 @@ def _rnea_backward(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, 
                 bg[j, r] += bg[i, r]
 
 
+@njit(inline="always", **_JIT)
+def _tree_scratch(n: int) -> tuple:
+    """frame_rows's per-body scratch rows, zeroed."""
+    Rw = np.zeros((n, 9))
+    pw = np.zeros((n, 3))
+    z = np.zeros((n, 3))
+    w = np.zeros((n, 3))       # angular velocity of each joint frame
+    vo = np.zeros((n, 3))      # linear velocity of each joint origin
+    al = np.zeros((n, 3))      # angular acceleration
+    ao = np.zeros((n, 3))      # classical linear acceleration of each joint origin
+    cm = np.zeros(n)           # composite (subtree) mass, first moment, inertia about the origin
+    ch = np.zeros((n, 3))
+    cJ = np.zeros((n, 6))
+    sv = np.zeros((n, 3))
+    bm = np.zeros((n, 6))      # each body's momentum rate and weight about the world origin
+    bg = np.zeros((n, 6))
+    return Rw, pw, z, w, vo, al, ao, cm, ch, cJ, sv, bm, bg
+
+
+@njit(inline="always", **_JIT)
+def _factor_scratch(nv: int) -> tuple:
+    """frame_rows's nv-sized scratch: M's factor L, M when Mout is not asked for, b, y and
+    1 / diagonal of L."""
+    return (np.zeros((nv, nv)), np.zeros((nv, nv)), np.zeros(nv), np.zeros(nv), np.zeros(nv))
+
+
 # frame_rows's parts, inlined back into it (a call per body, frame and state would cost time)
 
 @njit(inline="always", **_JIT)
@@ -452,20 +478,23 @@ def _frame_point(Rw: np.ndarray, pw: np.ndarray, w: np.ndarray, al: np.ndarray, 
 
 @njit(inline="always", **_JIT)
 def _jacobian_walk(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.ndarray,
-                   z: np.ndarray, j: int, origin: tuple, point: tuple, force: tuple,
-                   torque: tuple, u: tuple, ag: tuple, wrenched: bool, couples: bool,
+                   z: np.ndarray, j: int, origin: tuple, point: tuple, velocity: tuple,
+                   Rf: np.ndarray, wrench: np.ndarray, ag: tuple, wrenched: bool, couples: bool,
                    unitmass: bool, tau: np.ndarray, t: int, k: int, b: np.ndarray, Jc: np.ndarray,
-                   unit: np.ndarray) -> None:
+                   unit: np.ndarray) -> float:
     """The walk from joint j to the root over a frame's Jacobian columns (the frame's
-    ``origin`` and ``point``, world axes): J_localᵀ·W into tau[t, k] (``wrenched``, W =
-    [``force``; ``torque``]), J_vᵀu into b, J_vᵀ into Jc (``couples``) and J_vᵀ(a − g) into
-    unit[k] (``unitmass``, ``ag`` = a − g); columns of joints off the path are zero."""
+    ``origin`` and ``point``, world axes; Rf its rotation): J_localᵀ·W into tau[t, k]
+    (``wrenched``, W = ``wrench`` in the frame's axes), J_vᵀu into b (u = the point's
+    ``velocity`` direction), J_vᵀ into Jc (``couples``) and J_vᵀ(a − g) into unit[k]
+    (``unitmass``, ``ag`` = a − g); columns of joints off the path are zero. Returns |velocity|."""
     ox, oy, oz = origin
     px, py, pz = point
-    Fx, Fy, Fz = force
-    Tx, Ty, Tz = torque
-    uxx, uyy, uzz = u
+    vx, vy, vz = velocity
     gx, gy, gz = ag
+    Fx, Fy, Fz = _rot(Rf, wrench[0], wrench[1], wrench[2])
+    Tx, Ty, Tz = _rot(Rf, wrench[3], wrench[4], wrench[5])
+    speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+    uxx, uyy, uzz = (vx / speed, vy / speed, vz / speed) if speed > 0 else (0.0, 0.0, 0.0)
     for c in range(len(b)):
         if wrenched:
             tau[t, k, c] = 0.0
@@ -494,6 +523,7 @@ def _jacobian_walk(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, 
         if unitmass:
             unit[k, c] = jx * gx + jy * gy + jz * gz
         i = parent[i]
+    return speed
 
 
 # One compiled pass per state over the joint tree: split into inlined parts
@@ -527,8 +557,7 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
       generalized gravity, from the same subtree sums), ``mu[f, k]`` = 1/(uᵀJ_vM⁻¹J_vᵀu)
       with u = vel/|vel| (by the Cholesky factor of M) for the frames with ``fmass[f]`` (the
       other rows are not written); 0 where |vel| = 0, NaN where M is not positive definite;
-      with ``fcouple`` ≥ 0 (a
-      frame index c) also ``couple[f, k]`` = J_c·M⁻¹·J_vᵀu (3; 0 where |vel| = 0) and
+      with ``fcouple`` ≥ 0 (a frame index c) also ``couple[f, k]`` = J_c·M⁻¹·J_vᵀu (3; 0 where |vel| = 0) and
       ``couple_inertia[k]`` = J_c·M⁻¹·J_cᵀ (xx, xy, xz, yy, yz, zz), J_c the linear Jacobian
       of frame c's point: what a point mass added there does to m_u (Woodbury);
     * with ``with_base``: the wrench [force; moment] the mounting exerts on the robot at the
@@ -554,24 +583,9 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
     n = len(parent)
     N, nv = Q.shape
     F = len(fjoint)
-    Rw = np.zeros((n, 9))
-    pw = np.zeros((n, 3))
-    z = np.zeros((n, 3))
-    w = np.zeros((n, 3))       # angular velocity of each joint frame
-    vo = np.zeros((n, 3))      # linear velocity of each joint origin
-    al = np.zeros((n, 3))      # angular acceleration
-    ao = np.zeros((n, 3))      # classical linear acceleration of each joint origin
-    cm = np.zeros(n)           # composite (subtree) mass, first moment, inertia about the origin
-    ch = np.zeros((n, 3))
-    cJ = np.zeros((n, 6))
-    Icw = np.zeros(6)
-    Rf = np.zeros(9)
-    L = np.zeros((nv, nv))
-    Ms = np.zeros((nv, nv))    # M when Mout is not asked for
-    sv = np.zeros((n, 3))
-    b = np.zeros(nv)
-    y = np.zeros(nv)
-    inv = np.zeros(nv)         # 1 / diagonal of L
+    Rw, pw, z, w, vo, al, ao, cm, ch, cJ, sv, bm, bg = _tree_scratch(n)
+    Icw, Rf = np.zeros(6), np.zeros(9)
+    L, Ms, b, y, inv = _factor_scratch(nv)
     coupled = with_inertia and fcouple >= 0
     # M's factor only for the effective masses (the kinetic energy needs M alone)
     factor = with_inertia and (coupled or np.any(fmass))
@@ -580,8 +594,6 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
     positive = False
     with_rnea = len(rnea) > 0
     momentum = with_base or with_rnea
-    bm = np.zeros((n, 6))      # each body's momentum rate and weight about the world origin
-    bg = np.zeros((n, 6))
     Rw[0, 0] = Rw[0, 4] = Rw[0, 8] = 1.0
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
     # bodies fixed to the world: in the static sums only (they never move)
@@ -629,14 +641,10 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
             unitmass = f == funit and len(unit) > 0
             if not (wrenched or massed or couples or unitmass):
                 continue
-            gx, gy, gz = acc[f, k, 0] - g0, acc[f, k, 1] - g1, acc[f, k, 2] - g2
-            Fx, Fy, Fz = _rot(Rf, fwrench[f, 0], fwrench[f, 1], fwrench[f, 2])
-            Tx, Ty, Tz = _rot(Rf, fwrench[f, 3], fwrench[f, 4], fwrench[f, 5])
-            speed = math.sqrt(vx * vx + vy * vy + vz * vz)
-            uxx, uyy, uzz = (vx / speed, vy / speed, vz / speed) if speed > 0 else (0.0, 0.0, 0.0)
-            _jacobian_walk(parent, revolute, index, pw, z, j, (ox, oy, oz), (px, py, pz),
-                           (Fx, Fy, Fz), (Tx, Ty, Tz), (uxx, uyy, uzz), (gx, gy, gz), wrenched,
-                           couples, unitmass, tau, ftau[f], k, b, Jc, unit)
+            speed = _jacobian_walk(parent, revolute, index, pw, z, j, (ox, oy, oz), (px, py, pz),
+                                   (vx, vy, vz), Rf, fwrench[f],
+                                   (acc[f, k, 0] - g0, acc[f, k, 1] - g1, acc[f, k, 2] - g2),
+                                   wrenched, couples, unitmass, tau, ftau[f], k, b, Jc, unit)
             if massed:
                 mu[f, k] = _effective_mass(L, inv, b, y, speed, positive)
                 for c in range(nv):
