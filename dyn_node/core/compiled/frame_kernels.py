@@ -312,222 +312,8 @@ def _rnea_backward(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, 
                 bg[j, r] += bg[i, r]
 
 
-@njit(inline="always", **_JIT)
-def _tree_scratch(n: int) -> tuple:
-    """frame_rows's per-body scratch rows, zeroed."""
-    Rw = np.zeros((n, 9))
-    pw = np.zeros((n, 3))
-    z = np.zeros((n, 3))
-    w = np.zeros((n, 3))       # angular velocity of each joint frame
-    vo = np.zeros((n, 3))      # linear velocity of each joint origin
-    al = np.zeros((n, 3))      # angular acceleration
-    ao = np.zeros((n, 3))      # classical linear acceleration of each joint origin
-    cm = np.zeros(n)           # composite (subtree) mass, first moment, inertia about the origin
-    ch = np.zeros((n, 3))
-    cJ = np.zeros((n, 6))
-    sv = np.zeros((n, 3))
-    bm = np.zeros((n, 6))      # each body's momentum rate and weight about the world origin
-    bg = np.zeros((n, 6))
-    return Rw, pw, z, w, vo, al, ao, cm, ch, cJ, sv, bm, bg
-
-
-@njit(inline="always", **_JIT)
-def _factor_scratch(nv: int) -> tuple:
-    """frame_rows's nv-sized scratch: M's factor L, M when Mout is not asked for, b, y and
-    1 / diagonal of L."""
-    return (np.zeros((nv, nv)), np.zeros((nv, nv)), np.zeros(nv), np.zeros(nv), np.zeros(nv))
-
-
-# frame_rows's parts, inlined back into it (a call per body, frame and state would cost time)
-
-@njit(inline="always", **_JIT)
-def _joint_motion(Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, w: np.ndarray, al: np.ndarray,
-                  vo: np.ndarray, ao: np.ndarray, parent: np.ndarray, placement: np.ndarray,
-                  axis: np.ndarray, revolute: np.ndarray, i: int, q: float, qd: float,
-                  qdd: float) -> tuple[float, float, float, float, float, float]:
-    """Joint i's frame (Rw, pw, z) at q, and the motion of its origin (w, al, vo, ao) from its
-    parent's; returns its origin and classical acceleration."""
-    a = parent[i]
-    px, py, pz, zx, zy, zz = joint_step(Rw, pw, z, parent, placement, axis, revolute, i, q)
-    # motion of the joint origin from the parent's: r = p_i − p_a moves rigidly with
-    # the parent, plus the prismatic stroke along z
-    wax, way, waz = w[a, 0], w[a, 1], w[a, 2]
-    vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, a, px - pw[a, 0], py - pw[a, 1],
-                                         pz - pw[a, 2])
-    hx, hy, hz = _cross(wax, way, waz, zx, zy, zz)
-    if revolute[i]:
-        w[i, 0], w[i, 1], w[i, 2] = wax + zx * qd, way + zy * qd, waz + zz * qd
-        al[i, 0] = al[a, 0] + zx * qdd + hx * qd
-        al[i, 1] = al[a, 1] + zy * qdd + hy * qd
-        al[i, 2] = al[a, 2] + zz * qdd + hz * qd
-    else:
-        w[i, 0], w[i, 1], w[i, 2] = wax, way, waz
-        al[i, 0], al[i, 1], al[i, 2] = al[a, 0], al[a, 1], al[a, 2]
-        vx, vy, vz = vx + zx * qd, vy + zy * qd, vz + zz * qd
-        ax_ += zx * qdd + 2 * hx * qd
-        ay_ += zy * qdd + 2 * hy * qd
-        az_ += zz * qdd + 2 * hz * qd
-    vo[i, 0], vo[i, 1], vo[i, 2] = vx, vy, vz
-    ao[i, 0], ao[i, 1], ao[i, 2] = ax_, ay_, az_
-    return px, py, pz, ax_, ay_, az_
-
-
-@njit(inline="always", **_JIT)
-def _body_momentum(w: np.ndarray, al: np.ndarray, Icw: np.ndarray, bm: np.ndarray,
-                   bg: np.ndarray, i: int, m: float, lever: tuple, centre: tuple, acc: tuple,
-                   gravity: tuple, with_rnea: bool, sums: tuple) -> tuple:
-    """Body i (its centre of mass at ``lever`` from its origin, at ``centre`` in the world; its
-    origin's acceleration ``acc``) added to the sums (Mt, S, f, n: mass, first moment, momentum
-    rate); with ``with_rnea`` its momentum rate and weight kept in bm, bg for the backward pass.
-    Vectors as tuples: CPython passes more than 30 arguments as *args, which Numba cannot inline."""
-    lx, ly, lz = lever
-    cwx, cwy, cwz = centre
-    ax_, ay_, az_ = acc
-    g0, g1, g2 = gravity
-    Mt, Sx, Sy, Sz, fx, fy, fz, nx, ny, nz = sums
-    Mt += m
-    Sx, Sy, Sz = Sx + m * cwx, Sy + m * cwy, Sz + m * cwz
-    # the body's momentum rate about the world origin: m·a_c and
-    # c × m·a_c + I·α + ω × I·ω
-    wix, wiy, wiz = w[i, 0], w[i, 1], w[i, 2]
-    t1x, t1y, t1z = _cross(al[i, 0], al[i, 1], al[i, 2], lx, ly, lz)
-    t2x, t2y, t2z = _cross(wix, wiy, wiz, lx, ly, lz)
-    t3x, t3y, t3z = _cross(wix, wiy, wiz, t2x, t2y, t2z)
-    mx = m * (ax_ + t1x + t3x)
-    my = m * (ay_ + t1y + t3y)
-    mz = m * (az_ + t1z + t3z)
-    fx, fy, fz = fx + mx, fy + my, fz + mz
-    kx, ky, kz = _cross(cwx, cwy, cwz, mx, my, mz)
-    ix, iy, iz = _sym_mul(Icw, al[i, 0], al[i, 1], al[i, 2])
-    jx, jy, jz = _sym_mul(Icw, wix, wiy, wiz)
-    ox, oy, oz = _cross(wix, wiy, wiz, jx, jy, jz)
-    nx, ny, nz = nx + kx + ix + ox, ny + ky + iy + oy, nz + kz + iz + oz
-    if with_rnea:
-        bm[i, 0], bm[i, 1], bm[i, 2] = mx, my, mz
-        bm[i, 3], bm[i, 4], bm[i, 5] = kx + ix + ox, ky + iy + oy, kz + iz + oz
-        gfx, gfy, gfz = m * g0, m * g1, m * g2
-        bg[i, 0], bg[i, 1], bg[i, 2] = gfx, gfy, gfz
-        bg[i, 3], bg[i, 4], bg[i, 5] = _cross(cwx, cwy, cwz, gfx, gfy, gfz)
-    return Mt, Sx, Sy, Sz, fx, fy, fz, nx, ny, nz
-
-
-@njit(inline="always", **_JIT)
-def _composite(cm: np.ndarray, ch: np.ndarray, cJ: np.ndarray, Icw: np.ndarray, i: int,
-               m: float, cwx: float, cwy: float, cwz: float) -> None:
-    """Body i's mass, first moment and inertia about the world origin, for the CRBA."""
-    cm[i] = m
-    ch[i, 0], ch[i, 1], ch[i, 2] = m * cwx, m * cwy, m * cwz
-    c2 = cwx * cwx + cwy * cwy + cwz * cwz
-    cJ[i, 0] = Icw[0] + m * (c2 - cwx * cwx)
-    cJ[i, 1] = Icw[1] - m * cwx * cwy
-    cJ[i, 2] = Icw[2] - m * cwx * cwz
-    cJ[i, 3] = Icw[3] + m * (c2 - cwy * cwy)
-    cJ[i, 4] = Icw[4] - m * cwy * cwz
-    cJ[i, 5] = Icw[5] + m * (c2 - cwz * cwz)
-
-
-@njit(inline="always", **_JIT)
-def _inertia_terms(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.ndarray,
-                   z: np.ndarray, cm: np.ndarray, ch: np.ndarray, cJ: np.ndarray,
-                   armature: np.ndarray, sv: np.ndarray, g0: float, g1: float, g2: float,
-                   Mk: np.ndarray, gk: np.ndarray, vk: np.ndarray, L: np.ndarray,
-                   inv: np.ndarray, factor: bool, positive: bool, ke: np.ndarray,
-                   k: int) -> bool:
-    """M(q) into Mk and g(q) into gk by the CRBA, ½·q̇ᵀMq̇ into ke[k], and with ``factor`` M's
-    Cholesky factor; returns whether M is positive definite (``positive`` when not factored)."""
-    nv = len(vk)
-    _crba(parent, revolute, index, pw, z, cm, ch, cJ, armature, sv, g0, g1, g2, Mk, gk)
-    e = 0.0
-    for r in range(nv):
-        t = 0.0
-        for s in range(nv):
-            t += Mk[r, s] * vk[s]
-        e += vk[r] * t
-    ke[k] = 0.5 * e
-    if factor:
-        return _cholesky(Mk, L, inv)
-    return positive
-
-
-@njit(inline="always", **_JIT)
-def _frame_point(Rw: np.ndarray, pw: np.ndarray, w: np.ndarray, al: np.ndarray, vo: np.ndarray,
-                 ao: np.ndarray, P: np.ndarray, point: np.ndarray, Rf: np.ndarray, j: int,
-                 f: int, k: int, rot: np.ndarray, pos: np.ndarray, vel: np.ndarray,
-                 omega: np.ndarray, acc: np.ndarray, alpha: np.ndarray
-                 ) -> tuple[float, float, float, float, float, float, float, float, float]:
-    """Frame f (placement P in joint j, the point ``point``) at state k: its rotation into Rf and
-    rot, its point's motion into pos, vel, omega, acc, alpha; returns the frame's origin, its
-    point and that point's velocity."""
-    Rj = Rw[j]
-    Rf[0], Rf[1], Rf[2], Rf[3], Rf[4], Rf[5], Rf[6], Rf[7], Rf[8] = _mul9(Rj, P)
-    for r in range(9):
-        rot[f, k, r] = Rf[r]
-    tx, ty, tz = _rot(Rj, P[9], P[10], P[11])
-    ox, oy, oz = pw[j, 0] + tx, pw[j, 1] + ty, pw[j, 2] + tz
-    qx, qy, qz = _rot(Rf, point[0], point[1], point[2])
-    px, py, pz = ox + qx, oy + qy, oz + qz
-    vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, j, px - pw[j, 0], py - pw[j, 1],
-                                         pz - pw[j, 2])
-    pos[f, k, 0], pos[f, k, 1], pos[f, k, 2] = px, py, pz
-    vel[f, k, 0], vel[f, k, 1], vel[f, k, 2] = vx, vy, vz
-    omega[f, k, 0], omega[f, k, 1], omega[f, k, 2] = w[j, 0], w[j, 1], w[j, 2]
-    acc[f, k, 0], acc[f, k, 1], acc[f, k, 2] = ax_, ay_, az_
-    alpha[f, k, 0], alpha[f, k, 1], alpha[f, k, 2] = al[j, 0], al[j, 1], al[j, 2]
-    return ox, oy, oz, px, py, pz, vx, vy, vz
-
-
-@njit(inline="always", **_JIT)
-def _jacobian_walk(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.ndarray,
-                   z: np.ndarray, j: int, origin: tuple, point: tuple, velocity: tuple,
-                   Rf: np.ndarray, wrench: np.ndarray, ag: tuple, wrenched: bool, couples: bool,
-                   unitmass: bool, tau: np.ndarray, t: int, k: int, b: np.ndarray, Jc: np.ndarray,
-                   unit: np.ndarray) -> float:
-    """The walk from joint j to the root over a frame's Jacobian columns (the frame's
-    ``origin`` and ``point``, world axes; Rf its rotation): J_localᵀ·W into tau[t, k]
-    (``wrenched``, W = ``wrench`` in the frame's axes), J_vᵀu into b (u = the point's
-    ``velocity`` direction), J_vᵀ into Jc (``couples``) and J_vᵀ(a − g) into unit[k]
-    (``unitmass``, ``ag`` = a − g); columns of joints off the path are zero. Returns |velocity|."""
-    ox, oy, oz = origin
-    px, py, pz = point
-    vx, vy, vz = velocity
-    gx, gy, gz = ag
-    Fx, Fy, Fz = _rot(Rf, wrench[0], wrench[1], wrench[2])
-    Tx, Ty, Tz = _rot(Rf, wrench[3], wrench[4], wrench[5])
-    speed = math.sqrt(vx * vx + vy * vy + vz * vz)
-    uxx, uyy, uzz = (vx / speed, vy / speed, vz / speed) if speed > 0 else (0.0, 0.0, 0.0)
-    for c in range(len(b)):
-        if wrenched:
-            tau[t, k, c] = 0.0
-        b[c] = 0.0
-        if couples:
-            Jc[c, 0] = Jc[c, 1] = Jc[c, 2] = 0.0
-        if unitmass:
-            unit[k, c] = 0.0
-    i = j
-    while i > 0:
-        c = index[i]
-        zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
-        if revolute[i]:
-            # J column: [z × (o − p_i); z]; its product with the world wrench
-            if wrenched:
-                mx, my, mz = _cross(ox - pw[i, 0], oy - pw[i, 1], oz - pw[i, 2], Fx, Fy, Fz)
-                tau[t, k, c] = zx * (mx + Tx) + zy * (my + Ty) + zz * (mz + Tz)
-            jx, jy, jz = _cross(zx, zy, zz, px - pw[i, 0], py - pw[i, 1], pz - pw[i, 2])
-        else:
-            if wrenched:
-                tau[t, k, c] = zx * Fx + zy * Fy + zz * Fz
-            jx, jy, jz = zx, zy, zz
-        b[c] = jx * uxx + jy * uyy + jz * uzz
-        if couples:
-            Jc[c, 0], Jc[c, 1], Jc[c, 2] = jx, jy, jz
-        if unitmass:
-            unit[k, c] = jx * gx + jy * gy + jz * gz
-        i = parent[i]
-    return speed
-
-
-# One compiled pass per state over the joint tree: split into inlined parts
-# above (a call per state would break the check's time budget).
+# One compiled pass per state over the joint tree: split into calls, per-state overhead
+# would break the check's time budget.
 @njit([types.void(_M, _M, _M, _I, _B, _I, _M, _M, _M, _V, _V, _V, _I, _M, _M, _M, _B, _I,
                   types.int64, types.int64, types.boolean, types.boolean, _C3, _C3, _C3, _C3,
                   _C3, _C3, _C3, _C2, _C3, _C2, _C3, _C1, _C2, _C2, _C2, _C2, _A2, _C2,
@@ -557,7 +343,8 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
       generalized gravity, from the same subtree sums), ``mu[f, k]`` = 1/(uᵀJ_vM⁻¹J_vᵀu)
       with u = vel/|vel| (by the Cholesky factor of M) for the frames with ``fmass[f]`` (the
       other rows are not written); 0 where |vel| = 0, NaN where M is not positive definite;
-      with ``fcouple`` ≥ 0 (a frame index c) also ``couple[f, k]`` = J_c·M⁻¹·J_vᵀu (3; 0 where |vel| = 0) and
+      with ``fcouple`` ≥ 0 (a
+      frame index c) also ``couple[f, k]`` = J_c·M⁻¹·J_vᵀu (3; 0 where |vel| = 0) and
       ``couple_inertia[k]`` = J_c·M⁻¹·J_cᵀ (xx, xy, xz, yy, yz, zz), J_c the linear Jacobian
       of frame c's point: what a point mass added there does to m_u (Woodbury);
     * with ``with_base``: the wrench [force; moment] the mounting exerts on the robot at the
@@ -583,9 +370,24 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
     n = len(parent)
     N, nv = Q.shape
     F = len(fjoint)
-    Rw, pw, z, w, vo, al, ao, cm, ch, cJ, sv, bm, bg = _tree_scratch(n)
-    Icw, Rf = np.zeros(6), np.zeros(9)
-    L, Ms, b, y, inv = _factor_scratch(nv)
+    Rw = np.zeros((n, 9))
+    pw = np.zeros((n, 3))
+    z = np.zeros((n, 3))
+    w = np.zeros((n, 3))       # angular velocity of each joint frame
+    vo = np.zeros((n, 3))      # linear velocity of each joint origin
+    al = np.zeros((n, 3))      # angular acceleration
+    ao = np.zeros((n, 3))      # classical linear acceleration of each joint origin
+    cm = np.zeros(n)           # composite (subtree) mass, first moment, inertia about the origin
+    ch = np.zeros((n, 3))
+    cJ = np.zeros((n, 6))
+    Icw = np.zeros(6)
+    Rf = np.zeros(9)
+    L = np.zeros((nv, nv))
+    Ms = np.zeros((nv, nv))    # M when Mout is not asked for
+    sv = np.zeros((n, 3))
+    b = np.zeros(nv)
+    y = np.zeros(nv)
+    inv = np.zeros(nv)         # 1 / diagonal of L
     coupled = with_inertia and fcouple >= 0
     # M's factor only for the effective masses (the kinetic energy needs M alone)
     factor = with_inertia and (coupled or np.any(fmass))
@@ -594,6 +396,8 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
     positive = False
     with_rnea = len(rnea) > 0
     momentum = with_base or with_rnea
+    bm = np.zeros((n, 6))      # each body's momentum rate and weight about the world origin
+    bg = np.zeros((n, 6))
     Rw[0, 0] = Rw[0, 4] = Rw[0, 8] = 1.0
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
     # bodies fixed to the world: in the static sums only (they never move)
@@ -603,10 +407,31 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
         Mt, Sx, Sy, Sz = m0, s0x, s0y, s0z
         fx = fy = fz = nx = ny = nz = 0.0
         for i in range(1, n):
+            a = parent[i]
             c = index[i]
-            px, py, pz, ax_, ay_, az_ = _joint_motion(Rw, pw, z, w, al, vo, ao, parent, placement,
-                                                      axis, revolute, i, Q[k, c], V[k, c], A[k, c])
+            q, qd, qdd = Q[k, c], V[k, c], A[k, c]
             R = Rw[i]
+            px, py, pz, zx, zy, zz = joint_step(Rw, pw, z, parent, placement, axis, revolute, i, q)
+            # motion of the joint origin from the parent's: r = p_i − p_a moves rigidly with
+            # the parent, plus the prismatic stroke along z
+            wax, way, waz = w[a, 0], w[a, 1], w[a, 2]
+            vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, a, px - pw[a, 0], py - pw[a, 1],
+                                                 pz - pw[a, 2])
+            hx, hy, hz = _cross(wax, way, waz, zx, zy, zz)
+            if revolute[i]:
+                w[i, 0], w[i, 1], w[i, 2] = wax + zx * qd, way + zy * qd, waz + zz * qd
+                al[i, 0] = al[a, 0] + zx * qdd + hx * qd
+                al[i, 1] = al[a, 1] + zy * qdd + hy * qd
+                al[i, 2] = al[a, 2] + zz * qdd + hz * qd
+            else:
+                w[i, 0], w[i, 1], w[i, 2] = wax, way, waz
+                al[i, 0], al[i, 1], al[i, 2] = al[a, 0], al[a, 1], al[a, 2]
+                vx, vy, vz = vx + zx * qd, vy + zy * qd, vz + zz * qd
+                ax_ += zx * qdd + 2 * hx * qd
+                ay_ += zy * qdd + 2 * hy * qd
+                az_ += zz * qdd + 2 * hz * qd
+            vo[i, 0], vo[i, 1], vo[i, 2] = vx, vy, vz
+            ao[i, 0], ao[i, 1], ao[i, 2] = ax_, ay_, az_
             if not (with_inertia or momentum):
                 continue
             m = inertia[i, 0]
@@ -614,15 +439,52 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
             cwx, cwy, cwz = px + lx, py + ly, pz + lz
             _world_inertia(R, inertia[i, 4:], Icw)
             if momentum:
-                Mt, Sx, Sy, Sz, fx, fy, fz, nx, ny, nz = _body_momentum(
-                    w, al, Icw, bm, bg, i, m, (lx, ly, lz), (cwx, cwy, cwz), (ax_, ay_, az_),
-                    (g0, g1, g2), with_rnea, (Mt, Sx, Sy, Sz, fx, fy, fz, nx, ny, nz))
+                Mt += m
+                Sx, Sy, Sz = Sx + m * cwx, Sy + m * cwy, Sz + m * cwz
+                # the body's momentum rate about the world origin: m·a_c and
+                # c × m·a_c + I·α + ω × I·ω
+                wix, wiy, wiz = w[i, 0], w[i, 1], w[i, 2]
+                t1x, t1y, t1z = _cross(al[i, 0], al[i, 1], al[i, 2], lx, ly, lz)
+                t2x, t2y, t2z = _cross(wix, wiy, wiz, lx, ly, lz)
+                t3x, t3y, t3z = _cross(wix, wiy, wiz, t2x, t2y, t2z)
+                mx = m * (ax_ + t1x + t3x)
+                my = m * (ay_ + t1y + t3y)
+                mz = m * (az_ + t1z + t3z)
+                fx, fy, fz = fx + mx, fy + my, fz + mz
+                kx, ky, kz = _cross(cwx, cwy, cwz, mx, my, mz)
+                ix, iy, iz = _sym_mul(Icw, al[i, 0], al[i, 1], al[i, 2])
+                jx, jy, jz = _sym_mul(Icw, wix, wiy, wiz)
+                ox, oy, oz = _cross(wix, wiy, wiz, jx, jy, jz)
+                nx, ny, nz = nx + kx + ix + ox, ny + ky + iy + oy, nz + kz + iz + oz
+                if with_rnea:
+                    bm[i, 0], bm[i, 1], bm[i, 2] = mx, my, mz
+                    bm[i, 3], bm[i, 4], bm[i, 5] = kx + ix + ox, ky + iy + oy, kz + iz + oz
+                    gfx, gfy, gfz = m * g0, m * g1, m * g2
+                    bg[i, 0], bg[i, 1], bg[i, 2] = gfx, gfy, gfz
+                    bg[i, 3], bg[i, 4], bg[i, 5] = _cross(cwx, cwy, cwz, gfx, gfy, gfz)
             if with_inertia:
-                _composite(cm, ch, cJ, Icw, i, m, cwx, cwy, cwz)
+                cm[i] = m
+                ch[i, 0], ch[i, 1], ch[i, 2] = m * cwx, m * cwy, m * cwz
+                c2 = cwx * cwx + cwy * cwy + cwz * cwz
+                cJ[i, 0] = Icw[0] + m * (c2 - cwx * cwx)
+                cJ[i, 1] = Icw[1] - m * cwx * cwy
+                cJ[i, 2] = Icw[2] - m * cwx * cwz
+                cJ[i, 3] = Icw[3] + m * (c2 - cwy * cwy)
+                cJ[i, 4] = Icw[4] - m * cwy * cwz
+                cJ[i, 5] = Icw[5] + m * (c2 - cwz * cwz)
         if with_inertia:
-            positive = _inertia_terms(parent, revolute, index, pw, z, cm, ch, cJ, armature, sv,
-                                      g0, g1, g2, Mout[k] if len(Mout) else Ms, gq[k], V[k],
-                                      L, inv, factor, positive, ke, k)
+            Mk = Mout[k] if len(Mout) else Ms
+            _crba(parent, revolute, index, pw, z, cm, ch, cJ, armature, sv, g0, g1, g2, Mk,
+                  gq[k])
+            e = 0.0
+            for r in range(nv):
+                t = 0.0
+                for s in range(nv):
+                    t += Mk[r, s] * V[k, s]
+                e += V[k, r] * t
+            ke[k] = 0.5 * e
+            if factor:
+                positive = _cholesky(Mk, L, inv)
         if with_rnea:
             _rnea_backward(parent, revolute, index, pw, z, armature, A[k], bm, bg, rnea[k],
                            grav[k])
@@ -631,9 +493,21 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
                   wdynamic[k], com[k])
         for f in range(F):
             j = fjoint[f]
-            ox, oy, oz, px, py, pz, vx, vy, vz = _frame_point(
-                Rw, pw, w, al, vo, ao, fplace[f], fpoint[f], Rf, j, f, k, rot, pos, vel, omega,
-                acc, alpha)
+            Rj, P = Rw[j], fplace[f]
+            Rf[0], Rf[1], Rf[2], Rf[3], Rf[4], Rf[5], Rf[6], Rf[7], Rf[8] = _mul9(Rj, P)
+            for r in range(9):
+                rot[f, k, r] = Rf[r]
+            tx, ty, tz = _rot(Rj, P[9], P[10], P[11])
+            ox, oy, oz = pw[j, 0] + tx, pw[j, 1] + ty, pw[j, 2] + tz
+            qx, qy, qz = _rot(Rf, fpoint[f, 0], fpoint[f, 1], fpoint[f, 2])
+            px, py, pz = ox + qx, oy + qy, oz + qz
+            vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, j, px - pw[j, 0], py - pw[j, 1],
+                                                 pz - pw[j, 2])
+            pos[f, k, 0], pos[f, k, 1], pos[f, k, 2] = px, py, pz
+            vel[f, k, 0], vel[f, k, 1], vel[f, k, 2] = vx, vy, vz
+            omega[f, k, 0], omega[f, k, 1], omega[f, k, 2] = w[j, 0], w[j, 1], w[j, 2]
+            acc[f, k, 0], acc[f, k, 1], acc[f, k, 2] = ax_, ay_, az_
+            alpha[f, k, 0], alpha[f, k, 1], alpha[f, k, 2] = al[j, 0], al[j, 1], al[j, 2]
             # the Jacobian walk only for the frames whose torque, effective mass or coupling
             # is wanted (what the configured kinds read)
             wrenched, massed = ftau[f] >= 0, with_inertia and fmass[f]
@@ -641,10 +515,41 @@ def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
             unitmass = f == funit and len(unit) > 0
             if not (wrenched or massed or couples or unitmass):
                 continue
-            speed = _jacobian_walk(parent, revolute, index, pw, z, j, (ox, oy, oz), (px, py, pz),
-                                   (vx, vy, vz), Rf, fwrench[f],
-                                   (acc[f, k, 0] - g0, acc[f, k, 1] - g1, acc[f, k, 2] - g2),
-                                   wrenched, couples, unitmass, tau, ftau[f], k, b, Jc, unit)
+            gx, gy, gz = acc[f, k, 0] - g0, acc[f, k, 1] - g1, acc[f, k, 2] - g2
+            Fx, Fy, Fz = _rot(Rf, fwrench[f, 0], fwrench[f, 1], fwrench[f, 2])
+            Tx, Ty, Tz = _rot(Rf, fwrench[f, 3], fwrench[f, 4], fwrench[f, 5])
+            speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+            uxx, uyy, uzz = (vx / speed, vy / speed, vz / speed) if speed > 0 else (0.0, 0.0, 0.0)
+            t = ftau[f]
+            for c in range(nv):
+                if wrenched:
+                    tau[t, k, c] = 0.0
+                b[c] = 0.0
+                if couples:
+                    Jc[c, 0] = Jc[c, 1] = Jc[c, 2] = 0.0
+                if unitmass:
+                    unit[k, c] = 0.0
+            i = j
+            while i > 0:
+                c = index[i]
+                zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
+                if revolute[i]:
+                    # J column: [z × (o − p_i); z]; its product with the world wrench
+                    if wrenched:
+                        mx, my, mz = _cross(ox - pw[i, 0], oy - pw[i, 1], oz - pw[i, 2],
+                                            Fx, Fy, Fz)
+                        tau[t, k, c] = zx * (mx + Tx) + zy * (my + Ty) + zz * (mz + Tz)
+                    jx, jy, jz = _cross(zx, zy, zz, px - pw[i, 0], py - pw[i, 1], pz - pw[i, 2])
+                else:
+                    if wrenched:
+                        tau[t, k, c] = zx * Fx + zy * Fy + zz * Fz
+                    jx, jy, jz = zx, zy, zz
+                b[c] = jx * uxx + jy * uyy + jz * uzz
+                if couples:
+                    Jc[c, 0], Jc[c, 1], Jc[c, 2] = jx, jy, jz
+                if unitmass:
+                    unit[k, c] = jx * gx + jy * gy + jz * gz
+                i = parent[i]
             if massed:
                 mu[f, k] = _effective_mass(L, inv, b, y, speed, positive)
                 for c in range(nv):

@@ -159,64 +159,63 @@ def _cross(ax: float, ay: float, az: float, bx: float, by: float,
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
 
-@njit(inline="always", **_JIT)
-def _body_momentum(q: np.ndarray, v: np.ndarray, parent: np.ndarray, revolute: np.ndarray,
-                   index: np.ndarray, placement: np.ndarray, axis: np.ndarray,
-                   inertia: np.ndarray, Rw: np.ndarray, pw: np.ndarray, z: np.ndarray,
-                   w: np.ndarray, vo: np.ndarray, H: np.ndarray, i: int) -> None:
-    """Body i's frame, velocity and momentum (H[i]: L, P, mass and first moment), from its
-    parent's; model_terms's forward pass, inlined into it."""
-    a = parent[i]
-    c = index[i]
-    qd = v[c]
-    R = Rw[i]
-    px, py, pz, zx, zy, zz = joint_step(Rw, pw, z, parent, placement, axis, revolute, i, q[c])
-    # velocity of this origin: the parent's origin velocity carried by ω_a, plus a stroke
-    wax, way, waz = w[a, 0], w[a, 1], w[a, 2]
-    cx, cy, cz = _cross(wax, way, waz, px - pw[a, 0], py - pw[a, 1], pz - pw[a, 2])
-    vx, vy, vz = vo[a, 0] + cx, vo[a, 1] + cy, vo[a, 2] + cz
-    if revolute[i]:
-        w[i, 0], w[i, 1], w[i, 2] = wax + zx * qd, way + zy * qd, waz + zz * qd
-    else:
-        w[i, 0], w[i, 1], w[i, 2] = wax, way, waz
-        vx, vy, vz = vx + zx * qd, vy + zy * qd, vz + zz * qd
-    vo[i, 0], vo[i, 1], vo[i, 2] = vx, vy, vz
-    # the body's momentum about the world origin: P = m·v_c, L = c × P + I_c·ω
-    m = inertia[i, 0]
-    l0, l1, l2 = inertia[i, 1], inertia[i, 2], inertia[i, 3]
-    lx = R[0] * l0 + R[1] * l1 + R[2] * l2
-    ly = R[3] * l0 + R[4] * l1 + R[5] * l2
-    lz = R[6] * l0 + R[7] * l1 + R[8] * l2
-    cwx, cwy, cwz = px + lx, py + ly, pz + lz
-    wix, wiy, wiz = w[i, 0], w[i, 1], w[i, 2]
-    ex, ey, ez = _cross(wix, wiy, wiz, lx, ly, lz)
-    Px, Py, Pz = m * (vx + ex), m * (vy + ey), m * (vz + ez)
-    # I_c·ω in world axes: R·I·Rᵀ·ω
-    I6 = inertia[i, 4:]
-    bx = R[0] * wix + R[3] * wiy + R[6] * wiz
-    by = R[1] * wix + R[4] * wiy + R[7] * wiz
-    bz = R[2] * wix + R[5] * wiy + R[8] * wiz
-    jx = I6[0] * bx + I6[1] * by + I6[2] * bz
-    jy = I6[1] * bx + I6[3] * by + I6[4] * bz
-    jz = I6[2] * bx + I6[4] * by + I6[5] * bz
-    kx, ky, kz = _cross(cwx, cwy, cwz, Px, Py, Pz)
-    H[i, 0] = kx + R[0] * jx + R[1] * jy + R[2] * jz
-    H[i, 1] = ky + R[3] * jx + R[4] * jy + R[5] * jz
-    H[i, 2] = kz + R[6] * jx + R[7] * jy + R[8] * jz
-    H[i, 3], H[i, 4], H[i, 5] = Px, Py, Pz
-    H[i, 6] = m
-    H[i, 7], H[i, 8], H[i, 9] = m * cwx, m * cwy, m * cwz
-
-
-@njit(inline="always", **_JIT)
-def _subtree_terms(v: np.ndarray, parent: np.ndarray, revolute: np.ndarray, index: np.ndarray,
-                   armature: np.ndarray, gravity: np.ndarray, pw: np.ndarray, z: np.ndarray,
-                   w: np.ndarray, vo: np.ndarray, H: np.ndarray, p: np.ndarray, ctv: np.ndarray,
-                   g: np.ndarray) -> None:
-    """p, Cᵀq̇ and g from the subtree sums of H (summed into the parents on the way);
-    model_terms's backward pass, inlined into it."""
+@njit(**_JIT)
+def model_terms(q: np.ndarray, v: np.ndarray, parent: np.ndarray, revolute: np.ndarray,
+                index: np.ndarray, placement: np.ndarray, axis: np.ndarray, inertia: np.ndarray,
+                armature: np.ndarray, gravity: np.ndarray, fjoint: int, fplace: np.ndarray,
+                Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, w: np.ndarray, vo: np.ndarray,
+                H: np.ndarray, p: np.ndarray, ctv: np.ndarray, g: np.ndarray,
+                J: np.ndarray) -> None:
+    """One state: p = M(q)q̇ (armature included), Cᵀq̇ and g(q) (nv each), and J (6×nv) the
+    contact frame's Jacobian in its own axes, linear rows first (Pinocchio's LOCAL); the rest
+    are scratch (n rows each: rotations, origins, axes, ω, origin velocities, subtree momentum
+    and mass sums [Lx Ly Lz Px Py Pz M Sx Sy Sz])."""
     n = len(parent)
+    nv = len(q)
+    Rw[0, :] = 0.0
+    Rw[0, 0] = Rw[0, 4] = Rw[0, 8] = 1.0
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
+    for i in range(1, n):
+        a = parent[i]
+        c = index[i]
+        qd = v[c]
+        R = Rw[i]
+        px, py, pz, zx, zy, zz = joint_step(Rw, pw, z, parent, placement, axis, revolute, i, q[c])
+        # velocity of this origin: the parent's origin velocity carried by ω_a, plus a stroke
+        wax, way, waz = w[a, 0], w[a, 1], w[a, 2]
+        cx, cy, cz = _cross(wax, way, waz, px - pw[a, 0], py - pw[a, 1], pz - pw[a, 2])
+        vx, vy, vz = vo[a, 0] + cx, vo[a, 1] + cy, vo[a, 2] + cz
+        if revolute[i]:
+            w[i, 0], w[i, 1], w[i, 2] = wax + zx * qd, way + zy * qd, waz + zz * qd
+        else:
+            w[i, 0], w[i, 1], w[i, 2] = wax, way, waz
+            vx, vy, vz = vx + zx * qd, vy + zy * qd, vz + zz * qd
+        vo[i, 0], vo[i, 1], vo[i, 2] = vx, vy, vz
+        # the body's momentum about the world origin: P = m·v_c, L = c × P + I_c·ω
+        m = inertia[i, 0]
+        l0, l1, l2 = inertia[i, 1], inertia[i, 2], inertia[i, 3]
+        lx = R[0] * l0 + R[1] * l1 + R[2] * l2
+        ly = R[3] * l0 + R[4] * l1 + R[5] * l2
+        lz = R[6] * l0 + R[7] * l1 + R[8] * l2
+        cwx, cwy, cwz = px + lx, py + ly, pz + lz
+        wix, wiy, wiz = w[i, 0], w[i, 1], w[i, 2]
+        ex, ey, ez = _cross(wix, wiy, wiz, lx, ly, lz)
+        Px, Py, Pz = m * (vx + ex), m * (vy + ey), m * (vz + ez)
+        # I_c·ω in world axes: R·I·Rᵀ·ω
+        I6 = inertia[i, 4:]
+        bx = R[0] * wix + R[3] * wiy + R[6] * wiz
+        by = R[1] * wix + R[4] * wiy + R[7] * wiz
+        bz = R[2] * wix + R[5] * wiy + R[8] * wiz
+        jx = I6[0] * bx + I6[1] * by + I6[2] * bz
+        jy = I6[1] * bx + I6[3] * by + I6[4] * bz
+        jz = I6[2] * bx + I6[4] * by + I6[5] * bz
+        kx, ky, kz = _cross(cwx, cwy, cwz, Px, Py, Pz)
+        H[i, 0] = kx + R[0] * jx + R[1] * jy + R[2] * jz
+        H[i, 1] = ky + R[3] * jx + R[4] * jy + R[5] * jz
+        H[i, 2] = kz + R[6] * jx + R[7] * jy + R[8] * jz
+        H[i, 3], H[i, 4], H[i, 5] = Px, Py, Pz
+        H[i, 6] = m
+        H[i, 7], H[i, 8], H[i, 9] = m * cwx, m * cwy, m * cwz
     # children have larger indices than their parent: subtree sums complete when i is reached
     for i in range(n - 1, 0, -1):
         c = index[i]
@@ -241,13 +240,6 @@ def _subtree_terms(v: np.ndarray, parent: np.ndarray, revolute: np.ndarray, inde
         if a > 0:
             for r in range(10):
                 H[a, r] += H[i, r]
-
-
-@njit(inline="always", **_JIT)
-def _contact_jacobian(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray,
-                      Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, fjoint: int,
-                      fplace: np.ndarray, J: np.ndarray, nv: int) -> None:
-    """J (6×nv): the contact frame's Jacobian in its own axes, linear rows first."""
     # the contact frame: origin o and rotation Rf; column c = [Rfᵀ(z × (o − p)); Rfᵀz]
     A = Rw[fjoint]
     f00, f01, f02, f10, f11, f12, f20, f21, f22 = _mul9(A, fplace)
@@ -271,28 +263,6 @@ def _contact_jacobian(parent: np.ndarray, revolute: np.ndarray, index: np.ndarra
         J[1, c] = f01 * lx + f11 * ly + f21 * lz
         J[2, c] = f02 * lx + f12 * ly + f22 * lz
         i = parent[i]
-
-
-# model_terms's parts above are inlined into it (a call per body would cost time)
-@njit(**_JIT)
-def model_terms(q: np.ndarray, v: np.ndarray, parent: np.ndarray, revolute: np.ndarray,
-                index: np.ndarray, placement: np.ndarray, axis: np.ndarray, inertia: np.ndarray,
-                armature: np.ndarray, gravity: np.ndarray, fjoint: int, fplace: np.ndarray,
-                Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, w: np.ndarray, vo: np.ndarray,
-                H: np.ndarray, p: np.ndarray, ctv: np.ndarray, g: np.ndarray,
-                J: np.ndarray) -> None:
-    """One state: p = M(q)q̇ (armature included), Cᵀq̇ and g(q) (nv each), and J (6×nv) the
-    contact frame's Jacobian in its own axes, linear rows first (Pinocchio's LOCAL); the rest
-    are scratch (n rows each: rotations, origins, axes, ω, origin velocities, subtree momentum
-    and mass sums [Lx Ly Lz Px Py Pz M Sx Sy Sz])."""
-    n = len(parent)
-    Rw[0, :] = 0.0
-    Rw[0, 0] = Rw[0, 4] = Rw[0, 8] = 1.0
-    for i in range(1, n):
-        _body_momentum(q, v, parent, revolute, index, placement, axis, inertia, Rw, pw, z, w, vo,
-                       H, i)
-    _subtree_terms(v, parent, revolute, index, armature, gravity, pw, z, w, vo, H, p, ctv, g)
-    _contact_jacobian(parent, revolute, index, Rw, pw, z, fjoint, fplace, J, len(q))
 
 
 @njit([types.void(_C1)], **_JIT)
@@ -322,102 +292,6 @@ def power_step(power: np.ndarray, t: float, pw: float, fw: float) -> int:
     power[P_T], power[P_POW], power[P_APOW], power[P_FPOW] = t, pw, abs(pw), fw
     power[P_N] += 1.0
     return 1 if first else 0
-
-
-# observer_rows's parts, inlined into it (a call per row would cost time)
-
-@njit(inline="always", **_JIT)
-def _invalid_row(clock: np.ndarray, power: np.ndarray, code: np.ndarray, TAU: np.ndarray,
-                 W: np.ndarray, info: np.ndarray, k: int) -> None:
-    """Row k without a usable state: no estimate, the history dropped, the period restarted."""
-    code[k] = NO_ESTIMATE
-    if clock[C_HAS] != 0.0:
-        clock[C_HAS] = 0.0
-        clock[C_AFTER_INVALID] = 1.0
-        info[k, I_DROPPED] = 1.0
-    _power_restart(power)
-    for c in range(TAU.shape[1]):
-        TAU[k, c] = np.nan
-    for c in range(6):
-        W[k, c] = np.nan
-    info[k, I_SINCE] = info[k, I_SIGMA] = info[k, I_FORCE] = np.nan
-    info[k, I_POWER_STEP] = -1.0
-
-
-@njit(inline="always", **_JIT)
-def _friction_sums(v: np.ndarray, e: np.ndarray, ctv: np.ndarray, g: np.ndarray,
-                   damping: np.ndarray, coulomb: np.ndarray, s: np.ndarray) -> tuple[float, float]:
-    """s = Cᵀq̇ − g − friction (the observer's model torque) per joint; returns the power
-    τ_mᵀq̇ and the friction power."""
-    pw_ = 0.0
-    fw_ = 0.0
-    for c in range(len(v)):
-        vc = v[c]
-        sg = 1.0 if vc > 0 else (-1.0 if vc < 0 else 0.0)
-        fr = damping[c] * vc + coulomb[c] * sg
-        s[c] = ctv[c] - g[c] - fr
-        pw_ += e[c] * vc
-        fw_ += fr * vc
-    return pw_, fw_
-
-
-@njit(inline="always", **_JIT)
-def _step_kind(clock: np.ndarray, t: float, max_gap: float) -> tuple[int, float]:
-    """The row's code from the clock (ESTIMATE, a restart, BACKWARDS, STAMP_GAP, SAME_INSTANT)
-    and the step dt since the last row (0 on a restart)."""
-    kind = ESTIMATE
-    dt = 0.0
-    if clock[C_HAS] == 0.0:
-        kind = RESTART_AFTER_INVALID if clock[C_AFTER_INVALID] != 0.0 else RESTART
-    else:
-        dt = t - clock[C_T]
-        if dt < 0:
-            kind = BACKWARDS
-        elif dt > max_gap:
-            kind = STAMP_GAP
-        elif dt == 0.0:
-            kind = SAME_INSTANT
-    return kind, dt
-
-
-@njit(inline="always", **_JIT)
-def _observer_step(kind: int, dt: float, held: bool, gain: np.ndarray, p: np.ndarray,
-                   s: np.ndarray, e: np.ndarray, r_: np.ndarray, p_: np.ndarray, s_: np.ndarray,
-                   e_: np.ndarray, clock: np.ndarray, t: float) -> None:
-    """r over the step (exact for the lag, model terms trapezoidal), or restarted at 0; the
-    row's p, s, e kept for the next step unless the instant repeats."""
-    nv = len(r_)
-    if kind == ESTIMATE:
-        for c in range(nv):
-            ei = dt * e[c] if held else 0.5 * dt * (e_[c] + e[c])
-            mean = (p[c] - p_[c] - 0.5 * dt * (s_[c] + s[c]) - ei) / dt
-            a = math.exp(-gain[c] * dt)
-            r_[c] = a * r_[c] + (1.0 - a) * mean
-    elif kind != SAME_INSTANT:
-        for c in range(nv):
-            r_[c] = 0.0
-        clock[C_T0] = t
-        clock[C_HAS] = 1.0
-        clock[C_AFTER_INVALID] = 0.0
-    if kind != SAME_INSTANT:
-        clock[C_T] = t
-        for c in range(nv):
-            p_[c], s_[c], e_[c] = p[c], s[c], e[c]
-
-
-@njit(inline="always", **_JIT)
-def _wrench_row(J: np.ndarray, r_: np.ndarray, eps: float, band: float, lam_max: float,
-                G: np.ndarray, U: np.ndarray, ev: np.ndarray, y: np.ndarray, F: np.ndarray,
-                W: np.ndarray, info: np.ndarray, k: int) -> None:
-    """The contact wrench from τ̂_ext into W[k] and its fit into info[k]."""
-    sigma, lam, misfit = damped_solve(J, r_, eps, band, lam_max, G, U, ev, y, F)
-    f2 = 0.0
-    for c in range(6):
-        W[k, c] = F[c]
-    for c in range(3):
-        f2 += F[c] * F[c]
-    info[k, I_SIGMA], info[k, I_DAMPING], info[k, I_MISFIT] = sigma, lam, misfit
-    info[k, I_FORCE] = math.sqrt(f2)
 
 
 # One compiled call per batch (or per live sample): per-row overhead of separate calls is what
@@ -481,15 +355,60 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
             clock[C_AFTER_INVALID] = 0.0
             _power_restart(power)
         if not valid[k]:
-            _invalid_row(clock, power, code, TAU, W, info, k)
+            code[k] = NO_ESTIMATE
+            if clock[C_HAS] != 0.0:
+                clock[C_HAS] = 0.0
+                clock[C_AFTER_INVALID] = 1.0
+                info[k, I_DROPPED] = 1.0
+            _power_restart(power)
+            for c in range(nv):
+                TAU[k, c] = np.nan
+            for c in range(6):
+                W[k, c] = np.nan
+            info[k, I_SINCE] = info[k, I_SIGMA] = info[k, I_FORCE] = np.nan
+            info[k, I_POWER_STEP] = -1.0
             continue
         t = T[k]
         q, v, e = Q[k], V[k], E[k]
         model_terms(q, v, parent, revolute, index, placement, axis, inertia, armature, gravity,
                     fjoint, fplace, Rw, pw, z, w, vo, H, p, ctv, g, J)
-        pw_, fw_ = _friction_sums(v, e, ctv, g, damping, coulomb, s)
-        kind, dt = _step_kind(clock, t, max_gap)
-        _observer_step(kind, dt, held, gain, p, s, e, r_, p_, s_, e_, clock, t)
+        pw_ = 0.0
+        fw_ = 0.0
+        for c in range(nv):
+            vc = v[c]
+            sg = 1.0 if vc > 0 else (-1.0 if vc < 0 else 0.0)
+            fr = damping[c] * vc + coulomb[c] * sg
+            s[c] = ctv[c] - g[c] - fr
+            pw_ += e[c] * vc
+            fw_ += fr * vc
+        kind = ESTIMATE
+        dt = 0.0
+        if clock[C_HAS] == 0.0:
+            kind = RESTART_AFTER_INVALID if clock[C_AFTER_INVALID] != 0.0 else RESTART
+        else:
+            dt = t - clock[C_T]
+            if dt < 0:
+                kind = BACKWARDS
+            elif dt > max_gap:
+                kind = STAMP_GAP
+            elif dt == 0.0:
+                kind = SAME_INSTANT
+        if kind == ESTIMATE:
+            for c in range(nv):
+                ei = dt * e[c] if held else 0.5 * dt * (e_[c] + e[c])
+                mean = (p[c] - p_[c] - 0.5 * dt * (s_[c] + s[c]) - ei) / dt
+                a = math.exp(-gain[c] * dt)
+                r_[c] = a * r_[c] + (1.0 - a) * mean
+        elif kind != SAME_INSTANT:
+            for c in range(nv):
+                r_[c] = 0.0
+            clock[C_T0] = t
+            clock[C_HAS] = 1.0
+            clock[C_AFTER_INVALID] = 0.0
+        if kind != SAME_INSTANT:
+            clock[C_T] = t
+            for c in range(nv):
+                p_[c], s_[c], e_[c] = p[c], s[c], e[c]
         code[k] = kind
         info[k, I_SINCE] = t - clock[C_T0]
         info[k, I_DT] = dt
@@ -498,5 +417,12 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
             TAU[k, c] = r_[c]
             over = over or abs(r_[c]) > contact_at[c]
         info[k, I_OVER] = 1.0 if over else 0.0
-        _wrench_row(J, r_, eps, band, lam_max, G, U, ev, y, F, W, info, k)
+        sigma, lam, misfit = damped_solve(J, r_, eps, band, lam_max, G, U, ev, y, F)
+        f2 = 0.0
+        for c in range(6):
+            W[k, c] = F[c]
+        for c in range(3):
+            f2 += F[c] * F[c]
+        info[k, I_SIGMA], info[k, I_DAMPING], info[k, I_MISFIT] = sigma, lam, misfit
+        info[k, I_FORCE] = math.sqrt(f2)
         info[k, I_POWER_STEP] = power_step(power, t, pw_, fw_)
