@@ -27,9 +27,9 @@ $(STAMP): requirements.txt setup.py package.xml
 	@for s in $(VENV)/lib/dyn_node/*; do ln -sf "../lib/dyn_node/$${s##*/}" "$(VENV)/bin/$${s##*/}"; done
 	@touch $@
 
-$(KERNELS): $(STAMP) $(wildcard dyn_node/core/*kernels.py)
+$(KERNELS): $(STAMP) $(wildcard dyn_node/core/compiled/*.py)
 	@echo "compiling the Numba kernels (after an install or a kernel change, ~30 s; cached in dyn_node/__pycache__)"
-	$(PY) -c "import dyn_node.core.kernels, dyn_node.core.frame_kernels, dyn_node.core.law_kernels, dyn_node.core.observer_kernels"
+	$(PY) -c "import importlib, pkgutil, dyn_node.core.compiled as c; [importlib.import_module(m.name) for m in pkgutil.iter_modules(c.__path__, c.__name__ + '.')]"
 	@touch $@
 
 # cmake + rosidl from the pinned wheels (needs cmake, g++ and the interpreter's headers); build.sh

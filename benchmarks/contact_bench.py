@@ -39,8 +39,8 @@ def directions(n: int, seed: int = 19) -> np.ndarray:
 
 def one_push(model: Any, force: np.ndarray, onset_s: float) -> int | None:
     """Latency (ns) of one push starting ``onset_s`` into the motion; None: never detected."""
-    from dyn_node.core.contact_monitor import ContactMonitor, ContactSettings
-    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.contacts.contact_monitor import ContactMonitor, ContactSettings
+    from dyn_node.core.robot.dynamics import Dynamics
     from dyn_node.sim.simulator import SimConfig, Simulator
 
     sim = Simulator(model, SimConfig(initial_positions=tuple(READY)))
@@ -70,9 +70,9 @@ def press() -> dict:
     node's ContactMonitor fed every sample; its wrench at FRAME against the contact truth moved
     there: first touch → first ``contact`` state (ms) and the settled force error over the last
     0.5 s of a 2 s hold (N, and relative to the truth's force)."""
-    from dyn_node.core.contact_monitor import ContactMonitor, ContactSettings
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.model import load_model
+    from dyn_node.core.contacts.contact_monitor import ContactMonitor, ContactSettings
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.robot.model import load_model
     from dyn_node.ros.demo.press import wrench_at_frame
     from dyn_node.sim.press import PRESS_SCENE, plan_press
     from dyn_node.sim.simulator import SimConfig, Simulator
@@ -111,8 +111,8 @@ def press() -> dict:
 def run(*, quick: bool = False, smoke: bool = False) -> dict:
     """Detection latency over the pushes (SMOKE_PUSHES in a smoke run, else PUSHES)."""
     try:
-        from dyn_node.core.contact_monitor import ContactSettings
-        from dyn_node.core.model import load_model
+        from dyn_node.core.contacts.contact_monitor import ContactSettings
+        from dyn_node.core.robot.model import load_model
     except ImportError as exc:  # pragma: no cover - a tree without the contact core
         raise NotAvailable(f"contact monitor not importable ({exc})") from None
     model = load_model(builtin="panda")

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.robot.model import load_model
 
 from .common import SYSTEM_PYTHON, NotAvailable, median_time, progress, system_pykdl
 from .mujoco_ref import MujocoInverse

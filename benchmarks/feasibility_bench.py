@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from dyn_node.core.allocator import retain_freed_memory
-from dyn_node.core import kernels
-from dyn_node.core.dynamics import Dynamics, gravity_tables
-from dyn_node.core.model import load_model
+from dyn_node.core.live.allocator import retain_freed_memory
+from dyn_node.core.compiled import kernels, rigid_kernels
+from dyn_node.core.robot.dynamics import Dynamics, gravity_tables
+from dyn_node.core.robot.model import load_model
 
 from . import frames_bench, task_feasibility
 from .common import NotAvailable, median_time, module_available, progress
@@ -49,7 +49,7 @@ def every_limit_kind(model) -> dict:
 
 def trajectory(model):
     """11 waypoints 1 s apart (positions, velocities, accelerations: quintic), inside limits."""
-    from dyn_node.core.trajectory import validate_trajectory
+    from dyn_node.core.check.trajectory import validate_trajectory
 
     lim = model.limits
     lo = np.where(np.isfinite(lim.position_lower), lim.position_lower, -np.pi)
@@ -84,7 +84,7 @@ def _rounds(subjects: dict, repeats: int) -> tuple[dict[str, list[float]], dict[
 def _setup():
     """The subject and the baseline: (feasibility module, dynamics, trajectory, options by
     name, the loop over the check's own states, those states)."""
-    from dyn_node.core import feasibility as F
+    from dyn_node.core.check import feasibility as F
 
     model = load_model(builtin="panda").with_limits(None)
     model = model.with_limits(every_limit_kind(model))
@@ -134,7 +134,7 @@ def _measure(mode: str, repeats: int) -> dict:
     pool, Z = pin.ModelPool(dyn._pm, 1), np.zeros_like(Q)
 
     def gravity_kernel():
-        kernels.gravity_rows(Q, *tables, G.T)
+        rigid_kernels.gravity_rows(Q, *tables, G.T)
 
     def gravity_rnea():
         # what the check used before the kernel: Pinocchio's RNEA at v = a = 0
@@ -188,7 +188,7 @@ def _measure_in_child(mode: str, repeats: int) -> dict:
 
 
 def run(quick: bool = False, smoke: bool = False) -> dict:
-    why = module_available("core.feasibility")
+    why = module_available("core.check.feasibility")
     if why:
         raise NotAvailable(why)
 

@@ -1,4 +1,4 @@
-"""The frame kernels (dyn_node.core.frames) on the feasibility check's own Panda samples, beside the
+"""The frame kernels (dyn_node.core.check.frames) on the feasibility check's own Panda samples, beside the
 Python pinocchio.rnea loop on the same samples.
 
 The subject is what the frame, energy and base constraints of issue 18 need per sample: two
@@ -16,12 +16,12 @@ from typing import Callable
 
 import numpy as np
 
-from dyn_node.core.allocator import retain_freed_memory
-from dyn_node.core.frames import FrameKinematics, FramePoint
+from dyn_node.core.live.allocator import retain_freed_memory
+from dyn_node.core.check.frames import FrameKinematics, FramePoint
 
 from .common import median_time
 
-WHAT = ("dyn_node.core.frames on the same samples, 1 thread: two frame points (position, velocity, "
+WHAT = ("dyn_node.core.check.frames on the same samples, 1 thread: two frame points (position, velocity, "
         "classical acceleration, angular terms, J_localᵀW), M(q) by CRBA with its Cholesky "
         "factor, g(q), kinetic energy, effective masses, base wrench and centre of mass")
 

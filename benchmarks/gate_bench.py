@@ -59,10 +59,10 @@ def _latencies(client, g, n: int, warmup: int) -> list[float]:
 
 def _check_ms(g, n: int) -> float:
     """Median time of the gate's decision on the same goal, in this process."""
-    from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-    from dyn_node.core.model import load_model
-    from dyn_node.core.settings import Settings
-    from dyn_node.core.trajectory import validate_trajectory
+    from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.core.robot.settings import Settings
+    from dyn_node.core.check.trajectory import validate_trajectory
     from dyn_node.gate.decision import GateOptions, decide
     from dyn_node.ros.convert import trajectory_arrays
 
@@ -72,7 +72,7 @@ def _check_ms(g, n: int) -> float:
     model = load_model(builtin="panda")
     dyn = Dynamics(model, DynamicsOptions(include_friction=s.include_friction))
     traj = validate_trajectory(model.joint_names, *trajectory_arrays(g.trajectory))
-    from dyn_node.core.feasibility import FeasibilityOptions
+    from dyn_node.core.check.feasibility import FeasibilityOptions
     opts = FeasibilityOptions(sample_period=s.sample_period, effort_warn_ratio=s.effort_warn_ratio)
     return median_time(lambda: decide(dyn, traj, GateOptions(), start=None, check_options=opts),
                        repeats=max(n // 10, 5))[0] * 1e3

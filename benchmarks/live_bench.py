@@ -46,7 +46,7 @@ def _recording_reason() -> str | None:
 
 def _contact_reason() -> str | None:
     # a node that does not publish the outputs yet is reported by the probe ("no publisher on")
-    return _missing("ros/node", "core/contact_monitor.py")
+    return _missing("ros/node", "core/contacts/contact_monitor.py")
 
 
 def _missing(*paths: str) -> str | None:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dyn_node.core.dynamics import joint_axis
+from dyn_node.core.robot.dynamics import joint_axis
 
 
 @dataclass(frozen=True)

@@ -65,7 +65,7 @@ def _stamp_patched(cycle: list[bytes], n: int, t0_ns: int, rate_hz: float):
 
 
 def _recorder_ceiling(payloads, stamps, tmp: Path) -> float:
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.model import load_model
     from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
 
     urdf = load_model(builtin="panda").urdf
@@ -109,7 +109,7 @@ def _raw_writer(payloads, stamps, tmp: Path, chunk_size: int) -> float:
 
 def write_bag(directory: Path, seconds: float, rate_hz: float = 1000.0) -> Path:
     """A dyn_node bag (via Recorder) with ``seconds`` of joint_states at ``rate_hz``."""
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.model import load_model
     from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
 
     urdf = load_model(builtin="panda").urdf

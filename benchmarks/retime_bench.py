@@ -28,8 +28,8 @@ PANDA_JERK = [7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0]
 
 
 def robot(name: str):
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.robot.model import load_model
 
     m = load_model(builtin=name)
     n = m.nv
@@ -44,7 +44,7 @@ def robot(name: str):
 
 def panel(dyn, n_paths: int, seed: int, n_waypoints: int = 6) -> list:
     """``n_paths`` random timed paths (see the module docstring)."""
-    from dyn_node.core.trajectory import Trajectory, interpolate
+    from dyn_node.core.check.trajectory import Trajectory, interpolate
 
     rng = np.random.default_rng(seed)
     lim = dyn.model.limits
@@ -70,7 +70,7 @@ def toppra_pass(dyn, tr, gridpoints: np.ndarray | None = None):
     import toppra.algorithm as algo
     import toppra.constraint as tc
 
-    from dyn_node.core.trajectory import Trajectory
+    from dyn_node.core.check.trajectory import Trajectory
 
     pm = dyn.pin_model
     data = pm.createData()
@@ -90,7 +90,7 @@ def toppra_pass(dyn, tr, gridpoints: np.ndarray | None = None):
 
 
 def one(dyn, tr) -> dict:
-    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.check.feasibility import check_trajectory
     from dyn_node.retime import retime
 
     t0 = time.perf_counter()
@@ -137,10 +137,10 @@ def wall_time(dyn, repeats: int) -> dict:
     from dyn_node.retime import retime
 
     tr = panel(dyn, 1, seed=99, n_waypoints=10)[0]
-    from dyn_node.core.trajectory import Trajectory
+    from dyn_node.core.check.trajectory import Trajectory
     tr = Trajectory(times=tr.times * (10.0 / tr.duration), positions=tr.positions)
     grid = np.linspace(0.0, tr.duration, 1001)
-    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.check.feasibility import check_trajectory
 
     res = retime(dyn, tr)
     ours, _ = median_time(lambda: retime(dyn, tr), repeats)

@@ -35,7 +35,7 @@ def model_effort() -> Callable[[list[float], list[float], list[float]], list[flo
     import numpy as np
     import pinocchio as pin
 
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.model import load_model
 
     model = load_model(builtin="panda")
     assert list(model.joint_names) == NAMES, model.joint_names

@@ -53,15 +53,15 @@ def _round_trips(cli, request, n: int, warmup: int) -> list[float]:
 
 def _core_check_s(traj, n: int) -> float:
     """Median time of the answer's core work in this process (on_demand.check, same trajectory)."""
-    from dyn_node.core import on_demand
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.model import load_model
-    from dyn_node.core.settings import Settings
+    from dyn_node.core.check import on_demand
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.core.robot.settings import Settings
     from dyn_node.ros.convert import trajectory_arrays
 
     from .common import median_time
 
-    from dyn_node.core.allocator import retain_freed_memory
+    from dyn_node.core.live.allocator import retain_freed_memory
 
     retain_freed_memory()  # as the node's main() does: repeated checks reuse their pages
     dyn, settings = Dynamics(load_model(builtin="panda")), Settings(robot_model="panda")

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from dyn_node.core.model import Payload, load_model
+from dyn_node.core.robot.model import Payload, load_model
 
 #: the kinds issue 18 names, each of which the row must see in the result
 TASK_KINDS = ("frame_speed", "frame_angular_speed", "frame_acceleration", "transferred_energy",
@@ -51,7 +51,7 @@ def expected_places() -> dict[str, set[str]]:
 
 def setup(F, joint_limits: dict[str, Any], traj, options: dict[str, Any]):
     """(Dynamics of the Panda with every kind, the subjects by name) or a str: why not."""
-    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.robot.dynamics import Dynamics
     from dyn_node.errors import DynNodeError
 
     try:

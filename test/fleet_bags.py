@@ -34,7 +34,7 @@ class BagSpec:
 
 
 def _model(robot: str):
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.model import load_model
 
     return load_model(builtin=robot)
 

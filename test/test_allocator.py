@@ -1,4 +1,4 @@
-"""dyn_node.core.allocator: freed sample arrays stay mapped, so a repeated check takes no fresh pages.
+"""dyn_node.core.live.allocator: freed sample arrays stay mapped, so a repeated check takes no fresh pages.
 
 Each case runs in a child interpreter: the setting is process-wide and the page-fault counts
 must start from glibc's defaults.
@@ -12,14 +12,14 @@ import textwrap
 
 import pytest
 
-from dyn_node.core.allocator import retain_freed_memory
+from dyn_node.core.live.allocator import retain_freed_memory
 
 # What a check does to the heap: many MiB-sized arrays alive at once, then all freed. Minor
 # faults are counted over the rounds after the first (which maps the pages in any case).
 _CHILD = textwrap.dedent("""
     import json, resource, sys
     import numpy as np
-    from dyn_node.core.allocator import retain_freed_memory
+    from dyn_node.core.live.allocator import retain_freed_memory
     calls = {"default": 0, "retain": 1, "retain_twice": 2}[sys.argv[1]]
     applied = [retain_freed_memory() for _ in range(calls)]
     def faults():

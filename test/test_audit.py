@@ -26,7 +26,7 @@ from dyn_node.audit.bag_audit import AuditOptions, main, run_audit  # noqa: E402
 from dyn_node.audit.replay.common import MAX_BINS, SeriesBins  # noqa: E402
 from dyn_node.bag.reader import BagReader, decode_joint_state  # noqa: E402
 from dyn_node.audit.evidence import schema  # noqa: E402
-from dyn_node.core.model import load_model  # noqa: E402
+from dyn_node.core.robot.model import load_model  # noqa: E402
 
 MS = 1_000_000
 PANDA = load_model(builtin="panda")
@@ -60,8 +60,8 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
     the outputs are written after every that many inputs (as a recorder that fell behind);
     ``outputs_from``: no outputs for the inputs before that one (as a node without a model yet);
     ``later_metadata``: a second ``dyn_node`` metadata record, written after the messages."""
-    from dyn_node.core.monitor import Monitor
-    from dyn_node.core.settings import settings_from_mapping
+    from dyn_node.core.live.monitor import Monitor
+    from dyn_node.core.robot.settings import settings_from_mapping
     from std_msgs.msg import String
 
     meta = ({"robot_description": PANDA.urdf, "parameters": PARAMS, "version": "0.1.0"}
@@ -148,10 +148,10 @@ def _feasibility_output(w: BagWriter, msg, log_ns: int) -> None:
     """What the node publishes on ~/feasibility for ``msg`` (computed with the same core)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-    from dyn_node.core.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
     from dyn_node.errors import TrajectoryError
-    from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory, rejected_statuses
-    from dyn_node.core.trajectory import validate_trajectory
+    from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory, rejected_statuses
+    from dyn_node.core.check.trajectory import validate_trajectory
 
     pts = msg.points
     times = [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts]
@@ -189,8 +189,8 @@ def test_clean_bag_is_feasible_and_matches_the_monitor(tmp_path, capsys):
     assert rec["outputs"]["monitor_counts"]["accepted"] == 1500
     assert rec["outputs"]["monitor_counts"]["ignored_joint_values"] == 3000  # locked fingers
     # the per-joint peak is what a direct Monitor replay gives (independent loop here)
-    from dyn_node.core.monitor import Monitor
-    from dyn_node.core.settings import Settings
+    from dyn_node.core.live.monitor import Monitor
+    from dyn_node.core.robot.settings import Settings
 
     mon = Monitor(PANDA, Settings())
     util = []
@@ -328,10 +328,10 @@ def test_recheck_of_node_outputs_is_exactly_zero_and_a_perturbation_is_found(tmp
 
 
 def _assert_payload_margin(msg, margin: float) -> None:
-    from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-    from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-    from dyn_node.core.model import Payload
-    from dyn_node.core.trajectory import validate_trajectory
+    from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+    from dyn_node.core.robot.model import Payload
+    from dyn_node.core.check.trajectory import validate_trajectory
 
     pts = msg.points
     traj = validate_trajectory(PANDA.joint_names, list(msg.joint_names),
@@ -380,8 +380,8 @@ def test_live_deceleration_limit_is_audited_as_the_monitor_checks_it(tmp_path):
     """max_deceleration is checked on the live acceleration estimate where q̇·q̈̂ < 0, by the
     node's monitor and by the audit's replay alike. q_at's panda_joint5 (phase 1.2 rad) slows
     down for its first 118 ms (q̇ > 0, q̈ ≈ −2.8 rad/s²), then speeds up the other way."""
-    from dyn_node.core.monitor import LIMITS, Monitor
-    from dyn_node.core.settings import Settings
+    from dyn_node.core.live.monitor import LIMITS, Monitor
+    from dyn_node.core.robot.settings import Settings
 
     bag = make_bag(tmp_path / "bag", n=200)
     lim = tmp_path / "lim.yaml"
@@ -645,7 +645,7 @@ def test_a_parameter_change_mid_recording_is_replayed_from_when_it_took_effect(r
         assert rc[topic]["matched"] == 2 and rc[topic]["identical"] is True, rc[topic]
     # the change mattered: the recorded gravity torque of the last input is not the one the
     # first configuration gives (so an audit that kept it could not be identical)
-    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.robot.dynamics import Dynamics
 
     last = None
     for m in BagReader(path).messages():
@@ -732,7 +732,7 @@ def test_batched_replay_gives_exactly_the_per_message_evidence(tmp_path, monkeyp
     must be exactly what message-by-message replay gives (MIN_BATCH raised past every run), with
     gaps, invalid and out-of-order messages, trajectories being tracked and outputs re-checked."""
     import dyn_node.audit.replay.inputs as audit_mod  # the batch threshold lives with the replay
-    from dyn_node.core.monitor import Monitor
+    from dyn_node.core.live.monitor import Monitor
 
     trajs = [(300, trajectory_msg(T0 + 300 * MS)), (1200, trajectory_msg(T0 + 1200 * MS, scale=0.3))]
     bag = make_bag(tmp_path / "bag", **{
@@ -800,9 +800,9 @@ def test_a_trajectory_the_check_rejects_is_a_finding_and_the_rest_is_audited(tmp
 def test_outputs_of_zero_stamped_inputs_match_by_the_stamp_the_node_gave_them(tmp_path, burst):
     """The node answers a zero-stamped joint_states with the receipt time as the outputs' stamp
     (ros_convert.s_to_stamp, the node's own conversion, is the oracle here)."""
-    from dyn_node.core.monitor import Monitor
+    from dyn_node.core.live.monitor import Monitor
     from dyn_node.ros.convert import s_to_stamp
-    from dyn_node.core.settings import settings_from_mapping
+    from dyn_node.core.robot.settings import settings_from_mapping
 
     w = BagWriter(tmp_path / "bag", metadata={"robot_description": PANDA.urdf, "parameters": PARAMS,
                                               "version": "0.1.0"})
@@ -934,7 +934,7 @@ def test_every_number_a_record_holds_validates_when_not_finite(tmp_path, value):
 def test_an_override_that_differs_from_the_recorded_model_is_not_comparable(tmp_path, capsys):
     """The documented override on a bag recorded with robot_model:=panda: the URDF file (fingers
     not locked) is another model, so the re-check says so instead of an infinite difference."""
-    from dyn_node.core.model import builtin_urdf
+    from dyn_node.core.robot.model import builtin_urdf
 
     bag = make_bag(tmp_path / "bag", n=400, outputs=True,
                    trajectories=[(100, trajectory_msg(T0 + 100 * MS))])

@@ -17,7 +17,7 @@ from test_audit import validated  # noqa: E402
 from test_bag_reader import joint_state  # noqa: E402
 
 from dyn_node.audit.bag_audit import AuditOptions, run_audit  # noqa: E402
-from dyn_node.core.model import load_model  # noqa: E402
+from dyn_node.core.robot.model import load_model  # noqa: E402
 from dyn_node.sim.simulator import SimConfig, Simulator  # noqa: E402
 
 PANDA = load_model(builtin="panda")
@@ -230,7 +230,7 @@ def test_a_replay_off_by_a_hair_is_found(recorded, monkeypatch):
     from dataclasses import replace
 
     import dyn_node.audit.replay.contact as cr
-    from dyn_node.core.contact_monitor import ContactMonitor, contact_settings
+    from dyn_node.core.contacts.contact_monitor import ContactMonitor, contact_settings
 
     path, _, tmp = recorded
     monkeypatch.setattr(cr, "monitor_for", lambda cfg, dyn: ContactMonitor(dyn, replace(

@@ -11,10 +11,10 @@ import pytest
 
 from dyn_node.audit.check import main
 from dyn_node.audit.trajectory_files import parse_trajectory, read_trajectory
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-from dyn_node.core.model import load_model
-from dyn_node.core.trajectory import MIN_SEGMENT_STEPS, validate_trajectory
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.check.trajectory import MIN_SEGMENT_STEPS, validate_trajectory
 from dyn_node.errors import ModelError, TrajectoryError, TrajectoryFileError
 
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]

@@ -1,4 +1,4 @@
-"""The base and grasp kinds (dyn_node.core.base_constraints): their per-sample quantities against
+"""The base and grasp kinds (dyn_node.core.check.base_constraints): their per-sample quantities against
 MuJoCo and closed forms, and the kinds through check_trajectory against brute force.
 
 The mounting's wrench with a task wrench against MuJoCo's cfrc_int of the body hanging from the
@@ -22,17 +22,17 @@ import pinocchio as pin
 import pytest
 from test_frames import _armature, _mounting_body, _mujoco_model, everything_com, states
 
-from dyn_node.core import base_constraints as B
-from dyn_node.core import constraints as C
-from dyn_node.core import feasibility as F
-from dyn_node.core import force_laws as laws
-from dyn_node.core import task_motion
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import FeasibilityOptions, StartState, check_trajectory
-from dyn_node.core.frames import root_link
-from dyn_node.core.model import Payload, load_model
-from dyn_node.core.start_segment import stretched
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.check import base_constraints as B
+from dyn_node.core.check import constraints as C
+from dyn_node.core.check import feasibility as F
+from dyn_node.core.check import force_laws as laws
+from dyn_node.core.check import task_motion
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import FeasibilityOptions, StartState, check_trajectory
+from dyn_node.core.check.frames import root_link
+from dyn_node.core.robot.model import Payload, load_model
+from dyn_node.core.check.start_segment import stretched
+from dyn_node.core.check.trajectory import validate_trajectory
 from dyn_node.sim.mujoco_model import mujoco_from_model
 
 TOL = 1e-9

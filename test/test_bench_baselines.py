@@ -23,7 +23,7 @@ from benchmarks.dynamics_bench import random_states
 from benchmarks.mujoco_ref import MujocoInverse
 from benchmarks.numpy_rnea import NumpyRNEA
 from benchmarks.task_feasibility import TASK_KINDS
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 from robots import BRANCHED_URDF
 
 REPO = Path(__file__).resolve().parents[1]

@@ -10,10 +10,10 @@ import math
 
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import STATUS_NAME, check_trajectory
-from dyn_node.core.model import load_model
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import STATUS_NAME, check_trajectory
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.check.trajectory import validate_trajectory
 
 DELTA, T = 1.0, 1.0
 V_PEAK, A_PEAK = 15 / 8 * DELTA / T, 10 / math.sqrt(3) * DELTA / T ** 2
@@ -76,7 +76,7 @@ def test_client_verdict_parses_binding(verdict):
 
 
 def test_rejected_status_has_empty_binding_keys():
-    from dyn_node.core.feasibility import rejected_statuses
+    from dyn_node.core.check.feasibility import rejected_statuses
     from dyn_node.errors import TrajectoryError
 
     s = rejected_statuses(TrajectoryError("x", code="bad_times"))[0]

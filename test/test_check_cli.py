@@ -238,10 +238,10 @@ def test_console_scripts_are_on_the_venvs_path():
 def test_task_limits_give_a_row_per_place_evidence_and_a_retime_that_passes(tmp_path, capsys):
     """The demo's TCP limit (250 mm/s at panda_hand's TCP) on the reach example: the place row
     carries the core's numbers, the record its per_frame and task_limits, and --retime fixes it."""
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.feasibility import check_trajectory
-    from dyn_node.core.model import load_model
-    from dyn_node.core.trajectory import validate_trajectory
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.check.feasibility import check_trajectory
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.core.check.trajectory import validate_trajectory
 
     limits = REPO / "config" / "demo_task_limits.yaml"
     tf = read_trajectory(REACH[0])

@@ -1,4 +1,4 @@
-"""Each constraint kind through the Constraint interface (dyn_node.core.constraints).
+"""Each constraint kind through the Constraint interface (dyn_node.core.check.constraints).
 
 One rest-to-rest quintic segment of the planar 2-link arm, whose q, q̇, q̈, q⃛ are closed forms,
 with gravity off (so every torque kind can be met by slowing down). Per kind: the value per
@@ -14,13 +14,14 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from dyn_node.core import constraints as C
-from dyn_node.core import feasibility as F
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import FeasibilityOptions, StartState, check_trajectory
-from dyn_node.core.model import load_model
-from dyn_node.core.start_segment import stretched
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.check import constraints as C
+from dyn_node.core.check import joint_constraints as J
+from dyn_node.core.check import feasibility as F
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import FeasibilityOptions, StartState, check_trajectory
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.check.start_segment import stretched
+from dyn_node.core.check.trajectory import validate_trajectory
 
 PLANAR = load_model(builtin="planar_2link").with_gravity([0.0, 0.0, 0.0])
 NAMES = list(PLANAR.joint_names)
@@ -116,17 +117,17 @@ def _effort_rate(t):
 
 CURVE_SPEED = 10.0
 KINDS = {
-    "velocity": (C.Velocity, _velocity, lambda L: {"velocity": L}),
-    "acceleration": (C.Acceleration, _acceleration, lambda L: {"acceleration": L}),
-    "deceleration": (C.Deceleration, _deceleration, lambda L: {"deceleration": L}),
-    "jerk": (C.Jerk, _jerk, lambda L: {"jerk": L}),
-    "effort": (C.Effort, rnea, lambda L: {"effort": L}),
-    "power": (C.Power, _power, lambda L: {"power": L}),
-    "effort_rate": (C.EffortRate, _effort_rate, lambda L: {"effort_rate": L}),
+    "velocity": (J.Velocity, _velocity, lambda L: {"velocity": L}),
+    "acceleration": (J.Acceleration, _acceleration, lambda L: {"acceleration": L}),
+    "deceleration": (J.Deceleration, _deceleration, lambda L: {"deceleration": L}),
+    "jerk": (J.Jerk, _jerk, lambda L: {"jerk": L}),
+    "effort": (J.Effort, rnea, lambda L: {"effort": L}),
+    "power": (J.Power, _power, lambda L: {"power": L}),
+    "effort_rate": (J.EffortRate, _effort_rate, lambda L: {"effort_rate": L}),
     # a flat envelope: the limit is L at any speed
-    "effort_speed": (C.EffortSpeed, rnea, lambda L: {"effort_speed_curve": tuple(
+    "effort_speed": (J.EffortSpeed, rnea, lambda L: {"effort_speed_curve": tuple(
         np.array([[0.0, x], [CURVE_SPEED, x]]) for x in L)}),
-    "rms_effort": (C.RmsEffort, lambda t: _rms(t, 0.3), lambda L: {
+    "rms_effort": (J.RmsEffort, lambda t: _rms(t, 0.3), lambda L: {
         "rms_effort": L, "rms_window": np.full(NV, 0.3)}),
 }
 #: the closed forms against the kernels' arithmetic: finite differences (effort rate) and the
@@ -168,7 +169,7 @@ def test_position_through_the_interface():
     lo, hi = np.array([-1.0, -1.0]), np.array([1.0, 0.5])   # joint 2: 0.3 → -0.4, inside
     model = _only(position_lower=lo, position_upper=hi, soft_lower=np.array([-np.inf, -0.2]),
                   soft_upper=np.full(NV, np.inf))
-    c, motion = _one(C.Position, model)
+    c, motion = _one(J.Position, model)
     tt = motion.smp.t
     q = closed_form(tt)[0]
     np.testing.assert_allclose(c.values(), q, rtol=0, atol=1e-12)
@@ -191,7 +192,7 @@ def test_effort_payload_band_against_heavier_models():
     with that payload, 1 % more does not (checked by Pinocchio with the heavier model)."""
     peak = np.max(np.abs(rnea(np.linspace(0, T, 401))), axis=0)
     model = _only(effort=1.5 * peak)
-    c, motion = _one(C.Effort, model)
+    c, motion = _one(J.Effort, model)
     dyn = Dynamics(model)
     terms = C.PayloadTerms(F._payload_torque(dyn, motion.Q, motion.V, motion.A, motion.tau),
                            F._unit_payload_dynamics(dyn))

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dyn_node.core.contact import COLLISION, CONTACT, NONE, ContactDetector, ContactOptions
-from dyn_node.core.observer import WrenchEstimate
+from dyn_node.core.contacts.contact import COLLISION, CONTACT, NONE, ContactDetector, ContactOptions
+from dyn_node.core.contacts.observer import WrenchEstimate
 
 NAMES = ("j1", "j2", "j3")
 LIMIT = np.array([100.0, 50.0, 10.0])

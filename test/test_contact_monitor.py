@@ -10,15 +10,15 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from dyn_node.core.contact_monitor import (CONTACT_STATUS, ENERGY_STATUS, RESET_RECORDING, UNAVAILABLE,
-                                           ContactMonitor, ContactSettings, contact_settings)
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import load_model
-from dyn_node.core.observer import (RESET_GAP, RESET_STAMP_GAP, RESET_START, MomentumObserver, WrenchEstimator,
-                                    damped_wrench)
-from dyn_node.core.power_balance import PowerBalance
-from dyn_node.core.settings import Settings
-from dyn_node.core.status import ERROR, OK, WARN
+from dyn_node.core.contacts.contact_monitor import (CONTACT_STATUS, ENERGY_STATUS, RESET_RECORDING, UNAVAILABLE,
+                                                    ContactMonitor, ContactSettings, contact_settings)
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.contacts.observer import (RESET_GAP, RESET_STAMP_GAP, RESET_START, MomentumObserver, WrenchEstimator,
+                                             damped_wrench)
+from dyn_node.core.contacts.power_balance import PowerBalance
+from dyn_node.core.robot.settings import Settings
+from dyn_node.core.robot.status import ERROR, OK, WARN
 from dyn_node.errors import CONTROL_ERROR, InputError, STATE_ERROR
 from test_observer import READY, _trajectory, panda_sim
 

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.core.contact import COLLISION, ContactDetector, ContactEpisode, ContactOptions
-from dyn_node.core.observer import WrenchEstimate
+from dyn_node.core.contacts.contact import COLLISION, ContactDetector, ContactEpisode, ContactOptions
+from dyn_node.core.contacts.observer import WrenchEstimate
 
 NOT_FINITE = "external-torque estimate not finite"
 
@@ -215,7 +215,7 @@ def test_a_collision_run_carried_across_calls_escalates_as_row_by_row():
 def test_escalation_at_exactly_min_duration_less_the_stamp_slack():
     """A collision run lasting exactly min_duration_s − STAMP_RESOLUTION_S (in float seconds)
     escalates; one ulp less does not; the same with rows in one call or split."""
-    from dyn_node.core.contact import STAMP_RESOLUTION_S
+    from dyn_node.core.contacts.contact import STAMP_RESOLUTION_S
 
     def make():
         return ContactDetector(["a"], [10.0], options=ContactOptions(

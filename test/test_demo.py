@@ -15,8 +15,8 @@ import pytest
 from conftest import REPO, TEST_DOMAIN, child_env
 from dyn_node.ros.demo import (PANDA_POSES, READY, demo_trajectories, effort_residual, model_table,
                            tracking_error)
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import load_model
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def test_tracking_error_and_residual_statistics(panda):
     _, aggressive = demo_trajectories(short=True)
     traj = aggressive.validated(panda.joint_names)
     t = np.linspace(0, traj.duration, 50)
-    from dyn_node.core.trajectory import interpolate
+    from dyn_node.core.check.trajectory import interpolate
 
     q = interpolate(traj, "quintic").evaluate(t)[0]
     q[10, 3] += 0.07
@@ -65,8 +65,8 @@ def test_task_transfer_is_within_joint_limits_but_over_the_tcp_speed(panda):
     """The TCP's speed against finite differences of Pinocchio's forward kinematics."""
     import pinocchio as pin
 
-    from dyn_node.core.feasibility import check_trajectory
-    from dyn_node.core.trajectory import interpolate
+    from dyn_node.core.check.feasibility import check_trajectory
+    from dyn_node.core.check.trajectory import interpolate
     from dyn_node.ros.demo import DEMO_TASK_LIMITS, SAFETY_FACTOR, task_checks, task_transfer
 
     fast = task_transfer()

@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 from dyn_node.ros.demo import DemoTrajectory
 from dyn_node.ros.demo.press import PressOutcome, press_checks, press_trajectories, wrench_at_frame
 from dyn_node.sim.press import PRESS_SCENE, READY, plan_press

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from dyn_node.client import Retimed
-from dyn_node.core import on_demand
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import check_trajectory
-from dyn_node.core.model import load_model
-from dyn_node.core.settings import Settings, settings_from_mapping
+from dyn_node.core.check import on_demand
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import check_trajectory
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.robot.settings import Settings, settings_from_mapping
 from dyn_node.errors import SettingsError
 from dyn_node.retime import retime
 from dyn_node.ros.demo import READY, demo_trajectories

@@ -2,7 +2,7 @@
 of publishers."""
 from __future__ import annotations
 
-from dyn_node.core.drops import LOST_EVENTS, SEQUENCE_NUMBERS, DropCounter
+from dyn_node.core.live.drops import LOST_EVENTS, SEQUENCE_NUMBERS, DropCounter
 
 
 def feed(c: DropCounter, seqs, received_ns: int | None = None) -> None:

@@ -5,8 +5,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-from dyn_node.core.model import Payload, load_model
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.robot.model import Payload, load_model
 from robots import G, L1, L2, M1, M2, two_link_terms, with_friction_urdf
 
 TOL = 1e-9
@@ -24,7 +24,7 @@ def friction_limits(model):
 
 @pytest.fixture(scope="module", params=["panda", "ur5"])
 def arm(request):
-    from dyn_node.core.model import builtin_urdf
+    from dyn_node.core.robot.model import builtin_urdf
     base = load_model(builtin=request.param)
     text = with_friction_urdf(builtin_urdf(request.param))
     model = load_model(urdf=text, locked_joints=dict(base.locked_joints))
@@ -237,7 +237,7 @@ def test_variants_keep_each_other():
 def test_terms_batch_gravity_kernel_matches_pinocchio_pass(arm):
     """terms_batch takes gravity from the compiled kernel; Pinocchio's RNEA at v = a = 0 (what
     it falls back to for a joint the kernel does not know) gives the same split to 1e-12."""
-    from dyn_node.core.dynamics import gravity_tables
+    from dyn_node.core.robot.dynamics import gravity_tables
 
     Q, V, A = random_states(arm, 300, 13)
     dyn = Dynamics(arm)

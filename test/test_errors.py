@@ -10,7 +10,7 @@ from dyn_node.audit import check as check_cli, trajectory_files
 
 from dyn_node.fleet import engine as fleet
 
-from dyn_node.core import settings
+from dyn_node.core.robot import settings
 from dyn_node.errors import (CheckError, DynNodeError, FleetError, RecordingError, RecoverError,
                              SettingsError, TrajectoryFileError)
 from dyn_node.bag.recorder import RecorderConfig

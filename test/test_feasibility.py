@@ -1,6 +1,6 @@
 """Trajectory feasibility core: every limit kind, the time-scale contract, payload margin.
 
-Oracles are independent of dyn_node.core.feasibility: a dense per-sample loop over ``pinocchio.rnea``
+Oracles are independent of dyn_node.core.check.feasibility: a dense per-sample loop over ``pinocchio.rnea``
 on the interpolated states (plus friction), finite differences for the effort rate, a direct
 windowed integral for RMS. The time scale and payload margin are checked by their definition:
 re-checking the stretched (or heavier) trajectory.
@@ -15,14 +15,14 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import PLANNING_ERROR, TrajectoryError
-from dyn_node.core.feasibility import (FeasibilityOptions, check_trajectory, rejected_statuses,
-                                  STATUS_NAME)
-from dyn_node.core.limits import LIMIT_KINDS
-from dyn_node.core.model import Payload, load_model
-from dyn_node.core.status import ERROR, OK, WARN
-from dyn_node.core.trajectory import Trajectory, interpolate, validate_trajectory
+from dyn_node.core.check.feasibility import (FeasibilityOptions, check_trajectory, rejected_statuses,
+                                        STATUS_NAME)
+from dyn_node.core.robot.limits import LIMIT_KINDS
+from dyn_node.core.robot.model import Payload, load_model
+from dyn_node.core.robot.status import ERROR, OK, WARN
+from dyn_node.core.check.trajectory import Trajectory, interpolate, validate_trajectory
 
 SUMMARY_KEYS = ("feasible", "worst_joint", "worst_constraint", "worst_ratio",
                 "first_violation_time_s", "time_scale", "payload_margin_kg", "n_points",
@@ -486,24 +486,24 @@ def _random_terms(rng: np.random.Generator, M: int, m: int):
 
 # references: every sample solved by the scalar kernels, no bounds, no pruning
 def quadratic_exits(c0, c1, c2, limit):
-    from dyn_node.core import kernels as K
+    from dyn_node.core.compiled import kernels as K
     return np.array([K.quadratic_exit(*e, limit) for e in zip(c0, c1, c2)])
 
 
 def cubic_exits(c1, c2, c3, limit):
-    from dyn_node.core import kernels as K
+    from dyn_node.core.compiled import kernels as K
     return np.array([K.cubic_exit(*e, limit) for e in zip(c1, c2, c3)])
 
 
 def envelope_exits(s, w, i, speed, curve):
-    from dyn_node.core import kernels as K
+    from dyn_node.core.compiled import kernels as K
     sp, ef = np.ascontiguousarray(curve[:, 0]), np.ascontiguousarray(curve[:, 1])
     return np.array([K.envelope_exit(*e, sp, ef, len(sp)) for e in zip(s, w, i, speed)])
 
 
 @pytest.mark.parametrize("seed", range(6))
 def test_exit_shortcuts_match_per_sample_exact_roots(seed):
-    from dyn_node.core import kernels as K
+    from dyn_node.core.compiled import kernels as K
 
     rng = np.random.default_rng(100 + seed)
     M, m = 2000, 4
@@ -541,8 +541,8 @@ def _rms_ok(t, s, w, i, hold2, window, R, k) -> bool:
 
 @pytest.mark.parametrize("seed", range(8))
 def test_rms_time_scale_meets_its_contract_on_random_torques(seed):
-    from dyn_node.core import feasibility as F
-    from dyn_node.core import kernels as K
+    from dyn_node.core.check import feasibility as F
+    from dyn_node.core.compiled import kernels as K
 
     rng = np.random.default_rng(200 + seed)
     M, m = 1500, 3
@@ -567,7 +567,7 @@ def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
     """Random curves (rising and falling pieces; at high speed some fall below what gravity
     alone needs, so samples start outside parts of the envelope) against every sample solved
     exactly with no bounds."""
-    from dyn_node.core import feasibility as F
+    from dyn_node.core.check import feasibility as F
 
     rng = np.random.default_rng(300 + seed)
     model = base_model("panda")
@@ -630,7 +630,7 @@ def test_thread_count_does_not_change_the_result():
 
 
 def test_background_job_reraises_on_the_caller():
-    from dyn_node.core import feasibility as F
+    from dyn_node.core.check import feasibility as F
 
     def boom(x):
         raise FloatingPointError(f"bad {x}")
@@ -644,7 +644,7 @@ def test_background_job_reraises_on_the_caller():
 
 @pytest.mark.parametrize("seed", range(3))
 def test_column_reductions_equal_numpy(seed):
-    from dyn_node.core import feasibility as F
+    from dyn_node.core.check import feasibility as F
 
     rng = np.random.default_rng(400 + seed)
     X = rng.normal(size=(500, 5))
@@ -700,7 +700,7 @@ def test_start_segment_is_checked_from_the_current_state(mode):
     """Robot at q = 0 moving at −2.5 rad/s, away from a first point 0.5 s ahead: the segment the
     controller runs to it holds the worst velocity, acceleration and torque, equal to a dense
     independent evaluation of that segment; without the state the verdict says so (WARN)."""
-    from dyn_node.core.feasibility import START_CHECKED, StartState
+    from dyn_node.core.check.feasibility import START_CHECKED, StartState
 
     model, traj = _start_case(mode)
     dyn = Dynamics(model)
@@ -735,7 +735,7 @@ def test_start_segment_is_checked_from_the_current_state(mode):
 
 
 def test_first_point_at_zero_has_no_start_segment_and_ignores_the_state():
-    from dyn_node.core.feasibility import START_NONE, StartState
+    from dyn_node.core.check.feasibility import START_NONE, StartState
 
     model = base_model("planar_2link")
     names = model.joint_names
@@ -767,7 +767,7 @@ def test_time_scale_contract_when_the_start_segment_binds(name, mode, t0, qm, vm
     """README: time_scale k — the trajectory stretched by 1.001·k is feasible and by some k′ in
     [0.97·k, k) it is not — when the worst part is the segment from the robot's current state,
     whose velocity does not scale with k (each stretched trajectory checked from the same state)."""
-    from dyn_node.core.feasibility import StartState
+    from dyn_node.core.check.feasibility import StartState
 
     model, traj = _start_case(mode, t0)
     dyn = Dynamics(model)
@@ -795,7 +795,7 @@ def test_time_scale_contract_when_the_start_segment_binds(name, mode, t0, qm, vm
 def test_start_segment_that_no_slowdown_fixes_is_infinite():
     """Rushing at 2.9 rad/s towards joint1's upper limit (3 rad) with the first point behind:
     short times need more torque than 40 N·m, long ones overshoot the limit."""
-    from dyn_node.core.feasibility import StartState
+    from dyn_node.core.check.feasibility import StartState
 
     model, traj = _start_case("quintic", 0.05)
     st = StartState(np.array([2.9, 0.3]), np.array([2.9, 0.0]), age_s=0.0)
@@ -813,7 +813,7 @@ def test_time_scale_contract_when_rms_windows_reach_into_the_start_segment(t1, w
     then moving 1.5 rad: the worst window ends after the segment and reaches back into it, so
     the time scale is found on the whole stretched trajectory (the segment alone, or the rest's
     per-sample search, miss it: 1.001·k was infeasible)."""
-    from dyn_node.core.feasibility import StartState
+    from dyn_node.core.check.feasibility import StartState
 
     model = base_model("planar_2link")
     names = model.joint_names

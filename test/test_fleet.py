@@ -27,7 +27,7 @@ from fleet_bags import BagSpec, damage_chunk, truncate, write_bag  # noqa: E402
 
 from dyn_node.fleet import engine as fleet  # noqa: E402
 from dyn_node.audit.bag_audit import main as audit_main  # noqa: E402
-from dyn_node.core.model import load_model  # noqa: E402
+from dyn_node.core.robot.model import load_model  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RATE = 500.0
@@ -461,7 +461,7 @@ def test_a_worker_reuses_its_model_and_the_evidence_is_unchanged(tmp_path, monke
     """audit_bag in one process, as a worker runs it: the second Panda bag takes the model the
     first built (no second build), the UR5 bag builds its own, and every evidence record equals,
     field by field, that of an uncached audit of the bag alone (dyn-audit builds per run)."""
-    from dyn_node.core import model_source
+    from dyn_node.core.robot import model_source
     from dyn_node.audit.bag_audit import AuditOptions, run_audit
 
     builds: list[dict] = []

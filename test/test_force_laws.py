@@ -1,4 +1,4 @@
-"""The per-sample constraint laws (dyn_node.core.force_laws): closed forms worked by hand, and the
+"""The per-sample constraint laws (dyn_node.core.check.force_laws): closed forms worked by hand, and the
 time-scale contract by brute force: each sample is re-evaluated directly at stretched timings
 (|a + b/k²| ≤ L, the centre of pressure tested with matplotlib's point-in-polygon), never
 through the laws' own algebra."""
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from matplotlib.path import Path as MplPath
 
-from dyn_node.core import force_laws as F
+from dyn_node.core.check import force_laws as F
 
 G0 = 9.81
 GRAVITY = np.array([0.0, 0.0, -G0])

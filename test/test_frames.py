@@ -7,10 +7,10 @@ import pinocchio as pin
 import pytest
 from robots import BRANCHED_URDF
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import InputError, ModelError
-from dyn_node.core.frames import FrameKinematics, FramePoint, root_link
-from dyn_node.core.model import Payload, load_model
+from dyn_node.core.check.frames import FrameKinematics, FramePoint, root_link
+from dyn_node.core.robot.model import Payload, load_model
 from dyn_node.sim.mujoco_model import mujoco_from_model, mujoco_urdf
 
 TOL = 1e-9

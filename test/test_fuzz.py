@@ -23,14 +23,14 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import PLANNING_ERROR, InputError, TrajectoryError
-from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-from dyn_node.core.model import load_model
-from dyn_node.core.monitor import Monitor
-from dyn_node.core.settings import Settings
-from dyn_node.core.status import ERROR, OK, WARN
-from dyn_node.core.trajectory import Trajectory, validate_trajectory
+from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.live.monitor import Monitor
+from dyn_node.core.robot.settings import Settings
+from dyn_node.core.robot.status import ERROR, OK, WARN
+from dyn_node.core.check.trajectory import Trajectory, validate_trajectory
 
 FULL = os.environ.get("DYN_RELIABILITY_FULL") == "1"
 SCALE = 10 if FULL else 1

@@ -162,11 +162,11 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
     from action_msgs.msg import GoalStatus
     from control_msgs.action import FollowJointTrajectory
 
-    from dyn_node.core import feasibility
-    from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-    from dyn_node.core.model import load_model
-    from dyn_node.core.settings import Settings
-    from dyn_node.core.trajectory import validate_trajectory
+    from dyn_node.core.check import feasibility
+    from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.core.robot.settings import Settings
+    from dyn_node.core.check.trajectory import validate_trajectory
 
     clients, probe, *_ = stack
     client = clients["reject"]

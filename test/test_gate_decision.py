@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from dyn_node.core import feasibility
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import load_model
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.check import feasibility
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.check.trajectory import validate_trajectory
 from dyn_node.errors import SettingsError, TrajectoryError
 from dyn_node.gate.decision import FORWARDED, REJECTED, RETIMED, GateOptions, decide, rejected
 
@@ -131,7 +131,7 @@ def test_retime_mode_forwards_a_retimed_trajectory_that_passes_the_check(fast):
 def test_retime_mode_uses_the_nodes_limit_margin(fast):
     """decide_goal passes the node's retime.limit_margin to the retimer: a lower share of each
     limit gives a longer forwarded trajectory (joint 1's speed binds), still passing the check."""
-    from dyn_node.core.settings import settings_from_mapping
+    from dyn_node.core.robot.settings import settings_from_mapping
     from dyn_node.gate.decision import decide_goal
 
     dyn, traj = fast

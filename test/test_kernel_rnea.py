@@ -12,11 +12,12 @@ import pinocchio as pin
 import pytest
 from robots import BRANCHED_URDF, with_friction_urdf
 
-from dyn_node.core import feasibility, kernels, on_demand, task_motion
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-from dyn_node.core.frames import FrameKinematics, FramePoint
-from dyn_node.core.model import Payload, builtin_urdf, load_model
+from dyn_node.core.check import feasibility, on_demand, task_motion
+from dyn_node.core.compiled import rigid_kernels
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.check.frames import FrameKinematics, FramePoint
+from dyn_node.core.robot.model import Payload, builtin_urdf, load_model
 
 TOL = 1e-9
 WRENCH = {"frame": "panda_link8", "force": [3.0, -2.0, 20.0], "torque": [0.4, -0.1, 0.2]}
@@ -121,7 +122,7 @@ def traj(T: float = 1.2, n: int = 6) -> feasibility.Trajectory:
 def _no_pinocchio_pass(monkeypatch) -> list[int]:
     """Count Pinocchio's batched RNEA and the compiled gravity pass."""
     calls = [0]
-    rigid, gravity = Dynamics._rigid_columns, kernels.gravity_rows
+    rigid, gravity = Dynamics._rigid_columns, rigid_kernels.gravity_rows
 
     def counted(f):
         def run(*args, **kwargs):
@@ -130,7 +131,7 @@ def _no_pinocchio_pass(monkeypatch) -> list[int]:
         return run
 
     monkeypatch.setattr(Dynamics, "_rigid_columns", counted(rigid))
-    monkeypatch.setattr(kernels, "gravity_rows", counted(gravity))
+    monkeypatch.setattr(rigid_kernels, "gravity_rows", counted(gravity))
     return calls
 
 

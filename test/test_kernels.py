@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.core import kernels as K
+from dyn_node.core.compiled import kernels as K
+from dyn_node.core.compiled import rigid_kernels
 
 
 def _real_roots(coeffs) -> list[float]:
@@ -131,7 +132,7 @@ def test_rms_windows_match_a_direct_windowed_integral(seed):
 
 
 def test_segment_derivative_is_exact_for_quadratics_and_stays_inside_segments():
-    from dyn_node.core.feasibility import _sample
+    from dyn_node.core.check.feasibility import _sample
     smp = _sample(np.array([0.0, 0.5, 0.53, 1.2]), 0.05, 10_000)   # one segment of one step
     t = smp.t
     # a different quadratic per segment, so a difference across a boundary would show
@@ -156,8 +157,8 @@ def test_gravity_rows_agree_with_pinocchio(name):
     from robots import BRANCHED_URDF
     import pinocchio as pin
 
-    from dyn_node.core.dynamics import gravity_tables
-    from dyn_node.core.model import Payload, load_model
+    from dyn_node.core.robot.dynamics import gravity_tables
+    from dyn_node.core.robot.model import Payload, load_model
 
     if name == "tree":
         model = load_model(urdf=BRANCHED_URDF, payload=Payload(1.5, (0.02, -0.03, 0.05), "f"),
@@ -173,10 +174,10 @@ def test_gravity_rows_agree_with_pinocchio(name):
     tables = gravity_tables(pm)
     assert tables is not None
     out = np.full((len(Q), pm.nv), np.nan)
-    K.gravity_rows(Q, *tables, out)
+    rigid_kernels.gravity_rows(Q, *tables, out)
     data = pm.createData()
     ref = np.array([pin.computeGeneralizedGravity(pm, data, q) for q in Q])
     assert np.abs(ref).max() > 1.0          # the states load every joint
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-11)
     empty = np.empty((0, pm.nv))
-    K.gravity_rows(Q[:0], *tables, empty)    # no state: nothing written, no error
+    rigid_kernels.gravity_rows(Q[:0], *tables, empty)    # no state: nothing written, no error

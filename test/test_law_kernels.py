@@ -1,4 +1,4 @@
-"""The compiled base and grasp laws (dyn_node.core.law_kernels, through force_laws and
+"""The compiled base and grasp laws (dyn_node.core.compiled.law_kernels, through force_laws and
 base_constraints) against the NumPy forms they replace, kept here as the reference: random rows
 and the edge cases (zeros, tangency C = 0, s_max = 0, NaN and inf rows, lift-off N ≤ 0, a centre
 of pressure on an edge, a band blocked by a zero coefficient)."""
@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.core import base_constraints as BC
-from dyn_node.core import force_laws as F
-from dyn_node.core import kernels, law_kernels
+from dyn_node.core.check import base_constraints as BC
+from dyn_node.core.check import force_laws as F
+from dyn_node.core.compiled import kernels, law_kernels
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 SQUARE = F.SupportPolygon.from_ccw(np.array([[-0.3, -0.3], [0.3, -0.3], [0.3, 0.3], [-0.3, 0.3]]))

@@ -9,7 +9,7 @@ torque-speed envelope): the value a limit is compared against does not depend on
 first check with a very loose limit gives the exact peak value; the limit is then set to that
 peak (must be feasible, ratio exactly 1, time_scale ≤ 1) and to the peak·(1 ∓ 1e-9) (must be
 infeasible / feasible). Position is checked on held poses, where the interpolated value equals the
-waypoint bit for bit. The live :class:`~dyn_node.core.monitor.Monitor` is checked the same way with
+waypoint bit for bit. The live :class:`~dyn_node.core.live.monitor.Monitor` is checked the same way with
 single messages.
 """
 from __future__ import annotations
@@ -19,13 +19,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-from dyn_node.core.model import builtin_urdf, load_model
-from dyn_node.core.monitor import EFFORT, LIMITS, Monitor
-from dyn_node.core.settings import Settings
-from dyn_node.core.status import ERROR, OK, WARN
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.robot.model import builtin_urdf, load_model
+from dyn_node.core.live.monitor import EFFORT, LIMITS, Monitor
+from dyn_node.core.robot.settings import Settings
+from dyn_node.core.robot.status import ERROR, OK, WARN
+from dyn_node.core.check.trajectory import validate_trajectory
 
 PLANAR = load_model(builtin="planar_2link")
 NAMES = list(PLANAR.joint_names)
@@ -105,7 +105,7 @@ def test_feasibility_at_and_either_side_of_every_limit_kind(kind, j):
 def test_negative_peaks_use_magnitude():
     """The trajectory's peak |velocity| and |τ| of some joint are negative values; at exactly the
     magnitude they are allowed (|x| ≤ max), so a negative extreme is classified like a positive one."""
-    from dyn_node.core.trajectory import interpolate
+    from dyn_node.core.check.trajectory import interpolate
 
     pp = interpolate(TRAJ, "quintic")
     t = np.linspace(0, 1.0, 2001)

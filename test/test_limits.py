@@ -8,8 +8,8 @@ import pytest
 import yaml
 
 from dyn_node.errors import ModelError
-from dyn_node.core.limits import IGNORED_YAML_KEYS, LIMIT_KINDS, LIMITS_YAML_KEYS, load_limits_yaml
-from dyn_node.core.model import Payload, load_model
+from dyn_node.core.robot.limits import IGNORED_YAML_KEYS, LIMIT_KINDS, LIMITS_YAML_KEYS, load_limits_yaml
+from dyn_node.core.robot.model import Payload, load_model
 
 FULL = """
 joint_limits:

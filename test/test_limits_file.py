@@ -7,12 +7,12 @@ import hashlib
 import pytest
 
 from dyn_node.bag.metadata import LIMITS_SHA256_KEY, limits_record
-from dyn_node.core.limits import load_limits_yaml
-from dyn_node.core.limits_file import limits_sha256, read_limits_file
-from dyn_node.core.model import load_model
-from dyn_node.core.model_source import build_model, limits_text
-from dyn_node.core.settings import Settings
-from dyn_node.core.task_limits import limits_mapping, locate_limits
+from dyn_node.core.robot.limits import load_limits_yaml
+from dyn_node.core.robot.limits_file import limits_sha256, read_limits_file
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.robot.model_source import build_model, limits_text
+from dyn_node.core.robot.settings import Settings
+from dyn_node.core.robot.task_limits import limits_mapping, locate_limits
 from dyn_node.errors import ModelError
 
 CRLF = b"joint_limits:\r\n  joint1: {max_velocity: 1.5}\r\n"

@@ -13,8 +13,8 @@ from test_audit import record_node_run, validated  # noqa: E402
 
 from dyn_node.audit.bag_audit import AuditOptions, model_differences, run_audit
 from dyn_node.bag.recorder import Recorder, RecorderConfig
-from dyn_node.core.model_source import build_model, limits_text
-from dyn_node.core.settings import settings_from_mapping
+from dyn_node.core.robot.model_source import build_model, limits_text
+from dyn_node.core.robot.settings import settings_from_mapping
 
 LIMITS = """\
 joint_limits:
@@ -145,7 +145,7 @@ def test_the_model_is_built_from_one_read_of_the_file(tmp_path, monkeypatch):
                 reads.append(self)
             return _orig(self, *a, **kw)
         monkeypatch.setattr(Path, name, spy)
-    import dyn_node.core.limits_file as limits_file
+    import dyn_node.core.robot.limits_file as limits_file
     orig_read = limits_file.read_bytes
 
     def spy_read(path, *a, **kw):

@@ -7,9 +7,9 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import STATE_ERROR, InputError, ModelError
-from dyn_node.core.model import BUILTIN_MODELS, builtin_urdf, load_model, model_from_source, urdf_hash
+from dyn_node.core.robot.model import BUILTIN_MODELS, builtin_urdf, load_model, model_from_source, urdf_hash
 
 PANDA_ARM = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGERS = ("panda_finger_joint1", "panda_finger_joint2")

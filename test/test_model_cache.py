@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from dyn_node.errors import ModelError
-from dyn_node.core.model import builtin_urdf, load_model
-from dyn_node.core.model_source import ModelCache, build_model, model_cache_key
-from dyn_node.core.settings import settings_from_mapping
+from dyn_node.core.robot.model import builtin_urdf, load_model
+from dyn_node.core.robot.model_source import ModelCache, build_model, model_cache_key
+from dyn_node.core.robot.settings import settings_from_mapping
 
 LIMITS = "joint_limits:\n  joint2:\n    has_effort_limits: true\n    max_effort: {}\n"
 

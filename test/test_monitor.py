@@ -6,16 +6,16 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR, ModelError
-from dyn_node.core.model import load_model
-from dyn_node.core.model_source import build_model
-from dyn_node.core.model_status import model_error_status, model_status, waiting_model_status
-from dyn_node.core.monitor import Monitor
-from dyn_node.core.settings import Settings
-from dyn_node.core.status import ERROR, OK, STALE, WARN
-from dyn_node.core.tracker import ControllerTracker
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.robot.model_source import build_model
+from dyn_node.core.robot.model_status import model_error_status, model_status, waiting_model_status
+from dyn_node.core.live.monitor import Monitor
+from dyn_node.core.robot.settings import Settings
+from dyn_node.core.robot.status import ERROR, OK, STALE, WARN
+from dyn_node.core.live.tracker import ControllerTracker
+from dyn_node.core.check.trajectory import validate_trajectory
 
 PANDA = load_model(builtin="panda")
 PLANAR = load_model(builtin="planar_2link")
@@ -306,7 +306,7 @@ def test_controller_tracker_states():
 
 
 def test_tracker_reference_quintic_matches_interpolation():
-    from dyn_node.core.trajectory import interpolate
+    from dyn_node.core.check.trajectory import interpolate
 
     rng = np.random.default_rng(1)
     P = Q0 + rng.normal(0, 0.1, (4, 7))
@@ -578,8 +578,8 @@ def test_every_kind_of_message_lands_in_exactly_one_count():
 
 def test_every_limit_kind_has_a_unit_for_both_joint_types():
     """The feasibility statuses and the live statuses read units from one table."""
-    from dyn_node.core.limits import LIMIT_KINDS
-    from dyn_node.core.units import LINEAR, ROTARY, unit_key
+    from dyn_node.core.robot.limits import LIMIT_KINDS
+    from dyn_node.core.robot.units import LINEAR, ROTARY, unit_key
 
     for kind in LIMIT_KINDS:
         assert unit_key(ROTARY[kind]) and unit_key(LINEAR[kind])  # KeyError: no unit or no key
@@ -589,7 +589,7 @@ def test_every_limit_kind_has_a_unit_for_both_joint_types():
 def test_feasibility_verdict_and_live_status_give_a_prismatic_joint_the_same_units():
     from robots import BRANCHED_URDF
 
-    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.check.feasibility import check_trajectory
 
     model = load_model(urdf=BRANCHED_URDF)
     names = list(model.joint_names)
@@ -648,7 +648,7 @@ def test_contact_and_collision_rank_below_fault_and_stale_above_saturated():
 def test_contact_state_message_is_the_episode_on_the_stamp_clock():
     """The controller status names the episode as dyn_node: contact does, its duration counted
     on the samples' stamps (here 100 s behind the receipt clock)."""
-    from dyn_node.core.contact import ContactEpisode, JointPeak
+    from dyn_node.core.contacts.contact import ContactEpisode, JointPeak
 
     s = Settings()
     mon, tr = Monitor(PANDA, s), ControllerTracker(PANDA, s)

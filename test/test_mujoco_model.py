@@ -5,8 +5,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-from dyn_node.core.model import Payload, load_model
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.robot.model import Payload, load_model
 from dyn_node.sim.mujoco_model import (INERTIA_EPS, inverse_dynamics, mass_matrix, mujoco_from_model,
                                    mujoco_urdf)
 

@@ -29,9 +29,9 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from conftest import REPO, NodeHarness, Stepper, child_env, js, python_cmd, t_msg, t_s
 from conftest import kv as values
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR
-from dyn_node.core.model import Payload, builtin_urdf, load_model
+from dyn_node.core.robot.model import Payload, builtin_urdf, load_model
 from dyn_node.ros.node import DynNode
 
 PANDA = load_model(builtin="panda")
@@ -284,7 +284,7 @@ def test_byte_fields_converted_once_and_exactly():
     from rclpy.serialization import deserialize_message, serialize_message
 
     from dyn_node.ros.convert import status_to_msg, to_byte
-    from dyn_node.core.status import Status
+    from dyn_node.core.robot.status import Status
 
     for value, want in ((True, 1), (False, 0), (np.bool_(True), 1), (0, 0), (3, 3), (255, 255),
                         (np.uint8(2), 2), (np.int64(7), 7)):
@@ -758,8 +758,8 @@ def test_periodic_outputs_are_written_after_the_joint_states_lock_is_released(mo
     """The diagnostics and controller-status timers hold the joint_states lock only to close
     their period: folding the window, the energy kernel, message conversion and publishing run
     after it, so a joint_states message never waits for them."""
-    from dyn_node.core.contact_monitor import EnergyClose
-    from dyn_node.core.monitor import ClosedWindow
+    from dyn_node.core.contacts.contact_monitor import EnergyClose
+    from dyn_node.core.live.monitor import ClosedWindow
 
     node = _fed_node(module_ros_context, "lock_scope")
     try:

@@ -15,10 +15,10 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from conftest import js, kv, t_msg, t_s
-from dyn_node.core.contact_monitor import ContactMonitor, ContactSettings
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.live_energy import EnergyPeriod
-from dyn_node.core.observer import RESET_GAP, RESET_START
+from dyn_node.core.contacts.contact_monitor import ContactMonitor, ContactSettings
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.contacts.live_energy import EnergyPeriod
+from dyn_node.core.contacts.observer import RESET_GAP, RESET_START
 from dyn_node.errors import CONTROL_ERROR
 from dyn_node.ros.convert import WrenchStampedOut
 from dyn_node.ros.recording import DEFAULT_TOPICS

@@ -15,13 +15,13 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import PLANNING_ERROR
-from dyn_node.core.feasibility import STATUS_NAME, check_trajectory
-from dyn_node.core.model import load_model
+from dyn_node.core.check.feasibility import STATUS_NAME, check_trajectory
+from dyn_node.core.robot.model import load_model
 from dyn_node.ros.node import DynNode
-from dyn_node.core.status import ERROR, OK, WARN, format_value
-from dyn_node.core.trajectory import interpolate, validate_trajectory
+from dyn_node.core.robot.status import ERROR, OK, WARN, format_value
+from dyn_node.core.check.trajectory import interpolate, validate_trajectory
 from conftest import NodeHarness, kv  # noqa: E402
 
 MODEL = load_model(builtin="planar_2link")
@@ -283,7 +283,7 @@ def test_destroy_during_a_check_publishes_nothing_and_raises_nothing(ros_context
 
     from rclpy.serialization import serialize_message
 
-    import dyn_node.core.feasibility as feasibility
+    import dyn_node.core.check.feasibility as feasibility
 
     entered, release = threading.Event(), threading.Event()
     real_check = feasibility.check_trajectory
@@ -318,7 +318,7 @@ def test_start_segment_checked_from_the_last_joint_states(harness):
     """The first point 0.5 s ahead and the robot moving away from it at 2.5 rad/s (its last
     joint_states): the node checks the segment the controller runs from that state, as the
     core does from the same state, and the verdict says so."""
-    from dyn_node.core.feasibility import StartState
+    from dyn_node.core.check.feasibility import StartState
 
     node = harness.node
     # a long stale_timeout: the state must still count when the trajectory arrives under load

@@ -14,12 +14,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import InputError
-from dyn_node.core.model import load_model
-from dyn_node.core.observer import (RESET_BACKWARDS, RESET_INVALID, RESET_STAMP_GAP, RESET_REQUESTED, RESET_START,
-                               MomentumObserver, ObserverOptions, WrenchEstimator, WrenchOptions,
-                               damped_wrench)
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.contacts.observer import (RESET_BACKWARDS, RESET_INVALID, RESET_STAMP_GAP, RESET_REQUESTED, RESET_START,
+                                        MomentumObserver, ObserverOptions, WrenchEstimator, WrenchOptions,
+                                        damped_wrench)
 from dyn_node.sim.simulator import SimConfig, Simulator
 from robots import fast_panda_points, two_link_terms
 

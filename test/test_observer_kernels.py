@@ -6,11 +6,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from dyn_node.core import observer_kernels as ok
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.frames import joint_tables
-from dyn_node.core.model import load_model
-from dyn_node.core.observer import MomentumObserver, ObserverOptions, WrenchEstimate
+from dyn_node.core.compiled import observer_kernels as ok
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.frames import joint_tables
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.contacts.observer import MomentumObserver, ObserverOptions, WrenchEstimate
 from robots import BRANCHED_URDF
 
 ARMATURE = {"joint_limits": {f"panda_joint{i}": {"armature": 0.1 * i} for i in range(1, 8)}}

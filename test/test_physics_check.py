@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dyn_node.audit.evidence import SCHEMA_PATH
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 from dyn_node.ros.sim_node import main as dyn_sim_main
 from dyn_node.sim.physics_check import contact_failures, free_motion_run
 

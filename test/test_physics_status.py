@@ -3,7 +3,7 @@ simulator's own states, its closing on a press with a push, and a diverging step
 from __future__ import annotations
 
 
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 from dyn_node.sim.physics_status import ERROR, OK
 from dyn_node.sim.press import PRESS_SCENE, READY, plan_press
 from dyn_node.sim.simulator import SimConfig, Simulator

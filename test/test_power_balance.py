@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import load_model
-from dyn_node.core.power_balance import PowerBalance, PowerBalanceOptions
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.contacts.power_balance import PowerBalance, PowerBalanceOptions
 from robots import G, L1, L2, M1, M2, two_link_terms
 from test_observer import READY, two_link_motion
 

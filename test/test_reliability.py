@@ -34,8 +34,8 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from conftest import Collected, Spinner, js, kv, python_cmd, t_msg, t_s
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-from dyn_node.core.model import builtin_urdf, load_model
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.robot.model import builtin_urdf, load_model
 from dyn_node.ros.node import DynNode
 from dyn_node.ros.convert import RawTrajectory, encode_joint_trajectory_cdr
 

@@ -90,7 +90,7 @@ def test_report_for_a_clean_bag_and_a_trajectory_only_bag(tmp_path):
 
 
 def test_report_says_when_the_recheck_is_not_comparable(tmp_path):
-    from dyn_node.core.model import builtin_urdf
+    from dyn_node.core.robot.model import builtin_urdf
 
     bag = make_bag(tmp_path / "bag", n=200, outputs=True)
     urdf = tmp_path / "panda.urdf"

@@ -10,10 +10,10 @@ from scipy.interpolate import BPoly, CubicSpline
 from scipy.spatial import cKDTree
 
 from benchmarks.mujoco_ref import MujocoInverse
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-from dyn_node.core.model import load_model
-from dyn_node.core.trajectory import Trajectory
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.check.trajectory import Trajectory
 from dyn_node.errors import TrajectoryError
 from dyn_node.retime import RetimeResult, retime
 
@@ -261,7 +261,7 @@ def test_stops_and_reversals_are_retimed_by_pieces() -> None:
 def test_start_state_at_rest_and_moving() -> None:
     """First point 0.5 s ahead: from a state at rest the answer starts at the robot's position;
     from a moving state only the uniform stretch is tried, checked with its start segment."""
-    from dyn_node.core.feasibility import StartState
+    from dyn_node.core.check.feasibility import StartState
 
     dyn = ur5()
     traj = Trajectory(times=np.array([0.5, 1.1, 1.7, 2.3]), positions=UR5_WAYPOINTS.copy())

@@ -50,9 +50,9 @@ def test_frame_speed_bounds_the_lower_bound() -> None:
     import toppra as ta
     import toppra.constraint as tc
 
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.feasibility import check_trajectory
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.check.feasibility import check_trajectory
+    from dyn_node.core.robot.model import load_model
     from dyn_node.retime import retime
     from test_retime import LINE, ONE_JOINT
 
@@ -82,9 +82,9 @@ def test_frame_speed_bounds_the_lower_bound() -> None:
 def test_kinetic_energy_bounds_the_lower_bound() -> None:
     """Robot kinetic energy ≤ 0.025 J on the one joint (I = izz + m·r² = 0.02 + 2·0.3² =
     0.2 kg·m² about its axis): q̇ ≤ √(2E/I) = 0.5 rad/s, so T* is again 4.25 s."""
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.feasibility import check_trajectory
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.check.feasibility import check_trajectory
+    from dyn_node.core.robot.model import load_model
     from dyn_node.retime import retime
     from test_retime import LINE, ONE_JOINT
 
@@ -104,9 +104,9 @@ def test_task_wrench_torque_in_the_effort_rows() -> None:
     kg·m²): |q̈| ≤ (1 ∓ 0.5)/0.2 = 2.5 one way and 7.5 the other, so rest to rest over 2 rad
     at 1 rad/s takes D/v + v/(2·2.5) + v/(2·7.5) = 2.2667 s whichever way the torque points
     (without it 2 + 2·1/(2·5) = 2.2 s)."""
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.feasibility import check_trajectory
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.check.feasibility import check_trajectory
+    from dyn_node.core.robot.model import load_model
     from dyn_node.retime import retime
     from test_retime import LINE, ONE_JOINT
 

@@ -142,7 +142,7 @@ def test_1khz_joint_states_recorded_exactly(ros_context, tmp_path):
     from mcap.reader import make_reader
     from rosbags.rosbag2 import Reader as Rosbag2Reader
 
-    from dyn_node.core.status import OK
+    from dyn_node.core.robot.status import OK
 
     topics = ["joint_states", "robot_description", "~/gravity_torque", "/diagnostics"]
     # The output is recorded from the node's publish path (add_publisher/record), the inputs
@@ -472,7 +472,7 @@ def test_sigterm_closes_bag_cleanly(spawn, tmp_path):
 
 @pytest.mark.timeout(60)
 def test_full_disk_reports_error_host_keeps_publishing(ros_context, tmp_path):
-    from dyn_node.core.status import ERROR
+    from dyn_node.core.robot.status import ERROR
 
     disks: list[FullDisk] = []
     rig = Rig(ros_context, str(tmp_path), ["joint_states", "~/gravity_torque"],

@@ -5,11 +5,11 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import EVALUATION_ERROR
-from dyn_node.core.model import load_model
-from dyn_node.core.selftest import run_self_test
-from dyn_node.core.status import ERROR, OK, WARN
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.robot.selftest import run_self_test
+from dyn_node.core.robot.status import ERROR, OK, WARN
 
 
 @pytest.mark.parametrize("name", ["panda", "ur5", "planar_2link"])

@@ -197,9 +197,9 @@ def test_a_tampered_answer_is_caught(bag):
     one torque) is no longer identical to the re-answer, the others still are."""
     from dyn_node.audit.replay.services import RESPONSE_SENT, ServiceReplay, service_role
     from dyn_node.bag.reader import BagReader, MessageDecoder
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.model import load_model
-    from dyn_node.core.settings import Settings
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.core.robot.settings import Settings
 
     class Tampering(MessageDecoder):
         def __init__(self, field: str):

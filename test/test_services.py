@@ -26,14 +26,14 @@ from trajectory_msgs.msg import JointTrajectory
 from conftest import REPO, ChildProcess, Collected, Spinner, child_env, kv, python_cmd
 from service_event_counts import question_counts
 from dyn_node.audit import check as check_cli
-from dyn_node.core import feasibility, on_demand
+from dyn_node.core.check import feasibility, on_demand
 from dyn_node.ros.client import (BlockingCallError, DynClient, NotRunningError, RequestRejected, Verdict,
                                  states_message, trajectory_message)
 from dyn_node.ros.convert import status_to_msg
 from dyn_node.ros.demo import READY, demo_trajectories
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import load_model
-from dyn_node.core.settings import Settings
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.robot.settings import Settings
 from dyn_node.audit.trajectory_files import read_trajectory
 
 MODEL = load_model(builtin="panda")

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from dyn_node.errors import SettingsError
-from dyn_node.core.settings import PARAMETERS, Settings, parse_locked_joints, settings_from_mapping
+from dyn_node.core.robot.settings import PARAMETERS, Settings, parse_locked_joints, settings_from_mapping
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "dyn_node.yaml"
 

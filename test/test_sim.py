@@ -6,9 +6,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import TrajectoryError
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 from dyn_node.sim.scene import SolverSettings
 from dyn_node.sim.simulator import SimConfig, Simulator
 

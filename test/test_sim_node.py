@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from conftest import Stepper, python_cmd
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import builtin_urdf, load_model
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import builtin_urdf, load_model
 
 READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
 ARM = [f"panda_joint{i}" for i in range(1, 8)]

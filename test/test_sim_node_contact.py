@@ -11,7 +11,7 @@ import pytest
 from conftest import kv
 from test_sim_node import ARM, READY, sim_cmd, spin_until
 
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 from dyn_node.sim.press import PRESS_SCENE, plan_press
 from dyn_node.sim.simulator import SimConfig, Simulator
 

@@ -11,7 +11,7 @@ import pytest
 from robots import fast_panda_points
 
 from dyn_node.errors import InputError
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 from dyn_node.sim.mujoco_model import mujoco_urdf
 from dyn_node.sim.scene import INTEGRATORS, SolverSettings
 from dyn_node.sim.simulator import SimConfig, Simulator, body_wrench, link_mount
@@ -215,8 +215,8 @@ def test_no_false_contact_through_the_contact_monitor_over_a_fast_trajectory(pan
     points interpolated linearly (velocity steps, torques saturating): the node's own
     ContactMonitor (default thresholds) never leaves ``none`` and records no episode, while
     estimating at every sample."""
-    from dyn_node.core.contact_monitor import ContactMonitor, ContactSettings
-    from dyn_node.core.dynamics import Dynamics
+    from dyn_node.core.contacts.contact_monitor import ContactMonitor, ContactSettings
+    from dyn_node.core.robot.dynamics import Dynamics
 
     times, pos = fast_panda_points(panda.limits, READY)
     for mode in ("quintic", "linear"):

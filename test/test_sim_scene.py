@@ -11,8 +11,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from dyn_node.core.model import load_model
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.sim.press import PRESS_SCENE, READY, plan_press, static_balance
 from dyn_node.sim.scene import SceneError, SolverSettings, load_scene, parse_scene
 from dyn_node.sim.simulator import SimConfig, Simulator

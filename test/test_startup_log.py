@@ -15,7 +15,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from conftest import Collected, Spinner, js
-from dyn_node.core.model import builtin_urdf
+from dyn_node.core.robot.model import builtin_urdf
 from dyn_node.ros.node import DynNode
 
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
@@ -121,7 +121,7 @@ def test_topic_path_with_recording_on(module_ros_context, tmp_path):
 @pytest.mark.parametrize("n_joints", [3, 20])
 def test_joint_list_is_capped(n_joints):
     """A long joint list is shortened (12 names, then the count of the rest)."""
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.model import load_model
     from dyn_node.ros.startup_log import model_ready_line
 
     links = "".join(f"<link name='l{i}'><inertial><mass value='1'/><inertia ixx='0.1' ixy='0' "

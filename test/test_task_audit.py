@@ -20,7 +20,7 @@ from dyn_node.audit.evidence import (EvidenceError, per_frame_curves, per_frame_
                                      task_limits_section, validate)
 from dyn_node.audit.replay.common import worst_status_difference  # noqa: E402
 from dyn_node.audit.report import render_html, task_plot, task_rows  # noqa: E402
-from dyn_node.core.model import load_model  # noqa: E402
+from dyn_node.core.robot.model import load_model  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_LIMITS = REPO / "config" / "demo_task_limits.yaml"
@@ -151,9 +151,9 @@ PLACE_UNITS = {"panda_link8": {"frame_speed": "m/s", "transferred_energy": "J"},
 def test_place_statuses_carry_each_configured_kinds_unit(models):
     """``<kind>_unit`` beside ``<kind>_peak``/``<kind>_limit``: the kind class's unit, for every
     configured kind of every place, and none for a kind the place does not configure."""
-    from dyn_node.core.dynamics import Dynamics
-    from dyn_node.core.feasibility import Trajectory, check_trajectory
-    from dyn_node.core.kinds import KIND_CLASS
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.check.feasibility import Trajectory, check_trajectory
+    from dyn_node.core.check.kinds import KIND_CLASS
 
     t = np.linspace(0.0, 1.0, 9)
     home = np.array([0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8])
@@ -254,9 +254,9 @@ def _verdict(model, msg, drop: str = ""):
     """The node's ~/feasibility array for ``msg`` (same core), without the ``drop`` status."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-    from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-    from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-    from dyn_node.core.trajectory import validate_trajectory
+    from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+    from dyn_node.core.check.trajectory import validate_trajectory
 
     pts = msg.points
     traj = validate_trajectory(model.joint_names, list(msg.joint_names),

@@ -11,12 +11,12 @@ import pinocchio as pin
 import pytest
 from test_frames import _mujoco_sites
 
-from dyn_node.core import feasibility, on_demand
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-from dyn_node.core.frames import FramePoint
-from dyn_node.core.model import Payload, load_model
-from dyn_node.core.task_constraints import KineticEnergy, TransferredEnergy
+from dyn_node.core.check import feasibility, on_demand
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.check.frames import FramePoint
+from dyn_node.core.robot.model import Payload, load_model
+from dyn_node.core.check.task_constraints import KineticEnergy, TransferredEnergy
 from dyn_node.errors import ModelError
 from dyn_node.sim.mujoco_model import mujoco_from_model
 
@@ -99,8 +99,9 @@ def test_sample_values_match_mujoco_and_the_peaks_are_theirs():
         mujoco.mj_objectAcceleration(mj, d, mujoco.mjtObj.mjOBJ_SITE, site, res, 0)
         ref[i, 2] = np.linalg.norm(res[3:] + g)
     kinds = ("frame_speed", "frame_angular_speed", "frame_acceleration")
-    from dyn_node.core import constraints
-    built = {c.kind: c for c in constraints.build(m)}
+    from dyn_node.core.check import constraints
+    from dyn_node.core.check.kinds import KINDS
+    built = {c.kind: c for c in constraints.build(m, KINDS)}
     got = np.column_stack([built[k].value[rows, 0] for k in (*kinds, "kinetic_energy")])
     np.testing.assert_allclose(got, ref, rtol=0, atol=TOL)
     assert ref.min(axis=0)[0] < 1e-6 < ref.max(axis=0).min()   # rest at the ends, moving between
@@ -118,8 +119,9 @@ def test_sample_values_match_finite_differences_of_forward_kinematics():
     differences), ω from the rotation's derivative; m_u from a dense solve."""
     model = panda(ALL)
     m = motion(model, traj())
-    from dyn_node.core import constraints
-    built = {c.kind: c for c in constraints.build(m)}
+    from dyn_node.core.check import constraints
+    from dyn_node.core.check.kinds import KINDS
+    built = {c.kind: c for c in constraints.build(m, KINDS)}
     pm = model.pin_model.copy()
     data = pm.createData()
     fid = pm.getFrameId("panda_link8")

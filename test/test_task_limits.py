@@ -1,4 +1,4 @@
-"""Task-space limits configuration (dyn_node.core.task_limits): the issue's YAML parses into the typed
+"""Task-space limits configuration (dyn_node.core.robot.task_limits): the issue's YAML parses into the typed
 sections, and bad configuration is rejected with a message naming what and where."""
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ import pytest
 import yaml
 
 from dyn_node.errors import ModelError
-from dyn_node.core.model import load_model
-from dyn_node.core.task_limits import (
-    LIMITS_FILE_KEYS, UNUSED_TOP_LEVEL_KEYS, check_tipping_gravity, did_you_mean,
-    limits_mapping, parse_task_limits, support_polygon)
+from dyn_node.core.robot.model import load_model
+from dyn_node.core.robot.task_limits import (
+          LIMITS_FILE_KEYS, UNUSED_TOP_LEVEL_KEYS, check_tipping_gravity, did_you_mean,
+          limits_mapping, parse_task_limits, support_polygon)
 
 SRC = "config/limits.yaml"
 
@@ -373,7 +373,7 @@ def test_the_model_refuses_tipping_under_tilted_gravity(tmp_path):
 def test_every_base_and_grasp_key_and_kind_is_in_the_limits_page():
     from pathlib import Path
 
-    from dyn_node.core.task_limits import BASE_LIMIT_KEYS, GRASP_KEYS
+    from dyn_node.core.robot.task_limits import BASE_LIMIT_KEYS, GRASP_KEYS
 
     page = (Path(__file__).resolve().parents[1] / "docs" / "limits.md").read_text()
     for section, keys in (("base_limits", BASE_LIMIT_KEYS), ("grasp", GRASP_KEYS)):

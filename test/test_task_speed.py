@@ -8,11 +8,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from dyn_node.core import feasibility, task_motion
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
-from dyn_node.core.frames import FrameKinematics, FramePoint
-from dyn_node.core.model import Payload, load_model
+from dyn_node.core.check import feasibility, task_motion
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.check.frames import FrameKinematics, FramePoint
+from dyn_node.core.robot.model import Payload, load_model
 
 TOL = 1e-9
 PAYLOAD = Payload(1.5, (0.01, -0.02, 0.08), "panda_hand")
@@ -122,7 +122,7 @@ def test_frame_kernel_beside_the_rnea_gives_the_same_result(margin):
 def test_bin_peaks_is_each_bins_first_sample_at_its_largest_magnitude():
     """The task curves' bins: against a plain loop, with ties, NaN (counted as inf), signs and
     bins of unequal length."""
-    from dyn_node.core import kernels
+    from dyn_node.core.compiled import kernels
 
     rng = np.random.default_rng(7)
     val = np.round(rng.normal(size=(103, 3)), 1)         # rounding: many ties

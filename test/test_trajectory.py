@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dyn_node.errors import PLANNING_ERROR, TrajectoryError
-from dyn_node.core.trajectory import Trajectory, clamped_spline_velocities, interpolate, validate_trajectory
+from dyn_node.core.check.trajectory import Trajectory, clamped_spline_velocities, interpolate, validate_trajectory
 
 J = ("a", "b", "c")
 
@@ -217,7 +217,7 @@ def test_from_current_state_prepends_the_measured_state_as_the_controller_does(m
     """joint_trajectory_controller starts from the current state (measured q, q̇, q̈ = 0) at
     t = 0 and reaches the first point at its time_from_start, interpolating by what the points
     give; the points after the first move exactly as without the start state."""
-    from dyn_node.core.trajectory import from_current_state
+    from dyn_node.core.check.trajectory import from_current_state
 
     t = np.array([0.4, 1.0, 1.7])
     P = np.array([[0.2, -0.1, 0.5], [0.6, 0.3, 0.1], [0.9, 0.0, -0.2]])

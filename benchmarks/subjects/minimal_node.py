@@ -16,7 +16,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from dyn_node.core.model import load_model
+from dyn_node.core.robot.model import load_model
 
 
 class MinimalNode(Node):

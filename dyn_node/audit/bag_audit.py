@@ -26,7 +26,7 @@ from dyn_node.audit.replay.recheck import RecheckResult, Rechecker  # noqa: F401
 from dyn_node.audit.replay.roles import ROLE_FEAS, ROLE_GRAVITY, ROLE_ID, ROLE_JOINT_STATES, Roles  # noqa: F401
 from dyn_node.audit.replay.stats import Episodes, Histogram, LiveStats  # noqa: F401
 from dyn_node.audit.sections import add_verdict, build_evidence  # noqa: F401
-from dyn_node.core.allocator import retain_freed_memory
+from dyn_node.core.live.allocator import retain_freed_memory
 
 
 def build_parser() -> argparse.ArgumentParser:

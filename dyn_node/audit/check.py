@@ -1,7 +1,7 @@
 """dyn-check: check trajectory files with no ROS graph, through the node's own core.
 
 Each file (see :mod:`dyn_node.audit.trajectory_files`) is checked exactly as dyn_node checks a
-trajectory it receives (:func:`dyn_node.core.on_demand.check`); one verdict line per file. Options,
+trajectory it receives (:func:`dyn_node.core.check.on_demand.check`); one verdict line per file. Options,
 ``--retime`` and exit codes: docs/dyn-check.md. No rclpy import: this runs in a
 CI job without ROS.
 """
@@ -20,7 +20,7 @@ from dyn_node.audit.accounting import CHECK, RequestTally
 from dyn_node.errors import CheckError, DynNodeError, PLANNING_ERROR, STATE_ERROR, TrajectoryFileError
 from dyn_node.audit.exit_codes import EXIT_UNUSABLE, MEANINGS, exit_code
 from dyn_node.audit.trajectory_files import TrajectoryFile, format_trajectory, parse_trajectory, read_trajectory
-from dyn_node.core.limits_file import MAX_LIMITS_BYTES
+from dyn_node.core.robot.limits_file import MAX_LIMITS_BYTES
 from dyn_node.io.files import FileProblem, read_text
 from dyn_node.io.text import escape
 
@@ -35,7 +35,7 @@ RETIME_MARGIN = 0.01
 
 @dataclass(frozen=True)
 class FileVerdict:
-    """One file's outcome: ``outcome`` is an :class:`~dyn_node.core.on_demand.CheckOutcome`, or None
+    """One file's outcome: ``outcome`` is an :class:`~dyn_node.core.check.on_demand.CheckOutcome`, or None
     with ``error`` set when the file could not be read."""
 
     path: str
@@ -64,7 +64,7 @@ class Checker:
     overrides: dict
 
     def check(self, tf: TrajectoryFile) -> Any:
-        from dyn_node.core import on_demand
+        from dyn_node.core.check import on_demand
 
         return on_demand.check(self.dynamics, self.settings, tf.joint_names, tf.times, tf.positions,
                                tf.velocities, tf.accelerations)
@@ -74,9 +74,9 @@ def make_checker(*, robot_model: str = "", robot_description: str = "", limits: 
                  params_file: str = "") -> Checker:
     """Build the model and settings; raises :class:`CheckError` when there is no usable model."""
     from dyn_node.audit.replay.config import parameters_from_yaml
-    from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-    from dyn_node.core.model_source import build_model
-    from dyn_node.core.settings import SPECS, settings_from_mapping
+    from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.core.robot.model_source import build_model
+    from dyn_node.core.robot.settings import SPECS, settings_from_mapping
 
     values: dict[str, Any] = {}
     overrides: dict[str, str] = {}
@@ -171,7 +171,7 @@ def place_lines(v: FileVerdict) -> list[str]:
 def evidence_record(checker: Checker, v: FileVerdict, started_utc: str) -> dict:
     """The file's EvidenceRecord (kind ``check``), shaped like the audit's so its report renders."""
     from dyn_node.audit.evidence import EvidenceRecord, task_limits_key, utc_now
-    from dyn_node.core.units import joint_units
+    from dyn_node.core.robot.units import joint_units
 
     model = checker.model
     rec = EvidenceRecord(kind="check", tool="dyn-check")

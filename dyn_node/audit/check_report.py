@@ -44,8 +44,8 @@ class Curves:
 def sample_curves(traj: Any, result: Any, dynamics: Any, *, points: int = PLOT_POINTS) -> Curves:
     """q, q̇, q̈, q⃛ of the interpolation the check used, on a uniform grid plus the waypoints,
     and the torque there as the check computes it (:func:`on_demand.inverse_dynamics`)."""
-    from dyn_node.core import on_demand
-    from dyn_node.core.trajectory import interpolate
+    from dyn_node.core.check import on_demand
+    from dyn_node.core.check.trajectory import interpolate
 
     pp = interpolate(traj, result.interpolation or None)
     t = np.union1d(np.linspace(float(traj.times[0]), float(traj.times[-1]), points), traj.times)
@@ -76,7 +76,7 @@ def trajectory_plot(curves: Curves, model: Any, violations: Sequence[Any], *, ti
     """One row per joint, one column per quantity: the curve (blue), its limits (red dashed),
     the time it is over them shaded (for kinds with no line of their own, such as the effort rate,
     the violation's span) and each violation's peak marked × on the curve."""
-    from dyn_node.core.units import joint_units
+    from dyn_node.core.robot.units import joint_units
 
     names, units = list(model.joint_names), joint_units(model)
     nv, ncol = len(names), len(QUANTITIES)

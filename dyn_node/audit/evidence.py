@@ -20,8 +20,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from dyn_node import __version__
-from dyn_node.core.kinds import KINDS
-from dyn_node.core.task_motion import configured
+from dyn_node.core.check.kinds import KINDS
+from dyn_node.core.check.task_motion import configured
 from dyn_node.errors import FAILURE_LABELS, EVALUATION_ERROR, DynNodeError
 
 SCHEMA_PATH = Path(__file__).resolve().parents[1] / "schemas" / "evidence_record.schema.json"

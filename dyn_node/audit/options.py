@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 from dyn_node.errors import STATE_ERROR, DynNodeError
 
 if TYPE_CHECKING:
-    from dyn_node.core.model_source import ModelCache
+    from dyn_node.core.robot.model_source import ModelCache
 
 
 class AuditError(DynNodeError):

@@ -512,7 +512,7 @@ def write_report(record: dict, series, model, out_dir: str | Path, *, contact_se
         images["utilisation.png"] = utilisation_plot(series, names, start_ns)
     contact = record["outputs"].get("contact")
     if contact and contact_series is not None and contact_series.n:
-        from dyn_node.core.units import joint_units
+        from dyn_node.core.robot.units import joint_units
 
         images["contact.png"] = contact_plot(contact_series, names, start_ns, contact["contact_level"],
                                              contact["episodes"], joint_units(model)["effort"])

@@ -32,7 +32,7 @@ class OptimalRetimed:
 def retime_file(checker: Any, v: Any, dest: Path) -> OptimalRetimed:
     """Retime ``v`` (a :class:`dyn_node.audit.check.FileVerdict`) and write it to ``dest`` when
     the re-check of the written text passes."""
-    from dyn_node.core.on_demand import options_for
+    from dyn_node.core.check.on_demand import options_for
     from dyn_node.retime import retime
 
     tf = v.trajectory
@@ -77,7 +77,7 @@ def _figures(res: Any) -> str:
 def _model_trajectory(checker: Any, v: Any):
     """The checked trajectory (model order), or for untimed waypoints their positions in model
     order with all times zero."""
-    from dyn_node.core.trajectory import Trajectory, check_joint_names
+    from dyn_node.core.check.trajectory import Trajectory, check_joint_names
 
     if v.outcome is not None and v.outcome.trajectory is not None:
         return v.outcome.trajectory

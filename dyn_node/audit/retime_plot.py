@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from dyn_node.core.start_segment import stretched
-from dyn_node.core.trajectory import Trajectory, interpolate
+from dyn_node.core.check.start_segment import stretched
+from dyn_node.core.check.trajectory import Trajectory, interpolate
 
 
 def profile(dynamics: Any, traj: Trajectory, n: int = 1500) -> tuple[np.ndarray, ...]:

@@ -20,7 +20,7 @@ from dyn_node.audit.replay.recheck import RecheckResult
 from dyn_node.audit.replay.roles import Roles
 from dyn_node.audit.replay.stats import Episodes, LiveStats
 from dyn_node.bag.reader import BagReader
-from dyn_node.core.units import joint_units
+from dyn_node.core.robot.units import joint_units
 from dyn_node.errors import CONTROL_ERROR, EVALUATION_ERROR, STATE_ERROR
 
 

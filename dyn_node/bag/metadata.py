@@ -13,7 +13,7 @@ import yaml
 
 from dyn_node.errors import RecordingError
 from dyn_node.bag.msgdefs import type_description_hash
-from dyn_node.core.limits_file import limits_sha256
+from dyn_node.core.robot.limits_file import limits_sha256
 
 ROSBAG2_VERSION = 9
 ROS_DISTRO = "jazzy"

@@ -34,7 +34,7 @@ from dyn_node.fleet.rows import (CRASHED, JOINT_COLUMNS, LIVE_KINDS, OK, PARTIAL
                                  row_from_record, trajectories_line)
 
 if TYPE_CHECKING:
-    from dyn_node.core.model_source import ModelCache
+    from dyn_node.core.robot.model_source import ModelCache
 
 STATE_FILE = "fleet_row.json"
 #: One BLAS / Numba / OpenMP thread per worker: the workers are the parallelism.
@@ -172,7 +172,7 @@ def worker_model_cache() -> "ModelCache":
     bag of a robot reuses the model the first one built."""
     global _MODEL_CACHE
     if _MODEL_CACHE is None:
-        from dyn_node.core.model_source import ModelCache
+        from dyn_node.core.robot.model_source import ModelCache
 
         _MODEL_CACHE = ModelCache(MODEL_CACHE_SIZE)
     return _MODEL_CACHE

@@ -13,7 +13,7 @@ from typing import Any
 from dyn_node.audit.accounting import counts_of, is_executed
 from dyn_node.audit.replay.stats import LiveStats
 from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS
-from dyn_node.core.limits import LIMIT_KINDS
+from dyn_node.core.robot.limits import LIMIT_KINDS
 
 #: Bumped when a row's content changes meaning: --resume then re-audits every bag.
 ROW_FORMAT = 2  # 2: trajectories and worst-of are of executed trajectories; questions apart

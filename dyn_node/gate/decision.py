@@ -16,9 +16,9 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from dyn_node.core import feasibility
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.trajectory import Trajectory, validate_trajectory
+from dyn_node.core.check import feasibility
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.trajectory import Trajectory, validate_trajectory
 from dyn_node.errors import SettingsError, TrajectoryError
 
 MODES = ("reject", "retime", "check")

@@ -1,7 +1,7 @@
 """The geometric path a retiming follows, and the input checks at the boundary.
 
 A timed trajectory's path is the curve the feasibility check interpolates for it (its natural
-interpolation, :func:`dyn_node.core.trajectory.interpolate`), parameterised by its own time s.
+interpolation, :func:`dyn_node.core.check.trajectory.interpolate`), parameterised by its own time s.
 Untimed waypoints (every ``time_from_start`` zero) get the C² cubic spline through them with
 zero velocity at both ends, parameterised by the cumulative chord length (the ∞-norm of each
 step: rad or m), which is the same spline the check assumes for a positions-only trajectory.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dyn_node.core.trajectory import PiecewisePolynomial, Trajectory, interpolate
+from dyn_node.core.check.trajectory import PiecewisePolynomial, Trajectory, interpolate
 from dyn_node.errors import TrajectoryError
 
 

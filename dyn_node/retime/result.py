@@ -5,8 +5,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from dyn_node.core.feasibility import FeasibilityResult
-from dyn_node.core.trajectory import Trajectory
+from dyn_node.core.check.feasibility import FeasibilityResult
+from dyn_node.core.check.trajectory import Trajectory
 
 
 @dataclass(frozen=True)

@@ -16,11 +16,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.feasibility import (FeasibilityOptions, FeasibilityResult, StartState,
-                                       check_trajectory)
-from dyn_node.core.kinds import KIND_CLASS
-from dyn_node.core.trajectory import Trajectory, from_current_state
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.feasibility import (FeasibilityOptions, FeasibilityResult, StartState,
+                                             check_trajectory)
+from dyn_node.core.check.kinds import KIND_CLASS
+from dyn_node.core.check.trajectory import Trajectory, from_current_state
 from dyn_node.errors import TrajectoryError
 from dyn_node.retime import timing, topp
 from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
@@ -59,7 +59,7 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
            grid_points: int = 1000, point_period: float = 0.004, max_rounds: int = 30,
            limit_margin: float = 0.995, uniform_fallback: bool = True) -> RetimeResult:
     """The fastest trajectory along ``traj``'s path (model order) that passes
-    :func:`~dyn_node.core.feasibility.check_trajectory` with ``feasibility``; see the module
+    :func:`~dyn_node.core.check.feasibility.check_trajectory` with ``feasibility``; see the module
     docstring and docs/retime.md. ``start``: the robot's state when the first point lies ahead
     (t0 > 0): the path then starts from it. Raises :class:`TrajectoryError` for input no
     retiming can take (fewer than 2 points, non-finite values, bad times).
@@ -273,7 +273,7 @@ def _uniform(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
     """The input stretched by the check's time scale (× 1.001, then 1.01 when the resampled
     points miss by rounding), checked; with a moving start state the input's own points
     stretched (the controller interpolates the segment from that state)."""
-    from dyn_node.core.start_segment import stretched
+    from dyn_node.core.check.start_segment import stretched
 
     k = max(k, 1e-9) if k > 0 else 1.0
     for pad in (_UNIFORM_PAD, 1.01):

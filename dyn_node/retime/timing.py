@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dyn_node.core.trajectory import Trajectory, interpolate
+from dyn_node.core.check.trajectory import Trajectory, interpolate
 from dyn_node.retime.path import Path, evaluate
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.retime.path import Path
 
 
@@ -47,7 +47,7 @@ class Terms:
 
 
 def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
-    from dyn_node.core import task_motion
+    from dyn_node.core.check import task_motion
 
     q, d1, d2 = path.derivatives(grid)
     # the check's own frame pass at q̇ = q', q̈ = 0 (None without task limits)
@@ -68,7 +68,7 @@ def _frame_speeds(tl, task) -> tuple:
     """The first-order task kinds per unit ṡ, from the frame pass at q̇ = q', q̈ = 0:
     (value, limit, p) with the bound x ≤ (limit/value)^p: frame speeds (|J q'|, p = 2) and the
     robot's kinetic energy (½ q'ᵀM q', p = 1)."""
-    from dyn_node.core import task_motion
+    from dyn_node.core.check import task_motion
 
     entries = [(f, key) for f in tl.frame_limits
                for key in ("max_linear_speed", "max_angular_speed")

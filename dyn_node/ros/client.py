@@ -24,8 +24,8 @@ from rclpy.node import Node
 from rclpy.task import Future
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from dyn_node.core.limits import LIMIT_KINDS
-from dyn_node.core.status import ERROR, NAME_PREFIX
+from dyn_node.core.robot.limits import LIMIT_KINDS
+from dyn_node.core.robot.status import ERROR, NAME_PREFIX
 
 STATUS_NAME = NAME_PREFIX + "trajectory feasibility"  # feasibility.STATUS_NAME, without its imports
 

@@ -1,7 +1,7 @@
 """Conversions between ROS messages and dyn_node's plain values (the only place that knows both).
 
 Stamps become float seconds; sequences stay as the message's ``array.array('d')`` (NumPy reads them
-without copying element by element); :class:`~dyn_node.core.status.Status` maps one-to-one onto
+without copying element by element); :class:`~dyn_node.core.robot.status.Status` maps one-to-one onto
 ``diagnostic_msgs/DiagnosticStatus`` (level as the byte diagnostic_msgs defines).
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from dyn_node.bag.cdr import decode_joint_state
-from dyn_node.core.status import Status
+from dyn_node.core.robot.status import Status
 
 
 def stamp_to_s(stamp: Time) -> float:
@@ -344,7 +344,7 @@ def verdict_array(statuses: Sequence[Status], stamp: Time, frame_id: str, reques
     """A ``~/feasibility`` verdict: the statuses under the request's whole header (stamp and
     frame_id, so a client can match answers to tagged requests), and the key ``request``
     (``execute``, ``check`` or ``inverse_dynamics``) in the summary status."""
-    from dyn_node.core.on_demand import with_request
+    from dyn_node.core.check.on_demand import with_request
 
     out = diagnostic_array(with_request(statuses, request), stamp)
     out.header.frame_id = frame_id

@@ -40,10 +40,10 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectoryPoint
 
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-from dyn_node.core.settings import ParamSpec
-from dyn_node.core.status import ERROR, NAME_PREFIX, OK, WARN, Status
-from dyn_node.core.trajectory import Trajectory
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.robot.settings import ParamSpec
+from dyn_node.core.robot.status import ERROR, NAME_PREFIX, OK, WARN, Status
+from dyn_node.core.check.trajectory import Trajectory
 from dyn_node.errors import PLANNING_ERROR, STATE_ERROR, TrajectoryError
 from dyn_node.gate.decision import (FORWARDED, REJECTED, RETIMED, Decision, GateOptions, decide_goal, goal_dict,
                                     rejected, start_dict)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
-#: ParameterType of each kind name :class:`dyn_node.core.settings.ParamSpec` uses.
+#: ParameterType of each kind name :class:`dyn_node.core.robot.settings.ParamSpec` uses.
 KINDS = {"string": ParameterType.PARAMETER_STRING, "double": ParameterType.PARAMETER_DOUBLE,
          "integer": ParameterType.PARAMETER_INTEGER, "bool": ParameterType.PARAMETER_BOOL,
          "double_array": ParameterType.PARAMETER_DOUBLE_ARRAY}

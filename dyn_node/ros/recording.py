@@ -26,7 +26,7 @@ from dyn_node.bag.writer import COMPRESSIONS
 from dyn_node.bag.msgdefs import has_header_first
 from dyn_node.bag.recorder import HEADER_STAMP, Recorder, RecorderConfig, RecorderStats
 from dyn_node.ros.params import parameter_descriptor
-from dyn_node.core.status import ERROR, NAME_PREFIX, OK, WARN, Status
+from dyn_node.core.robot.status import ERROR, NAME_PREFIX, OK, WARN, Status
 
 STATUS_NAME = NAME_PREFIX + "recorder"
 # the question services' introspection events: each request and response with contents

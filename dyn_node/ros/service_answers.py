@@ -1,7 +1,7 @@
 """The answers of dyn_node's question services, as messages: request in, response filled.
 
 The numbers come from the same core functions ``dyn-check`` and the audit use
-(:func:`dyn_node.core.on_demand.check`, :func:`~dyn_node.core.on_demand.inverse_dynamics`, the
+(:func:`dyn_node.core.check.on_demand.check`, :func:`~dyn_node.core.check.on_demand.inverse_dynamics`, the
 retimer); this module only converts between ``dyn_node_interfaces`` messages and arrays. No
 threads, no node: :mod:`dyn_node.ros.services` calls these on its worker.
 """
@@ -16,10 +16,10 @@ from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, Ret
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from dyn_node.core import feasibility, on_demand
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.settings import Settings
-from dyn_node.core.trajectory import Trajectory
+from dyn_node.core.check import feasibility, on_demand
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.settings import Settings
+from dyn_node.core.check.trajectory import Trajectory
 from dyn_node.errors import TrajectoryError
 from dyn_node.ros.convert import status_to_msg, trajectory_arrays
 

@@ -25,8 +25,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.service_introspection import ServiceIntrospectionState
 from rclpy.task import Future
 
-from dyn_node.core import feasibility
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.check import feasibility
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.ros import service_answers as answers
 
 CHECK, INVERSE_DYNAMICS, RETIME = "check", "inverse_dynamics", "retime"

@@ -7,8 +7,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dyn_node.core.limits_file import limits_sha256
-from dyn_node.core.model import RobotModel
+from dyn_node.core.robot.limits_file import limits_sha256
+from dyn_node.core.robot.model import RobotModel
 
 _MAX_JOINTS = 12  # joint names listed in full; beyond, the count of the rest
 

@@ -1,7 +1,7 @@
 """joint_trajectory_controller's goal rules (ros2_controllers, Jazzy), pure: what dyn_sim's
 FollowJointTrajectory server decides, without rclpy.
 
-- Goal validation beyond :func:`dyn_node.core.trajectory.validate_trajectory` (which already
+- Goal validation beyond :func:`dyn_node.core.check.trajectory.validate_trajectory` (which already
   applies the controller's joint, length and time rules): a non-zero velocity at the last point is
   rejected (``allow_nonzero_velocity_at_trajectory_end`` false), and so is a trajectory whose
   stamped end lies in the past.

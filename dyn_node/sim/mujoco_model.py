@@ -1,4 +1,4 @@
-"""A MuJoCo model of a :class:`~dyn_node.core.model.RobotModel`: independent oracle and simulator plant.
+"""A MuJoCo model of a :class:`~dyn_node.core.robot.model.RobotModel`: independent oracle and simulator plant.
 
 MuJoCo parses the same URDF text with its own parser and computes dynamics with its own
 algorithms, so agreement with Pinocchio checks dyn_node's model loading against code we did not
@@ -16,7 +16,7 @@ import numpy as np
 import pinocchio as pin
 
 from dyn_node.errors import ModelError
-from dyn_node.core.model import RobotModel, example_robot_data_dir
+from dyn_node.core.robot.model import RobotModel, example_robot_data_dir
 from dyn_node.sim.scene import Scene, SolverSettings, add_scene
 
 #: Inertia (kg·m²) temporarily added to near-singular inertia tensors so MuJoCo compiles them.

@@ -22,7 +22,7 @@ from typing import Any, Sequence
 import mujoco
 import numpy as np
 
-from dyn_node.core.model import RobotModel, model_from_source
+from dyn_node.core.robot.model import RobotModel, model_from_source
 from dyn_node.audit.evidence import utc_now
 from dyn_node.errors import DynNodeError
 from dyn_node.sim.mujoco_model import mujoco_from_model

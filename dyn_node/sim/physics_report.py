@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from dyn_node.audit.evidence import EvidenceRecord, utc_now
-from dyn_node.core.model import RobotModel
+from dyn_node.core.robot.model import RobotModel
 from dyn_node.errors import EVALUATION_ERROR
 
 METRICS: dict[str, dict[str, str]] = {

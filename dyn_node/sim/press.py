@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 
-from dyn_node.core.model import RobotModel
+from dyn_node.core.robot.model import RobotModel
 from dyn_node.errors import ModelError
 from dyn_node.sim.contact_truth import ContactTruth
 from dyn_node.sim.scene import Scene, SceneObject

@@ -18,12 +18,12 @@ import mujoco
 import numpy as np
 
 from dyn_node.errors import InputError, ModelError, TrajectoryError
-from dyn_node.core.model import RobotModel
+from dyn_node.core.robot.model import RobotModel
 from dyn_node.sim.mujoco_model import MujocoRobot, mujoco_from_model, mujoco_urdf
 from dyn_node.sim.scene import INTEGRATORS, Scene, SolverSettings
 from dyn_node.sim.physics_status import PhysicsMonitor
 from dyn_node.sim.contact_truth import ContactTruth, contact_truth, scene_geom_ids
-from dyn_node.core.trajectory import PiecewisePolynomial, Trajectory, interpolate, validate_trajectory
+from dyn_node.core.check.trajectory import PiecewisePolynomial, Trajectory, interpolate, validate_trajectory
 
 DEFAULT_TIMESTEP = 0.001
 #: Closed-loop natural frequency (rad/s) and damping ratio for the automatic gains.

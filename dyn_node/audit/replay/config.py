@@ -57,7 +57,7 @@ class Config:
 def recorded_limits(meta: dict, path: str, findings: list[str]) -> str:
     """The limits text a metadata record carries (the node's model was built from it); a
     finding when its sha256 does not match the record's or the file at ``path`` differs."""
-    from dyn_node.core.limits_file import limits_sha256
+    from dyn_node.core.robot.limits_file import limits_sha256
 
     text = meta[LIMITS_YAML_KEY]
     sha = limits_sha256(text)
@@ -211,7 +211,7 @@ class Configurator:
         from dataclasses import replace
 
         from dyn_node.errors import SettingsError
-        from dyn_node.core.settings import SPECS, Settings, settings_from_mapping
+        from dyn_node.core.robot.settings import SPECS, Settings, settings_from_mapping
 
         params = parameters_from_yaml(meta.get("parameters", ""))
         known = {k: v for k, v in params.items() if k in SPECS}
@@ -235,7 +235,7 @@ class Configurator:
             overrides["robot_model"] = self.opts.robot_model
         elif settings.robot_model and not settings.robot_description:
             # A built-in model ships with the package; check it is the one the bag recorded.
-            from dyn_node.core.model import BUILTIN_MODELS, builtin_urdf, urdf_hash
+            from dyn_node.core.robot.model import BUILTIN_MODELS, builtin_urdf, urdf_hash
 
             name = settings.robot_model
             desc = desc_in_bag or topic_desc
@@ -272,7 +272,7 @@ class Configurator:
     def _resolve(self, meta: dict, topic_desc: str, *, first: bool,
                  since_ns: int | None = None) -> "Config":
         """The configuration of one metadata record, and how it differs from the node's."""
-        from dyn_node.core.model_source import build_model
+        from dyn_node.core.robot.model_source import build_model
 
         findings: list[str] = []
         settings, overrides, missing, limits = self._bag_settings(meta, topic_desc, findings,

@@ -39,7 +39,7 @@ def contact_role(topic: str, schema: str) -> str | None:
 
 def monitor_for(cfg: Any, dynamics: Any) -> Any:
     """The ContactMonitor the node builds for one configuration: on its Monitor's Dynamics."""
-    from dyn_node.core.contact_monitor import ContactMonitor, contact_settings
+    from dyn_node.core.contacts.contact_monitor import ContactMonitor, contact_settings
 
     return ContactMonitor(dynamics, contact_settings(cfg.settings))
 
@@ -93,7 +93,7 @@ class ContactReplay:
         """A new monitor for ``cfg`` on ``dynamics`` (the node builds one with every core, on
         each model or parameter change), reset from the configuration before, as the node does
         (DynNode._make_core)."""
-        from dyn_node.core.contact_monitor import RESET_MODEL, RESET_PARAMETERS
+        from dyn_node.core.contacts.contact_monitor import RESET_MODEL, RESET_PARAMETERS
 
         prev = self.cfg if self.monitor is not None else None
         if self.monitor is not None:
@@ -127,7 +127,7 @@ class ContactReplay:
         if self.monitor is None:
             return False
         if not self._started:
-            from dyn_node.core.contact_monitor import RESET_RECORDING
+            from dyn_node.core.contacts.contact_monitor import RESET_RECORDING
 
             self._started = True
             if self._at_start:  # a core that ran before the recording: the node reset it
@@ -330,7 +330,7 @@ class ContactRecheck:
     def _event(self, m: Any) -> None:
         """A recorded ~/observer_events status against the next event the replay made: every
         value (numbers by difference, text exactly) and the message."""
-        from dyn_node.core.status import format_value
+        from dyn_node.core.robot.status import format_value
 
         chk = self.r.checks[ROLE_OBS_EVENTS]
         try:

@@ -187,9 +187,9 @@ class Replay:
     def _use(self, cfg: Config) -> None:
         """A core (monitor, tracker, dynamics, live limits) for ``cfg``; a previous core's
         counts and the plan it was tracking carry over."""
-        from dyn_node.core.dynamics import Dynamics, DynamicsOptions
-        from dyn_node.core.monitor import Monitor
-        from dyn_node.core.tracker import ControllerTracker
+        from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+        from dyn_node.core.live.monitor import Monitor
+        from dyn_node.core.live.tracker import ControllerTracker
 
         self.settings, self.model = cfg.settings, cfg.model
         self.monitor = Monitor(cfg.model, cfg.settings,
@@ -331,8 +331,8 @@ class Replay:
                 self.sink.expect_efforts(key, res.waypoint_effort)
 
     def _trajectory(self, m: BagMessage, index: int):
-        from dyn_node.core.feasibility import NO_CURRENT_STATE, FeasibilityOptions, check_trajectory, current_state
-        from dyn_node.core.trajectory import validate_trajectory
+        from dyn_node.core.check.feasibility import NO_CURRENT_STATE, FeasibilityOptions, check_trajectory, current_state
+        from dyn_node.core.check.trajectory import validate_trajectory
 
         entry: dict[str, Any] = {"index": index, "topic": m.topic, "time_s": 0.0, "t_ns": m.log_time_ns,
                                  "stamp_ns": 0, "accepted": False, "feasible": False}
@@ -381,7 +381,7 @@ class Replay:
     def _states_request(self, m: BagMessage) -> None:
         """Recompute the node's answer to an ~/inverse_dynamics_request (torques, or the rejected
         verdict), keyed by the request's header like the node's answer."""
-        from dyn_node.core import on_demand
+        from dyn_node.core.check import on_demand
 
         try:
             msg = self.decoder.decode(m.channel, m.data)
@@ -433,6 +433,6 @@ def _verdict_entry(entry: dict[str, Any], res: Any) -> dict[str, Any]:
     # curves for the report's plot; only the first trajectories', to keep the record small
     add_per_frame(entry, res, curves=entry["index"] < MAX_CURVE_TRAJECTORIES, result_dict=d)
     if not isinstance(entry.get("level"), str):
-        from dyn_node.core.status import LEVEL_NAMES
+        from dyn_node.core.robot.status import LEVEL_NAMES
         entry["level"] = LEVEL_NAMES.get(entry.get("level"), str(entry.get("level")))
     return entry

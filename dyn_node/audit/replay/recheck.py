@@ -164,10 +164,10 @@ class Rechecker:
 def _statuses(res: Any, model_name: str) -> dict[str, dict[str, str]]:
     """The ~/feasibility statuses the node publishes for a result (or a rejected entry), by name,
     with their values formatted as the node formats them."""
-    from dyn_node.core.status import format_value
+    from dyn_node.core.robot.status import format_value
 
     if isinstance(res, dict):  # rejected: the node published rejected_statuses
-        from dyn_node.core.feasibility import rejected_statuses
+        from dyn_node.core.check.feasibility import rejected_statuses
 
         err = TrajectoryError(res["message"].removeprefix("rejected: "), code=res["error_code"] or "error")
         statuses = rejected_statuses(err, model_name, res.get("n_points", 0), res.get("duration_s", 0.0))

@@ -20,8 +20,8 @@ import numpy as np
 from dyn_node.audit.accounting import CHECK, INVERSE_DYNAMICS, RETIME, RequestTally
 from dyn_node.audit.replay.common import Pending, Recheck, worst_status_difference
 from dyn_node.bag.reader import BagMessage, MessageDecoder
-from dyn_node.core import feasibility, on_demand
-from dyn_node.core.status import format_value
+from dyn_node.core.check import feasibility, on_demand
+from dyn_node.core.robot.status import format_value
 from dyn_node.errors import TrajectoryError
 
 ROLE_SERVICE_EVENT = "service_event"

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dyn_node.core.model import RobotModel, load_model
+from dyn_node.core.robot.model import RobotModel, load_model
 from dyn_node.ros.demo.audit import scene_audit
 from dyn_node.ros.demo.gate import scene_gate
 from dyn_node.ros.demo.retime import LIMIT_MARGIN as RETIME_LIMIT_MARGIN

@@ -164,7 +164,7 @@ def gate_scene(env: dict[str, str], logs: Path, say: Callable[[str], None]) -> t
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
 
-    from dyn_node.core.model import load_model
+    from dyn_node.core.robot.model import load_model
     from dyn_node.ros.fjt_client import FjtClient
 
     retime = importlib.util.find_spec("dyn_node.retime") is not None

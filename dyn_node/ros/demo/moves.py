@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import RobotModel
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import RobotModel
 from dyn_node.ros.demo.run import DemoRun, banner, say
 from dyn_node.ros.demo.stack import Stack
 from dyn_node.ros.demo.summary import LEVELS, Outcome, figure, status_number
@@ -91,7 +91,7 @@ def run_trajectory(stack: Stack, traj: DemoTrajectory, say) -> Outcome:
 
 def _local_verdict(model: RobotModel, traj: DemoTrajectory, o: Outcome, say) -> None:
     try:
-        from dyn_node.core.feasibility import FeasibilityOptions, check_trajectory
+        from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
     except ImportError as exc:
         say(f"  stage unavailable: local feasibility check ({exc})")
         return

@@ -18,7 +18,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import pinocchio as pin
 
-from dyn_node.core.model import RobotModel
+from dyn_node.core.robot.model import RobotModel
 
 PRESS_SCENE_FILE = Path(__file__).resolve().parents[3] / "config" / "press_scene.yaml"
 HOLD_S = 2.0               # held after the press point is reached

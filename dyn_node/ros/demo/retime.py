@@ -15,7 +15,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dyn_node.core.trajectory import Trajectory
+from dyn_node.core.check.trajectory import Trajectory
 
 #: the demo node's ``retime.limit_margin``: at 100 % of the torque limit dyn_sim's PD saturates;
 #: the demo's uniform slowdown keeps a like margin (× 1.05 in time: inertial torques ÷ 1.1)

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from dyn_node.core.model import RobotModel
+from dyn_node.core.robot.model import RobotModel
 from dyn_node.ros.demo.trajectories import DemoTrajectory
 
 

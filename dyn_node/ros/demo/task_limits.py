@@ -6,7 +6,7 @@ import math
 import time
 from typing import Any
 
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.ros.demo.run import DemoRun, banner, say
 from dyn_node.ros.demo.summary import figure, status_number
 from dyn_node.ros.demo.trajectories import DEMO_TASK_LIMITS, LEAD_S, SAFETY_FACTOR, TASK_PLACE, task_transfer
@@ -45,7 +45,7 @@ def scene_task_limits(run: DemoRun) -> None:
     if len(run.children) < 2 or not run.children[1].alive() or not DEMO_TASK_LIMITS.is_file():
         run.missing("task-limits scene (no dyn_node, or config/demo_task_limits.yaml missing)")
         return
-    from dyn_node.core.feasibility import check_trajectory
+    from dyn_node.core.check.feasibility import check_trajectory
 
     t0 = time.monotonic()
     fast = task_transfer()

@@ -9,9 +9,9 @@ from typing import Sequence
 
 import numpy as np
 
-from dyn_node.core.dynamics import Dynamics
-from dyn_node.core.model import RobotModel
-from dyn_node.core.trajectory import Trajectory, interpolate, validate_trajectory
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import RobotModel
+from dyn_node.core.check.trajectory import Trajectory, interpolate, validate_trajectory
 
 
 READY = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)

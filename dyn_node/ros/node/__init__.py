@@ -1,4 +1,4 @@
-"""The dyn_node ROS 2 node: a thin adapter around :mod:`dyn_node.core.monitor` and the feasibility check.
+"""The dyn_node ROS 2 node: a thin adapter around :mod:`dyn_node.core.live.monitor` and the feasibility check.
 
 Run it with ``ros2 run dyn_node dyn_node`` or ``python -m dyn_node.ros.node``; parameters, topics and
 diagnostics are listed in docs/node.md. Everything numeric happens in the pure core; this package only
@@ -18,7 +18,7 @@ executor that spins this node. A callback never sees a
 half-applied model or settings: a new model is built aside and one reference, ``self._core``, is
 replaced, and each message reads it once. ``_io_lock`` serialises each message's work with the
 timers and the workers that read or feed the same monitor, tracker and recorder. Trajectory
-feasibility runs on a worker thread with its own :class:`~dyn_node.core.dynamics.Dynamics` so
+feasibility runs on a worker thread with its own :class:`~dyn_node.core.robot.dynamics.Dynamics` so
 joint_states keep flowing while a long trajectory is checked. Both outputs are published as CDR
 bytes laid out once per model (:meth:`~dyn_node.ros.convert.JointStateOut.encode`) and the input
 is read from its CDR bytes (:func:`~dyn_node.ros.convert.parse_joint_state_cdr`, rclpy's
@@ -44,21 +44,21 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from dyn_node.core.allocator import retain_freed_memory
-from dyn_node.core.drops import DropCounter
-from dyn_node.core.dynamics import Dynamics
+from dyn_node.core.live.allocator import retain_freed_memory
+from dyn_node.core.live.drops import DropCounter
+from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import DynNodeError, SettingsError
-from dyn_node.core.model import RobotModel
-from dyn_node.core.model_source import build_model, limits_text
-from dyn_node.core.model_status import model_error_status
-from dyn_node.core.monitor_results import Counts
+from dyn_node.core.robot.model import RobotModel
+from dyn_node.core.robot.model_source import build_model, limits_text
+from dyn_node.core.robot.model_status import model_error_status
+from dyn_node.core.live.monitor_results import Counts
 from dyn_node.ros.main import end_process, spin_until_signalled
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.qos import LATCHED_HISTORY
 from dyn_node.ros.startup_log import FirstStateAnnouncer
 from dyn_node.ros.services import QuestionServices
-from dyn_node.core.settings import PARAMETERS, ParamSpec, settings_from_mapping
-from dyn_node.core.status import Status
+from dyn_node.core.robot.settings import PARAMETERS, ParamSpec, settings_from_mapping
+from dyn_node.core.robot.status import Status
 from dyn_node.ros.node.diagnostics import PeriodicOutputs
 from dyn_node.ros.node.joint_states import JointStatesIO
 from dyn_node.ros.node.model import ModelState, NodeCore

@@ -7,11 +7,11 @@ from dataclasses import replace
 from diagnostic_msgs.srv import SelfTest
 
 from dyn_node.errors import STATE_ERROR
-from dyn_node.core.model_status import model_error_status, model_status, waiting_model_status
-from dyn_node.core.monitor import JOINT_STATES
+from dyn_node.core.robot.model_status import model_error_status, model_status, waiting_model_status
+from dyn_node.core.live.monitor import JOINT_STATES
 from dyn_node.ros.convert import diagnostic_array, status_to_msg, to_byte
-from dyn_node.core.selftest import run_self_test
-from dyn_node.core.status import STALE, Status
+from dyn_node.core.robot.selftest import run_self_test
+from dyn_node.core.robot.status import STALE, Status
 
 
 

@@ -15,7 +15,7 @@ from rclpy.serialization import deserialize_message
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import JointState
 
-from dyn_node.core.contact_monitor import RESET_RECORDING, Observed
+from dyn_node.core.contacts.contact_monitor import RESET_RECORDING, Observed
 from dyn_node.errors import InputError
 from dyn_node.ros.convert import parse_joint_state_cdr, s_to_stamp, status_to_msg
 

@@ -8,16 +8,16 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from std_msgs.msg import String
 
-from dyn_node.core.contact_monitor import RESET_MODEL, RESET_PARAMETERS, ContactMonitor, contact_settings
+from dyn_node.core.contacts.contact_monitor import RESET_MODEL, RESET_PARAMETERS, ContactMonitor, contact_settings
 from dyn_node.errors import DynNodeError, SettingsError
-from dyn_node.core.model import RobotModel
-from dyn_node.core.model_source import build_model, limits_text
-from dyn_node.core.model_status import model_error_status
-from dyn_node.core.monitor import Monitor
+from dyn_node.core.robot.model import RobotModel
+from dyn_node.core.robot.model_source import build_model, limits_text
+from dyn_node.core.robot.model_status import model_error_status
+from dyn_node.core.live.monitor import Monitor
 from dyn_node.ros.convert import JointStateOut, WrenchStampedOut
 from dyn_node.ros.startup_log import model_ready_line
-from dyn_node.core.settings import MODEL_PARAMETERS, SPECS, Settings, settings_from_mapping
-from dyn_node.core.tracker import ControllerTracker
+from dyn_node.core.robot.settings import MODEL_PARAMETERS, SPECS, Settings, settings_from_mapping
+from dyn_node.core.live.tracker import ControllerTracker
 
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,

@@ -13,12 +13,12 @@ from trajectory_msgs.msg import JointTrajectory
 
 # at start, not at the first trajectory: loading the compiled kernels holds the GIL for about
 # 0.7 s, which then stalled joint_states handling by up to 170 ms (seen in make demo)
-from dyn_node.core import feasibility, on_demand
-from dyn_node.core.dynamics import Dynamics, DynamicsOptions
+from dyn_node.core.check import feasibility, on_demand
+from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
 from dyn_node.errors import TrajectoryError
 from dyn_node.ros.convert import (RawTrajectory, encode_joint_trajectory_cdr, fill_trajectory_effort,
                                   parse_joint_trajectory_cdr, stamp_to_s, trajectory_arrays, verdict_array)
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.check.trajectory import validate_trajectory
 
 if TYPE_CHECKING:  # annotations only: the package's __init__ composes these parts
     from dyn_node.ros.node.model import NodeCore

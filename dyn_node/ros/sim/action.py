@@ -37,8 +37,8 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from dyn_node.core.settings import ParamSpec
-from dyn_node.core.trajectory import validate_trajectory
+from dyn_node.core.robot.settings import ParamSpec
+from dyn_node.core.check.trajectory import validate_trajectory
 from dyn_node.errors import DynNodeError
 from dyn_node.sim import jtc
 

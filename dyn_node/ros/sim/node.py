@@ -44,10 +44,10 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from dyn_node.errors import DynNodeError
-from dyn_node.core.model import DEFAULT_MODEL, model_from_source
+from dyn_node.core.robot.model import DEFAULT_MODEL, model_from_source
 from dyn_node.sim.simulator import DEFAULT_DAMPING_RATIO, DEFAULT_NATURAL_FREQUENCY, DEFAULT_TIMESTEP, SimConfig, Simulator
 from dyn_node.ros.main import spin_until_signalled
-from dyn_node.core.settings import ParamSpec
+from dyn_node.core.robot.settings import ParamSpec
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.qos import LATCHED_HISTORY
 from dyn_node.ros.sim.physics import SCENE_PARAMETERS, SimPhysics, sim_config_extras

@@ -17,8 +17,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Vector3, Wrench
 from rclpy.node import Node
 
-from dyn_node.core.model import RobotModel
-from dyn_node.core.settings import ParamSpec
+from dyn_node.core.robot.model import RobotModel
+from dyn_node.core.robot.settings import ParamSpec
 from dyn_node.ros.qos import LATCHED_HISTORY
 from dyn_node.sim.contact_truth import ContactTruth
 from dyn_node.sim.scene import SolverSettings, load_scene

@@ -1,0 +1,352 @@
+"""The joint kinds of the feasibility check (velocity, acceleration, deceleration, jerk, effort,
+effort–speed, power, effort rate, RMS effort, position), each a :class:`Constraint` of
+:mod:`dyn_node.core.check.constraints`; :mod:`dyn_node.core.check.kinds` lists them with the
+frame, robot, base and grasp kinds."""
+from __future__ import annotations
+
+from abc import abstractmethod
+from typing import ClassVar
+
+import numpy as np
+
+from dyn_node.core.check.constraints import (Band, Blocked, Constraint, JointConstraint, Motion,
+                                             PayloadTerms, Peak, Violation, _affine_band,
+                                             _cumtrapz_rows, _fmt, _Job, _k_of_x, _power_exit,
+                                             _static_block, _take, rms_time_scale)
+from dyn_node.core.compiled import kernels
+
+
+class _PowerLaw(JointConstraint):
+    """|value| ∝ x^power (x = 1/k) at every sample: the first exit is (L / peak)^(1/power)."""
+
+    power: ClassVar[int]
+
+    @abstractmethod
+    def _array(self, motion: Motion) -> np.ndarray:
+        """The value per sample at k = 1, for the limited columns."""
+
+    def __init__(self, motion: Motion):
+        super().__init__(motion)
+        val = self._array(motion)
+        L = self.limit_array(motion.limits)[self.cols]
+        self.value, self.limit = val, np.broadcast_to(L, val.shape)
+        self._x = _power_exit(L, kernels.abs_peak(val[motion.rows])[1], self.power)
+
+
+class Velocity(_PowerLaw):
+    kind, power, order = "velocity", 1, 1
+
+    def _array(self, motion: Motion) -> np.ndarray:
+        return _take(motion.V, self.cols)
+
+
+class Acceleration(_PowerLaw):
+    kind, power = "acceleration", 2
+
+    def _array(self, motion: Motion) -> np.ndarray:
+        return _take(motion.A, self.cols)
+
+
+class Deceleration(_PowerLaw):
+    """|q̈| where |q̇| decreases (q̇·q̈ < 0); that sign does not change with k, so the value
+    scales as 1/k² like the acceleration."""
+
+    kind, power = "deceleration", 2
+
+    def _array(self, motion: Motion) -> np.ndarray:
+        val = _take(motion.A, self.cols)
+        return val * (_take(motion.V, self.cols) * val < 0)
+
+
+class Jerk(_PowerLaw):
+    kind, power, order = "jerk", 3, 3
+
+    def _array(self, motion: Motion) -> np.ndarray:
+        return _take(motion.J, self.cols)
+
+
+class Effort(JointConstraint):
+    """|τ| ≤ L, τ(x) = s + w·x + i·x²: the band's first exit per sample, in closed form."""
+
+    kind, payload_dependent = "effort", True
+
+    def __init__(self, motion: Motion):
+        super().__init__(motion)
+        cols, rows = self.cols, motion.rows
+        L = motion.limits.effort[cols]
+        self.value = _take(motion.tau, cols)
+        self.limit = np.broadcast_to(L, self.value.shape)
+        s, w, i = _take(motion.S, cols), _take(motion.W, cols), _take(motion.I, cols)
+        self._x = kernels.band_exit(s[rows], w[rows], i[rows], L)
+        self._blocked = None
+        at, peak = kernels.abs_peak(s[rows])
+        if np.any(peak > L):
+            with np.errstate(divide="ignore"):  # a zero (YAML) limit: inf, the worst
+                c = int(np.argmax(peak / L))      # the worst pose
+            self._blocked = _static_block(motion, int(cols[c]), motion.r0 + int(at[c]),
+                                          float(peak[c]), float(L[c]))
+
+    def blocked(self) -> Blocked | None:
+        return self._blocked
+
+    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
+        return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
+                            self.limit)
+
+
+class EffortSpeed(JointConstraint):
+    """|τ| ≤ the torque-speed envelope at |q̇|: piecewise the same band, per envelope piece."""
+
+    kind, label, payload_dependent = "effort_speed", "torque-speed envelope", True
+
+    @classmethod
+    def applies(cls, model: "RobotModel") -> bool:
+        return any(c is not None for c in model.limits.effort_speed_curve)
+
+    def __init__(self, motion: Motion):
+        curves_all = motion.limits.effort_speed_curve
+        super().__init__(motion, np.array([j for j, cv in enumerate(curves_all) if cv is not None],
+                                          dtype=int))
+        cols, rows, r0 = self.cols, motion.rows, motion.r0
+        curves = [curves_all[j] for j in cols]
+        npts = np.array([len(cv) for cv in curves])
+        sp = np.zeros((len(cols), npts.max()))
+        ef = np.zeros_like(sp)
+        for c, cv in enumerate(curves):
+            sp[c, :len(cv)], ef[c, :len(cv)] = cv[:, 0], cv[:, 1]
+        ve = _take(motion.V, cols)
+        self.value, self.limit = _take(motion.tau, cols), kernels.envelope_values(ve, sp, ef, npts)
+        s, w, i = (_take(X, cols)[rows] for X in (motion.S, motion.W, motion.I))
+        self._x = kernels.envelope_exit_min(s, w, i, ve[rows], sp, ef, npts)
+        self._blocked = None
+        for c, j in enumerate(cols):
+            e0 = float(np.interp(0.0, curves[c][:, 0], curves[c][:, 1]))
+            sj = np.abs(motion.S[r0:, j])
+            if np.any(sj > e0):
+                n = int(np.argmax(sj))   # the worst pose
+                self._blocked = _static_block(motion, int(j), r0 + n, float(sj[n]), e0)
+                break
+
+    def blocked(self) -> Blocked | None:
+        return self._blocked
+
+    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
+        return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
+                            self.limit)
+
+
+class Power(JointConstraint):
+    """|τ·q̇| ≤ L: odd powers of x, (s + w·x + i·x²)·v·x."""
+
+    kind, payload_dependent = "power", True
+
+    def __init__(self, motion: Motion):
+        super().__init__(motion)
+        cols, rows = self.cols, motion.rows
+        L = motion.limits.power[cols]
+        v = _take(motion.V, cols)
+        self.value, self.limit = _take(motion.tau, cols) * v, np.broadcast_to(L, v.shape)
+        self._x = kernels.odd_exit(_take(motion.S, cols)[rows], _take(motion.W, cols)[rows],
+                                   _take(motion.I, cols)[rows], v[rows], L)
+
+    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
+        return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
+                            self.limit, _take(motion.V, self.cols))
+
+
+class EffortRate(JointConstraint):
+    """|dτ/dt| ≤ L, by finite differences inside each segment (τ is smooth there); Coulomb
+    friction's step at a velocity reversal is left out, and says so."""
+
+    kind, label, payload_dependent = "effort_rate", "effort rate", True
+
+    def __init__(self, motion: Motion):
+        super().__init__(motion)
+        cols, rows, smp = self.cols, motion.rows, motion.smp
+        L = motion.limits.effort_rate[cols]
+        dG, dW, dI = (kernels.segment_derivative(_take(X, cols), smp.first, smp.last, smp.h)
+                      for X in (motion.G, motion.W, motion.I))
+        self.value = dG + dW + dI
+        self.limit = np.broadcast_to(L, self.value.shape)
+        self._x = kernels.odd_exit(dG[rows], dW[rows], dI[rows],
+                                   np.broadcast_to(1.0, dG[rows].shape), L)
+        if np.any(motion.coulomb) and np.any(np.diff(np.sign(motion.V), axis=0) != 0):
+            self.warnings.append("Coulomb friction steps at velocity reversals are not counted "
+                                 "as effort rate")
+
+    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
+        cols, smp, dyn = self.cols, motion.smp, motion.dynamics
+        coul = np.asarray(dyn.model.pin_model.friction, dtype=float)[cols] \
+            if dyn.options.include_friction else 0.0
+        smooth0 = _take(motion.tau, cols) - coul * np.sign(_take(motion.V, cols))
+        d0 = kernels.segment_derivative(smooth0, smp.first, smp.last, smp.h)
+        d1 = kernels.segment_derivative(_take(payload.tau1, cols), smp.first, smp.last, smp.h)
+        return _affine_band(d0, d1, self.limit)
+
+
+class RmsEffort(JointConstraint):
+    """RMS of τ over a sliding window ending at each sample (the first pose held before the
+    start). The window covers a k-dependent stretch of samples, so there is no per-sample law:
+    k is searched (:func:`rms_time_scale`), on a background thread when parallel."""
+
+    kind, label, payload_dependent = "rms_effort", "RMS effort", True
+    reaches_back = background = True
+
+    def __init__(self, motion: Motion):
+        super().__init__(motion)
+        cols, rows, tt = self.cols, motion.rows, motion.smp.t
+        R, Wn = motion.limits.rms_effort[cols], motion.limits.rms_window[cols]
+        h2 = motion.hold[cols] ** 2
+        S, W, I = _take(motion.S, cols), _take(motion.W, cols), _take(motion.I, cols)
+        # (a moving start segment's path changes with k: its static torque is not static)
+        s_max = np.maximum(kernels.abs_peak(S[rows])[1], np.abs(motion.hold[cols]))
+        self._good = ~(s_max > R)
+        self._search = self._start_search(tt, S, W, I, h2, Wn, R, motion.parallel)
+        # windowed ∫τ² at k = 1, by the kernel the search uses, so both agree on whether k = 1
+        # is feasible (the payload band reuses it)
+        self._win = kernels.rms_windowed(tt, S, W, I, np.ones(len(cols)), Wn, h2)
+        self.value = np.sqrt(np.maximum(self._win, 0.0) / Wn[:, None]).T
+        self.limit = np.broadcast_to(R, self.value.shape)
+        self._blocked = None
+        bad = np.flatnonzero(~self._good)
+        if len(bad):
+            c, r0 = bad[0], motion.r0
+            n = r0 + int(np.argmax(np.abs(motion.S[r0:, cols[c]])))
+            self._blocked = _static_block(motion, int(cols[c]), n, float(s_max[c]), float(R[c]))
+
+    def _start_search(self, tt, S, W, I, h2, Wn, R, parallel: bool) -> "_Job | None":
+        good = self._good
+        if not np.any(good):
+            return None
+        idx, Rg = np.flatnonzero(good), R[good]
+        sg, wg, ig = _take(S, idx), _take(W, idx), _take(I, idx)
+        # RMS ≤ peak |τ| ≤ max|s| + max|w|·x + max|i|·x², so where that stays within the RMS
+        # limit every k is feasible: a bracket end (the exact peak-torque exit where gravity
+        # alone just reaches the limit and that bound is useless)
+        x_up = np.array([kernels.band_exit_bound(*b) for b in zip(
+            kernels.abs_peak(sg)[1], kernels.abs_peak(wg)[1], kernels.abs_peak(ig)[1], Rg)])
+        tight = ~(x_up > 0)
+        if np.any(tight):
+            x_up[tight] = kernels.band_exit(sg[:, tight], wg[:, tight], ig[:, tight], Rg[tight])
+        with np.errstate(divide="ignore"):
+            k_up = np.where(np.isinf(x_up), 0.0, 1.0 / x_up)
+        return _Job(rms_time_scale, (tt, sg, wg, ig, h2[good], Wn[good], Rg, k_up),
+                    background=parallel)
+
+    def time_scale(self) -> np.ndarray:
+        kr = np.full(len(self.cols), np.inf)
+        if self._search is not None:
+            kr[self._good] = self._search.result()
+        # through x = 1/k like the other kinds (the same factors to the last bit)
+        return _k_of_x(np.where(kr > 0, 1.0 / np.where(kr > 0, kr, 1.0), np.inf))
+
+    def blocked(self) -> Blocked | None:
+        return self._blocked
+
+    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
+        """The windowed ∫(a0 + m·a1)² = A·m² + 2B·m + C must stay within R²·window: a
+        quadratic in m per window (hold torques before the start)."""
+        cols, tt, lim = self.cols, motion.smp.t, motion.limits
+        heavy_hold = (payload.heavy.gravity(motion.Q[0]) - motion.hold)[cols]
+        h0 = motion.hold[cols]
+        Wn, R = lim.rms_window[cols], lim.rms_effort[cols]
+        a0, a1 = _take(motion.tau, cols), _take(payload.tau1, cols)
+        m = len(cols)
+        f = np.empty((2 * m, len(tt)))
+        np.multiply(a0.T, a1.T, out=f[:m])
+        np.multiply(a1.T, a1.T, out=f[m:])
+        win = kernels.windowed(tt, _cumtrapz_rows(tt, f), np.concatenate([Wn, Wn]),
+                               np.concatenate([h0 * heavy_hold, heavy_hold * heavy_hold]))
+        del f
+        return kernels.quadratic_band(win[m:], win[:m], self._win - (R * R * Wn)[:, None])
+
+
+class Position(Constraint):
+    """Hard limits (violations; no timing helps) and soft limits (warnings). The ratio is the
+    distance from the range's middle over its half-width, for joints limited on both sides."""
+
+    kind = "position"
+    order = 0
+
+    @classmethod
+    def applies(cls, model: "RobotModel") -> bool:
+        lim = model.limits
+        return bool(np.any(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper)))
+
+    @classmethod
+    def describe(cls, v: Violation) -> str:
+        return (f"{v.joint} {cls.kind} {_fmt(v.peak_value)} {v.unit} beyond limit "
+                f"{_fmt(v.limit)} {v.unit} at t = {v.peak_time_s:.2f} s")
+
+    def __init__(self, motion: Motion):
+        lim, names = motion.limits, motion.names
+        cols = np.flatnonzero(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper))
+        self.cols, self.where = cols, tuple(names[j] for j in cols)
+        self.units = [motion.units["position"][j] for j in cols]
+        self.value = np.asfortranarray(_take(motion.Q, cols))   # each joint's samples contiguous
+        # > 0: beyond a hard limit
+        over = np.maximum(self.value - lim.position_upper[cols],
+                          lim.position_lower[cols] - self.value)
+        self.warnings = self._soft(motion)
+        self._peaks, self._violations = self._hard(motion, over)
+        self._blocked = None
+        if np.any(over[motion.r0:] > 0):   # beyond a hard limit after the start segment
+            v0 = max(self._violations, key=lambda v: abs(v.peak_value - v.limit))
+            self._blocked = Blocked(v0.joint, timing_free=True)
+
+    def _soft(self, motion: Motion) -> list[str]:
+        lim, cols, Qp, tt = motion.limits, self.cols, self.value, motion.smp.t
+        # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
+        soft = [(b, side * (Qp - b))
+                for side, b in ((-1, lim.soft_lower[cols]), (1, lim.soft_upper[cols]))]
+        at_soft = [np.argmax(x, axis=0) for _, x in soft]
+        out = []
+        for c, where in enumerate(self.where):
+            for (bound, beyond), at in zip(soft, at_soft):
+                n = at[c]
+                if beyond[n, c] > 0:
+                    out.append(f"{where} enters its soft-limit zone: q = {_fmt(Qp[n, c])} "
+                               f"{self.units[c]} beyond {_fmt(bound[c])} at t = {tt[n]:.2f} s")
+        return out
+
+    def _hard(self, motion: Motion, over: np.ndarray) -> tuple[list[Peak], list[Violation]]:
+        lim, cols, Qp, tt = motion.limits, self.cols, self.value, motion.smp.t
+        lo, hi = lim.position_lower[cols], lim.position_upper[cols]
+        at_over = np.argmax(over, axis=0)
+        ranged = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
+        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        at_mid = np.argmax(np.abs(Qp - mid), axis=0)
+        peaks, violations = [], []
+        for c, where in enumerate(self.where):
+            n = at_over[c]
+            if over[n, c] > 0:
+                bad = over[:, c] > 0
+                q = float(Qp[n, c])
+                violations.append(Violation(
+                    where, "position", float(tt[np.argmax(bad)]), float(tt[n]), q,
+                    float(hi[c] if q > hi[c] else lo[c]), float(motion.smp.weight[bad].sum()),
+                    self.units[c]))
+            if ranged[c]:
+                n = at_mid[c]
+                q = float(Qp[n, c])
+                peaks.append(Peak(where, float(abs(Qp[n, c] - mid[c]) / half[c]), float(tt[n]), q,
+                                  float(hi[c] if q >= mid[c] else lo[c])))
+        return peaks, violations
+
+    def values(self) -> np.ndarray:
+        return self.value
+
+    def report(self, motion: Motion) -> tuple[list[Peak], list[Violation]]:
+        return self._peaks, self._violations
+
+    def time_scale(self) -> None:
+        return None
+
+    def blocked(self) -> Blocked | None:
+        return self._blocked
+
+
+#: The joint kinds, in the order the time scale breaks ties and warnings are listed.
+JOINT_KINDS: tuple[type[Constraint], ...] = (Velocity, Acceleration, Deceleration, Jerk, Effort,
+                                             EffortSpeed, Power, EffortRate, RmsEffort, Position)
+

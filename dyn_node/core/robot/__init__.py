@@ -1,0 +1,1 @@
+"""The robot: its model and limits, settings, rigid-body dynamics, units and the diagnostic status."""
