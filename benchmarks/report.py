@@ -333,6 +333,12 @@ def fleet_md(sec: dict) -> str:
               f"of {rss['long_s']:g} s (**{_pct(rss['growth'])}**, target ≤ 10 %).")
 
 
+def _latency_table(what: str, rows: list[tuple[str, dict]]) -> str:
+    """One row per subject: median, p99 and min of its latencies (ms)."""
+    return _table([what, "median (ms)", "p99 (ms)", "min (ms)"],
+                  [[name, _f(s["median_ms"]), _f(s["p99_ms"]), _f(s["min_ms"])] for name, s in rows])
+
+
 def services_md(sec: dict) -> str:
     if _status(sec):
         return f"Services: {_status(sec)}"
@@ -342,10 +348,8 @@ def services_md(sec: dict) -> str:
             f"trajectory, {d['calls']} calls one at a time) from a client in another process, against "
             "a bare rclpy service of the same type that returns an empty response at once (the "
             "floor: the ROS round trip itself), interleaved in blocks in the same run.\n\n"
-            + _table(["service", "median (ms)", "p99 (ms)", "min (ms)"],
-                     [["dyn_node ~/check_trajectory", _f(c["median_ms"]), _f(c["p99_ms"]), _f(c["min_ms"])],
-                      ["bare rclpy service, empty response", _f(f["median_ms"]), _f(f["p99_ms"]),
-                       _f(f["min_ms"])]])
+            + _latency_table("service", [("dyn_node ~/check_trajectory", c),
+                                         ("bare rclpy service, empty response", f)])
             + f"\n\nRatio to the floor: median **{d['ratio_median']:.2f}×**, p99 {d['ratio_p99']:.2f}×. "
               f"The check itself (`on_demand.check` on the same trajectory, in one process) takes "
               f"{_f(d.get('core_check_ms'))} ms of the median.")
@@ -360,9 +364,7 @@ def gate_md(sec: dict) -> str:
             f"{d['points']}-point {d['joints']}-DoF Panda FollowJointTrajectory goal ({d['goals']} goals "
             "one at a time, each checked and forwarded), through dyn_node's gate against a bare rclpy "
             "action proxy that forwards without checking, interleaved in blocks in the same run.\n\n"
-            + _table(["path", "median (ms)", "p99 (ms)", "min (ms)"],
-                     [["dyn_node gate (reject mode)", _f(g["median_ms"]), _f(g["p99_ms"]), _f(g["min_ms"])],
-                      ["bare action proxy", _f(p["median_ms"]), _f(p["p99_ms"]), _f(p["min_ms"])]])
+            + _latency_table("path", [("dyn_node gate (reject mode)", g), ("bare action proxy", p)])
             + f"\n\nAdded by the gate: median **{_f(d['added_median_ms'])} ms**, p99 {_f(d['added_p99_ms'])} ms; "
               f"its check alone (the decision on the same goal, in one process) {_f(d['check_ms'])} ms. "
               f"Target (check + 2 ms at the median): {'met' if d['target_met'] else 'NOT met'}.")
