@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import Stepper, kv, python_cmd
-from service_event_counts import gate_goal_counts
+from service_event_counts import gate_goal_counts, gate_records
 from test_sim_action import ARM, READY, moved
 from test_sim_action import sim_cmd as sim_action_cmd
 
@@ -338,6 +338,17 @@ def test_audit_replays_the_gate_decisions_identically(stack):
     assert (gate["forwarded"], gate["rejected"]) == (sum(r["decision"] == "forwarded" for r in live),
                                                      sum(r["decision"] == "rejected" for r in live))
     assert [d["goal_id"] for d in gate["decisions"]] == [r["goal_id"] for r in live]
+    # the gate records a decision once the goal is on its way (off the latency path), yet always
+    # before that goal's end: in the bag, every result record follows its goal's decision
+    recs = gate_records(bag)
+    assert [r["goal_id"] for r in recs if r["event"] == "decision"] == [r["goal_id"] for r in live]
+    decided: set[str] = set()
+    for r in recs:
+        if r["event"] == "decision":
+            decided.add(r["goal_id"])
+        else:
+            assert r["goal_id"] in decided, f"{r['event']} recorded before its decision: {r}"
+    assert {"result", "downstream_rejected"} <= {r["event"] for r in recs}
     assert [d["verdict"] for d in gate["decisions"]] == [r["verdict"] for r in live]
     recheck = audit.record["outputs"]["recheck"]["/gate_reject/gate_decisions"]
     assert (recheck["matched"], recheck["identical"]) == (len(live), True), recheck
@@ -389,6 +400,11 @@ def test_downstream_absent_and_crashing(module_ros_context, spawn):
                                        "went away during the goal (no feedback and no result for 1 s)")
         rec = probe.record("downstream_lost", 1)
         assert rec["status"] == GoalStatus.STATUS_ABORTED
+        # the goal's decision (recorded from its execution) came first, with its inputs
+        events = [(r["event"], r["goal_id"]) for r in probe.records]
+        assert events.index(("decision", rec["goal_id"])) < events.index(("downstream_lost", rec["goal_id"]))
+        decision = next(r for r in probe.records if r["event"] == "decision" and r["goal_id"] == rec["goal_id"])
+        assert (decision["decision"], decision["goal"]["joint_names"]) == ("forwarded", ARM)
     finally:
         probe.close()
         absent.close()
