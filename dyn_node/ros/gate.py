@@ -15,9 +15,10 @@ like an executed trajectory and decided by :mod:`dyn_node.gate.decision` (``gate
 
 Each decision is published (and recorded) on ``~/gate_decisions`` as a JSON std_msgs/String,
 and each forwarded goal's end likewise (``event: result``); ``dyn_node: gate`` in /diagnostics
-counts them. Only the decision is on a goal's path: its record (about as long again, for a
-100-point goal) is made once the client has its goal response, and before the goal's end record. The action server, the client and their callbacks live on a helper node spun by an
-executor of its own, so a goal never waits for dyn_node's executor, nor delays it.
+counts them. Only the decision is on a goal's path: its record (the goal and the forwarded
+trajectory as JSON, ~2 ms for 100 points) is made once the client has its goal response, and
+before the goal's end record. The action server, the client and their callbacks live on a helper
+node spun by an executor of its own, so a goal never waits for dyn_node's executor, nor delays it.
 """
 from __future__ import annotations
 
