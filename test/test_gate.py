@@ -95,19 +95,34 @@ class Probe:
         self.steps.close()
 
 
+def _counting_client():
+    from dyn_node.ros.fjt_client import FjtClient
+
+    class Counting(FjtClient):
+        """Counts the goals it sends (each one gets a decision record from the gate)."""
+
+        goals_sent = 0
+
+        def send(self, g, timeout: float = 15.0):
+            self.goals_sent += 1
+            return super().send(g, timeout)
+
+    return Counting
+
+
 @pytest.fixture(scope="module")
 def stack(module_ros_context, tmp_path_factory):
     """dyn_sim, a gate in reject mode and one in check mode, both in front of dyn_sim."""
     from conftest import ChildProcess, child_env
-    from dyn_node.ros.fjt_client import FjtClient
 
+    CountingClient = _counting_client()
     bags = tmp_path_factory.mktemp("gate_bags")
     procs = [ChildProcess(sim_cmd(), env=child_env()),
              ChildProcess(gate_cmd("gate_reject", f"gate.controller_action:={JTC}", "record.enabled:=true",
                                    f"record.directory:={bags}"), env=child_env()),
              ChildProcess(gate_cmd("gate_check", f"gate.controller_action:={JTC}", "gate.mode:=check"),
                           env=child_env())]
-    clients = {m: FjtClient(module_ros_context, f"/gate_{m}/follow_joint_trajectory", f"client_{m}")
+    clients = {m: CountingClient(module_ros_context, f"/gate_{m}/follow_joint_trajectory", f"client_{m}")
                for m in ("reject", "check")}
     probe = Probe(module_ros_context, "gate_reject", ready=("gate_reject", "gate_check"))
     try:
@@ -306,8 +321,12 @@ def test_audit_replays_the_gate_decisions_identically(stack):
     the decisions (last test of the stack: it stops the gate to close its bag)."""
     from dyn_node.audit.bag_audit import AuditOptions, run_audit
 
-    _, probe, procs, bags = stack
-    probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) >= 8, 20.0, "the records")
+    clients, probe, procs, bags = stack
+    # one decision record per goal sent, published off the goal's path (and 47 kB each, which
+    # DDS may deliver late on a busy machine): wait for all of them before the gate stops
+    sent = clients["reject"].goals_sent
+    probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) == sent >= 8, 20.0,
+                f"a decision record for each of the {sent} goals sent")
     rc, _, err = procs[1].stop(signal.SIGINT)
     assert rc == 0, err[-2000:]
     bag = next(bags.iterdir())
