@@ -43,27 +43,35 @@ def question_counts(bag: Path) -> dict[str, tuple[int, int]]:
     return counts
 
 
-def gate_goal_counts(bag: Path) -> tuple[int, int]:
-    """(goals decided, goals executed "no") from the gate's ``~/gate_decisions`` records
-    (std_msgs/String holding JSON): a goal was sent to be executed; it is "no" when rejected, or
-    forwarded with an infeasible verdict (check mode); a retimed goal forwarded a feasible one."""
+def gate_records(bag: Path) -> list[dict]:
+    """The gate's ``~/gate_decisions`` records (std_msgs/String holding JSON) in the bag's log
+    time order, read by the official mcap reader and decoded by rosbags."""
     import json
 
     from mcap.reader import make_reader
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     files = sorted(bag.glob("*.mcap")) if bag.is_dir() else [bag]
-    n = bad = 0
+    out = []
     for f in files:
         with open(f, "rb") as fh:
-            for schema, channel, msg in make_reader(fh).iter_messages():
+            for schema, channel, msg in make_reader(fh).iter_messages(log_time_order=True):
                 if not channel.topic.endswith("/gate_decisions"):
                     continue
                 ts = get_typestore(Stores.EMPTY)
                 ts.register(get_types_from_msg(schema.data.decode(), schema.name))
-                rec = json.loads(ts.deserialize_cdr(msg.data, schema.name).data)
-                if rec.get("event") != "decision":
-                    continue
-                n += 1
-                bad += rec["decision"] == "rejected" or (rec["decision"] == "forwarded" and not rec["feasible"])
+                out.append(json.loads(ts.deserialize_cdr(msg.data, schema.name).data))
+    return out
+
+
+def gate_goal_counts(bag: Path) -> tuple[int, int]:
+    """(goals decided, goals executed "no") from the gate's records: a goal was sent to be
+    executed; it is "no" when rejected, or forwarded with an infeasible verdict (check mode); a
+    retimed goal forwarded a feasible one."""
+    n = bad = 0
+    for rec in gate_records(bag):
+        if rec.get("event") != "decision":
+            continue
+        n += 1
+        bad += rec["decision"] == "rejected" or (rec["decision"] == "forwarded" and not rec["feasible"])
     return n, bad

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import Stepper, kv, python_cmd
-from service_event_counts import gate_goal_counts
+from service_event_counts import gate_goal_counts, gate_records
 from test_sim_action import ARM, READY, moved
 from test_sim_action import sim_cmd as sim_action_cmd
 
@@ -91,23 +91,46 @@ class Probe:
                    f"{n} {goal_id_event} record(s)")
         return [r for r in self.records if r["event"] == goal_id_event][n - 1]
 
+    def decision_of(self, spec: dict, timeout: float = 15.0) -> dict:
+        """The decision record of the goal with ``spec``'s points: found by content, as records
+        come after the goal response and may arrive after a later goal was sent."""
+        found = lambda: [r for r in self.records if r["event"] == "decision"  # noqa: E731
+                         and (r.get("goal") or {}).get("positions") == spec["points"]]
+        self.until(lambda: len(found()) == 1, timeout, "the goal's decision record")
+        return found()[0]
+
     def close(self) -> None:
         self.steps.close()
+
+
+def _counting_client():
+    from dyn_node.ros.fjt_client import FjtClient
+
+    class Counting(FjtClient):
+        """Counts the goals it sends (each one gets a decision record from the gate)."""
+
+        goals_sent = 0
+
+        def send(self, g, timeout: float = 15.0):
+            self.goals_sent += 1
+            return super().send(g, timeout)
+
+    return Counting
 
 
 @pytest.fixture(scope="module")
 def stack(module_ros_context, tmp_path_factory):
     """dyn_sim, a gate in reject mode and one in check mode, both in front of dyn_sim."""
     from conftest import ChildProcess, child_env
-    from dyn_node.ros.fjt_client import FjtClient
 
+    CountingClient = _counting_client()
     bags = tmp_path_factory.mktemp("gate_bags")
     procs = [ChildProcess(sim_cmd(), env=child_env()),
              ChildProcess(gate_cmd("gate_reject", f"gate.controller_action:={JTC}", "record.enabled:=true",
                                    f"record.directory:={bags}"), env=child_env()),
              ChildProcess(gate_cmd("gate_check", f"gate.controller_action:={JTC}", "gate.mode:=check"),
                           env=child_env())]
-    clients = {m: FjtClient(module_ros_context, f"/gate_{m}/follow_joint_trajectory", f"client_{m}")
+    clients = {m: CountingClient(module_ros_context, f"/gate_{m}/follow_joint_trajectory", f"client_{m}")
                for m in ("reject", "check")}
     probe = Probe(module_ros_context, "gate_reject", ready=("gate_reject", "gate_check"))
     try:
@@ -136,8 +159,6 @@ def test_feasible_goal_forwarded_with_feedback_and_result(stack):
 
     clients, probe, *_ = stack
     client = clients["reject"]
-    n = len([r for r in probe.records if r["event"] == "decision"])
-    m = len([r for r in probe.records if r["event"] == "result"])
     sent = client.send(_goal(FEASIBLE))
     assert sent.handle.accepted
     status, result = client.result(sent)
@@ -149,12 +170,13 @@ def test_feasible_goal_forwarded_with_feedback_and_result(stack):
     assert list(f.joint_names) == ARM
     np.testing.assert_allclose(np.array(f.desired.positions) - np.array(f.actual.positions),
                                f.error.positions, atol=1e-12)
-    rec = probe.record("decision", n + 1)
+    rec = probe.decision_of(FEASIBLE)
     assert (rec["decision"], rec["feasible"], rec["reason"], rec["mode"]) == ("forwarded", True, "", "reject")
     assert rec["forwarded"]["joint_names"] == ARM
     assert rec["forwarded"]["positions"] == FEASIBLE["points"]  # unchanged
-    res = probe.record("result", m + 1)
-    assert (res["goal_id"], res["status"], res["error_code"]) == (rec["goal_id"], GoalStatus.STATUS_SUCCEEDED, 0)
+    ends = lambda: [r for r in probe.records if r["event"] == "result" and r["goal_id"] == rec["goal_id"]]  # noqa: E731
+    probe.until(lambda: bool(ends()), 15.0, "the goal's result record")
+    assert [(r["status"], r["error_code"]) for r in ends()] == [(GoalStatus.STATUS_SUCCEEDED, 0)]
 
 
 @pytest.mark.timeout(120)
@@ -170,7 +192,6 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
 
     clients, probe, *_ = stack
     client = clients["reject"]
-    n = len([r for r in probe.records if r["event"] == "decision"])
     g = _goal(INFEASIBLE)
     t_sent = time.time()
     sent = client.send(g)
@@ -190,7 +211,7 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
     assert not verdict.feasible and result.error_string == verdict.message
     assert "velocity" in result.error_string and "slower" in result.error_string
     assert sent.feedback == []
-    rec = probe.record("decision", n + 1)
+    rec = probe.decision_of(INFEASIBLE)
     assert (rec["decision"], rec["reason"], rec["forwarded"]) == ("rejected", "infeasible", None)
     assert rec["time_scale"] == pytest.approx(verdict.time_scale, rel=1e-12)
     # dyn_sim never moved: from the goal on (stamps are wall-clock start + simulation time) the
@@ -306,8 +327,12 @@ def test_audit_replays_the_gate_decisions_identically(stack):
     the decisions (last test of the stack: it stops the gate to close its bag)."""
     from dyn_node.audit.bag_audit import AuditOptions, run_audit
 
-    _, probe, procs, bags = stack
-    probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) >= 8, 20.0, "the records")
+    clients, probe, procs, bags = stack
+    # one decision record per goal sent, published off the goal's path (and 47 kB each, which
+    # DDS may deliver late on a busy machine): wait for all of them before the gate stops
+    sent = clients["reject"].goals_sent
+    probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) == sent >= 8, 20.0,
+                f"a decision record for each of the {sent} goals sent")
     rc, _, err = procs[1].stop(signal.SIGINT)
     assert rc == 0, err[-2000:]
     bag = next(bags.iterdir())
@@ -338,6 +363,17 @@ def test_audit_replays_the_gate_decisions_identically(stack):
     assert (gate["forwarded"], gate["rejected"]) == (sum(r["decision"] == "forwarded" for r in live),
                                                      sum(r["decision"] == "rejected" for r in live))
     assert [d["goal_id"] for d in gate["decisions"]] == [r["goal_id"] for r in live]
+    # the gate records a decision once the goal is on its way (off the latency path), yet always
+    # before that goal's end: in the bag, every result record follows its goal's decision
+    recs = gate_records(bag)
+    assert [r["goal_id"] for r in recs if r["event"] == "decision"] == [r["goal_id"] for r in live]
+    decided: set[str] = set()
+    for r in recs:
+        if r["event"] == "decision":
+            decided.add(r["goal_id"])
+        else:
+            assert r["goal_id"] in decided, f"{r['event']} recorded before its decision: {r}"
+    assert {"result", "downstream_rejected"} <= {r["event"] for r in recs}
     assert [d["verdict"] for d in gate["decisions"]] == [r["verdict"] for r in live]
     recheck = audit.record["outputs"]["recheck"]["/gate_reject/gate_decisions"]
     assert (recheck["matched"], recheck["identical"]) == (len(live), True), recheck
@@ -389,6 +425,11 @@ def test_downstream_absent_and_crashing(module_ros_context, spawn):
                                        "went away during the goal (no feedback and no result for 1 s)")
         rec = probe.record("downstream_lost", 1)
         assert rec["status"] == GoalStatus.STATUS_ABORTED
+        # the goal's decision (recorded from its execution) came first, with its inputs
+        events = [(r["event"], r["goal_id"]) for r in probe.records]
+        assert events.index(("decision", rec["goal_id"])) < events.index(("downstream_lost", rec["goal_id"]))
+        decision = next(r for r in probe.records if r["event"] == "decision" and r["goal_id"] == rec["goal_id"])
+        assert (decision["decision"], decision["goal"]["joint_names"]) == ("forwarded", ARM)
     finally:
         probe.close()
         absent.close()

@@ -15,8 +15,10 @@ like an executed trajectory and decided by :mod:`dyn_node.gate.decision` (``gate
 
 Each decision is published (and recorded) on ``~/gate_decisions`` as a JSON std_msgs/String,
 and each forwarded goal's end likewise (``event: result``); ``dyn_node: gate`` in /diagnostics
-counts them. The action server, the client and their callbacks live on a helper node spun by an
-executor of its own, so a goal never waits for dyn_node's executor, nor delays it.
+counts them. Only the decision is on a goal's path: its record (the goal and the forwarded
+trajectory as JSON, ~2 ms for 100 points) is made once the client has its goal response, and
+before the goal's end record. The action server, the client and their callbacks live on a helper
+node spun by an executor of its own, so a goal never waits for dyn_node's executor, nor delays it.
 """
 from __future__ import annotations
 
@@ -80,6 +82,7 @@ class _Goal:
     handle: Any = None
     feedback: list = field(default_factory=list)  # received before the client's goal was accepted
     heard: float = field(default_factory=time.monotonic)  # last feedback (monotonic s)
+    record: Callable[[], None] | None = None  # publishes the decision's record, once
 
 
 def declare_gate_parameters(node: Node) -> dict[str, Any]:
@@ -158,13 +161,14 @@ class Gate:
 
     # --- the decision (goal callback) -----------------------------------------------------------
     def _check(self, goal: Any) -> tuple[Decision, list[str], dict]:
-        """The decision, the model's joint names, and the decision's inputs for the record."""
+        """The decision, the model's joint names, and what the record needs of the decision's
+        inputs (the goal's arrays and the start state, made JSON-ready by :meth:`_record`)."""
         core, start = self._state()
         pts = goal.trajectory.points
         arrays = (list(goal.trajectory.joint_names),
                   [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
                   [p.positions for p in pts], [p.velocities for p in pts], [p.accelerations for p in pts])
-        inputs = {"goal": goal_dict(*arrays), "start": start_dict(start), "retime_all": self.options.retime_all}
+        inputs = {"arrays": arrays, "start": start}
         if core is None:
             return rejected(TrajectoryError("no robot model yet", code="no_model")), [], inputs
         model, settings = core.model, core.settings
@@ -188,7 +192,10 @@ class Gate:
         except Exception as exc:  # a failing check must still answer the client
             decision, names, inputs = rejected(TrajectoryError(f"check failed: {exc!r}", code="evaluation_failed")), [], {}
         g = _Goal(goal_id=gid, decision=decision)
-        self._record(g, names, goal, inputs)
+        with self._lock:
+            self.counts[decision.decision] += 1
+            self.last_line, self.last_decision = decision.line, decision.decision
+        g.record = lambda: self._record(g, names, goal, inputs)
         if not decision.forwards:
             g.abort_text = decision.error_string
             return self._keep(goal, g, GoalResponse.ACCEPT)
@@ -199,7 +206,11 @@ class Gate:
                 setattr(down_goal, f, getattr(goal, f))
             down_goal.trajectory = to_joint_trajectory(goal.trajectory, decision.trajectory, names)
         g.down_goal = down_goal
-        return self._keep(goal, g, self._forward(g))
+        try:
+            return self._keep(goal, g, self._forward(g))
+        except Exception:  # answered REJECT by _on_goal: no execution will record the decision
+            self._publish_decision(g)
+            raise
 
     def _keep(self, goal: Any, g: _Goal, response: GoalResponse) -> GoalResponse:
         if response == GoalResponse.ACCEPT:
@@ -222,7 +233,8 @@ class Gate:
             return self._downstream_failed(g, f"downstream action server {self.downstream} did not answer "
                                               f"the goal request within {self.timeout:g} s (gate.timeout)")
         g.down = fut.result()
-        if not g.down.accepted:
+        if not g.down.accepted:  # no execution follows: the decision is recorded here
+            self._publish_decision(g)
             self._record_result(g, "downstream_rejected", None, None)
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
@@ -256,12 +268,13 @@ class Gate:
     def _execute(self, handle: Any) -> Any:
         with self._lock:
             g = self._goals.pop(id(handle.request))
-        if g.abort_text:
-            handle.abort()
-            return Result(error_code=Result.INVALID_GOAL, error_string=g.abort_text)
-        with self._lock:
-            self._running_goals[id(g)] = g
+            if not g.abort_text:
+                self._running_goals[id(g)] = g  # a clean shutdown cancels it from now on
         try:
+            self._publish_decision(g)
+            if g.abort_text:
+                handle.abort()
+                return Result(error_code=Result.INVALID_GOAL, error_string=g.abort_text)
             return self._follow(handle, g)
         finally:
             with self._lock:
@@ -301,13 +314,25 @@ class Gate:
         return res.result
 
     # --- records and status ---------------------------------------------------------------------
+    def _publish_decision(self, g: _Goal) -> None:
+        """The decision's record and log line, off the goal's path: from its execution (the
+        client has its goal response, the controller its goal), or before a REJECT answer; always
+        before the goal's ``event: result`` record. A failing record never fails the goal."""
+        with self._lock:  # once: execution and close() may both get here
+            record, g.record = g.record, None
+        if record is None:
+            return
+        try:
+            record()
+        except Exception:
+            self.logger.error(f"gate {g.goal_id[:8]}: decision record failed:\n{traceback.format_exc()}")
+
     def _record(self, g: _Goal, names: list[str], goal: Any, inputs: dict) -> None:
         d = g.decision
-        with self._lock:
-            self.counts[d.decision] += 1
-            self.last_line, self.last_decision = d.line, d.decision
         rec = d.to_dict(goal_id=g.goal_id, mode=self.options.mode, joint_names=names)
-        rec.update(inputs)
+        if inputs:
+            rec.update(goal=goal_dict(*inputs["arrays"]), start=start_dict(inputs["start"]),
+                       retime_all=self.options.retime_all)
         rec.update(event="decision", downstream=self.downstream, tolerances={
             "path": [[t.name, t.position, t.velocity, t.acceleration] for t in goal.path_tolerance],
             "goal": [[t.name, t.position, t.velocity, t.acceleration] for t in goal.goal_tolerance],
@@ -346,6 +371,9 @@ class Gate:
         self._closing = True
         with self._lock:
             goals = list(self._running_goals.values())
+            unexecuted = list(self._goals.values())
+        for g in unexecuted:  # answered, never executed: their decisions still go in the bag
+            self._publish_decision(g)
         waits = []
         deadline = time.monotonic() + 2.0
         for g in goals:
