@@ -20,8 +20,6 @@ from typing import Any, Mapping
 import numpy as np
 
 from dyn_node import __version__
-from dyn_node.core.check.kinds import KINDS
-from dyn_node.core.check.task_motion import configured
 from dyn_node.errors import FAILURE_LABELS, EVALUATION_ERROR, DynNodeError
 
 SCHEMA_PATH = Path(__file__).resolve().parents[1] / "schemas" / "evidence_record.schema.json"
@@ -43,9 +41,14 @@ def metric_definitions(kind: str = "audit") -> dict[str, dict[str, str]]:
     return {name: dict(d) for name, d in _metric_tables()[kind].items()}
 
 
-#: The task kinds' units, as the per_frame entries and ~/feasibility messages give them (the
-#: kind classes' own ``unit``).
-TASK_KIND_UNITS: dict[str, str] = {c.kind: c.unit for c in KINDS if c.scope == "task"}
+@lru_cache(maxsize=1)
+def task_kind_units() -> dict[str, str]:
+    """The task kinds' units, as the per_frame entries and ~/feasibility messages give them (the
+    kind classes' own ``unit``). Read when first asked: the kinds are the check's whole stack,
+    which an audit of a bag without trajectories does not load."""
+    from dyn_node.core.check.kinds import KINDS
+
+    return {c.kind: c.unit for c in KINDS if c.scope == "task"}
 
 
 def task_limits_section(model: Any) -> dict[str, Any] | None:
@@ -53,6 +56,8 @@ def task_limits_section(model: Any) -> dict[str, Any] | None:
     tl = getattr(model, "task_limits", None)
     if tl is None:
         return None
+    from dyn_node.core.check.task_motion import configured
+
     return tl.to_dict() if configured(tl) else None
 
 
@@ -88,7 +93,8 @@ def per_frame_section(result_dict: Mapping[str, Any]) -> dict[str, Any] | None:
     pf = result_dict.get("per_frame")
     if not pf:
         return None
-    return {place: {kind: {"unit": TASK_KIND_UNITS.get(kind, ""), **dict(e)}
+    units = task_kind_units()
+    return {place: {kind: {"unit": units.get(kind, ""), **dict(e)}
                     for kind, e in kinds.items()} for place, kinds in pf.items()}
 
 
