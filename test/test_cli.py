@@ -62,3 +62,24 @@ def test_both_commands_read_the_audit_options_alike(tmp_path):
     for p, d in zip((audit.build_parser(), fleet.build_parser()), defaults):
         with pytest.raises(SystemExit):  # one model source at a time, in both
             p.parse_args([*d, "--robot-model", "ur5", "--robot-description", "x.urdf"])
+
+
+@pytest.mark.parametrize("module", ["dyn_node.audit.bag_audit", "dyn_node.audit"])
+def test_audit_command_turns_the_collector_back_on(module, tmp_path):
+    """Run as a command (python -m) the audit imports with the collector off; main() must turn it
+    back on (a long audit's cyclic garbage is collected) with the start-up's objects frozen.
+    Imported as a module, the caller's collector is never touched."""
+    import subprocess
+    import sys
+
+    code = ("import gc, runpy, sys\n"
+            f"sys.argv = ['dyn-audit', {str(tmp_path / 'none')!r}, '--out', {str(tmp_path / 'o')!r}]\n"
+            "try:\n"
+            f"    runpy.run_module({module!r}, run_name='__main__', alter_sys=True)\n"
+            "except SystemExit as e:\n"
+            "    print(e.code, gc.isenabled(), gc.get_freeze_count() > 0)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stdout.split() == ["2", "True", "True"], out.stderr
+    probe = "import gc, dyn_node.audit.bag_audit, dyn_node.audit.__main__; print(gc.isenabled(), gc.get_freeze_count())"
+    assert subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          timeout=120).stdout.split() == ["True", "0"]

@@ -149,15 +149,16 @@ def place_lines(v: FileVerdict) -> list[str]:
     """One row per task place (frame_limits link, robot_limits, base_limits, grasp) of a checked
     file: ``  <place>: <kind> <peak> of <limit> <unit> (<ratio>%) at t = <s> s; …`` (empty when
     no task kind is configured)."""
-    from dyn_node.audit.evidence import TASK_KIND_UNITS
+    from dyn_node.audit.evidence import task_kind_units
 
     r = v.outcome.result if v.outcome is not None else None
     per_frame = getattr(r, "per_frame", None) or {}
+    units = task_kind_units()
     rows = []
     for place, kinds in per_frame.items():
         cells = []
         for kind, e in kinds.items():
-            unit = e.get("unit", TASK_KIND_UNITS.get(kind, ""))
+            unit = e.get("unit", units.get(kind, ""))
             ratio = e.get("ratio")
             pct = "—" if ratio is None else ("inf" if ratio == math.inf else f"{ratio * 100:.0f}")
             t = e.get("time_s")

@@ -20,107 +20,35 @@ from typing import Any, Mapping
 import numpy as np
 
 from dyn_node import __version__
-from dyn_node.core.check.kinds import KINDS
-from dyn_node.core.check.task_motion import configured
 from dyn_node.errors import FAILURE_LABELS, EVALUATION_ERROR, DynNodeError
 
 SCHEMA_PATH = Path(__file__).resolve().parents[1] / "schemas" / "evidence_record.schema.json"
 SCHEMA_ID = "dyn_node/evidence_record"
 SCHEMA_VERSION = 2  # 2: per-joint effort keys unit-neutral, with the joint's unit
 
-#: What every number in an audit record means, with its unit.
-METRIC_DEFINITIONS: dict[str, dict[str, str]] = {
-    "time_s": {"unit": "s", "description": "log (receipt) time relative to inputs.time_span.start_ns"},
-    "stamp_ns": {"unit": "ns", "description": "message header stamp, ns since the epoch"},
-    "utilisation": {"unit": "1", "description": "max(|model torque|, |measured effort|) / effort limit "
-                    "at the current speed (torque-speed envelope applied); > 1 is a violation"},
-    "peak_utilisation": {"unit": "1", "description": "largest utilisation of the joint over the bag"},
-    "gravity_torque_nm": {"unit": "N·m", "description": "g(q): gravity torque at the recorded position"},
-    "rnea_torque_nm": {"unit": "N·m", "description": "RNEA(q, q̇, q̈̂) with friction as configured; q̈̂ "
-                       "is the monitor's acceleration estimate"},
-    "effort_limit": {"unit": "N·m | N", "description": "effort limit (URDF/limits file), min with the "
-                     "torque-speed envelope; per joint in its unit (N for a prismatic joint)"},
-    "peak_effort": {"unit": "N·m | N", "description": "model effort (RNEA) at the joint's peak "
-                    "utilisation, in the per-joint entry's unit"},
-    "peak_measured_effort": {"unit": "N·m | N", "description": "measured effort at the joint's peak "
-                             "utilisation (null when not measured), in the entry's unit"},
-    "violation.peak_value": {"unit": "N·m | rad | rad/s | rad/s² (N | m | m/s | m/s² for a prismatic "
-                             "joint: the violation's unit)", "description": "effort: |torque|; "
-                             "position: q; velocity: |q̇|; deceleration: |q̈̂| (the acceleration "
-                             "estimate) where q̇·q̈̂ < 0, at the peak"},
-    "violation.duration_s": {"unit": "s", "description": "time from the first to the last consecutive "
-                             "message above the limit"},
-    "time_scale": {"unit": "1", "description": "smallest factor k the trajectory's duration must be "
-                   "multiplied by to be feasible (k ≤ 1: feasible; 'inf': no slowdown helps)"},
-    "payload_margin_kg": {"unit": "kg", "description": "largest extra payload at the payload frame "
-                          "for which the trajectory stays feasible at its own timing (negative: "
-                          "how much must come off)"},
-    "worst_ratio": {"unit": "1", "description": "largest ratio of a checked quantity to its limit"},
-    "recheck.max_abs_difference": {"unit": "N·m (torque topics), key units (feasibility)",
-                                   "description": "largest |recorded − recomputed| over matched "
-                                   "outputs; 0.0 means bit-identical"},
-    "latency.stamp_to_output_s": {"unit": "s", "description": "output log time − input header "
-                                  "stamp, for outputs matched to inputs by stamp"},
-    "latency.receipt_to_output_s": {"unit": "s", "description": "output log time − input log "
-                                    "time (recorder receipt times of both)"},
-    "latency quantiles": {"unit": "s", "description": "p50/p95/p99 from a fixed log-spaced histogram "
-                          "(1 µs … 100 s, 200 bins per decade: ±0.6% resolution); min, max, mean exact"},
-    "gap.duration_s": {"unit": "s", "description": "log-time interval between consecutive joint_states "
-                       "longer than gap_threshold_s"},
-    "stale_period": {"unit": "s", "description": "gap longer than the node's stale_timeout: the node "
-                     "reported STALE during it"},
-    "out_of_order": {"unit": "count", "description": "joint_states whose header stamp is older than "
-                     "the previous accepted one (the node resets its acceleration estimate)"},
-    "unreadable_range": {"unit": "s", "description": "log-time range relative to start_ns that could "
-                         "not be read (CRC mismatch, damaged or truncated file); end_s null: to the "
-                         "end of the recording"},
-    "contact.episode": {"unit": "s", "description": "a contact (|τ̂_ext| over contact_threshold × the "
-                        "effort limit on some joint for contact_min_duration) or collision (over "
-                        "collision_threshold); start_s/end_s: input header stamps relative to "
-                        "inputs.time_span.start_ns, from the first sample over the contact threshold to "
-                        "the first with every joint below half of it"},
-    "contact.peak_force_n": {"unit": "N", "description": "largest |F̂| of the wrench estimate at the contact "
-                             "frame during the episode; peak_wrench: that estimate [N, N, N, N·m, N·m, N·m]"},
-    "contact.peak_torque": {"unit": "N·m | N", "description": "largest |τ̂_ext| of the joint during the "
-                            "episode (momentum observer, friction of the model subtracted)"},
-    "contact.resets": {"unit": "s", "description": "observer restarts (recording start, joint_states gap > "
-                       "stale_timeout, model or parameter change, invalid input): stamp of the sample"},
-    "throughput_msgs_per_s": {"unit": "1/s", "description": "messages read per second of wall time"},
-    "request": {"unit": "", "description": "trajectory entry: execute (sent to be executed: infeasible "
-                "is a violation of the run) or the kind of question (check, retime, inverse_dynamics: "
-                "a 'no' is an answer, not a violation)"},
-    "trajectory_counts": {"unit": "requests", "description": "executed trajectories and questions "
-                          "apart, each with how many were infeasible or rejected, exact past the "
-                          "listed entries; by_request: per request kind"},
-    "per_frame": {"unit": "the kind's (entry.unit)", "description": "trajectory entry: place (a "
-                  "frame_limits link, robot_limits, base_limits or grasp) → task kind → {ratio, "
-                  "time_s, value, limit, unit}: peak value over its limit, at time_s from the "
-                  "trajectory start; only the configured kinds of each place"},
-    "task_limits": {"unit": "SI (m, m/s, rad/s, m/s², J, N, N·m, kg)", "description": "the limits "
-                    "file's task sections as applied (vectors in the named frame's axes, base "
-                    "quantities in the URDF root frame); null: section absent or not limited"},
-    "frame_speed": {"unit": "m/s", "description": "|v| of the frame_limits point (root axes); "
-                    "time-scale law 1/k"},
-    "frame_angular_speed": {"unit": "rad/s", "description": "|ω| of the frame; law 1/k"},
-    "frame_acceleration": {"unit": "m/s²", "description": "|J·q̈ + J̇·q̇| of the point, gravity "
-                           "excluded; law 1/k²"},
-    "transferred_energy": {"unit": "J", "description": "½·m_u·|v|² at the point, m_u the effective "
-                           "mass along the motion; an upper bound of ISO/TS 15066's transferred "
-                           "energy: advisory, not a certification; law 1/k²"},
-    "kinetic_energy": {"unit": "J", "description": "½ q̇ᵀM(q)q̇ of the whole robot; law 1/k²"},
-    "base_force": {"unit": "N", "description": "|force| of the mounting on the robot at the root "
-                   "origin, root axes: |f_static + f_dynamic/k²|"},
-    "base_moment": {"unit": "N·m", "description": "|moment| at the root origin, root axes"},
-    "tipping": {"unit": "1", "description": "tipping_ratio: centre of pressure's distance from the "
-                "support polygon's centroid over the centroid-to-edge distance on that ray (1 on "
-                "the edge, inf at lift-off)"},
-    "grasp_slip": {"unit": "N", "description": "force the grasp supplies to the payload, component "
-                   "perpendicular to the normal axis, against μ·grip_force·faces"},
-}
+#: What every number of a record means, with its unit, per kind of record ("audit": dyn-audit's
+#: and dyn-check's, "physics": dyn_sim --check-physics'): reference data kept beside the schema.
+METRICS_PATH = SCHEMA_PATH.with_name("metric_definitions.json")
 
-#: The task kinds' units, as the per_frame entries and ~/feasibility messages give them (the
-#: kind classes' own ``unit``).
-TASK_KIND_UNITS: dict[str, str] = {c.kind: c.unit for c in KINDS if c.scope == "task"}
+
+@lru_cache(maxsize=1)
+def _metric_tables() -> dict[str, dict[str, dict[str, str]]]:
+    return json.loads(METRICS_PATH.read_text(encoding="utf-8"))
+
+
+def metric_definitions(kind: str = "audit") -> dict[str, dict[str, str]]:
+    """A record's ``metric_definitions`` for ``kind`` ("audit" or "physics"): a fresh copy."""
+    return {name: dict(d) for name, d in _metric_tables()[kind].items()}
+
+
+@lru_cache(maxsize=1)
+def task_kind_units() -> dict[str, str]:
+    """The task kinds' units, as the per_frame entries and ~/feasibility messages give them (the
+    kind classes' own ``unit``). Read when first asked: the kinds are the check's whole stack,
+    which an audit of a bag without trajectories does not load."""
+    from dyn_node.core.check.kinds import KINDS
+
+    return {c.kind: c.unit for c in KINDS if c.scope == "task"}
 
 
 def task_limits_section(model: Any) -> dict[str, Any] | None:
@@ -128,6 +56,8 @@ def task_limits_section(model: Any) -> dict[str, Any] | None:
     tl = getattr(model, "task_limits", None)
     if tl is None:
         return None
+    from dyn_node.core.check.task_motion import configured
+
     return tl.to_dict() if configured(tl) else None
 
 
@@ -163,7 +93,8 @@ def per_frame_section(result_dict: Mapping[str, Any]) -> dict[str, Any] | None:
     pf = result_dict.get("per_frame")
     if not pf:
         return None
-    return {place: {kind: {"unit": TASK_KIND_UNITS.get(kind, ""), **dict(e)}
+    units = task_kind_units()
+    return {place: {kind: {"unit": units.get(kind, ""), **dict(e)}
                     for kind, e in kinds.items()} for place, kinds in pf.items()}
 
 
@@ -244,7 +175,7 @@ class EvidenceRecord:
     input_quality: dict[str, Any] = field(default_factory=dict)
     verdict: dict[str, Any] = field(default_factory=dict)
     failure_labels: list[str] = field(default_factory=list)
-    metric_definitions: dict[str, dict[str, str]] = field(default_factory=lambda: dict(METRIC_DEFINITIONS))
+    metric_definitions: dict[str, dict[str, str]] = field(default_factory=metric_definitions)
     started_utc: str = field(default_factory=utc_now)
     finished_utc: str = ""
     duration_s: float = 0.0

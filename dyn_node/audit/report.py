@@ -11,6 +11,8 @@ out a matplotlib figure took longer than auditing a minute of 1 kHz joint states
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -504,22 +506,27 @@ def write_report(record: dict, series, model, out_dir: str | Path, *, contact_se
     (``contact_series``: the contact replay's SeriesBins, for contact.png)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    images: dict[str, bytes] = {}
     start_ns = record["inputs"]["time_span"]["start_ns"] or 0
     names = record["configuration"]["model"]["joint_names"]
+    plots: dict[str, Any] = {}  # file name → a call drawing it, in the page's order
     if series is not None and series.n:
-        images["effort.png"] = effort_plot(series, names, start_ns, record["outputs"]["violations"])
-        images["utilisation.png"] = utilisation_plot(series, names, start_ns)
+        plots["effort.png"] = partial(effort_plot, series, names, start_ns, record["outputs"]["violations"])
+        plots["utilisation.png"] = partial(utilisation_plot, series, names, start_ns)
     contact = record["outputs"].get("contact")
     if contact and contact_series is not None and contact_series.n:
         from dyn_node.core.robot.units import joint_units
 
-        images["contact.png"] = contact_plot(contact_series, names, start_ns, contact["contact_level"],
-                                             contact["episodes"], joint_units(model)["effort"])
+        plots["contact.png"] = partial(contact_plot, contact_series, names, start_ns, contact["contact_level"],
+                                       contact["episodes"], joint_units(model)["effort"])
     if record["outputs"]["trajectories"]:
-        images["trajectories.png"] = trajectories_plot(record["outputs"]["trajectories"])
+        plots["trajectories.png"] = partial(trajectories_plot, record["outputs"]["trajectories"])
         if task_rows(record["outputs"]["trajectories"]):
-            images["task_limits.png"] = task_plot(record["outputs"]["trajectories"])
+            plots["task_limits.png"] = partial(task_plot, record["outputs"]["trajectories"])
+    # Two at a time: Pillow lets go of the GIL while it shrinks and PNG-compresses an image,
+    # so one plot's encoding runs beside the next one's drawing. Each image is the same bytes.
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="dyn-audit-plot") as pool:
+        jobs = {name: pool.submit(draw) for name, draw in plots.items()}
+        images: dict[str, bytes] = {name: job.result() for name, job in jobs.items()}
     files = []
     for name, data in images.items():
         (out / name).write_bytes(data)

@@ -5,6 +5,7 @@ was executed; questions have their own columns.
 """
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,69 +26,25 @@ OK, VIOLATIONS, PARTIAL, UNUSABLE, TIMEOUT, CRASHED = (
     "ok", "violations", "partial", "unusable", "timeout", "crashed")
 _CATEGORY = {EXIT_OK: OK, EXIT_VIOLATIONS: VIOLATIONS, EXIT_PARTIAL: PARTIAL, EXIT_UNUSABLE: UNUSABLE}
 
-# --- the tables' columns: (name, Arrow type, unit, meaning); docs/fleet.md's table is made of these ---
-ROW_COLUMNS: list[tuple[str, str, str, str]] = [
-    ("bag_id", "string", "", "directory name of the bag's outputs under DIR/bags/ (bag name + path hash)"),
-    ("path", "string", "", "absolute path of the bag (rosbag2 directory or .mcap file)"),
-    ("content_hash", "string", "", "SHA-256 of the bag's files (names, sizes and bytes); '' if unreadable"),
-    ("config_hash", "string", "", "SHA-256 of the audit configuration (options, override files, versions)"),
-    ("robot", "string", "", "model name ('' when no model could be built)"),
-    ("dof", "int32", "", "model joints"),
-    ("recording_start_ns", "int64", "ns since the Unix epoch", "first log time in the bag (null if none)"),
-    ("recording_duration_s", "float64", "s", "log-time span of the bag"),
-    ("messages", "int64", "messages", "messages read, all topics"),
-    ("joint_states", "int64", "messages", "joint_states replayed (received by the monitor)"),
-    ("joint_states_accepted", "int64", "messages", "joint_states the monitor accepted"),
-    ("trajectories", "int64", "messages", "executed trajectories checked (joint_trajectory, gate goals)"),
-    ("trajectories_bad", "int64", "messages", "executed trajectories infeasible or rejected"),
-    ("questions", "int64", "requests", "questions answered (check, retime, inverse dynamics): not executed"),
-    ("questions_infeasible", "int64", "requests", "questions answered infeasible or rejected (answers, not violations)"),
-    ("verdict", "string", "", "feasible | violations | error (not audited)"),
-    ("exit_code", "int8", "", "dyn-audit's exit code for this bag: 0, 1, 3 partial, 2 unusable"),
-    ("exit_category", "string", "", "ok | violations | partial | unusable | timeout | crashed"),
-    ("partial", "bool", "", "parts of the bag were unreadable"),
-    ("error", "string", "", "why the bag was not audited ('' when it was)"),
-    ("error_code", "string", "", "machine-readable error (no_model, bag_unreadable, no_inputs, timeout, worker_died, ...)"),
-    ("worst_joint", "string", "", "joint of the largest limit ratio, live or in an executed trajectory"),
-    ("worst_constraint", "string", "", "limit kind of that ratio (effort, velocity, ...)"),
-    ("worst_ratio", "float64", "value / limit", "largest ratio found (NaN: none)"),
-    ("worst_source", "string", "", "live (joint_states) or trajectory (executed)"),
-    ("worst_time_s", "float64", "s from the bag's start", "when the worst ratio occurred (live) or its trajectory was received"),
-    ("worst_time_scale", "float64", "", "largest time_scale k over the executed trajectories (inf: no slowdown helps; NaN: none)"),
-    ("live_episodes_total", "int64", "episodes", "live limit-violation episodes (exact count)"),
-    *[(f"live_{k}_episodes", "int64", "episodes", f"live {k} violation episodes (of those listed)")
-      for k in LIVE_KINDS],
-    *[(f"traj_{k}_violations", "int64", "joint × trajectory", f"executed trajectory joints over their {k} limit")
-      for k in TRAJ_KINDS],
-    ("invalid_messages", "int64", "messages", "joint_states rejected (NaN, missing joints, undecodable ...)"),
-    ("out_of_order_messages", "int64", "messages", "joint_states whose stamp went backwards"),
-    ("zero_stamp_messages", "int64", "messages", "joint_states with a zero header stamp"),
-    ("gaps", "int64", "gaps", "joint_states gaps longer than the gap threshold"),
-    ("stale_periods", "int64", "periods", "gaps longer than stale_timeout"),
-    ("unreadable_ranges", "int64", "ranges", "time ranges that could not be read"),
-    ("chunks_damaged", "int64", "chunks", "MCAP chunks failing their CRC or decompression"),
-    ("audit_s", "float64", "s", "wall-clock time of the bag's task (hash + audit + report)"),
-    ("audited_utc", "string", "ISO 8601 UTC", "when the evidence was written"),
-    ("resumed", "bool", "", "true: evidence from an earlier run reused (--resume, bag and configuration unchanged)"),
-    ("node", "string", "", "Ray node that ran the task ('' when none did)"),
-    ("evidence", "string", "path relative to DIR", "evidence.json ('' when the bag was not audited)"),
-    ("report", "string", "path relative to DIR", "report.html ('' when none)"),
-]
-JOINT_COLUMNS: list[tuple[str, str, str, str]] = [
-    ("bag_id", "string", "", "the bag's row in fleet.parquet"),
-    ("robot", "string", "", "model name"),
-    ("joint", "string", "", "joint name"),
-    ("joint_index", "int32", "", "position in the model's joint order"),
-    ("recording_start_ns", "int64", "ns since the Unix epoch", "the bag's first log time"),
-    ("live_effort_peak", "float64", "effort / limit", "peak live effort utilisation (NaN: no accepted joint_states)"),
-    ("live_effort_peak_time_s", "float64", "s from the bag's start", "when it occurred"),
-    ("effort_limit", "float64", "N·m or N", "effort limit at the peak"),
-    *[(f"live_{k}_over_s", "float64", "s", f"time in live {k} violation episodes") for k in LIVE_KINDS],
-    ("live_episodes", "int64", "episodes", "live violation episodes of this joint (of those listed)"),
-    *[(f"traj_{k}_peak", "float64", "value / limit", f"largest {k} ratio over the executed trajectories (NaN: no limit or none)")
-      for k in TRAJ_KINDS],
-    ("traj_over_limit_s", "float64", "s", "time over a limit in the executed trajectories (violations listed)"),
-]
+# --- the tables' columns: (name, Arrow type, unit, meaning), kept as data in
+# schemas/fleet_columns.json (docs/fleet.md's table is made of them) ---
+COLUMNS_PATH = Path(__file__).resolve().parents[1] / "schemas" / "fleet_columns.json"
+
+
+def _columns(table: str) -> list[tuple[str, str, str, str]]:
+    """A table's columns in order; a per-kind entry gives one column a kind."""
+    kinds = {"live_kinds": LIVE_KINDS, "traj_kinds": TRAJ_KINDS}
+    out: list[tuple[str, str, str, str]] = []
+    for entry in json.loads(COLUMNS_PATH.read_text(encoding="utf-8"))[table]:
+        if isinstance(entry, dict):
+            out += [tuple(x.format(kind=k) for x in entry["row"]) for k in kinds[entry["each"]]]
+        else:
+            out.append(tuple(entry))
+    return out
+
+
+ROW_COLUMNS: list[tuple[str, str, str, str]] = _columns("bags")
+JOINT_COLUMNS: list[tuple[str, str, str, str]] = _columns("joints")
 
 
 # --- configuration and jobs ------------------------------------------------------------------

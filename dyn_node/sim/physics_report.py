@@ -10,26 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from dyn_node.audit.evidence import EvidenceRecord, utc_now
+from dyn_node.audit.evidence import EvidenceRecord, metric_definitions, utc_now
 from dyn_node.core.robot.model import RobotModel
 from dyn_node.errors import EVALUATION_ERROR
-
-METRICS: dict[str, dict[str, str]] = {
-    "energy_error_rel": {"unit": "1", "description": "max over the run of |E(t) − E(0)| ÷ the peak "
-                         "kinetic energy; E = kinetic + potential energy from MuJoCo (mjENBL_ENERGY), "
-                         "free motion: no controller, damping, friction, limits or contacts"},
-    "error_ratio": {"unit": "1", "description": "energy_error_rel at timestep h ÷ at h/2, same "
-                    "integrator (2 for a first-order method, 16 for a fourth-order one in the "
-                    "asymptotic range)"},
-    "max_penetration_m": {"unit": "m", "description": "largest −dist of any robot–scene contact "
-                          "from first contact to the end of the held second"},
-    "normal_force_n": {"unit": "N", "description": "total normal contact force on the robot, mean "
-                       "over the held second"},
-    "normal_force_variation_rel": {"unit": "1", "description": "(max − min) ÷ mean of the normal "
-                                   "force over the held second (chatter)"},
-    "balance_residual_rel": {"unit": "1", "description": "max|Σ J_linkᵀ·W_link + τ − g(q)| ÷ "
-                             "max|g(q)| at the end of the hold, Pinocchio kinematics and gravity"},
-}
 
 
 def _record(model: RobotModel, *, source: str = "robot_model", check: str, started: str, seconds: float, passed: bool,
@@ -46,7 +29,7 @@ def _record(model: RobotModel, *, source: str = "robot_model", check: str, start
     rec.input_quality = {"gaps": [], "stale_periods": [], "out_of_order": {"count": 0, "examples": []},
                          "invalid_messages": {"count": 0, "by_reason": {}, "examples": []},
                          "unreadable_ranges": []}
-    rec.metric_definitions = dict(METRICS)
+    rec.metric_definitions = metric_definitions("physics")
     rec.seed = {"used": False, "value": None, "note": "deterministic: MuJoCo from a fixed initial "
                 "state, no noise; the same version gives identical numbers"}
     if not passed:

@@ -6,6 +6,7 @@ core from each configuration change on. A new kind of input is a replayer and a 
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Sequence
 
@@ -134,6 +135,11 @@ class Replay:
         # and any run the batch path declines, goes message by message. Both give the same numbers.
         self._run_topic, self._run_len, self._run_t, self._run_d = "", -1, [], []
         self.contact = ContactReplay(first, self.monitor.dynamics, sink=sink.contact if sink is not None else None)
+        # A batch's contact pass (the observer's compiled kernel, which lets go of the GIL) runs
+        # on a second thread while this one replays the next batch; anything else that touches
+        # the contact replay or runs the Monitor per message first waits for it (_contact_ready).
+        self._contact_pool: ThreadPoolExecutor | None = None
+        self._contact_job: Future | None = None
         # the question services' request/response pairs, counted in the same tally
         self.services = ServiceReplay(sink, tally=self.tally)
         self.gates = GateReplay(sink, tally=self.tally)  # the gate's goals: executed, decided again
@@ -150,6 +156,7 @@ class Replay:
             self._queue(m.topic, t_ns, m.data)
             return True
         self.flush()
+        self._contact_ready()
         if role in (ROLE_TRAJECTORY, ROLE_CHECK):
             self._trajectory_request(role, m)
         elif role == ROLE_STATES:
@@ -169,6 +176,10 @@ class Replay:
 
     def finish(self) -> ReplayResult:
         self.flush()
+        self._contact_ready()
+        if self._contact_pool is not None:
+            self._contact_pool.shutdown()
+            self._contact_pool = None
         self.live.finish()
         self.controller.close(self.prev_log)
         return ReplayResult(self.live, self.monitor.counts, self.model, self.settings,
@@ -182,6 +193,7 @@ class Replay:
     def _switch(self, cfg: Config) -> None:
         """What the node does when a parameter is set: a new core from now on."""
         self.live.flush()
+        self._contact_ready()
         self._use(cfg)
 
     def _use(self, cfg: Config) -> None:
@@ -226,6 +238,7 @@ class Replay:
         ts, datas = self._run_t, self._run_d
         self._run_t, self._run_d = [], []
         if len(datas) < MIN_BATCH or not self._js_batch(ts, datas):
+            self._contact_ready()
             for t, d in zip(ts, datas):
                 self._js_one(self._run_topic, t, d)
         self.prev_log = max(self.prev_log, ts[-1])
@@ -304,9 +317,22 @@ class Replay:
                 self.sink.expect_state(key, ts[k], b.gravity[k], b.tau[k])
         meas = (b.residual + b.tau if b.residual is not None
                 else np.full(b.tau.shape, np.nan))
-        self.contact.sample_batch(ts, jb, b)
+        self._contact_batch(ts, jb, b)
         self.live.add_arrays(T, b.tau, b.utilisation, b.effort_limit, b.q, b.v, meas, b.a_hat)
         return True
+
+    def _contact_batch(self, ts: list[int], jb: Any, b: Any) -> None:
+        """The contact replay of a batch, on the second thread once the previous one is done."""
+        self._contact_ready()
+        if self._contact_pool is None:
+            self._contact_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dyn-audit-contact")
+        self._contact_job = self._contact_pool.submit(self.contact.sample_batch, ts, jb, b)
+
+    def _contact_ready(self) -> None:
+        """Wait for the contact pass in flight; its exception, if it raised one, is raised here."""
+        job, self._contact_job = self._contact_job, None
+        if job is not None:
+            job.result()
 
     # trajectories and requests -------------------------------------------------------------
     def _trajectory_request(self, role: str, m: BagMessage) -> None:

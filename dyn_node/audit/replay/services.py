@@ -13,16 +13,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
 from dyn_node.audit.accounting import CHECK, INVERSE_DYNAMICS, RETIME, RequestTally
 from dyn_node.audit.replay.common import Pending, Recheck, worst_status_difference
 from dyn_node.bag.reader import BagMessage, MessageDecoder
-from dyn_node.core.check import feasibility, on_demand
 from dyn_node.core.robot.status import format_value
 from dyn_node.errors import TrajectoryError
+
+if TYPE_CHECKING:
+    from dyn_node.core.check.feasibility import StartState
 
 ROLE_SERVICE_EVENT = "service_event"
 EVENT_SUFFIX = "/_service_event"
@@ -86,8 +88,10 @@ def _effort(traj: Any) -> np.ndarray:
         len(traj.points), -1 if traj.points else 0)
 
 
-def _start(resp: Any) -> feasibility.StartState | None:
+def _start(resp: Any) -> StartState | None:
     """The state the node said it started from (empty: none)."""
+    from dyn_node.core.check import feasibility
+
     st = resp.start_state
     if not st.name:
         return None
@@ -190,6 +194,8 @@ def _rejected(d: _Diff, resp: Any, exc: TrajectoryError) -> None:
 
 
 def _check(d: _Diff, request: Any, resp: Any, dynamics: Any, settings: Any) -> None:
+    from dyn_node.core.check import on_demand  # the check's stack only for a bag with questions
+
     names, times, P, V, A, E = _arrays(request.trajectory)
     out = on_demand.check(dynamics, settings, names, times, P, V, A, start=_start(resp),
                           start_unknown=on_demand.question_start_unknown(request.from_current_state),
@@ -221,6 +227,8 @@ def _check(d: _Diff, request: Any, resp: Any, dynamics: Any, settings: Any) -> N
 
 
 def _inverse_dynamics(d: _Diff, request: Any, resp: Any, dynamics: Any) -> None:
+    from dyn_node.core.check import on_demand  # the check's stack only for a bag with questions
+
     model_joints = list(dynamics.model.joint_names)
     st = request.states
     pts = st.points
@@ -238,6 +246,8 @@ def _inverse_dynamics(d: _Diff, request: Any, resp: Any, dynamics: Any) -> None:
 
 def _retime(d: _Diff, request: Any, resp: Any, dynamics: Any, settings: Any) -> bool:
     """False when the retimer is not available here (nothing compared)."""
+    from dyn_node.core.check import on_demand  # the check's stack only for a bag with questions
+
     names, times, P, V, A, E = _arrays(request.trajectory)
     try:
         traj = on_demand.validated(dynamics.model.joint_names, names, times, P, V, A, efforts=E)

@@ -282,25 +282,26 @@ class RobotModel:
                 raise InputError(f"joint state has {n} names but {len(arr)} {label} values",
                                  code="length_mismatch")
         idx, ignored = self.mapping(names)
-        q = np.asarray(position, dtype=float)[idx]
-        if not np.all(np.isfinite(q)):
-            bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(q))]
-            raise InputError(f"non-finite position for {', '.join(bad)}", code="non_finite")
-        v = None
-        if velocity is not None and len(velocity):
-            v = np.asarray(velocity, dtype=float)[idx]
-            if not np.all(np.isfinite(v)):
-                bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(v))]
-                raise InputError(f"non-finite velocity for {', '.join(bad)}", code="non_finite")
+        q = self._in_order(position, idx, "position")
+        v = self._in_order(velocity, idx, "velocity") if velocity is not None and len(velocity) else None
         e = None
         if effort is not None and len(effort):
-            e = np.asarray(effort, dtype=float)[idx]
-            if np.any(np.isinf(e)):
-                bad = [self.joint_names[i] for i in np.flatnonzero(np.isinf(e))]
-                raise InputError(f"infinite effort for {', '.join(bad)}", code="non_finite")
+            e = self._in_order(effort, idx, "effort", nan_ok=True)
             if np.all(np.isnan(e)):
                 e = None
         return JointSample(q=q, v=v, effort=e, ignored=ignored)
+
+    def _in_order(self, values: Sequence[float], idx: np.ndarray, label: str, *,
+                  nan_ok: bool = False) -> np.ndarray:
+        """``values`` taken at ``idx`` (model order); InputError naming the joints whose value is
+        not finite (``nan_ok``: only infinite ones, NaN meaning "not available")."""
+        x = np.asarray(values, dtype=float)[idx]
+        bad = np.isinf(x) if nan_ok else ~np.isfinite(x)
+        if bad.any():
+            joints = ", ".join(self.joint_names[i] for i in np.flatnonzero(bad))
+            raise InputError(f"{'infinite' if nan_ok else 'non-finite'} {label} for {joints}",
+                             code="non_finite")
+        return x
 
 
 @lru_cache(maxsize=256)

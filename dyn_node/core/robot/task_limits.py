@@ -12,13 +12,15 @@ from __future__ import annotations
 import difflib
 import math
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from dyn_node.errors import ModelError
-from dyn_node.core.check.force_laws import SupportPolygon
 from dyn_node.io.text import escape, name_list, shown
+
+if TYPE_CHECKING:
+    from dyn_node.core.check.force_laws import SupportPolygon
 
 JOINT_LIMITS_KEY = "joint_limits"
 TASK_SECTIONS = ("frame_limits", "robot_limits", "task_wrench", "base_limits", "grasp")
@@ -358,6 +360,10 @@ def support_polygon(value: Any, where: str) -> SupportPolygon:
         at = (f": it turns the other way at {v[(against[0] + 1) % len(v)].tolist()}"
               if against.size else " (it crosses itself)")
         raise ModelError(f"{where} is not convex{at}", code="limits_bad_polygon")
+    # here, not at import: the force laws load their compiled kernels, which a model without a
+    # support polygon (every audit of joint_states alone) does not need
+    from dyn_node.core.check.force_laws import SupportPolygon
+
     return SupportPolygon.from_ccw(v if area > 0 else v[::-1])
 
 
