@@ -65,10 +65,10 @@ def test_both_commands_read_the_audit_options_alike(tmp_path):
 
 
 @pytest.mark.parametrize("module", ["dyn_node.audit.bag_audit", "dyn_node.audit"])
-def test_audit_command_turns_the_collector_back_on(module, tmp_path):
-    """Run as a command (python -m) the audit imports with the collector off; main() must turn it
-    back on (a long audit's cyclic garbage is collected) with the start-up's objects frozen.
-    Imported as a module, the caller's collector is never touched."""
+def test_audit_command_freezes_the_start_up_and_keeps_the_collector(module, tmp_path):
+    """Run as a command, main() freezes the start-up's objects (no collection walks them) and
+    leaves the collector on (a long audit's cyclic garbage is collected). Imported as a module,
+    the caller's collector is never touched."""
     import subprocess
     import sys
 

@@ -7,33 +7,27 @@ docs/BAGS.md.
 """
 from __future__ import annotations
 
+import argparse
 import gc
+import sys
+from functools import partial
+from typing import Sequence
 
-if __name__ == "__main__":
-    # Run as a command (python -m): the imports below make objects that live to the exit, and
-    # the collections they set off cost ~10 % of a 60 s bag's audit; main() turns it back on.
-    gc.disable()
-
-import argparse  # noqa: E402 - after the collector is off
-import sys  # noqa: E402
-from functools import partial  # noqa: E402
-from typing import Sequence  # noqa: E402
-
-from dyn_node import __version__  # noqa: E402
-from dyn_node.audit.cli import add_audit_options, run_command  # noqa: E402
+from dyn_node import __version__
+from dyn_node.audit.cli import add_audit_options, run_command
 # The stages live in audit.pipeline, audit.sections and audit.replay.*; their names stay importable
 # from here for the scripts, tests and benchmarks written against dyn_node.audit.bag_audit.
-from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code  # noqa: F401,E402
-from dyn_node.audit.options import AuditError, AuditOptions, AuditResult  # noqa: F401,E402
-from dyn_node.audit.pipeline import Audit, run_audit, stream  # noqa: F401,E402
-from dyn_node.audit.replay.config import (AuditSource, model_differences, open_bag,  # noqa: F401,E402
+from dyn_node.audit.exit_codes import EXIT_OK, EXIT_PARTIAL, EXIT_UNUSABLE, EXIT_VIOLATIONS, exit_code  # noqa: F401
+from dyn_node.audit.options import AuditError, AuditOptions, AuditResult  # noqa: F401
+from dyn_node.audit.pipeline import Audit, run_audit, stream  # noqa: F401
+from dyn_node.audit.replay.config import (AuditSource, model_differences, open_bag,  # noqa: F401
                                           parameters_from_yaml, task_limits_differences)
-from dyn_node.audit.replay.inputs import Replay, ReplayResult  # noqa: F401,E402
-from dyn_node.audit.replay.recheck import RecheckResult, Rechecker  # noqa: F401,E402
-from dyn_node.audit.replay.roles import ROLE_FEAS, ROLE_GRAVITY, ROLE_ID, ROLE_JOINT_STATES, Roles  # noqa: F401,E402
-from dyn_node.audit.replay.stats import Episodes, Histogram, LiveStats  # noqa: F401,E402
-from dyn_node.audit.sections import add_verdict, build_evidence  # noqa: F401,E402
-from dyn_node.core.live.allocator import retain_freed_memory  # noqa: E402
+from dyn_node.audit.replay.inputs import Replay, ReplayResult  # noqa: F401
+from dyn_node.audit.replay.recheck import RecheckResult, Rechecker  # noqa: F401
+from dyn_node.audit.replay.roles import ROLE_FEAS, ROLE_GRAVITY, ROLE_ID, ROLE_JOINT_STATES, Roles  # noqa: F401
+from dyn_node.audit.replay.stats import Episodes, Histogram, LiveStats  # noqa: F401
+from dyn_node.audit.sections import add_verdict, build_evidence  # noqa: F401
+from dyn_node.core.live.allocator import retain_freed_memory
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -62,7 +56,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     own_process = argv is None
     if own_process:
         gc.freeze()
-        gc.enable()  # off during the imports when run with python -m (above)
     code = run_command("dyn-audit", partial(run_audit, opts), partial(_print_result, opts))
     if own_process:
         gc.freeze()
