@@ -11,10 +11,51 @@ from dyn_node.retime.path import ArcPath, build_path
 from test_retime import ur5, ur5_traj
 
 
+def _constraint(rows: topp.Rows, xmax: np.ndarray, dof: int):
+    """TOPP-RA's own linear constraint on our rows (its interpolation discretisation)."""
+    from toppra.constraint import DiscretizationType, LinearConstraint
+    from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
+
+    class _Linear(LinearConstraint):
+        def __init__(self) -> None:
+            super().__init__()
+            self.dof = dof
+            self.set_discretization_type(DiscretizationType.Interpolation)
+            self.identical = True
+
+        def compute_constraint_params(self, path, gridpoints, *args, **kwargs):
+            m = rows.g.shape[0]
+            xb = np.column_stack([np.zeros_like(xmax), xmax])
+            return canlinear_colloc_to_interpolate(rows.a, rows.b, rows.c, np.eye(m), rows.g,
+                                                   None, xb, gridpoints, identical=True)
+
+    return _Linear()
+
+
+def _toppra_path(path):
+    """Our path as TOPP-RA's geometric path."""
+    from toppra.interpolator import AbstractGeometricPath
+
+    class _P(AbstractGeometricPath):
+        def __call__(self, s, order=0):
+            s = np.atleast_1d(np.asarray(s, dtype=float))
+            return path.derivatives(s)[order] if order < 3 else path.pp.evaluate(s)[3]
+
+        @property
+        def dof(self):
+            return path.nv
+
+        @property
+        def path_interval(self):
+            return np.array([path.pp.breaks[0], path.pp.breaks[-1]])
+
+    return _P()
+
+
 def _direct(path, grid, rows, cap):
     """TOPP-RA's own controllable sets and forward pass, the cap in the x bound of its LP."""
-    cons = topp._constraint(rows, np.minimum(np.minimum(rows.xmax, cap), 1e12), path.nv)
-    inst = algo.TOPPRA([cons], topp._toppra_path(path), gridpoints=grid,
+    cons = _constraint(rows, np.minimum(np.minimum(rows.xmax, cap), 1e12), path.nv)
+    inst = algo.TOPPRA([cons], _toppra_path(path), gridpoints=grid,
                        solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
     _, sd, _ = inst.compute_parameterization(0.0, 0.0)
     return np.asarray(sd) ** 2
@@ -118,3 +159,43 @@ def test_task_wrench_torque_in_the_effort_rows() -> None:
     assert res.lower_bound == pytest.approx(2.0 + 1 / 5 + 1 / 15, rel=1e-5)
     assert res.feasible and res.duration_out >= res.lower_bound * (1 - 1e-6)
     assert check_trajectory(dyn, res.trajectory).feasible
+
+
+@pytest.mark.parametrize("lower_bound", [False, True])
+def test_compiled_passes_match_toppra_on_seven_joints(lower_bound: bool) -> None:
+    """The compiled passes (:mod:`dyn_node.retime.reach`) on the Panda's rows (acceleration and
+    torque, 28 per stage) along a 10-waypoint path by arc length, 1000 steps: TOPP-RA's own
+    controllable sets to its solver's feasibility tolerance (1e-10 on a row, so 1e-8 on ṡ²
+    here), its forward pass to rounding."""
+    from benchmarks.retime_bench import panel, robot
+
+    dyn = robot("panda")
+    path = ArcPath(build_path(panel(dyn, 1, seed=99, n_waypoints=10)[0]))
+    grid = np.linspace(0.0, path.length, 1001)
+    rows = topp.joint_rows(dyn, path, grid, scale=1.0 if lower_bound else 0.995,
+                           lower_bound=lower_bound)
+    ours = topp.Reach(path, grid, rows)
+    x = ours.solve()
+    cons = _constraint(rows, np.minimum(rows.xmax, 1e12), path.nv)
+    inst = algo.TOPPRA([cons], _toppra_path(path), gridpoints=grid, solver_wrapper="seidel",
+                       parametrizer="ParametrizeConstAccel")
+    _, sd, _, K = inst.compute_parameterization(0.0, 0.0, return_data=True)
+    assert np.all(np.isfinite(K)) and K[:, 1].max() > 1.0     # a real, bounded problem
+    assert np.allclose(ours.controllable(0.0), K, rtol=1e-9, atol=1e-8)
+    assert np.allclose(x, np.asarray(sd) ** 2, rtol=1e-9, atol=1e-12)
+
+
+def test_arc_length_path_agrees_with_its_own_differences() -> None:
+    """The points' q(s(ℓ)) and the q_ℓ, q_ℓℓ they carry are one curve: central differences
+    of the positions (step 1e-4: truncation ~1e-9) give the derivatives, at 400 places 0.05
+    rad or more from the ends (worst here 8e-7 and 1.1e-3; a linear inverse of ℓ(s), as
+    before, misses by 5e-5 and 2.5: the controller's quintic through such points swung 1 %
+    over their acceleration)."""
+    path = ArcPath(build_path(ur5_traj()))
+    L, h = path.length, 1e-4
+    ell = np.random.default_rng(3).uniform(0.05, L - 0.05, 400)
+    _, d1, d2 = path.derivatives(ell)
+    qp, q0, qm = (path.positions(ell + d) for d in (h, 0.0, -h))
+    assert np.max(np.abs((qp - qm) / (2 * h) - d1)) < 5e-6
+    assert np.max(np.abs((qp - 2 * q0 + qm) / h**2 - d2)) < 1e-2
+    assert np.allclose(np.linalg.norm(d1, axis=1), 1.0, atol=1e-12)

@@ -116,22 +116,23 @@ def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
     return float(np.max(np.abs(q_out - q_path)))
 
 
-def switch_window(dynamics, path: Path, grid: np.ndarray, x: np.ndarray) -> float:
-    """The window that spreads every jump of q̈ (over the jerk limit) and of τ (over the effort
-    rate limit) between neighbouring grid steps: the starting width, before the exact check."""
+def switch_window(dynamics, path: Path, grid: np.ndarray, x: np.ndarray) -> tuple[float, float]:
+    """The windows that spread every jump of q̈ (over the jerk limit) and of τ (over the
+    effort rate limit) between neighbouring grid steps: the starting widths, before the exact
+    check (0 without such limits)."""
     lim = dynamics.model.limits
     if not (np.any(np.isfinite(lim.jerk)) or np.any(np.isfinite(lim.effort_rate))):
-        return 0.0
+        return 0.0, 0.0
     mid = 0.5 * (grid[:-1] + grid[1:])
     xm = 0.5 * (x[:-1] + x[1:])
     lw = law(grid, x)
     q, d1, d2 = path.derivatives(mid)
     acc = d2 * xm[:, None] + d1 * lw.u[:, None]
-    need = 0.0
+    jerk = rate = 0.0
     jumps = np.abs(np.diff(acc, axis=0))
     if np.any(np.isfinite(lim.jerk)) and len(jumps):
-        need = max(need, float(np.max(jumps / lim.jerk)))
+        jerk = float(np.max(jumps / lim.jerk))
     if np.any(np.isfinite(lim.effort_rate)) and len(jumps):
         tau = dynamics.rnea_batch(q, d1 * np.sqrt(xm)[:, None], acc)
-        need = max(need, float(np.max(np.abs(np.diff(tau, axis=0)) / lim.effort_rate)))
-    return need
+        rate = float(np.max(np.abs(np.diff(tau, axis=0)) / lim.effort_rate))
+    return jerk, rate

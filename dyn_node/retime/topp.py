@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.retime import reach
 from dyn_node.retime.path import Path
 
 
@@ -133,56 +134,45 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
 
 #: ṡ² below which a controllable set's lower end over a cap is taken as rounding
 _ROUNDING = 1e-9
+#: toppra's SMALL: how far the start's ṡ² may lie outside the first controllable set
+_START_SLACK = 1e-5
 
 
 class Reach:
-    """One TOPP-RA instance (seidel solver, 1000-step grids: its set-up is a third of a pass)
-    on fixed rows, solved again under caps on ṡ² without rebuilding it. A cap is the bound
-    x ≤ cap at a grid point: the controllable set there is TOPP-RA's intersected with it (the
-    projection of the stage's polygon onto x is an interval, so this equals adding the cap to
-    the rows), and only the sets at and below the highest changed cap are computed again;
-    TOPP-RA's own forward pass then runs on them."""
+    """TOPP-RA (its algorithm, :mod:`dyn_node.retime.reach`, compiled) on fixed rows, solved
+    again under caps on ṡ². A cap is the bound x ≤ cap at a grid point: the controllable set
+    there is TOPP-RA's intersected with it (the projection of the stage's polygon onto x is an
+    interval, so this equals adding the cap to the rows), and only the sets at and below the
+    highest changed cap are computed again; the forward pass then runs on them."""
 
     def __init__(self, path: Path, grid: np.ndarray, rows: Rows):
-        import toppra.algorithm as algo      # scipy behind it: imported when retiming only
-
-        reach = self
-
-        class _TOPPRA(algo.TOPPRA):
-            def compute_controllable_sets(self, sdmin, sdmax):
-                return reach._controllable(self, sdmin, sdmax)
-
         self.path, self.grid, self.rows = path, grid, rows
-        cons = _constraint(rows, np.minimum(rows.xmax, 1e12), path.nv)
-        self.inst = _TOPPRA([cons], _toppra_path(path), gridpoints=grid,
-                            solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+        self._abc = (np.ascontiguousarray(rows.a, dtype=float),
+                     np.ascontiguousarray(rows.b, dtype=float),
+                     np.ascontiguousarray(rows.c - rows.g, dtype=float))
+        self._xmax = np.minimum(rows.xmax, 1e12)
+        self._deltas = np.diff(grid)
         self.cap = np.full(len(grid), np.inf)
-        self._done: tuple | None = None      # (ends, cap, K) of the last backward pass
+        self._done: tuple | None = None      # (end, cap, K) of the last backward pass
 
-    def _controllable(self, inst, sdmin: float, sdmax: float) -> np.ndarray:
+    def controllable(self, sd_end: float) -> np.ndarray:
+        """The controllable sets (N+1)×2 for ṡ = ``sd_end`` at the end, under ``self.cap``
+        (NaN at and below a stage no timing reaches the end from)."""
         n = len(self.grid) - 1
-        ends = (sdmin, sdmax)
-        if self._done is not None and self._done[0] == ends:
+        if self._done is not None and self._done[0] == sd_end:
             changed = np.flatnonzero(self._done[1] != self.cap)
             if changed.size == 0:
                 return self._done[2].copy()
             K, top = self._done[2].copy(), min(int(changed[-1]), n - 1)
         else:
             K, top = np.zeros((n + 1, 2)), n - 1
-        K[n] = [sdmin**2, min(sdmax**2, self.cap[n])]
-        inst.solver_wrapper.setup_solver()
-        for i in range(top, -1, -1):
-            K[i] = inst._one_step(i, K[i + 1])     # TOPP-RA's own step (toppra 0.6.10)
-            K[i, 0] = max(K[i, 0], 0.0)
-            K[i, 1] = min(K[i, 1], self.cap[i])
-            # a lower end above the cap by rounding only (1e-16 where the cap is 0 at rest)
-            if K[i, 0] > K[i, 1] and K[i, 0] <= K[i, 1] + _ROUNDING:
-                K[i, 0] = K[i, 1]
-            if np.isnan(K[i]).any() or K[i, 0] > K[i, 1]:
-                K[: i + 1] = np.nan
-                break
-        inst.solver_wrapper.close_solver()
-        self._done = (ends, self.cap.copy(), K.copy())
+        K[n] = [sd_end**2, min(sd_end**2, self.cap[n])]
+        if K[n, 0] > K[n, 1]:
+            K[:] = np.nan
+        else:
+            reach.controllable(*self._abc, self._xmax, self._deltas, self.cap, K, top,
+                               _ROUNDING)
+        self._done = (sd_end, self.cap.copy(), K.copy())
         return K
 
     def solve(self, *, cap: np.ndarray | None = None, sd_start: float = 0.0,
@@ -195,21 +185,22 @@ class Reach:
         any ṡ, so ṡ is left free there (the bound: else a first-order grid error of the forced
         ṡ = 0). The retiming keeps ṡ = 0 at the ends: its smoothing window starts from ṡ = 0."""
         self.cap = np.full(len(self.grid), np.inf) if cap is None else np.asarray(cap, float)
-        path, grid, inst = self.path, self.grid, self.inst
-        ends = np.max(np.abs(path.derivatives(grid[[0, -1]])[1]), axis=1)
+        ends = np.max(np.abs(self.path.derivatives(self.grid[[0, -1]])[1]), axis=1)
         sd_end = 0.0
         if free_ends and ends[1] == 0.0:
             # every row is free of u where q' = 0: ṡ² up to the tightest of them
             xmax = np.minimum(self.rows.xmax, self.cap)
             sd_end = math.sqrt(_free_end_x(self.rows, xmax)) * (1 - 1e-9)
-        if free_ends and ends[0] == 0.0 and sd_start == 0.0:
-            K = inst.compute_controllable_sets(sd_end, sd_end)
-            if np.all(np.isfinite(K[0])):
-                sd_start = math.sqrt(max(K[0, 1], 0.0)) * (1 - 1e-9)
-        sdd, sd, _ = inst.compute_parameterization(sd_start, sd_end)
-        if sd is None or not np.all(np.isfinite(sd)):
+        K = self.controllable(sd_end)
+        if free_ends and ends[0] == 0.0 and sd_start == 0.0 and np.all(np.isfinite(K[0])):
+            sd_start = math.sqrt(max(K[0, 1], 0.0)) * (1 - 1e-9)
+        x0 = sd_start**2
+        if np.isnan(K).any() or not (K[0, 0] - _START_SLACK <= x0 <= K[0, 1] + _START_SLACK):
             return None
-        return np.maximum(np.asarray(sd, dtype=float), 0.0) ** 2
+        xs = reach.forward(*self._abc, self._deltas, K, x0)
+        if not np.all(np.isfinite(xs)):
+            return None
+        return np.maximum(xs, 0.0)
 
 
 def solve(path: Path, grid: np.ndarray, rows: Rows, *, cap: np.ndarray | None = None,
@@ -234,43 +225,3 @@ def duration(grid: np.ndarray, x: np.ndarray) -> float:
     if np.any(den <= 0):
         return math.inf
     return float(np.sum(2 * np.diff(grid) / den))
-
-
-def _constraint(rows: Rows, xmax: np.ndarray, dof: int):
-    from toppra.constraint import DiscretizationType, LinearConstraint
-    from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
-
-    class _Linear(LinearConstraint):
-        def __init__(self) -> None:
-            super().__init__()
-            self.dof = dof
-            self.set_discretization_type(DiscretizationType.Interpolation)
-            self.identical = True
-
-        def compute_constraint_params(self, path, gridpoints, *args, **kwargs):
-            m = rows.g.shape[0]
-            xb = np.column_stack([np.zeros_like(xmax), xmax])
-            return canlinear_colloc_to_interpolate(rows.a, rows.b, rows.c, np.eye(m), rows.g,
-                                                   None, xb, gridpoints, identical=True)
-
-    return _Linear()
-
-
-def _toppra_path(path: Path):
-    from toppra.interpolator import AbstractGeometricPath
-
-    class _P(AbstractGeometricPath):
-        def __call__(self, s, order=0):
-            s = np.atleast_1d(np.asarray(s, dtype=float))
-            return path.derivatives(s)[order] if order < 3 else path.pp.evaluate(s)[3]
-
-        @property
-        def dof(self):
-            return path.nv
-
-        @property
-        def path_interval(self):
-            return np.array([path.pp.breaks[0], path.pp.breaks[-1]])
-
-    return _P()
-
