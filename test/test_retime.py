@@ -277,3 +277,21 @@ def test_start_state_at_rest_and_moving() -> None:
     assert res.feasible and res.method == "uniform"
     assert res.check.start_segment == "checked"
     np.testing.assert_allclose(res.trajectory.positions, traj.positions)   # the input's points
+
+
+def test_input_check_given_or_made_without_the_payload_margin(ur5_result) -> None:
+    """The input's check: made here without the payload margin (NaN: not computed), its time
+    scale the full check's; or the caller's own (dyn-check, the gate), then not made again and
+    the answer the same; a check of another trajectory is refused."""
+    dyn, traj, res = ur5_result
+    full = check_trajectory(dyn, traj)
+    assert math.isnan(res.input_check.payload_margin_kg) and math.isfinite(full.payload_margin_kg)
+    assert res.input_check.time_scale == full.time_scale
+    assert res.duration_uniform == pytest.approx(traj.duration * full.time_scale, rel=1e-12)
+    again = retime(dyn, traj, input_check=full)
+    assert again.input_check is full
+    assert again.duration_out == res.duration_out and again.lower_bound == res.lower_bound
+    other = check_trajectory(dyn, Trajectory(times=traj.times * 2, positions=traj.positions))
+    with pytest.raises(TrajectoryError) as err:
+        retime(dyn, traj, input_check=other)
+    assert err.value.code == "bad_options"

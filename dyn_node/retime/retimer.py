@@ -67,14 +67,17 @@ class _Search:
 def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = None,
            feasibility: FeasibilityOptions = FeasibilityOptions(), path_tolerance: float = 1e-4,
            grid_points: int = 1000, point_period: float = 0.004, max_rounds: int = 30,
-           limit_margin: float = 0.995, uniform_fallback: bool = True) -> RetimeResult:
+           limit_margin: float = 0.995, uniform_fallback: bool = True,
+           input_check: FeasibilityResult | None = None) -> RetimeResult:
     """The fastest trajectory along ``traj``'s path (model order) that passes
     :func:`~dyn_node.core.check.feasibility.check_trajectory` with ``feasibility``; see the module
     docstring and docs/retime.md. ``start``: the robot's state when the first point lies ahead
     (t0 > 0): the path then starts from it. Raises :class:`TrajectoryError` for input no
     retiming can take (fewer than 2 points, non-finite values, bad times).
     ``uniform_fallback``: also consider the uniform stretch (which keeps the input's own end
-    velocities, while the optimal search starts and ends at rest) and answer the shorter."""
+    velocities, while the optimal search starts and ends at rest) and answer the shorter.
+    ``input_check``: the caller's ``check_trajectory(dynamics, traj, feasibility, start=start)``
+    when it has it (dyn-check, the gate): used instead of checking the input again."""
     validate_input(traj)
     if not (path_tolerance > 0 and grid_points >= 10 and point_period > 0 and max_rounds >= 1
             and 0 < limit_margin <= 1):
@@ -82,12 +85,14 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     duration_in = 0.0 if is_untimed(traj) else traj.duration
     if is_still(traj):
         return _still(dynamics, traj, feasibility, start, duration_in)
+    given = traj
     moving_start = start is not None and traj.times[0] > 0 and bool(np.any(start.velocities))
     if start is not None and traj.times[0] > 0 and not moving_start:
         traj = from_current_state(traj, start.positions, start.velocities)
     path = build_path(traj)
     nominal = path.nominal
-    first = check_trajectory(dynamics, nominal, feasibility, start=start)
+    first = _input_check(dynamics, nominal, feasibility, start,
+                         input_check if nominal is given else None)
     k = first.time_scale
     uniform_T = nominal.duration * k if 0 < k < math.inf else math.nan
     base = dict(duration_in=duration_in, duration_uniform=uniform_T, input_check=first,
@@ -131,6 +136,21 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
                         path_deviation=pick["deviation"], **base)
 
 
+def _input_check(dynamics: Dynamics, nominal: Trajectory, options: FeasibilityOptions,
+                 start: StartState | None, given: FeasibilityResult | None) -> FeasibilityResult:
+    """The exact check of the input (its time scale for the uniform stretch, its blocked
+    reason): ``given`` (the caller's, of this very trajectory), else checked here without the
+    payload margin, which nothing of the retiming needs (NaN in the result: not computed)."""
+    if given is not None:
+        if given.n_points != nominal.n_points or given.duration_s != nominal.duration:
+            raise TrajectoryError("input_check is not a check of this trajectory",
+                                  code="bad_options")
+        return given
+    res = check_trajectory(dynamics, nominal, replace(options, compute_payload_margin=False),
+                           start=start)
+    return replace(res, payload_margin_kg=math.nan)
+
+
 def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     """The check-driven rounds (module docstring); None when none passes."""
     reach = topp.Reach(sr.path, sr.grid, sr.rows)
@@ -153,7 +173,7 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             if x is None:
                 return None
             lw = timing.law(sr.grid, x)
-            pts, _s = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)
+            pts, _law = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)
             # halfway between the rows' share and the limit: over the share by rounding is
             # no reason to slow down, and near the limit the quintic between points may cross
             share = (1.0 + sr.margin) / 2
@@ -181,28 +201,28 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
 
 
 def _screen(dynamics: Dynamics, pts: Trajectory, share: float) -> list[Violation]:
-    """The joint accelerations and efforts at the output points above ``share`` of their
-    limits, one entry per joint and run of points over: the
-    smoothing window makes them (q̈ = q'·s̈ + q''·ṡ² of an averaged law is not the average of
-    TOPP-RA's), and the controller's quintic passes through each point's acceleration, so the
-    exact check would find most of them, at five times the cost."""
+    """The joint accelerations and efforts (RNEA with friction; the check adds a task
+    wrench's torque) at the output points above ``share`` of their limits, one entry per
+    joint and run of points over: the smoothing window makes them (q̈ = q'·s̈ + q''·ṡ² of an
+    averaged law is not the average of TOPP-RA's), and the controller's quintic passes through
+    each point's state, so the exact check would find most of them, at several times the
+    cost. (TOPP-RA's rows interpolated between grid points instead of RNEA: false alarms where
+    they change fast, next to a stop.)"""
     lim = dynamics.model.limits
-    hits: list[Violation] = []
-    for kind, limit, value in (("acceleration", lim.acceleration, lambda: pts.accelerations),
-                               ("effort", lim.effort, lambda: dynamics.rnea_batch(
-                                   pts.positions, pts.velocities, pts.accelerations))):
-        if not np.any(np.isfinite(limit)):
-            continue
-        with np.errstate(invalid="ignore"):
-            ratio = np.abs(value()) / limit
-        hits += _runs(kind, ratio, share, limit, pts.times, lim.names)
+    hits = _runs("acceleration", np.abs(pts.accelerations) / lim.acceleration, share,
+                 lim.acceleration, pts.times, lim.names)
+    if np.any(np.isfinite(lim.effort)):
+        tau = dynamics.rnea_batch(pts.positions, pts.velocities, pts.accelerations)
+        hits += _runs("effort", np.abs(tau) / lim.effort, share, lim.effort, pts.times,
+                      lim.names)
     return hits
 
 
 def _runs(kind: str, ratio: np.ndarray, share: float, limit: np.ndarray, t: np.ndarray,
           names: Sequence[str]) -> list[Violation]:
     """One :class:`Violation` per joint and run of samples with ``ratio`` over ``share``."""
-    over = ratio > share
+    with np.errstate(invalid="ignore"):
+        over = ratio > share     # NaN (no limit: inf / inf) is not over
     out = []
     for j in np.flatnonzero(over.any(axis=0)):
         idx = np.flatnonzero(over[:, j])

@@ -91,8 +91,9 @@ def smoothed(lw: Law, w: float, t: np.ndarray, w2: float = 0.0, orders: int = 3
 
 
 def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
-           ) -> tuple[Trajectory, np.ndarray]:
-    """The output trajectory (points every ≤ ``period`` s) and its points' path positions."""
+           ) -> tuple[Trajectory, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The output trajectory (points every ≤ ``period`` s) and its points' s (from the path's
+    start), ṡ and s̈."""
     total = lw.duration + w + w2
     n = max(2, int(np.ceil(total / period)) + 1)
     t = np.linspace(0.0, total, n)
@@ -100,7 +101,7 @@ def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
     s = np.clip(s, 0.0, lw.s[-1])
     q, d1, d2 = path.derivatives(s + path.pp.breaks[0])
     return Trajectory(times=t, positions=q, velocities=d1 * sd[:, None],
-                      accelerations=d2 * (sd**2)[:, None] + d1 * sdd[:, None]), s
+                      accelerations=d2 * (sd**2)[:, None] + d1 * sdd[:, None]), (s, sd, sdd)
 
 
 def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
