@@ -199,3 +199,63 @@ def test_arc_length_path_agrees_with_its_own_differences() -> None:
     assert np.max(np.abs((qp - qm) / (2 * h) - d1)) < 5e-6
     assert np.max(np.abs((qp - 2 * q0 + qm) / h**2 - d2)) < 1e-2
     assert np.allclose(np.linalg.norm(d1, axis=1), 1.0, atol=1e-12)
+
+
+# one prismatic joint along x: the link translates, so any point's acceleration is q̈·x̂
+SLIDE = """<robot name="slide"><link name="base"/>
+  <link name="arm"><inertial><origin xyz="0 0 0"/><mass value="2.0"/>
+    <inertia ixx="0.01" iyy="0.01" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="j" type="prismatic"><parent link="base"/><child link="arm"/><axis xyz="1 0 0"/>
+    <limit lower="-10" upper="10" effort="0" velocity="1"/></joint></robot>"""
+
+
+def test_frame_acceleration_bounds_the_lower_bound() -> None:
+    """A point on a sliding link limited to 2 m/s² (gravity excluded), velocity 1 m/s, 2 m rest
+    to rest: the bang-bang time D/v + v/a = 2.5 s (without the frame limit, velocity alone:
+    2 s), equal to TOPP-RA run directly with a 2 m/s² joint acceleration limit on the same
+    line; the answer passes the check's frame_acceleration kind near its limit."""
+    import toppra as ta
+    import toppra.constraint as tc
+
+    from dyn_node.core.check.feasibility import check_trajectory
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.retime import retime
+    from test_retime import LINE
+
+    limits = {"joint_limits": {"j": {}},
+              "frame_limits": {"arm": {"point": [0.1, 0.2, 0.0], "max_linear_acceleration": 2.0}}}
+    dyn = Dynamics(load_model(urdf=SLIDE).with_limits(limits))
+    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
+    assert res.lower_bound == pytest.approx(2.5, rel=1e-6)
+    path = ta.SplineInterpolator(LINE.times, LINE.positions,
+                                 bc_type=((1, LINE.velocities[0]), (1, LINE.velocities[1])))
+    cons = [tc.JointVelocityConstraint(np.array([[-1.0, 1.0]])),
+            tc.JointAccelerationConstraint(np.array([[-2.0, 2.0]]),
+                                           discretization_scheme=tc.DiscretizationType.Interpolation)]
+    inst = algo.TOPPRA(cons, path, gridpoints=np.linspace(0.0, LINE.duration, 2001),
+                       solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+    assert res.lower_bound == pytest.approx(inst.compute_trajectory(0, 0).duration, rel=1e-6)
+    assert res.feasible and res.method == "optimal"
+    # the retiming keeps inside the disc: limit × 0.995 × cos(π/24), the window, one round
+    assert 2.5 * (1 - 1e-6) <= res.duration_out <= 2.5 * 1.03
+    check = check_trajectory(dyn, res.trajectory)
+    assert check.feasible
+    assert 0.97 <= check.per_frame["arm"]["frame_acceleration"]["ratio"] <= 1.0
+
+
+def test_disc_rows_hold_and_are_held_by_the_disc() -> None:
+    """The polygon rows against the disc |a·u + b·x| ≤ r itself, on random (a, b) and (u, x):
+    the outer rows pass every point of the disc, the inner rows pass none outside it."""
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=(200, 3)), rng.normal(size=(200, 3))
+    a[:20] = 0.0                                 # no s̈ term at some points
+    ux = rng.normal(size=(200, 2)) * 3
+    norm = np.linalg.norm(a * ux[:, :1] + b * ux[:, 1:], axis=1)
+    for outer in (True, False):
+        A, B, C, G = topp._disc_rows(a, b, 2.0, outer=outer)
+        ok = np.all(A * ux[:, :1] + B * ux[:, 1:] + C <= G, axis=1)
+        if outer:
+            assert np.all(ok[norm <= 2.0]) and not np.all(ok)
+        else:
+            assert not np.any(ok[norm > 2.0]) and np.any(ok)

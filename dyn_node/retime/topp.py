@@ -45,28 +45,78 @@ class Terms:
     w: np.ndarray | None
     #: the first-order task kinds per unit ṡ (:func:`_frame_speeds`)
     speeds: tuple = ()
+    #: the frames' linear accelerations a·u + b·x (:func:`_frame_accelerations`)
+    accels: tuple = ()
 
 
 def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
     from dyn_node.core.check import task_motion
 
     q, d1, d2 = path.derivatives(grid)
-    # the check's own frame pass at q̇ = q', q̈ = 0 (None without task limits)
-    task = task_motion.build(dynamics, q, d1, np.zeros_like(q))
-    speeds = _frame_speeds(dynamics.model.task_limits, task)
+    # the check's own frame pass at q̇ = q', q̈ = q'' (None without task limits): speeds and
+    # energy per unit ṡ (they see q̇ only), a frame's acceleration's ṡ² part
+    task = task_motion.build(dynamics, q, d1, d2)
+    tl = dynamics.model.task_limits
+    speeds, accels = _frame_speeds(tl, task), _frame_accelerations(tl, task)
     if not np.any(np.isfinite(dynamics.model.limits.effort)):
-        return Terms(d1, d2, None, None, None, None, speeds)
+        return Terms(d1, d2, None, None, None, None, speeds, accels)
     a = dynamics.terms_batch(q, np.zeros_like(q), d1).inertial
     terms = dynamics.terms_batch(q, d1, d2)
     c = terms.static
     if task is not None and task.task_torque is not None:
         # a task wrench's torque depends on q only: part of c, as the check's effort has it
         c = c + task.task_torque
-    return Terms(d1, d2, a, terms.inertial, c, dynamics.friction_coefficients[0] * d1, speeds)
+    return Terms(d1, d2, a, terms.inertial, c, dynamics.friction_coefficients[0] * d1, speeds,
+                 accels)
+
+
+def _frame_accelerations(tl, task) -> tuple:
+    """Each configured frame's linear acceleration J q̈ + J̇ q̇ = a·s̈ + b·ṡ² (m/s², gravity
+    excluded, at the frame's point), from the frame pass at q̇ = q', q̈ = q'': a = J q' (the
+    point's velocity there), b = J q'' + J̇ q' (its acceleration there); (a, b, limit)."""
+    from dyn_node.core.check import task_motion
+
+    if task is None:
+        return ()
+    out = []
+    for f in tl.frame_limits:
+        if math.isfinite(f.max_linear_acceleration):
+            terms = task.frame(task_motion.FRAME_ROLE + f.frame)
+            out.append((np.asarray(terms.linear_velocity, dtype=float),
+                        np.asarray(terms.linear_acceleration, dtype=float),
+                        float(f.max_linear_acceleration)))
+    return tuple(out)
+
+
+#: sides of the polygon that stands for a frame acceleration's disc (:func:`_disc_rows`)
+_DISC_SIDES = 24
+
+
+def _disc_rows(a: np.ndarray, b: np.ndarray, limit: float, *, outer: bool
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """|a·u + b·x| ≤ limit (a, b: N×3) as linear rows in (u, x). The vector a·u + b·x lies in
+    the plane of a and b: with its Gram matrix G = LLᵀ, |a·u + b·x| = |Lᵀ(u, x)|, a disc in
+    y = Lᵀ(u, x), and the rows are the tangents e_k·y ≤ r of a regular polygon of
+    :data:`_DISC_SIDES` sides: ``outer`` (r = limit: the polygon holds the disc, a relaxation,
+    so a lower bound stays one) or inner (r = limit·cos(π/K): the disc holds the polygon, so
+    every (u, x) the rows allow keeps the limit)."""
+    g11 = np.einsum("ij,ij->i", a, a)
+    g12 = np.einsum("ij,ij->i", a, b)
+    g22 = np.einsum("ij,ij->i", b, b)
+    l11 = np.sqrt(g11)
+    live = l11 > 0
+    # where a = 0 (no s̈ term) the vector is b·x: y = (|b|·x, 0)
+    l21 = np.where(live, g12 / np.where(live, l11, 1.0), np.sqrt(g22))
+    l22 = np.where(live, np.sqrt(np.maximum(g22 - l21**2, 0.0)), 0.0)
+    phi = 2 * np.pi * np.arange(_DISC_SIDES) / _DISC_SIDES
+    cos, sin = np.cos(phi)[None, :], np.sin(phi)[None, :]
+    r = limit if outer else limit * math.cos(math.pi / _DISC_SIDES)
+    return (cos * l11[:, None], cos * l21[:, None] + sin * l22[:, None],
+            np.zeros((len(a), _DISC_SIDES)), np.full(_DISC_SIDES, r))
 
 
 def _frame_speeds(tl, task) -> tuple:
-    """The first-order task kinds per unit ṡ, from the frame pass at q̇ = q', q̈ = 0:
+    """The first-order task kinds per unit ṡ, from the frame pass at q̇ = q':
     (value, limit, p) with the bound x ≤ (limit/value)^p: frame speeds (|J q'|, p = 2) and the
     robot's kinetic energy (½ q'ᵀM q', p = 1)."""
     from dyn_node.core.check import task_motion
@@ -126,6 +176,9 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
         L = lim.effort[cols] * scale
         add(a[:, cols], b[:, cols], (c + lo_w)[:, cols], L)
         add(-a[:, cols], -b[:, cols], -(c + hi_w)[:, cols], L)
+    for fa, fb, limit in t.accels:
+        # the bound relaxes the disc (outer polygon), the retiming keeps inside it
+        add(*_disc_rows(fa, fb, limit * scale, outer=lower_bound))
     if not A:
         z = np.zeros((len(grid), 1))
         return Rows(z, z, z, np.ones(1), xv)
