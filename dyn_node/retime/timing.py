@@ -114,8 +114,7 @@ def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
     tm = (t[:-1, None] + r).ravel()
     coeffs = interpolate(out, "quintic").coeffs                  # segments × 6 × nv
     # every segment's samples at once: Σ_k c_k r^k (no search for the segment)
-    q_out = np.einsum("spk,skj->spj", r[:, :, None] ** np.arange(coeffs.shape[1]),
-                      coeffs).reshape(len(tm), -1)
+    q_out = np.matmul(r[:, :, None] ** np.arange(coeffs.shape[1]), coeffs).reshape(len(tm), -1)
     s = np.clip(smoothed(lw, w, tm, w2, orders=1)[0], 0.0, lw.s[-1])
     q_path = path.positions(s + path.pp.breaks[0])
     return float(np.max(np.abs(q_out - q_path)))
