@@ -83,41 +83,77 @@ def test_caps_on_a_reused_instance_match_toppra_from_scratch() -> None:
     assert reach.solve(cap=np.full(len(grid), -1.0)) is None
 
 
-def test_frame_speed_bounds_the_lower_bound() -> None:
-    """A point 0.5 m from the one joint's axis limited to 0.25 m/s is a 0.5 rad/s joint speed
-    limit: T* is the bang-bang time D/v + v/a = 2/0.5 + 0.5/2 = 4.25 s (without the frame limit
-    2.5 s), and equals TOPP-RA run directly with that joint velocity limit on the same line;
-    the answer passes the check's frame_speed kind."""
+def _toppra_line(velocity: float, acceleration: float) -> float:
+    """TOPP-RA's own duration on test_retime's LINE (its cubic, 2000 steps) with one joint's
+    velocity and acceleration limits."""
     import toppra as ta
     import toppra.constraint as tc
 
-    from dyn_node.core.robot.dynamics import Dynamics
-    from dyn_node.core.check.feasibility import check_trajectory
-    from dyn_node.core.robot.model import load_model
-    from dyn_node.retime import retime
-    from test_retime import LINE, ONE_JOINT
+    from test_retime import LINE
 
-    limits = {"joint_limits": {"j": {"has_acceleration_limits": True, "max_acceleration": 2.0}},
-              "frame_limits": {"arm": {"point": [0.5, 0.0, 0.0], "max_linear_speed": 0.25}}}
-    dyn = Dynamics(load_model(urdf=ONE_JOINT).with_limits(limits))
-    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
-    assert res.lower_bound == pytest.approx(4.25, rel=1e-6)
     path = ta.SplineInterpolator(LINE.times, LINE.positions,
                                  bc_type=((1, LINE.velocities[0]), (1, LINE.velocities[1])))
-    cons = [tc.JointVelocityConstraint(np.array([[-0.5, 0.5]])),
-            tc.JointAccelerationConstraint(np.array([[-2.0, 2.0]]),
+    cons = [tc.JointVelocityConstraint(np.array([[-velocity, velocity]])),
+            tc.JointAccelerationConstraint(np.array([[-acceleration, acceleration]]),
                                            discretization_scheme=tc.DiscretizationType.Interpolation)]
     inst = algo.TOPPRA(cons, path, gridpoints=np.linspace(0.0, LINE.duration, 2001),
                        solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
-    assert res.lower_bound == pytest.approx(inst.compute_trajectory(0, 0).duration, rel=1e-6)
+    return inst.compute_trajectory(0, 0).duration
+
+
+# one prismatic joint along x: the link translates, so any point's acceleration is q̈·x̂
+SLIDE = """<robot name="slide"><link name="base"/>
+  <link name="arm"><inertial><origin xyz="0 0 0"/><mass value="2.0"/>
+    <inertia ixx="0.01" iyy="0.01" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="j" type="prismatic"><parent link="base"/><child link="arm"/><axis xyz="1 0 0"/>
+    <limit lower="-10" upper="10" effort="0" velocity="1"/></joint></robot>"""
+
+
+# (urdf, limits, T*, the joint velocity and acceleration limits TOPP-RA gets for the same
+# bound, the place's kind, the answer's largest duration ÷ T*)
+# - a point 0.5 m from the one joint's axis limited to 0.25 m/s is a 0.5 rad/s joint speed
+#   limit: T* = D/v + v/a = 2/0.5 + 0.5/2 = 4.25 s (2.5 s without); within 2 % (a 0.3 %
+#   acceleration overshoot at the last switch may cost a capped round)
+# - a point on the sliding link limited to 2 m/s² (gravity excluded), velocity 1 m/s:
+#   T* = 2/1 + 1/2 = 2.5 s (2 s without); the retiming keeps inside the disc (limit × 0.995
+#   × cos(π/24)) and the window: within 3 %
+FRAME_CASES = {
+    "frame_speed": ("ONE_JOINT", {"joint_limits": {"j": {"has_acceleration_limits": True,
+                                                         "max_acceleration": 2.0}},
+                                  "frame_limits": {"arm": {"point": [0.5, 0.0, 0.0],
+                                                           "max_linear_speed": 0.25}}},
+                    4.25, 0.5, 2.0, 1.02),
+    "frame_acceleration": ("SLIDE", {"joint_limits": {"j": {}},
+                                     "frame_limits": {"arm": {
+                                         "point": [0.1, 0.2, 0.0],
+                                         "max_linear_acceleration": 2.0}}},
+                           2.5, 1.0, 2.0, 1.03),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(FRAME_CASES))
+def test_frame_limit_bounds_the_lower_bound(kind: str) -> None:
+    """A frame limit on one joint that amounts to a joint limit: T* is the closed-form
+    bang-bang time and equals TOPP-RA run directly with that joint limit on the same line; the
+    answer passes the check's kind near its limit (97–100 %)."""
+    from dyn_node.core.check.feasibility import check_trajectory
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.retime import retime
+    import test_retime
+
+    urdf, limits, t_star, velocity, acceleration, slack = FRAME_CASES[kind]
+    urdf = SLIDE if urdf == "SLIDE" else test_retime.ONE_JOINT
+    dyn = Dynamics(load_model(urdf=urdf).with_limits(limits))
+    res = retime(dyn, test_retime.LINE, grid_points=2000, point_period=0.002,
+                 uniform_fallback=False)
+    assert res.lower_bound == pytest.approx(t_star, rel=1e-6)
+    assert res.lower_bound == pytest.approx(_toppra_line(velocity, acceleration), rel=1e-6)
     assert res.feasible and res.method == "optimal"
-    # within 2 % of T* (here a 0.3 % acceleration overshoot at the last switch costs one capped
-    # round: 4.32 s)
-    assert 4.25 * (1 - 1e-6) <= res.duration_out <= 4.25 * 1.02
+    assert t_star * (1 - 1e-6) <= res.duration_out <= t_star * slack
     check = check_trajectory(dyn, res.trajectory)
-    # the frame speed binds: the answer cruises near its limit (× 0.995, less the capped round)
     assert check.feasible
-    assert 0.97 <= check.per_frame["arm"]["frame_speed"]["ratio"] <= 1.0
+    assert 0.97 <= check.per_frame["arm"][kind]["ratio"] <= 1.0
 
 
 def test_kinetic_energy_bounds_the_lower_bound() -> None:
@@ -199,49 +235,6 @@ def test_arc_length_path_agrees_with_its_own_differences() -> None:
     assert np.max(np.abs((qp - qm) / (2 * h) - d1)) < 5e-6
     assert np.max(np.abs((qp - 2 * q0 + qm) / h**2 - d2)) < 1e-2
     assert np.allclose(np.linalg.norm(d1, axis=1), 1.0, atol=1e-12)
-
-
-# one prismatic joint along x: the link translates, so any point's acceleration is q̈·x̂
-SLIDE = """<robot name="slide"><link name="base"/>
-  <link name="arm"><inertial><origin xyz="0 0 0"/><mass value="2.0"/>
-    <inertia ixx="0.01" iyy="0.01" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="j" type="prismatic"><parent link="base"/><child link="arm"/><axis xyz="1 0 0"/>
-    <limit lower="-10" upper="10" effort="0" velocity="1"/></joint></robot>"""
-
-
-def test_frame_acceleration_bounds_the_lower_bound() -> None:
-    """A point on a sliding link limited to 2 m/s² (gravity excluded), velocity 1 m/s, 2 m rest
-    to rest: the bang-bang time D/v + v/a = 2.5 s (without the frame limit, velocity alone:
-    2 s), equal to TOPP-RA run directly with a 2 m/s² joint acceleration limit on the same
-    line; the answer passes the check's frame_acceleration kind near its limit."""
-    import toppra as ta
-    import toppra.constraint as tc
-
-    from dyn_node.core.check.feasibility import check_trajectory
-    from dyn_node.core.robot.dynamics import Dynamics
-    from dyn_node.core.robot.model import load_model
-    from dyn_node.retime import retime
-    from test_retime import LINE
-
-    limits = {"joint_limits": {"j": {}},
-              "frame_limits": {"arm": {"point": [0.1, 0.2, 0.0], "max_linear_acceleration": 2.0}}}
-    dyn = Dynamics(load_model(urdf=SLIDE).with_limits(limits))
-    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
-    assert res.lower_bound == pytest.approx(2.5, rel=1e-6)
-    path = ta.SplineInterpolator(LINE.times, LINE.positions,
-                                 bc_type=((1, LINE.velocities[0]), (1, LINE.velocities[1])))
-    cons = [tc.JointVelocityConstraint(np.array([[-1.0, 1.0]])),
-            tc.JointAccelerationConstraint(np.array([[-2.0, 2.0]]),
-                                           discretization_scheme=tc.DiscretizationType.Interpolation)]
-    inst = algo.TOPPRA(cons, path, gridpoints=np.linspace(0.0, LINE.duration, 2001),
-                       solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
-    assert res.lower_bound == pytest.approx(inst.compute_trajectory(0, 0).duration, rel=1e-6)
-    assert res.feasible and res.method == "optimal"
-    # the retiming keeps inside the disc: limit × 0.995 × cos(π/24), the window, one round
-    assert 2.5 * (1 - 1e-6) <= res.duration_out <= 2.5 * 1.03
-    check = check_trajectory(dyn, res.trajectory)
-    assert check.feasible
-    assert 0.97 <= check.per_frame["arm"]["frame_acceleration"]["ratio"] <= 1.0
 
 
 def test_disc_rows_hold_and_are_held_by_the_disc() -> None:
