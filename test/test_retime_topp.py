@@ -2,6 +2,8 @@
 against TOPP-RA run from scratch with the cap inside its own rows (its LP's x bound)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import toppra.algorithm as algo
@@ -110,30 +112,37 @@ SLIDE = """<robot name="slide"><link name="base"/>
 
 
 # (urdf, limits, T*, the joint velocity and acceleration limits TOPP-RA gets for the same
-# bound, the place's kind, the answer's largest duration ÷ T*)
+# bound, the answer's largest duration ÷ T*, the check's place)
 # - a point 0.5 m from the one joint's axis limited to 0.25 m/s is a 0.5 rad/s joint speed
 #   limit: T* = D/v + v/a = 2/0.5 + 0.5/2 = 4.25 s (2.5 s without); within 2 % (a 0.3 %
 #   acceleration overshoot at the last switch may cost a capped round)
 # - a point on the sliding link limited to 2 m/s² (gravity excluded), velocity 1 m/s:
 #   T* = 2/1 + 1/2 = 2.5 s (2 s without); the retiming keeps inside the disc (limit × 0.995
 #   × cos(π/24)) and the window: within 3 %
+# - the mounting's force on the sliding 2 kg link limited to 20 N: (m·q̈, 0, m·g), so
+#   |q̈| ≤ √((20/2)² − 9.81²) = 1.9401 m/s², T* = 2/1 + 1/1.9401 = 2.5154 s; the retiming's
+#   share of the force (× 0.995) leaves √(9.95² − 9.81²)·cos(π/24) = 1.649 m/s² (gravity
+#   takes most of the force): 2 + 1/1.649 = 2.606 s and the window, within 4.5 %
+BASE_ACC = math.sqrt((20.0 / 2.0) ** 2 - 9.81**2)
 FRAME_CASES = {
     "frame_speed": ("ONE_JOINT", {"joint_limits": {"j": {"has_acceleration_limits": True,
                                                          "max_acceleration": 2.0}},
                                   "frame_limits": {"arm": {"point": [0.5, 0.0, 0.0],
                                                            "max_linear_speed": 0.25}}},
-                    4.25, 0.5, 2.0, 1.02),
+                    4.25, 0.5, 2.0, 1.02, "arm"),
     "frame_acceleration": ("SLIDE", {"joint_limits": {"j": {}},
                                      "frame_limits": {"arm": {
                                          "point": [0.1, 0.2, 0.0],
                                          "max_linear_acceleration": 2.0}}},
-                           2.5, 1.0, 2.0, 1.03),
+                           2.5, 1.0, 2.0, 1.03, "arm"),
+    "base_force": ("SLIDE", {"joint_limits": {"j": {}}, "base_limits": {"max_force": 20.0}},
+                   2.0 + 1.0 / BASE_ACC, 1.0, BASE_ACC, 1.045, "base_limits"),
 }
 
 
 @pytest.mark.parametrize("kind", sorted(FRAME_CASES))
 def test_frame_limit_bounds_the_lower_bound(kind: str) -> None:
-    """A frame limit on one joint that amounts to a joint limit: T* is the closed-form
+    """A frame or mounting limit on one joint that amounts to a joint limit: T* is the closed-form
     bang-bang time and equals TOPP-RA run directly with that joint limit on the same line; the
     answer passes the check's kind near its limit (97–100 %)."""
     from dyn_node.core.check.feasibility import check_trajectory
@@ -142,7 +151,7 @@ def test_frame_limit_bounds_the_lower_bound(kind: str) -> None:
     from dyn_node.retime import retime
     import test_retime
 
-    urdf, limits, t_star, velocity, acceleration, slack = FRAME_CASES[kind]
+    urdf, limits, t_star, velocity, acceleration, slack, place = FRAME_CASES[kind]
     urdf = SLIDE if urdf == "SLIDE" else test_retime.ONE_JOINT
     dyn = Dynamics(load_model(urdf=urdf).with_limits(limits))
     res = retime(dyn, test_retime.LINE, grid_points=2000, point_period=0.002,
@@ -153,7 +162,7 @@ def test_frame_limit_bounds_the_lower_bound(kind: str) -> None:
     assert t_star * (1 - 1e-6) <= res.duration_out <= t_star * slack
     check = check_trajectory(dyn, res.trajectory)
     assert check.feasible
-    assert 0.97 <= check.per_frame["arm"][kind]["ratio"] <= 1.0
+    assert 0.97 <= check.per_frame[place][kind]["ratio"] <= 1.0
 
 
 def test_kinetic_energy_bounds_the_lower_bound() -> None:
@@ -238,15 +247,20 @@ def test_arc_length_path_agrees_with_its_own_differences() -> None:
 
 
 def test_disc_rows_hold_and_are_held_by_the_disc() -> None:
-    """The polygon rows against the disc |a·u + b·x| ≤ r itself, on random (a, b) and (u, x):
-    the outer rows pass every point of the disc, the inner rows pass none outside it."""
+    """The polygon rows against the disc |a·u + b·x + c| ≤ r itself, on random (a, b, c) and
+    (u, x): the outer rows pass every point of the disc, the inner rows pass none outside it
+    (also where a = 0, a ∥ b, c = 0)."""
     rng = np.random.default_rng(7)
     a, b = rng.normal(size=(200, 3)), rng.normal(size=(200, 3))
+    c = rng.normal(size=(200, 3)) * 0.8
     a[:20] = 0.0                                 # no s̈ term at some points
+    a[20:30] = 2 * b[20:30]                      # a and b parallel
+    c[30:60] = 0.0
+    c[60:70] *= 5.0                              # |c| over the limit: no (u, x) at all
     ux = rng.normal(size=(200, 2)) * 3
-    norm = np.linalg.norm(a * ux[:, :1] + b * ux[:, 1:], axis=1)
+    norm = np.linalg.norm(a * ux[:, :1] + b * ux[:, 1:] + c, axis=1)
     for outer in (True, False):
-        A, B, C, G = topp._disc_rows(a, b, 2.0, outer=outer)
+        A, B, C, G = topp._disc_rows(a, b, c, 2.0, outer=outer)
         ok = np.all(A * ux[:, :1] + B * ux[:, 1:] + C <= G, axis=1)
         if outer:
             assert np.all(ok[norm <= 2.0]) and not np.all(ok)

@@ -45,7 +45,8 @@ class Terms:
     w: np.ndarray | None
     #: the first-order task kinds per unit ṡ (:func:`_frame_speeds`)
     speeds: tuple = ()
-    #: the frames' linear accelerations a·u + b·x (:func:`_frame_accelerations`)
+    #: vectors a·u + b·x + c under a norm limit: the frames' linear accelerations
+    #: (:func:`_frame_accelerations`), the mounting's force and moment (:func:`_mounting`)
     accels: tuple = ()
 
 
@@ -57,7 +58,8 @@ def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
     # energy per unit ṡ (they see q̇ only), a frame's acceleration's ṡ² part
     task = task_motion.build(dynamics, q, d1, d2)
     tl = dynamics.model.task_limits
-    speeds, accels = _frame_speeds(tl, task), _frame_accelerations(tl, task)
+    speeds = _frame_speeds(tl, task)
+    accels = _frame_accelerations(tl, task) + _mounting(dynamics, q, d1, task)
     if not np.any(np.isfinite(dynamics.model.limits.effort)):
         return Terms(d1, d2, None, None, None, None, speeds, accels)
     a = dynamics.terms_batch(q, np.zeros_like(q), d1).inertial
@@ -82,37 +84,67 @@ def _frame_accelerations(tl, task) -> tuple:
     for f in tl.frame_limits:
         if math.isfinite(f.max_linear_acceleration):
             terms = task.frame(task_motion.FRAME_ROLE + f.frame)
-            out.append((np.asarray(terms.linear_velocity, dtype=float),
-                        np.asarray(terms.linear_acceleration, dtype=float),
-                        float(f.max_linear_acceleration)))
+            a = np.asarray(terms.linear_velocity, dtype=float)
+            out.append((a, np.asarray(terms.linear_acceleration, dtype=float),
+                        np.zeros_like(a), float(f.max_linear_acceleration)))
     return tuple(out)
+
+
+def _mounting(dynamics: Dynamics, q: np.ndarray, d1: np.ndarray, task) -> tuple:
+    """The mounting's force and moment on the robot (the check's base_force and base_moment:
+    static + momentum rate, root origin and axes) as a·s̈ + b·ṡ² + c: the momentum rate is
+    linear in q̈ and quadratic in q̇, so b is its value at q̇ = q', q̈ = q'' (``task``'s pass),
+    a at q̇ = 0, q̈ = q' (one more pass), c the static part (gravity, a task wrench's
+    reaction); (a, b, c, limit) for each configured limit."""
+    from dyn_node.core.check import task_motion
+
+    bl = dynamics.model.task_limits.base_limits
+    if task is None or task.base is None or bl is None:
+        return ()
+    parts = [(sl, lim) for sl, lim in ((slice(0, 3), bl.max_force), (slice(3, 6), bl.max_moment))
+             if math.isfinite(lim)]
+    if not parts:
+        return ()
+    first = task_motion.build(dynamics, q, np.zeros_like(q), d1).base.dynamic
+    return tuple((first[:, sl], task.base.dynamic[:, sl], task.base.static[:, sl], float(lim))
+                 for sl, lim in parts)
 
 
 #: sides of the polygon that stands for a frame acceleration's disc (:func:`_disc_rows`)
 _DISC_SIDES = 24
 
 
-def _disc_rows(a: np.ndarray, b: np.ndarray, limit: float, *, outer: bool
+def _disc_rows(a: np.ndarray, b: np.ndarray, c: np.ndarray, limit: float, *, outer: bool
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """|a·u + b·x| ≤ limit (a, b: N×3) as linear rows in (u, x). The vector a·u + b·x lies in
-    the plane of a and b: with its Gram matrix G = LLᵀ, |a·u + b·x| = |Lᵀ(u, x)|, a disc in
-    y = Lᵀ(u, x), and the rows are the tangents e_k·y ≤ r of a regular polygon of
-    :data:`_DISC_SIDES` sides: ``outer`` (r = limit: the polygon holds the disc, a relaxation,
-    so a lower bound stays one) or inner (r = limit·cos(π/K): the disc holds the polygon, so
-    every (u, x) the rows allow keeps the limit)."""
+    """|a·u + b·x + c| ≤ limit (a, b, c: N×3) as linear rows in (u, x), rows ≤ 0. The vector
+    a·u + b·x lies in the plane of a and b: with its Gram matrix G = LLᵀ (the orthonormal
+    basis e₁, e₂ of Gram–Schmidt on a, b), a·u + b·x = y₁e₁ + y₂e₂ with y = Lᵀ(u, x), and
+    |a·u + b·x + c|² = |y + c̃|² + |c⊥|² (c̃: c in that basis, c⊥ the rest): a disc of radius
+    r = √(limit² − |c⊥|²) about −c̃ (none where |c⊥| > limit: the row 1 ≤ 0). The rows are the
+    tangents e_k·(y + c̃) ≤ r of a regular polygon of :data:`_DISC_SIDES` sides: ``outer``
+    (the polygon holds the disc, a relaxation, so a lower bound stays one) or inner (radius
+    r·cos(π/K): the disc holds the polygon, so every (u, x) the rows allow keeps the limit)."""
     g11 = np.einsum("ij,ij->i", a, a)
     g12 = np.einsum("ij,ij->i", a, b)
     g22 = np.einsum("ij,ij->i", b, b)
     l11 = np.sqrt(g11)
     live = l11 > 0
-    # where a = 0 (no s̈ term) the vector is b·x: y = (|b|·x, 0)
+    # where a = 0 (no s̈ term) the vector is b·x: y = (|b|·x, 0), e₁ = b/|b|
     l21 = np.where(live, g12 / np.where(live, l11, 1.0), np.sqrt(g22))
     l22 = np.where(live, np.sqrt(np.maximum(g22 - l21**2, 0.0)), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        e1 = np.where(live[:, None], a / l11[:, None], b / np.sqrt(g22)[:, None])
+        e2 = (b - l21[:, None] * e1) / l22[:, None]
+    e1, e2 = (np.where(np.isfinite(e), e, 0.0) for e in (e1, e2))
+    c1, c2 = np.einsum("ij,ij->i", c, e1), np.einsum("ij,ij->i", c, e2)
+    room = limit**2 - (np.einsum("ij,ij->i", c, c) - c1**2 - c2**2)
+    r = np.sqrt(np.maximum(room, 0.0)) * (1.0 if outer else math.cos(math.pi / _DISC_SIDES))
     phi = 2 * np.pi * np.arange(_DISC_SIDES) / _DISC_SIDES
     cos, sin = np.cos(phi)[None, :], np.sin(phi)[None, :]
-    r = limit if outer else limit * math.cos(math.pi / _DISC_SIDES)
-    return (cos * l11[:, None], cos * l21[:, None] + sin * l22[:, None],
-            np.zeros((len(a), _DISC_SIDES)), np.full(_DISC_SIDES, r))
+    C = cos * c1[:, None] + sin * c2[:, None] - r[:, None]
+    C[room < 0] = 1.0
+    return (cos * l11[:, None], cos * l21[:, None] + sin * l22[:, None], C,
+            np.zeros(_DISC_SIDES))
 
 
 def _frame_speeds(tl, task) -> tuple:
@@ -176,9 +208,9 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
         L = lim.effort[cols] * scale
         add(a[:, cols], b[:, cols], (c + lo_w)[:, cols], L)
         add(-a[:, cols], -b[:, cols], -(c + hi_w)[:, cols], L)
-    for fa, fb, limit in t.accels:
+    for fa, fb, fc, limit in t.accels:
         # the bound relaxes the disc (outer polygon), the retiming keeps inside it
-        add(*_disc_rows(fa, fb, limit * scale, outer=lower_bound))
+        add(*_disc_rows(fa, fb, fc, limit * scale, outer=lower_bound))
     if not A:
         z = np.zeros((len(grid), 1))
         return Rows(z, z, z, np.ones(1), xv)
