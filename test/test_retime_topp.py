@@ -124,6 +124,11 @@ SLIDE = """<robot name="slide"><link name="base"/>
 #   share of the force (× 0.995) leaves √(9.95² − 9.81²)·cos(π/24) = 1.649 m/s² (gravity
 #   takes most of the force): 2 + 1/1.649 = 2.606 s and the window, within 4.5 %
 BASE_ACC = math.sqrt((20.0 / 2.0) ** 2 - 9.81**2)
+# - the mounting's moment on test_retime's one joint (2 kg at 0.3 m from the vertical axis,
+#   I = 0.02 + 2·0.3² = 0.2 kg·m²) limited to 6 N·m: gravity's 0.3·2·9.81 = 5.886 N·m about a
+#   horizontal axis and I·q̈ about the vertical one (the centripetal force passes through the
+#   axis), so |q̈| ≤ √(6² − 5.886²)/0.2 = 5.819 rad/s², T* = 2/1 + 1/5.819 s
+MOMENT_ACC = math.sqrt(6.0**2 - (0.3 * 2.0 * 9.81) ** 2) / 0.2
 FRAME_CASES = {
     "frame_speed": ("ONE_JOINT", {"joint_limits": {"j": {"has_acceleration_limits": True,
                                                          "max_acceleration": 2.0}},
@@ -137,6 +142,8 @@ FRAME_CASES = {
                            2.5, 1.0, 2.0, 1.03, "arm"),
     "base_force": ("SLIDE", {"joint_limits": {"j": {}}, "base_limits": {"max_force": 20.0}},
                    2.0 + 1.0 / BASE_ACC, 1.0, BASE_ACC, 1.045, "base_limits"),
+    "base_moment": ("ONE_JOINT", {"joint_limits": {"j": {}}, "base_limits": {"max_moment": 6.0}},
+                    2.0 + 1.0 / MOMENT_ACC, 1.0, MOMENT_ACC, 1.03, "base_limits"),
 }
 
 
