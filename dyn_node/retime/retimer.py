@@ -1,8 +1,9 @@
 """retime(): TOPP-RA for the first- and second-order kinds, then the exact check decides.
 
 Each round: TOPP-RA on the joint rows (limits × ``limit_margin``, below any local caps), the
-law smoothed over the window w, points dense enough that the controller's quintic stays within
-``path_tolerance`` of the path, and the exact check of those points. A violation of a
+law smoothed over the window w, a screen of the points' accelerations and efforts (capped
+where over, without the exact check), points dense enough that the controller's quintic stays
+within ``path_tolerance`` of the path, and the exact check of those points. A violation of a
 third-order kind (jerk, effort rate) widens w (its switches then ramp longer); any other (or a
 third-order one w did not cure) caps ṡ² around where it happened, by the kind's law in k. The
 first trajectory the check passes is the answer; when none does within ``max_rounds``, or the
@@ -173,14 +174,15 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             if x is None:
                 return None
             lw = timing.law(sr.grid, x)
-            pts, _law = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)
+            pts = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)[0]
             # halfway between the rows' share and the limit: over the share by rounding is
             # no reason to slow down, and near the limit the quintic between points may cross
             share = (1.0 + sr.margin) / 2
             hits = _screen(sr.dynamics, pts, share) if screens < _SCREENS else []
             if not hits:
                 break
-            # caps from the points' accelerations: cheaper than an exact check that fails
+            # caps from the points' accelerations and efforts: cheaper than an exact check
+            # that fails
             screens += 1
             if not _adjust(sr, hits, lw, x):
                 return None
@@ -194,7 +196,7 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         if res.feasible:
             full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
-                        w=sr.w + 2 * sr.period, deviation=dev, screens=screens)
+                        w=sr.w + 2 * sr.period, deviation=dev)
         if not _adjust(sr, res.violations, lw, x):
             return None
     return None
