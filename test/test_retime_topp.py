@@ -273,3 +273,48 @@ def test_disc_rows_hold_and_are_held_by_the_disc() -> None:
             assert np.all(ok[norm <= 2.0]) and not np.all(ok)
         else:
             assert not np.any(ok[norm > 2.0]) and np.any(ok)
+
+
+# the sliding 2 kg link 0.5 m above the floor on a base whose support reaches 0.1 m behind the
+# start and 3 m ahead: the floor's centre of pressure is q − 0.5·q̈/9.81 (the mounting carries
+# (m·q̈, 0, m·g) at the link's centre (q, 0, 0.5)), so accelerating is bounded by
+# q̈ ≤ 9.81·(q + 0.1)/0.5, growing with q: no closed form, TOPP-RA with that law as its own
+# second-order constraint is the reference
+RAISED = SLIDE.replace('<axis xyz="1 0 0"/>', '<origin xyz="0 0 0.5"/><axis xyz="1 0 0"/>')
+
+
+def test_tipping_bounds_the_lower_bound() -> None:
+    """T* with a support polygon equals TOPP-RA run directly with the centre of pressure's
+    closed form as its constraint (toppra's SecondOrderConstraint: w = q − h·q̈/g within
+    [−0.1, 3]), on the same line and grid, to 1e-6; without the polygon T* is 2 s (velocity
+    only); the answer passes the check's tipping kind with its gauge near 1."""
+    import toppra as ta
+    import toppra.constraint as tc
+
+    from dyn_node.core.check.feasibility import check_trajectory
+    from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.retime import retime
+    from test_retime import LINE
+
+    polygon = [[-0.1, -1.0], [3.0, -1.0], [3.0, 1.0], [-0.1, 1.0]]
+    limits = {"joint_limits": {"j": {}}, "base_limits": {"support_polygon": polygon}}
+    dyn = Dynamics(load_model(urdf=RAISED).with_limits(limits))
+    res = retime(dyn, LINE, grid_points=2000, point_period=0.002, uniform_fallback=False)
+    path = ta.SplineInterpolator(LINE.times, LINE.positions,
+                                 bc_type=((1, LINE.velocities[0]), (1, LINE.velocities[1])))
+    interp = tc.DiscretizationType.Interpolation
+    cop = tc.SecondOrderConstraint(lambda q, v, a: np.atleast_1d(q - 0.5 * a / 9.81),
+                                   lambda q: np.array([[1.0], [-1.0]]),
+                                   lambda q: np.array([3.0, 0.1]), dof=1,
+                                   discretization_scheme=interp)
+    cons = [tc.JointVelocityConstraint(np.array([[-1.0, 1.0]])), cop]
+    inst = algo.TOPPRA(cons, path, gridpoints=np.linspace(0.0, LINE.duration, 2001),
+                       solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+    direct = inst.compute_trajectory(0, 0).duration
+    assert direct > 2.2                          # the polygon binds (velocity alone: 2 s)
+    assert res.lower_bound == pytest.approx(direct, rel=1e-6)
+    assert res.feasible and res.duration_out >= res.lower_bound
+    check = check_trajectory(dyn, res.trajectory)
+    assert check.feasible
+    assert 0.97 <= check.per_frame["base_limits"]["tipping"]["ratio"] <= 1.0

@@ -48,6 +48,9 @@ class Terms:
     #: vectors a·u + b·x + c under a norm limit: the frames' linear accelerations
     #: (:func:`_frame_accelerations`), the mounting's force and moment (:func:`_mounting`)
     accels: tuple = ()
+    #: the floor's normal force and N·(centre of pressure) as a·u + b·x + c, and the support
+    #: polygon (:func:`_floor`), or None
+    floor: tuple | None = None
 
 
 def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
@@ -59,9 +62,16 @@ def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
     task = task_motion.build(dynamics, q, d1, d2)
     tl = dynamics.model.task_limits
     speeds = _frame_speeds(tl, task)
-    accels = _frame_accelerations(tl, task) + _mounting(dynamics, q, d1, task)
+    # the mounting's wrench a·u + b·x + c: its momentum rate is linear in q̈ and quadratic in
+    # q̇, so b is the dynamic part at q̇ = q', q̈ = q'' (``task``'s pass), a at q̇ = 0, q̈ = q'
+    # (one more pass), c the static part (gravity, a task wrench's reaction)
+    wrench = None if task is None or task.base is None else (
+        task_motion.build(dynamics, q, np.zeros_like(q), d1).base.dynamic, task.base.dynamic,
+        task.base.static)
+    accels = _frame_accelerations(tl, task) + _mounting(tl, wrench)
+    floor = _floor(tl, task, wrench)
     if not np.any(np.isfinite(dynamics.model.limits.effort)):
-        return Terms(d1, d2, None, None, None, None, speeds, accels)
+        return Terms(d1, d2, None, None, None, None, speeds, accels, floor)
     a = dynamics.terms_batch(q, np.zeros_like(q), d1).inertial
     terms = dynamics.terms_batch(q, d1, d2)
     c = terms.static
@@ -69,7 +79,7 @@ def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
         # a task wrench's torque depends on q only: part of c, as the check's effort has it
         c = c + task.task_torque
     return Terms(d1, d2, a, terms.inertial, c, dynamics.friction_coefficients[0] * d1, speeds,
-                 accels)
+                 accels, floor)
 
 
 def _frame_accelerations(tl, task) -> tuple:
@@ -90,24 +100,47 @@ def _frame_accelerations(tl, task) -> tuple:
     return tuple(out)
 
 
-def _mounting(dynamics: Dynamics, q: np.ndarray, d1: np.ndarray, task) -> tuple:
-    """The mounting's force and moment on the robot (the check's base_force and base_moment:
-    static + momentum rate, root origin and axes) as a·s̈ + b·ṡ² + c: the momentum rate is
-    linear in q̈ and quadratic in q̇, so b is its value at q̇ = q', q̈ = q'' (``task``'s pass),
-    a at q̇ = 0, q̈ = q' (one more pass), c the static part (gravity, a task wrench's
-    reaction); (a, b, c, limit) for each configured limit."""
-    from dyn_node.core.check import task_motion
+def _mounting(tl, wrench: tuple | None) -> tuple:
+    """The mounting's force and moment on the robot (the check's base_force and base_moment,
+    root origin and axes), (a, b, c, limit) for each configured limit."""
+    bl = tl.base_limits
+    if wrench is None or bl is None:
+        return ()
+    return tuple((wrench[0][:, sl], wrench[1][:, sl], wrench[2][:, sl], float(lim))
+                 for sl, lim in ((slice(0, 3), bl.max_force), (slice(3, 6), bl.max_moment))
+                 if math.isfinite(lim))
 
-    bl = dynamics.model.task_limits.base_limits
-    if task is None or task.base is None or bl is None:
-        return ()
-    parts = [(sl, lim) for sl, lim in ((slice(0, 3), bl.max_force), (slice(3, 6), bl.max_moment))
-             if math.isfinite(lim)]
-    if not parts:
-        return ()
-    first = task_motion.build(dynamics, q, np.zeros_like(q), d1).base.dynamic
-    return tuple((first[:, sl], task.base.dynamic[:, sl], task.base.static[:, sl], float(lim))
-                 for sl, lim in parts)
+
+def _floor(tl, task, wrench: tuple | None) -> tuple | None:
+    """The check's tipping terms (force_laws.tipping_law): the floor pushes on the base with
+    F = F_r − m_b·g, M = M_r − c_b × m_b·g; N = F_z and P = N·p = (−M_y, M_x), each
+    a·u + b·x + c ((a, b, c) of N, then of P: N×2), and the support polygon."""
+    from dyn_node.core.check import force_laws
+
+    bl = tl.base_limits
+    if wrench is None or bl is None or bl.support_polygon is None:
+        return None
+    com = np.zeros(3) if bl.base_com is None else bl.base_com
+    weight, moment = force_laws.base_weight(base_mass=bl.base_mass, base_com=com,
+                                            gravity=task.gravity)
+    N, P = [], []
+    # the base's weight is static: only in c
+    for w, fw, mw in zip(wrench, (0.0, 0.0, weight), (0.0, 0.0, moment)):
+        F, M = w[:, :3] - fw, w[:, 3:] - mw
+        N.append(F[:, 2])
+        P.append(np.column_stack([-M[:, 1], M[:, 0]]))
+    return tuple(N), tuple(P), bl.support_polygon
+
+
+def _floor_rows(floor: tuple, share: float) -> tuple[np.ndarray, ...]:
+    """The floor's rows ≤ 0: each edge n_i·P ≤ (n_i·c₀ + share·reach_i)·N (the centre of
+    pressure within ``share`` of the way from the centroid c₀ to the edge: the check's gauge ≤
+    share, exactly, while N > 0) and N ≥ 0 (no lift-off)."""
+    N, P, poly = floor
+    off = poly.normals @ poly.centroid + share * poly.reach
+    rows = [X @ poly.normals.T - n[:, None] * off[None, :] for n, X in zip(N, P)]
+    rows = [np.column_stack([r, -n]) for r, n in zip(rows, N)]
+    return (*rows, np.zeros(rows[0].shape[1]))
 
 
 #: sides of the polygon that stands for a frame acceleration's disc (:func:`_disc_rows`)
@@ -211,6 +244,8 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
     for fa, fb, fc, limit in t.accels:
         # the bound relaxes the disc (outer polygon), the retiming keeps inside it
         add(*_disc_rows(fa, fb, fc, limit * scale, outer=lower_bound))
+    if t.floor is not None:
+        add(*_floor_rows(t.floor, scale))
     if not A:
         z = np.zeros((len(grid), 1))
         return Rows(z, z, z, np.ones(1), xv)
