@@ -129,6 +129,11 @@ BASE_ACC = math.sqrt((20.0 / 2.0) ** 2 - 9.81**2)
 #   horizontal axis and I·q̈ about the vertical one (the centripetal force passes through the
 #   axis), so |q̈| ≤ √(6² − 5.886²)/0.2 = 5.819 rad/s², T* = 2/1 + 1/5.819 s
 MOMENT_ACC = math.sqrt(6.0**2 - (0.3 * 2.0 * 9.81) ** 2) / 0.2
+# - a 1 kg payload held on the sliding link, the grip's normal axis vertical, μ·grip·faces =
+#   0.5·2·2 = 2 N: the grasp supplies (q̈, 0, 9.81) N, its part across the normal axis is q̈,
+#   so |q̈| ≤ 2 m/s² and T* = 2/1 + 1/2 = 2.5 s
+GRIP = {"frame": "arm", "normal_axis": [0.0, 0.0, 1.0], "friction_coefficient": 0.5,
+        "grip_force": 2.0, "faces": 2}
 FRAME_CASES = {
     "frame_speed": ("ONE_JOINT", {"joint_limits": {"j": {"has_acceleration_limits": True,
                                                          "max_acceleration": 2.0}},
@@ -144,6 +149,8 @@ FRAME_CASES = {
                    2.0 + 1.0 / BASE_ACC, 1.0, BASE_ACC, 1.045, "base_limits"),
     "base_moment": ("ONE_JOINT", {"joint_limits": {"j": {}}, "base_limits": {"max_moment": 6.0}},
                     2.0 + 1.0 / MOMENT_ACC, 1.0, MOMENT_ACC, 1.03, "base_limits"),
+    "grasp_slip": ("SLIDE+1kg", {"joint_limits": {"j": {}}, "grasp": GRIP},
+                   2.5, 1.0, 2.0, 1.03, "grasp"),
 }
 
 
@@ -158,9 +165,12 @@ def test_frame_limit_bounds_the_lower_bound(kind: str) -> None:
     from dyn_node.retime import retime
     import test_retime
 
-    urdf, limits, t_star, velocity, acceleration, slack, place = FRAME_CASES[kind]
-    urdf = SLIDE if urdf == "SLIDE" else test_retime.ONE_JOINT
-    dyn = Dynamics(load_model(urdf=urdf).with_limits(limits))
+    from dyn_node.core.robot.model import Payload
+
+    name, limits, t_star, velocity, acceleration, slack, place = FRAME_CASES[kind]
+    urdf = test_retime.ONE_JOINT if name == "ONE_JOINT" else SLIDE
+    extra = {"payload": Payload(1.0, (0.0, 0.0, 0.0), "arm")} if name.endswith("+1kg") else {}
+    dyn = Dynamics(load_model(urdf=urdf, **extra).with_limits(limits))
     res = retime(dyn, test_retime.LINE, grid_points=2000, point_period=0.002,
                  uniform_fallback=False)
     assert res.lower_bound == pytest.approx(t_star, rel=1e-6)

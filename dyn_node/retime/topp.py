@@ -46,7 +46,8 @@ class Terms:
     #: the first-order task kinds per unit ṡ (:func:`_frame_speeds`)
     speeds: tuple = ()
     #: vectors a·u + b·x + c under a norm limit: the frames' linear accelerations
-    #: (:func:`_frame_accelerations`), the mounting's force and moment (:func:`_mounting`)
+    #: (:func:`_frame_accelerations`), the mounting's force and moment (:func:`_mounting`),
+    #: the grasp's tangential force (:func:`_grasp`)
     accels: tuple = ()
     #: the floor's normal force and N·(centre of pressure) as a·u + b·x + c, and the support
     #: polygon (:func:`_floor`), or None
@@ -65,10 +66,11 @@ def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
     # the mounting's wrench a·u + b·x + c: its momentum rate is linear in q̈ and quadratic in
     # q̇, so b is the dynamic part at q̇ = q', q̈ = q'' (``task``'s pass), a at q̇ = 0, q̈ = q'
     # (one more pass), c the static part (gravity, a task wrench's reaction)
+    first = None if task is None or (task.base is None and tl.grasp is None) else \
+        task_motion.build(dynamics, q, np.zeros_like(q), d1)
     wrench = None if task is None or task.base is None else (
-        task_motion.build(dynamics, q, np.zeros_like(q), d1).base.dynamic, task.base.dynamic,
-        task.base.static)
-    accels = _frame_accelerations(tl, task) + _mounting(tl, wrench)
+        first.base.dynamic, task.base.dynamic, task.base.static)
+    accels = _frame_accelerations(tl, task) + _mounting(tl, wrench) + _grasp(tl, task, first)
     floor = _floor(tl, task, wrench)
     if not np.any(np.isfinite(dynamics.model.limits.effort)):
         return Terms(d1, d2, None, None, None, None, speeds, accels, floor)
@@ -109,6 +111,27 @@ def _mounting(tl, wrench: tuple | None) -> tuple:
     return tuple((wrench[0][:, sl], wrench[1][:, sl], wrench[2][:, sl], float(lim))
                  for sl, lim in ((slice(0, 3), bl.max_force), (slice(3, 6), bl.max_moment))
                  if math.isfinite(lim))
+
+
+def _grasp(tl, task, first) -> tuple:
+    """The check's grasp slip: the grasp's force on the payload m·(a − g) in the grasp's axes,
+    its part across the normal axis within μ·grip_force·faces; a from the payload point's
+    acceleration at q̇ = 0, q̈ = q' (``first``), b at q̇ = q', q̈ = q'' (``task``), c = −m·g."""
+    from dyn_node.core.check import base_constraints, force_laws
+
+    g = tl.grasp
+    if task is None or g is None:
+        return ()
+    n = np.asarray(g.normal_axis, dtype=float)
+    n = n / np.linalg.norm(n)
+
+    def force(tm):
+        return base_constraints.grasp_force(tm.frame("payload"), tm.rotation[tm.roles["grasp"]],
+                                            tm.gravity, float(task.payload_mass))
+
+    fa, fb = force(first), force(task)
+    return ((force_laws.tangential(fa.dynamic, n), force_laws.tangential(fb.dynamic, n),
+             force_laws.tangential(fb.static, n), float(g.max_tangential_force)),)
 
 
 def _floor(tl, task, wrench: tuple | None) -> tuple | None:
