@@ -211,20 +211,21 @@ def _screen(dynamics: Dynamics, pts: Trajectory, share: float) -> list[Violation
     cost. (TOPP-RA's rows interpolated between grid points instead of RNEA: false alarms where
     they change fast, next to a stop.)"""
     lim = dynamics.model.limits
-    hits = _runs("acceleration", np.abs(pts.accelerations) / lim.acceleration, share,
-                 lim.acceleration, pts.times, lim.names)
+    hits = _runs("acceleration", np.abs(pts.accelerations), share, lim.acceleration, pts.times,
+                 lim.names)
     if np.any(np.isfinite(lim.effort)):
         tau = dynamics.rnea_batch(pts.positions, pts.velocities, pts.accelerations)
-        hits += _runs("effort", np.abs(tau) / lim.effort, share, lim.effort, pts.times,
-                      lim.names)
+        hits += _runs("effort", np.abs(tau), share, lim.effort, pts.times, lim.names)
     return hits
 
 
-def _runs(kind: str, ratio: np.ndarray, share: float, limit: np.ndarray, t: np.ndarray,
+def _runs(kind: str, value: np.ndarray, share: float, limit: np.ndarray, t: np.ndarray,
           names: Sequence[str]) -> list[Violation]:
-    """One :class:`Violation` per joint and run of samples with ``ratio`` over ``share``."""
-    with np.errstate(invalid="ignore"):
-        over = ratio > share     # NaN (no limit: inf / inf) is not over
+    """One :class:`Violation` per joint and run of samples with |value| over ``share`` of a
+    positive finite limit (a zero one is the exact check's to report)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = value / limit
+    over = (ratio > share) & (limit > 0) & np.isfinite(limit)
     out = []
     for j in np.flatnonzero(over.any(axis=0)):
         idx = np.flatnonzero(over[:, j])
