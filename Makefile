@@ -27,9 +27,11 @@ $(STAMP): requirements.txt setup.py package.xml
 	@for s in $(VENV)/lib/dyn_node/*; do ln -sf "../lib/dyn_node/$${s##*/}" "$(VENV)/bin/$${s##*/}"; done
 	@touch $@
 
-$(KERNELS): $(STAMP) $(wildcard dyn_node/core/compiled/*.py)
-	@echo "compiling the Numba kernels (after an install or a kernel change, ~30 s; cached in dyn_node/__pycache__)"
+$(KERNELS): $(STAMP) $(wildcard dyn_node/core/compiled/*.py) dyn_node/retime/reach.py
+	@echo "compiling the Numba kernels (after an install or a kernel change, ~40 s; cached in dyn_node/__pycache__)"
 	$(PY) -c "import importlib, pkgutil, dyn_node.core.compiled as c; [importlib.import_module(m.name) for m in pkgutil.iter_modules(c.__path__, c.__name__ + '.')]"
+	@# the retimer's compiled TOPP-RA passes (~10 s): else the first retime request pays them
+	$(PY) -c "import dyn_node.retime.reach"
 	@touch $@
 
 # cmake + rosidl from the pinned wheels (needs cmake, g++ and the interpreter's headers); build.sh

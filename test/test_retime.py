@@ -277,3 +277,41 @@ def test_start_state_at_rest_and_moving() -> None:
     assert res.feasible and res.method == "uniform"
     assert res.check.start_segment == "checked"
     np.testing.assert_allclose(res.trajectory.positions, traj.positions)   # the input's points
+
+
+def test_input_check_given_or_made_without_the_payload_margin(ur5_result) -> None:
+    """The input's check: made here without the payload margin (NaN: not computed), its time
+    scale the full check's; or the caller's own (dyn-check, the gate), then not made again and
+    the answer the same; a check of another trajectory is refused."""
+    dyn, traj, res = ur5_result
+    full = check_trajectory(dyn, traj)
+    assert math.isnan(res.input_check.payload_margin_kg) and math.isfinite(full.payload_margin_kg)
+    assert res.input_check.time_scale == full.time_scale
+    assert res.duration_uniform == pytest.approx(traj.duration * full.time_scale, rel=1e-12)
+    again = retime(dyn, traj, input_check=full)
+    assert again.input_check is full
+    assert again.duration_out == res.duration_out and again.lower_bound == res.lower_bound
+    other = check_trajectory(dyn, Trajectory(times=traj.times * 2, positions=traj.positions))
+    with pytest.raises(TrajectoryError) as err:
+        retime(dyn, traj, input_check=other)
+    assert err.value.code == "bad_options"
+
+
+def test_point_screen_finds_the_runs_over_the_share() -> None:
+    """The screen before the exact check: one entry per joint and run of points whose |q̈|
+    exceeds the share of the limit (2 rad/s², share 0.9975: 1.995), with the run's first and
+    peak times and its length; nothing where no point is over."""
+    from dyn_node.retime.retimer import _screen
+
+    dyn = one_joint(a=2.0)
+    acc = np.array([0.5, 1.99, -2.5, 2.6, 0.1, 2.2, 1.995])
+    t = np.arange(7) * 0.004
+    pts = Trajectory(times=t, positions=np.zeros((7, 1)), velocities=np.zeros((7, 1)),
+                     accelerations=acc[:, None])
+    hits = _screen(dyn, pts, 0.9975)
+    assert [(h.kind, h.first_time_s, h.peak_time_s, h.duration_s) for h in hits] == [
+        ("acceleration", t[2], t[3], t[3] - t[2]), ("acceleration", t[5], t[5], 0.0)]
+    assert hits[0].peak_value / hits[0].limit == pytest.approx(2.6 / 2.0 / 0.9975, rel=1e-12)
+    calm = Trajectory(times=t, positions=np.zeros((7, 1)), velocities=np.zeros((7, 1)),
+                      accelerations=np.clip(acc, -1.99, 1.99)[:, None])
+    assert _screen(dyn, calm, 0.9975) == []

@@ -40,7 +40,11 @@ def retime_file(checker: Any, v: Any, dest: Path) -> OptimalRetimed:
         return OptimalRetimed(v.path, None, "not written: unreadable")
     try:
         traj = _model_trajectory(checker, v)
-        res = retime(checker.dynamics, traj, feasibility=options_for(checker.settings))
+        # the verdict just printed is the check of this very trajectory: not made again
+        checked = v.outcome.result if v.outcome is not None and v.outcome.trajectory is traj \
+            else None
+        res = retime(checker.dynamics, traj, feasibility=options_for(checker.settings),
+                     input_check=checked)
     except TrajectoryError as exc:
         return OptimalRetimed(v.path, None, f"not written: {exc}")
     if not res.feasible:

@@ -1,8 +1,9 @@
 """retime(): TOPP-RA for the first- and second-order kinds, then the exact check decides.
 
 Each round: TOPP-RA on the joint rows (limits × ``limit_margin``, below any local caps), the
-law smoothed over the window w, points dense enough that the controller's quintic stays within
-``path_tolerance`` of the path, and the exact check of those points. A violation of a
+law smoothed over the window w, a screen of the points' accelerations and efforts (capped
+where over, without the exact check), points dense enough that the controller's quintic stays
+within ``path_tolerance`` of the path, and the exact check of those points. A violation of a
 third-order kind (jerk, effort rate) widens w (its switches then ramp longer); any other (or a
 third-order one w did not cure) caps ṡ² around where it happened, by the kind's law in k. The
 first trajectory the check passes is the answer; when none does within ``max_rounds``, or the
@@ -13,12 +14,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Sequence
 
 import numpy as np
 
 from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.core.check.feasibility import (FeasibilityOptions, FeasibilityResult, StartState,
                                              check_trajectory)
+from dyn_node.core.check.constraints import Violation
 from dyn_node.core.check.kinds import KIND_CLASS
 from dyn_node.core.check.trajectory import Trajectory, from_current_state
 from dyn_node.errors import TrajectoryError
@@ -33,6 +36,14 @@ _RAMP_KINDS = ("jerk", "effort_rate")
 _CAP_CELLS = 8
 #: rounds checked with the caller's options in full (payload margin too)
 _FULL_ROUNDS = 2
+#: the first window over the one that spreads every jump of τ (timing.switch_window) for the
+#: effort rate: the box filter's rate of τ is not only the jumps' (neighbouring switches and
+#: τ's own change along the path add up; a jump of q̈ is the whole of the jerk's, which is
+#: why the jerk's window is not widened: one joint's S-curve stays time-optimal), and a wider
+#: window costs less (T grows by w) than a round that fails
+_RATE_W = 2.5
+#: point screens (:func:`_screen`) per search at most
+_SCREENS = 4
 #: the uniform fallback's factor over the check's time scale (its feasible side)
 _UNIFORM_PAD = 1.001
 
@@ -57,14 +68,17 @@ class _Search:
 def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = None,
            feasibility: FeasibilityOptions = FeasibilityOptions(), path_tolerance: float = 1e-4,
            grid_points: int = 1000, point_period: float = 0.004, max_rounds: int = 30,
-           limit_margin: float = 0.995, uniform_fallback: bool = True) -> RetimeResult:
+           limit_margin: float = 0.995, uniform_fallback: bool = True,
+           input_check: FeasibilityResult | None = None) -> RetimeResult:
     """The fastest trajectory along ``traj``'s path (model order) that passes
     :func:`~dyn_node.core.check.feasibility.check_trajectory` with ``feasibility``; see the module
     docstring and docs/retime.md. ``start``: the robot's state when the first point lies ahead
     (t0 > 0): the path then starts from it. Raises :class:`TrajectoryError` for input no
     retiming can take (fewer than 2 points, non-finite values, bad times).
     ``uniform_fallback``: also consider the uniform stretch (which keeps the input's own end
-    velocities, while the optimal search starts and ends at rest) and answer the shorter."""
+    velocities, while the optimal search starts and ends at rest) and answer the shorter.
+    ``input_check``: the caller's ``check_trajectory(dynamics, traj, feasibility, start=start)``
+    when it has it (dyn-check, the gate): used instead of checking the input again."""
     validate_input(traj)
     if not (path_tolerance > 0 and grid_points >= 10 and point_period > 0 and max_rounds >= 1
             and 0 < limit_margin <= 1):
@@ -72,12 +86,14 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     duration_in = 0.0 if is_untimed(traj) else traj.duration
     if is_still(traj):
         return _still(dynamics, traj, feasibility, start, duration_in)
+    given = traj
     moving_start = start is not None and traj.times[0] > 0 and bool(np.any(start.velocities))
     if start is not None and traj.times[0] > 0 and not moving_start:
         traj = from_current_state(traj, start.positions, start.velocities)
     path = build_path(traj)
     nominal = path.nominal
-    first = check_trajectory(dynamics, nominal, feasibility, start=start)
+    first = _input_check(dynamics, nominal, feasibility, start,
+                         input_check if nominal is given else None)
     k = first.time_scale
     uniform_T = nominal.duration * k if 0 < k < math.inf else math.nan
     base = dict(duration_in=duration_in, duration_uniform=uniform_T, input_check=first,
@@ -121,26 +137,56 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
                         path_deviation=pick["deviation"], **base)
 
 
+def _input_check(dynamics: Dynamics, nominal: Trajectory, options: FeasibilityOptions,
+                 start: StartState | None, given: FeasibilityResult | None) -> FeasibilityResult:
+    """The exact check of the input (its time scale for the uniform stretch, its blocked
+    reason): ``given`` (the caller's, of this very trajectory), else checked here without the
+    payload margin, which nothing of the retiming needs (NaN in the result: not computed)."""
+    if given is not None:
+        if given.n_points != nominal.n_points or given.duration_s != nominal.duration:
+            raise TrajectoryError("input_check is not a check of this trajectory",
+                                  code="bad_options")
+        return given
+    res = check_trajectory(dynamics, nominal, replace(options, compute_payload_margin=False),
+                           start=start)
+    return replace(res, payload_margin_kg=math.nan)
+
+
 def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     """The check-driven rounds (module docstring); None when none passes."""
     reach = topp.Reach(sr.path, sr.grid, sr.rows)
     x0 = reach.solve()
     if x0 is None:
         return None
-    sr.w = max(sr.w, timing.switch_window(sr.dynamics, sr.path, sr.grid, x0) / sr.margin)
+    jerk_w, rate_w = timing.switch_window(sr.dynamics, sr.path, sr.grid, x0)
+    sr.w = max(sr.w, jerk_w / sr.margin, _RATE_W * rate_w / sr.margin)
     # later rounds skip the payload margin (it does not decide feasibility); the answer gets
     # the full check with the caller's options
     plain = replace(sr.options, compute_payload_margin=False)
     x, solved_cap = x0, sr.cap.copy()
+    screens = 0
     for rnd in range(1, max_rounds + 1):
-        if not np.array_equal(sr.cap, solved_cap):
-            # only a cap changes TOPP-RA's answer (a wider window smooths the same law)
-            solved_cap = sr.cap.copy()
-            x = reach.solve(cap=sr.cap)
-        if x is None:
-            return None
-        lw = timing.law(sr.grid, x)
-        out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, 2 * sr.period)
+        while True:
+            if not np.array_equal(sr.cap, solved_cap):
+                # only a cap changes TOPP-RA's answer (a wider window smooths the same law)
+                solved_cap = sr.cap.copy()
+                x = reach.solve(cap=sr.cap)
+            if x is None:
+                return None
+            lw = timing.law(sr.grid, x)
+            pts = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)[0]
+            # halfway between the rows' share and the limit: over the share by rounding is
+            # no reason to slow down, and near the limit the quintic between points may cross
+            share = (1.0 + sr.margin) / 2
+            hits = _screen(sr.dynamics, pts, share) if screens < _SCREENS else []
+            if not hits:
+                break
+            # caps from the points' accelerations and efforts: cheaper than an exact check
+            # that fails
+            screens += 1
+            if not _adjust(sr, hits, lw, x):
+                return None
+        out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, 2 * sr.period, pts)
         if out is None:
             return None
         # the first rounds, which usually pass, check in full at once (a second check of the
@@ -151,9 +197,46 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
                         w=sr.w + 2 * sr.period, deviation=dev)
-        if not _adjust(sr, res, lw, x):
+        if not _adjust(sr, res.violations, lw, x):
             return None
     return None
+
+
+def _screen(dynamics: Dynamics, pts: Trajectory, share: float) -> list[Violation]:
+    """The joint accelerations and efforts (RNEA with friction; the check adds a task
+    wrench's torque) at the output points above ``share`` of their limits, one entry per
+    joint and run of points over: the smoothing window makes them (q̈ = q'·s̈ + q''·ṡ² of an
+    averaged law is not the average of TOPP-RA's), and the controller's quintic passes through
+    each point's state, so the exact check would find most of them, at several times the
+    cost. (TOPP-RA's rows interpolated between grid points instead of RNEA: false alarms where
+    they change fast, next to a stop.)"""
+    lim = dynamics.model.limits
+    hits = _runs("acceleration", np.abs(pts.accelerations), share, lim.acceleration, pts.times,
+                 lim.names)
+    if np.any(np.isfinite(lim.effort)):
+        tau = dynamics.rnea_batch(pts.positions, pts.velocities, pts.accelerations)
+        hits += _runs("effort", np.abs(tau), share, lim.effort, pts.times, lim.names)
+    return hits
+
+
+def _runs(kind: str, value: np.ndarray, share: float, limit: np.ndarray, t: np.ndarray,
+          names: Sequence[str]) -> list[Violation]:
+    """One :class:`Violation` per joint and run of samples with |value| over ``share`` of a
+    positive finite limit (a zero one is the exact check's to report)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = value / limit
+    over = (ratio > share) & (limit > 0) & np.isfinite(limit)
+    out = []
+    for j in np.flatnonzero(over.any(axis=0)):
+        idx = np.flatnonzero(over[:, j])
+        for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+            pk = int(run[np.argmax(ratio[run, j])])
+            out.append(Violation(joint=names[j], kind=kind, first_time_s=float(t[run[0]]),
+                                 peak_time_s=float(t[pk]),
+                                 peak_value=float(ratio[pk, j] * limit[j] / share),
+                                 limit=float(limit[j]),
+                                 duration_s=float(t[run[-1]] - t[run[0]]), unit=""))
+    return out
 
 
 def _search_paths(dynamics: Dynamics, path: Path, grid_points: int) -> list[tuple]:
@@ -226,10 +309,12 @@ def _join(parts: list[Trajectory]) -> Trajectory:
                       velocities=np.vstack(cols[1]), accelerations=np.vstack(cols[2]))
 
 
-def _adjust(sr: _Search, res: FeasibilityResult, lw: timing.Law, x: np.ndarray) -> bool:
-    """Widen the window or cap ṡ² where ``res`` failed; False when nothing can be changed."""
+def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
+            x: np.ndarray) -> bool:
+    """Widen the window or cap ṡ² where ``violations`` are; False when nothing can be
+    changed."""
     widen = 1.0
-    for v in res.violations:
+    for v in violations:
         if v.kind == "position" or v.limit <= 0:
             return False
         ratio = abs(v.peak_value) / v.limit
@@ -248,18 +333,20 @@ def _adjust(sr: _Search, res: FeasibilityResult, lw: timing.Law, x: np.ndarray) 
         sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
     if widen > 1.0:
         for kind in _RAMP_KINDS:
-            if any(v.kind == kind for v in res.violations):
+            if any(v.kind == kind for v in violations):
                 sr.widened[kind] = sr.widened.get(kind, 0) + 1
         sr.w = max(sr.w * widen, 2 * sr.period)
     return True
 
 
 def _dense(path: Path, lw: timing.Law, w: float, period: float, tolerance: float,
-           w2: float = 0.0) -> tuple[Trajectory | None, float]:
+           w2: float = 0.0, first: Trajectory | None = None) -> tuple[Trajectory | None, float]:
     """Points at ``period``, halved until the quintic between them stays within ``tolerance``
-    of the path (None when even 1/64 of it does not); windows w, w2 (:func:`timing.smoothed`)."""
+    of the path (None when even 1/64 of it does not); windows w, w2 (:func:`timing.smoothed`);
+    ``first``: the points at ``period``, when already made."""
     for _ in range(7):
-        out, _s = timing.points(path, lw, w, period, w2)
+        out = first if first is not None else timing.points(path, lw, w, period, w2)[0]
+        first = None
         dev = timing.deviation(path, lw, w, out, w2)
         if dev <= tolerance:
             return out, dev

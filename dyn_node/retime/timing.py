@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dyn_node.core.check.trajectory import Trajectory, interpolate
-from dyn_node.retime.path import Path, evaluate
+from dyn_node.retime.path import Path
 
 
 @dataclass(frozen=True)
@@ -91,8 +91,9 @@ def smoothed(lw: Law, w: float, t: np.ndarray, w2: float = 0.0, orders: int = 3
 
 
 def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
-           ) -> tuple[Trajectory, np.ndarray]:
-    """The output trajectory (points every ≤ ``period`` s) and its points' path positions."""
+           ) -> tuple[Trajectory, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The output trajectory (points every ≤ ``period`` s) and its points' s (from the path's
+    start), ṡ and s̈."""
     total = lw.duration + w + w2
     n = max(2, int(np.ceil(total / period)) + 1)
     t = np.linspace(0.0, total, n)
@@ -100,7 +101,7 @@ def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
     s = np.clip(s, 0.0, lw.s[-1])
     q, d1, d2 = path.derivatives(s + path.pp.breaks[0])
     return Trajectory(times=t, positions=q, velocities=d1 * sd[:, None],
-                      accelerations=d2 * (sd**2)[:, None] + d1 * sdd[:, None]), s
+                      accelerations=d2 * (sd**2)[:, None] + d1 * sdd[:, None]), (s, sd, sdd)
 
 
 def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
@@ -109,29 +110,33 @@ def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
     points and the path at the same instants, at ``per_segment`` points inside each segment."""
     t = out.times
     frac = np.arange(1, per_segment + 1) / (per_segment + 1)
-    tm = (t[:-1, None] + np.diff(t)[:, None] * frac[None, :]).ravel()
-    q_out = evaluate(interpolate(out, "quintic"), tm, 1)[0]
+    r = np.diff(t)[:, None] * frac[None, :]                     # segments × per_segment
+    tm = (t[:-1, None] + r).ravel()
+    coeffs = interpolate(out, "quintic").coeffs                  # segments × 6 × nv
+    # every segment's samples at once: Σ_k c_k r^k (no search for the segment)
+    q_out = np.matmul(r[:, :, None] ** np.arange(coeffs.shape[1]), coeffs).reshape(len(tm), -1)
     s = np.clip(smoothed(lw, w, tm, w2, orders=1)[0], 0.0, lw.s[-1])
     q_path = path.positions(s + path.pp.breaks[0])
     return float(np.max(np.abs(q_out - q_path)))
 
 
-def switch_window(dynamics, path: Path, grid: np.ndarray, x: np.ndarray) -> float:
-    """The window that spreads every jump of q̈ (over the jerk limit) and of τ (over the effort
-    rate limit) between neighbouring grid steps: the starting width, before the exact check."""
+def switch_window(dynamics, path: Path, grid: np.ndarray, x: np.ndarray) -> tuple[float, float]:
+    """The windows that spread every jump of q̈ (over the jerk limit) and of τ (over the
+    effort rate limit) between neighbouring grid steps: the starting widths, before the exact
+    check (0 without such limits)."""
     lim = dynamics.model.limits
     if not (np.any(np.isfinite(lim.jerk)) or np.any(np.isfinite(lim.effort_rate))):
-        return 0.0
+        return 0.0, 0.0
     mid = 0.5 * (grid[:-1] + grid[1:])
     xm = 0.5 * (x[:-1] + x[1:])
     lw = law(grid, x)
     q, d1, d2 = path.derivatives(mid)
     acc = d2 * xm[:, None] + d1 * lw.u[:, None]
-    need = 0.0
+    jerk = rate = 0.0
     jumps = np.abs(np.diff(acc, axis=0))
     if np.any(np.isfinite(lim.jerk)) and len(jumps):
-        need = max(need, float(np.max(jumps / lim.jerk)))
+        jerk = float(np.max(jumps / lim.jerk))
     if np.any(np.isfinite(lim.effort_rate)) and len(jumps):
         tau = dynamics.rnea_batch(q, d1 * np.sqrt(xm)[:, None], acc)
-        need = max(need, float(np.max(np.abs(np.diff(tau, axis=0)) / lim.effort_rate)))
-    return need
+        rate = float(np.max(np.abs(np.diff(tau, axis=0)) / lim.effort_rate))
+    return jerk, rate

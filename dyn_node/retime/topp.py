@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.retime import reach
 from dyn_node.retime.path import Path
 
 
@@ -44,28 +45,166 @@ class Terms:
     w: np.ndarray | None
     #: the first-order task kinds per unit ṡ (:func:`_frame_speeds`)
     speeds: tuple = ()
+    #: vectors a·u + b·x + c under a norm limit: the frames' linear accelerations
+    #: (:func:`_frame_accelerations`), the mounting's force and moment (:func:`_mounting`),
+    #: the grasp's tangential force (:func:`_grasp`)
+    accels: tuple = ()
+    #: the floor's normal force and N·(centre of pressure) as a·u + b·x + c, and the support
+    #: polygon (:func:`_floor`), or None
+    floor: tuple | None = None
 
 
 def joint_terms(dynamics: Dynamics, path: Path, grid: np.ndarray) -> Terms:
     from dyn_node.core.check import task_motion
 
     q, d1, d2 = path.derivatives(grid)
-    # the check's own frame pass at q̇ = q', q̈ = 0 (None without task limits)
-    task = task_motion.build(dynamics, q, d1, np.zeros_like(q))
-    speeds = _frame_speeds(dynamics.model.task_limits, task)
+    # the check's own frame pass at q̇ = q', q̈ = q'' (None without task limits): speeds and
+    # energy per unit ṡ (they see q̇ only), a frame's acceleration's ṡ² part
+    task = task_motion.build(dynamics, q, d1, d2)
+    tl = dynamics.model.task_limits
+    speeds = _frame_speeds(tl, task)
+    # the mounting's wrench a·u + b·x + c: its momentum rate is linear in q̈ and quadratic in
+    # q̇, so b is the dynamic part at q̇ = q', q̈ = q'' (``task``'s pass), a at q̇ = 0, q̈ = q'
+    # (one more pass), c the static part (gravity, a task wrench's reaction)
+    first = None if task is None or (task.base is None and tl.grasp is None) else \
+        task_motion.build(dynamics, q, np.zeros_like(q), d1)
+    wrench = None if task is None or task.base is None else (
+        first.base.dynamic, task.base.dynamic, task.base.static)
+    accels = _frame_accelerations(tl, task) + _mounting(tl, wrench) + _grasp(tl, task, first)
+    floor = _floor(tl, task, wrench)
     if not np.any(np.isfinite(dynamics.model.limits.effort)):
-        return Terms(d1, d2, None, None, None, None, speeds)
+        return Terms(d1, d2, None, None, None, None, speeds, accels, floor)
     a = dynamics.terms_batch(q, np.zeros_like(q), d1).inertial
     terms = dynamics.terms_batch(q, d1, d2)
     c = terms.static
     if task is not None and task.task_torque is not None:
         # a task wrench's torque depends on q only: part of c, as the check's effort has it
         c = c + task.task_torque
-    return Terms(d1, d2, a, terms.inertial, c, dynamics.friction_coefficients[0] * d1, speeds)
+    return Terms(d1, d2, a, terms.inertial, c, dynamics.friction_coefficients[0] * d1, speeds,
+                 accels, floor)
+
+
+def _frame_accelerations(tl, task) -> tuple:
+    """Each configured frame's linear acceleration J q̈ + J̇ q̇ = a·s̈ + b·ṡ² (m/s², gravity
+    excluded, at the frame's point), from the frame pass at q̇ = q', q̈ = q'': a = J q' (the
+    point's velocity there), b = J q'' + J̇ q' (its acceleration there); (a, b, limit)."""
+    from dyn_node.core.check import task_motion
+
+    if task is None:
+        return ()
+    out = []
+    for f in tl.frame_limits:
+        if math.isfinite(f.max_linear_acceleration):
+            terms = task.frame(task_motion.FRAME_ROLE + f.frame)
+            a = np.asarray(terms.linear_velocity, dtype=float)
+            out.append((a, np.asarray(terms.linear_acceleration, dtype=float),
+                        np.zeros_like(a), float(f.max_linear_acceleration)))
+    return tuple(out)
+
+
+def _mounting(tl, wrench: tuple | None) -> tuple:
+    """The mounting's force and moment on the robot (the check's base_force and base_moment,
+    root origin and axes), (a, b, c, limit) for each configured limit."""
+    bl = tl.base_limits
+    if wrench is None or bl is None:
+        return ()
+    return tuple((wrench[0][:, sl], wrench[1][:, sl], wrench[2][:, sl], float(lim))
+                 for sl, lim in ((slice(0, 3), bl.max_force), (slice(3, 6), bl.max_moment))
+                 if math.isfinite(lim))
+
+
+def _grasp(tl, task, first) -> tuple:
+    """The check's grasp slip: the grasp's force on the payload m·(a − g) in the grasp's axes,
+    its part across the normal axis within μ·grip_force·faces; a from the payload point's
+    acceleration at q̇ = 0, q̈ = q' (``first``), b at q̇ = q', q̈ = q'' (``task``), c = −m·g."""
+    from dyn_node.core.check import base_constraints, force_laws
+
+    g = tl.grasp
+    if task is None or g is None:
+        return ()
+    n = np.asarray(g.normal_axis, dtype=float)
+    n = n / np.linalg.norm(n)
+
+    def force(tm):
+        return base_constraints.grasp_force(tm.frame("payload"), tm.rotation[tm.roles["grasp"]],
+                                            tm.gravity, float(task.payload_mass))
+
+    fa, fb = force(first), force(task)
+    return ((force_laws.tangential(fa.dynamic, n), force_laws.tangential(fb.dynamic, n),
+             force_laws.tangential(fb.static, n), float(g.max_tangential_force)),)
+
+
+def _floor(tl, task, wrench: tuple | None) -> tuple | None:
+    """The check's tipping terms (force_laws.tipping_law): the floor pushes on the base with
+    F = F_r − m_b·g, M = M_r − c_b × m_b·g; N = F_z and P = N·p = (−M_y, M_x), each
+    a·u + b·x + c ((a, b, c) of N, then of P: N×2), and the support polygon."""
+    from dyn_node.core.check import force_laws
+
+    bl = tl.base_limits
+    if wrench is None or bl is None or bl.support_polygon is None:
+        return None
+    com = np.zeros(3) if bl.base_com is None else bl.base_com
+    weight, moment = force_laws.base_weight(base_mass=bl.base_mass, base_com=com,
+                                            gravity=task.gravity)
+    N, P = [], []
+    # the base's weight is static: only in c
+    for w, fw, mw in zip(wrench, (0.0, 0.0, weight), (0.0, 0.0, moment)):
+        F, M = w[:, :3] - fw, w[:, 3:] - mw
+        N.append(F[:, 2])
+        P.append(np.column_stack([-M[:, 1], M[:, 0]]))
+    return tuple(N), tuple(P), bl.support_polygon
+
+
+def _floor_rows(floor: tuple, share: float) -> tuple[np.ndarray, ...]:
+    """The floor's rows ≤ 0: each edge n_i·P ≤ (n_i·c₀ + share·reach_i)·N (the centre of
+    pressure within ``share`` of the way from the centroid c₀ to the edge: the check's gauge ≤
+    share, exactly, while N > 0) and N ≥ 0 (no lift-off)."""
+    N, P, poly = floor
+    off = poly.normals @ poly.centroid + share * poly.reach
+    rows = [X @ poly.normals.T - n[:, None] * off[None, :] for n, X in zip(N, P)]
+    rows = [np.column_stack([r, -n]) for r, n in zip(rows, N)]
+    return (*rows, np.zeros(rows[0].shape[1]))
+
+
+#: sides of the polygon that stands for a frame acceleration's disc (:func:`_disc_rows`)
+_DISC_SIDES = 24
+
+
+def _disc_rows(a: np.ndarray, b: np.ndarray, c: np.ndarray, limit: float, *, outer: bool
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """|a·u + b·x + c| ≤ limit (a, b, c: N×3) as linear rows in (u, x), rows ≤ 0. The vector
+    a·u + b·x lies in the plane of a and b: with its Gram matrix G = LLᵀ (the orthonormal
+    basis e₁, e₂ of Gram–Schmidt on a, b), a·u + b·x = y₁e₁ + y₂e₂ with y = Lᵀ(u, x), and
+    |a·u + b·x + c|² = |y + c̃|² + |c⊥|² (c̃: c in that basis, c⊥ the rest): a disc of radius
+    r = √(limit² − |c⊥|²) about −c̃ (none where |c⊥| > limit: the row 1 ≤ 0). The rows are the
+    tangents e_k·(y + c̃) ≤ r of a regular polygon of :data:`_DISC_SIDES` sides: ``outer``
+    (the polygon holds the disc, a relaxation, so a lower bound stays one) or inner (radius
+    r·cos(π/K): the disc holds the polygon, so every (u, x) the rows allow keeps the limit)."""
+    g11 = np.einsum("ij,ij->i", a, a)
+    g12 = np.einsum("ij,ij->i", a, b)
+    g22 = np.einsum("ij,ij->i", b, b)
+    l11 = np.sqrt(g11)
+    live = l11 > 0
+    # where a = 0 (no s̈ term) the vector is b·x: y = (|b|·x, 0), e₁ = b/|b|
+    l21 = np.where(live, g12 / np.where(live, l11, 1.0), np.sqrt(g22))
+    l22 = np.where(live, np.sqrt(np.maximum(g22 - l21**2, 0.0)), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        e1 = np.where(live[:, None], a / l11[:, None], b / np.sqrt(g22)[:, None])
+        e2 = (b - l21[:, None] * e1) / l22[:, None]
+    e1, e2 = (np.where(np.isfinite(e), e, 0.0) for e in (e1, e2))
+    c1, c2 = np.einsum("ij,ij->i", c, e1), np.einsum("ij,ij->i", c, e2)
+    room = limit**2 - (np.einsum("ij,ij->i", c, c) - c1**2 - c2**2)
+    r = np.sqrt(np.maximum(room, 0.0)) * (1.0 if outer else math.cos(math.pi / _DISC_SIDES))
+    phi = 2 * np.pi * np.arange(_DISC_SIDES) / _DISC_SIDES
+    cos, sin = np.cos(phi)[None, :], np.sin(phi)[None, :]
+    C = cos * c1[:, None] + sin * c2[:, None] - r[:, None]
+    C[room < 0] = 1.0
+    return (cos * l11[:, None], cos * l21[:, None] + sin * l22[:, None], C,
+            np.zeros(_DISC_SIDES))
 
 
 def _frame_speeds(tl, task) -> tuple:
-    """The first-order task kinds per unit ṡ, from the frame pass at q̇ = q', q̈ = 0:
+    """The first-order task kinds per unit ṡ, from the frame pass at q̇ = q':
     (value, limit, p) with the bound x ≤ (limit/value)^p: frame speeds (|J q'|, p = 2) and the
     robot's kinetic energy (½ q'ᵀM q', p = 1)."""
     from dyn_node.core.check import task_motion
@@ -125,6 +264,11 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
         L = lim.effort[cols] * scale
         add(a[:, cols], b[:, cols], (c + lo_w)[:, cols], L)
         add(-a[:, cols], -b[:, cols], -(c + hi_w)[:, cols], L)
+    for fa, fb, fc, limit in t.accels:
+        # the bound relaxes the disc (outer polygon), the retiming keeps inside it
+        add(*_disc_rows(fa, fb, fc, limit * scale, outer=lower_bound))
+    if t.floor is not None:
+        add(*_floor_rows(t.floor, scale))
     if not A:
         z = np.zeros((len(grid), 1))
         return Rows(z, z, z, np.ones(1), xv)
@@ -133,56 +277,45 @@ def joint_rows(dynamics: Dynamics, path: Path, grid: np.ndarray, *, scale: float
 
 #: ṡ² below which a controllable set's lower end over a cap is taken as rounding
 _ROUNDING = 1e-9
+#: toppra's SMALL: how far the start's ṡ² may lie outside the first controllable set
+_START_SLACK = 1e-5
 
 
 class Reach:
-    """One TOPP-RA instance (seidel solver, 1000-step grids: its set-up is a third of a pass)
-    on fixed rows, solved again under caps on ṡ² without rebuilding it. A cap is the bound
-    x ≤ cap at a grid point: the controllable set there is TOPP-RA's intersected with it (the
-    projection of the stage's polygon onto x is an interval, so this equals adding the cap to
-    the rows), and only the sets at and below the highest changed cap are computed again;
-    TOPP-RA's own forward pass then runs on them."""
+    """TOPP-RA (its algorithm, :mod:`dyn_node.retime.reach`, compiled) on fixed rows, solved
+    again under caps on ṡ². A cap is the bound x ≤ cap at a grid point: the controllable set
+    there is TOPP-RA's intersected with it (the projection of the stage's polygon onto x is an
+    interval, so this equals adding the cap to the rows), and only the sets at and below the
+    highest changed cap are computed again; the forward pass then runs on them."""
 
     def __init__(self, path: Path, grid: np.ndarray, rows: Rows):
-        import toppra.algorithm as algo      # scipy behind it: imported when retiming only
-
-        reach = self
-
-        class _TOPPRA(algo.TOPPRA):
-            def compute_controllable_sets(self, sdmin, sdmax):
-                return reach._controllable(self, sdmin, sdmax)
-
         self.path, self.grid, self.rows = path, grid, rows
-        cons = _constraint(rows, np.minimum(rows.xmax, 1e12), path.nv)
-        self.inst = _TOPPRA([cons], _toppra_path(path), gridpoints=grid,
-                            solver_wrapper="seidel", parametrizer="ParametrizeConstAccel")
+        self._abc = (np.ascontiguousarray(rows.a, dtype=float),
+                     np.ascontiguousarray(rows.b, dtype=float),
+                     np.ascontiguousarray(rows.c - rows.g, dtype=float))
+        self._xmax = np.minimum(rows.xmax, 1e12)
+        self._deltas = np.diff(grid)
         self.cap = np.full(len(grid), np.inf)
-        self._done: tuple | None = None      # (ends, cap, K) of the last backward pass
+        self._done: tuple | None = None      # (end, cap, K) of the last backward pass
 
-    def _controllable(self, inst, sdmin: float, sdmax: float) -> np.ndarray:
+    def controllable(self, sd_end: float) -> np.ndarray:
+        """The controllable sets (N+1)×2 for ṡ = ``sd_end`` at the end, under ``self.cap``
+        (NaN at and below a stage no timing reaches the end from)."""
         n = len(self.grid) - 1
-        ends = (sdmin, sdmax)
-        if self._done is not None and self._done[0] == ends:
+        if self._done is not None and self._done[0] == sd_end:
             changed = np.flatnonzero(self._done[1] != self.cap)
             if changed.size == 0:
                 return self._done[2].copy()
             K, top = self._done[2].copy(), min(int(changed[-1]), n - 1)
         else:
             K, top = np.zeros((n + 1, 2)), n - 1
-        K[n] = [sdmin**2, min(sdmax**2, self.cap[n])]
-        inst.solver_wrapper.setup_solver()
-        for i in range(top, -1, -1):
-            K[i] = inst._one_step(i, K[i + 1])     # TOPP-RA's own step (toppra 0.6.10)
-            K[i, 0] = max(K[i, 0], 0.0)
-            K[i, 1] = min(K[i, 1], self.cap[i])
-            # a lower end above the cap by rounding only (1e-16 where the cap is 0 at rest)
-            if K[i, 0] > K[i, 1] and K[i, 0] <= K[i, 1] + _ROUNDING:
-                K[i, 0] = K[i, 1]
-            if np.isnan(K[i]).any() or K[i, 0] > K[i, 1]:
-                K[: i + 1] = np.nan
-                break
-        inst.solver_wrapper.close_solver()
-        self._done = (ends, self.cap.copy(), K.copy())
+        K[n] = [sd_end**2, min(sd_end**2, self.cap[n])]
+        if K[n, 0] > K[n, 1]:
+            K[:] = np.nan
+        else:
+            reach.controllable(*self._abc, self._xmax, self._deltas, self.cap, K, top,
+                               _ROUNDING)
+        self._done = (sd_end, self.cap.copy(), K.copy())
         return K
 
     def solve(self, *, cap: np.ndarray | None = None, sd_start: float = 0.0,
@@ -195,21 +328,22 @@ class Reach:
         any ṡ, so ṡ is left free there (the bound: else a first-order grid error of the forced
         ṡ = 0). The retiming keeps ṡ = 0 at the ends: its smoothing window starts from ṡ = 0."""
         self.cap = np.full(len(self.grid), np.inf) if cap is None else np.asarray(cap, float)
-        path, grid, inst = self.path, self.grid, self.inst
-        ends = np.max(np.abs(path.derivatives(grid[[0, -1]])[1]), axis=1)
+        ends = np.max(np.abs(self.path.derivatives(self.grid[[0, -1]])[1]), axis=1)
         sd_end = 0.0
         if free_ends and ends[1] == 0.0:
             # every row is free of u where q' = 0: ṡ² up to the tightest of them
             xmax = np.minimum(self.rows.xmax, self.cap)
             sd_end = math.sqrt(_free_end_x(self.rows, xmax)) * (1 - 1e-9)
-        if free_ends and ends[0] == 0.0 and sd_start == 0.0:
-            K = inst.compute_controllable_sets(sd_end, sd_end)
-            if np.all(np.isfinite(K[0])):
-                sd_start = math.sqrt(max(K[0, 1], 0.0)) * (1 - 1e-9)
-        sdd, sd, _ = inst.compute_parameterization(sd_start, sd_end)
-        if sd is None or not np.all(np.isfinite(sd)):
+        K = self.controllable(sd_end)
+        if free_ends and ends[0] == 0.0 and sd_start == 0.0 and np.all(np.isfinite(K[0])):
+            sd_start = math.sqrt(max(K[0, 1], 0.0)) * (1 - 1e-9)
+        x0 = sd_start**2
+        if np.isnan(K).any() or not (K[0, 0] - _START_SLACK <= x0 <= K[0, 1] + _START_SLACK):
             return None
-        return np.maximum(np.asarray(sd, dtype=float), 0.0) ** 2
+        xs = reach.forward(*self._abc, self._deltas, K, x0)
+        if not np.all(np.isfinite(xs)):
+            return None
+        return np.maximum(xs, 0.0)
 
 
 def solve(path: Path, grid: np.ndarray, rows: Rows, *, cap: np.ndarray | None = None,
@@ -234,43 +368,3 @@ def duration(grid: np.ndarray, x: np.ndarray) -> float:
     if np.any(den <= 0):
         return math.inf
     return float(np.sum(2 * np.diff(grid) / den))
-
-
-def _constraint(rows: Rows, xmax: np.ndarray, dof: int):
-    from toppra.constraint import DiscretizationType, LinearConstraint
-    from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
-
-    class _Linear(LinearConstraint):
-        def __init__(self) -> None:
-            super().__init__()
-            self.dof = dof
-            self.set_discretization_type(DiscretizationType.Interpolation)
-            self.identical = True
-
-        def compute_constraint_params(self, path, gridpoints, *args, **kwargs):
-            m = rows.g.shape[0]
-            xb = np.column_stack([np.zeros_like(xmax), xmax])
-            return canlinear_colloc_to_interpolate(rows.a, rows.b, rows.c, np.eye(m), rows.g,
-                                                   None, xb, gridpoints, identical=True)
-
-    return _Linear()
-
-
-def _toppra_path(path: Path):
-    from toppra.interpolator import AbstractGeometricPath
-
-    class _P(AbstractGeometricPath):
-        def __call__(self, s, order=0):
-            s = np.atleast_1d(np.asarray(s, dtype=float))
-            return path.derivatives(s)[order] if order < 3 else path.pp.evaluate(s)[3]
-
-        @property
-        def dof(self):
-            return path.nv
-
-        @property
-        def path_interval(self):
-            return np.array([path.pp.breaks[0], path.pp.breaks[-1]])
-
-    return _P()
-
