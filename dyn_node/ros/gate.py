@@ -366,8 +366,8 @@ class Gate:
         return Status(STATUS_NAME, OK, line or "no goal yet", values=values)
 
     def close(self) -> None:
-        """Cancel what was forwarded and is still running (waiting up to 2 s for the controller
-        to confirm), then stop. A crash cancels nothing: the client's own timeout applies."""
+        """Cancel what was forwarded and is still running (waiting up to gate.timeout s for the
+        controller to confirm), then stop. A crash cancels nothing: the client's own timeout applies."""
         self._closing = True
         with self._lock:
             goals = list(self._running_goals.values())
@@ -375,7 +375,7 @@ class Gate:
         for g in unexecuted:  # answered, never executed: their decisions still go in the bag
             self._publish_decision(g)
         waits = []
-        deadline = time.monotonic() + 2.0
+        deadline = time.monotonic() + self.timeout
         for g in goals:
             done = threading.Event()
             fut = self.down.call(g.down.cancel_goal_async, max(0.1, deadline - time.monotonic()))
