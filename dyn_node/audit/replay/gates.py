@@ -20,7 +20,6 @@ import numpy as np
 from dyn_node.audit.accounting import GATE_GOAL, RequestTally
 from dyn_node.audit.replay.common import Recheck
 from dyn_node.bag.reader import BagMessage, MessageDecoder
-from dyn_node.gate.decision import GateOptions, decide_goal, goal_arrays, start_from_dict
 
 ROLE_GATE = "gate_decisions"
 MAX_LISTED = 200  # decisions listed one by one in the evidence
@@ -85,6 +84,9 @@ class GateReplay:
         self._compare(rec, dynamics, settings, check, {"t_ns": m.log_time_ns, "goal_id": rec["goal_id"]})
 
     def _compare(self, rec: dict, dynamics: Any, settings: Any, check: Recheck, where: dict) -> None:
+        # here, not at the top: a bag without gate goals never loads the check's kernels for it
+        from dyn_node.gate.decision import GateOptions, decide_goal, goal_arrays, start_from_dict
+
         d = decide_goal(dynamics, settings, GateOptions(mode=rec["mode"], retime_all=bool(rec.get("retime_all"))),
                         *goal_arrays(rec["goal"]), start=start_from_dict(rec["start"]))
         mine = d.to_dict(goal_id=rec["goal_id"], mode=rec["mode"], joint_names=list(dynamics.model.joint_names))
