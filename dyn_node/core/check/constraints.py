@@ -243,6 +243,10 @@ class JointConstraint(LimitedConstraint):
     def time_scale(self) -> np.ndarray:
         return _k_of_x(self._x)
 
+    def terms(self, motion: Motion) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The torque terms S, W, I (static, viscous, inertial) of the kind's columns."""
+        return _take(motion.S, self.cols), _take(motion.W, self.cols), _take(motion.I, self.cols)
+
 
 def build(motion: Motion, kinds: Sequence[type[Constraint]]) -> list[Constraint]:
     """The constraints of ``kinds`` (every kind: :data:`dyn_node.core.check.kinds.KINDS`, passed in

@@ -65,7 +65,21 @@ class Jerk(_PowerLaw):
         return _take(motion.J, self.cols)
 
 
-class Effort(JointConstraint):
+class _TorqueBand(JointConstraint):
+    """A kind whose value is the torque τ itself (against a fixed or a speed-dependent limit):
+    blocked where gravity and friction alone exceed it; affine in the payload mass."""
+
+    _blocked: Blocked | None
+
+    def blocked(self) -> Blocked | None:
+        return self._blocked
+
+    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
+        return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
+                            self.limit)
+
+
+class Effort(_TorqueBand):
     """|τ| ≤ L, τ(x) = s + w·x + i·x²: the band's first exit per sample, in closed form."""
 
     kind, payload_dependent = "effort", True
@@ -76,7 +90,7 @@ class Effort(JointConstraint):
         L = motion.limits.effort[cols]
         self.value = _take(motion.tau, cols)
         self.limit = np.broadcast_to(L, self.value.shape)
-        s, w, i = _take(motion.S, cols), _take(motion.W, cols), _take(motion.I, cols)
+        s, w, i = self.terms(motion)
         self._x = kernels.band_exit(s[rows], w[rows], i[rows], L)
         self._blocked = None
         at, peak = kernels.abs_peak(s[rows])
@@ -86,15 +100,7 @@ class Effort(JointConstraint):
             self._blocked = _static_block(motion, int(cols[c]), motion.r0 + int(at[c]),
                                           float(peak[c]), float(L[c]))
 
-    def blocked(self) -> Blocked | None:
-        return self._blocked
-
-    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
-        return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
-                            self.limit)
-
-
-class EffortSpeed(JointConstraint):
+class EffortSpeed(_TorqueBand):
     """|τ| ≤ the torque-speed envelope at |q̇|: piecewise the same band, per envelope piece."""
 
     kind, label, payload_dependent = "effort_speed", "torque-speed envelope", True
@@ -116,7 +122,7 @@ class EffortSpeed(JointConstraint):
             sp[c, :len(cv)], ef[c, :len(cv)] = cv[:, 0], cv[:, 1]
         ve = _take(motion.V, cols)
         self.value, self.limit = _take(motion.tau, cols), kernels.envelope_values(ve, sp, ef, npts)
-        s, w, i = (_take(X, cols)[rows] for X in (motion.S, motion.W, motion.I))
+        s, w, i = (X[rows] for X in self.terms(motion))
         self._x = kernels.envelope_exit_min(s, w, i, ve[rows], sp, ef, npts)
         self._blocked = None
         for c, j in enumerate(cols):
@@ -127,13 +133,6 @@ class EffortSpeed(JointConstraint):
                 self._blocked = _static_block(motion, int(j), r0 + n, float(sj[n]), e0)
                 break
 
-    def blocked(self) -> Blocked | None:
-        return self._blocked
-
-    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
-        return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
-                            self.limit)
-
 
 class Power(JointConstraint):
     """|τ·q̇| ≤ L: odd powers of x, (s + w·x + i·x²)·v·x."""
@@ -142,12 +141,10 @@ class Power(JointConstraint):
 
     def __init__(self, motion: Motion):
         super().__init__(motion)
-        cols, rows = self.cols, motion.rows
-        L = motion.limits.power[cols]
-        v = _take(motion.V, cols)
-        self.value, self.limit = _take(motion.tau, cols) * v, np.broadcast_to(L, v.shape)
-        self._x = kernels.odd_exit(_take(motion.S, cols)[rows], _take(motion.W, cols)[rows],
-                                   _take(motion.I, cols)[rows], v[rows], L)
+        v, rows = _take(motion.V, self.cols), motion.rows
+        L = motion.limits.power[self.cols]
+        self.value, self.limit = _take(motion.tau, self.cols) * v, np.broadcast_to(L, v.shape)
+        self._x = kernels.odd_exit(*(X[rows] for X in self.terms(motion)), v[rows], L)
 
     def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
         return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
@@ -197,7 +194,7 @@ class RmsEffort(JointConstraint):
         cols, rows, tt = self.cols, motion.rows, motion.smp.t
         R, Wn = motion.limits.rms_effort[cols], motion.limits.rms_window[cols]
         h2 = motion.hold[cols] ** 2
-        S, W, I = _take(motion.S, cols), _take(motion.W, cols), _take(motion.I, cols)
+        S, W, I = self.terms(motion)
         # (a moving start segment's path changes with k: its static torque is not static)
         s_max = np.maximum(kernels.abs_peak(S[rows])[1], np.abs(motion.hold[cols]))
         self._good = ~(s_max > R)
