@@ -10,48 +10,61 @@ from typing import ClassVar
 import numpy as np
 
 from dyn_node.core.check.constraints import (Band, Blocked, Constraint, JointConstraint, Motion,
-                                             PayloadTerms, Peak, Violation, _affine_band,
+                                             PayloadTerms, Peak, ScanRequest, Violation,
+                                             _affine_band,
                                              _cumtrapz_rows, _fmt, _Job, _k_of_x, _power_exit,
                                              _static_block, _take, rms_time_scale)
 from dyn_node.core.compiled import kernels
+from dyn_node.core.compiled import scan_kernels as sk
 
 
 class _PowerLaw(JointConstraint):
-    """|value| ∝ x^power (x = 1/k) at every sample: the first exit is (L / peak)^(1/power)."""
+    """|value| ∝ x^power (x = 1/k) at every sample: the first exit is (L / peak)^(1/power), the
+    peak from the fused pass; the value itself is formed only when asked for (:meth:`values`)."""
 
     power: ClassVar[int]
-
-    @abstractmethod
-    def _array(self, motion: Motion) -> np.ndarray:
-        """The value per sample at k = 1, for the limited columns."""
+    #: how the fused pass forms the value from the Motion arrays ``sources``
+    op: ClassVar[int] = sk.ABS
+    sources: ClassVar[tuple[str, ...]]
 
     def __init__(self, motion: Motion):
         super().__init__(motion)
-        val = self._array(motion)
-        L = self.limit_array(motion.limits)[self.cols]
-        self.value, self.limit = val, np.broadcast_to(L, val.shape)
-        self._x = _power_exit(L, kernels.abs_peak(val[motion.rows])[1], self.power)
+        self._motion = motion
+        self._L = self.limit_array(motion.limits)[self.cols]
+        self.limit = np.broadcast_to(self._L, (len(motion.smp.t), len(self.cols)))
+        self._value: np.ndarray | None = None
+
+    @property
+    def value(self) -> np.ndarray:
+        if self._value is None:
+            self._value = self._array(self._motion)
+        return self._value
+
+    def _array(self, motion: Motion) -> np.ndarray:
+        """The value per sample at k = 1, for the limited columns."""
+        return _take(getattr(motion, self.sources[0]), self.cols)
+
+    def scan_requests(self) -> list[ScanRequest]:
+        return [ScanRequest(self.op, self.sources, self._L, self.cols)]
+
+    def time_scale(self) -> np.ndarray:
+        peak = self.scanned(self._motion)[0].abs_peak
+        return _k_of_x(_power_exit(self._L, peak, self.power))
 
 
 class Velocity(_PowerLaw):
-    kind, power, order = "velocity", 1, 1
-
-    def _array(self, motion: Motion) -> np.ndarray:
-        return _take(motion.V, self.cols)
+    kind, power, order, sources = "velocity", 1, 1, ("V",)
 
 
 class Acceleration(_PowerLaw):
-    kind, power = "acceleration", 2
-
-    def _array(self, motion: Motion) -> np.ndarray:
-        return _take(motion.A, self.cols)
+    kind, power, sources = "acceleration", 2, ("A",)
 
 
 class Deceleration(_PowerLaw):
     """|q̈| where |q̇| decreases (q̇·q̈ < 0); that sign does not change with k, so the value
     scales as 1/k² like the acceleration."""
 
-    kind, power = "deceleration", 2
+    kind, power, op, sources = "deceleration", 2, sk.DECEL, ("A", "V")
 
     def _array(self, motion: Motion) -> np.ndarray:
         val = _take(motion.A, self.cols)
@@ -59,10 +72,7 @@ class Deceleration(_PowerLaw):
 
 
 class Jerk(_PowerLaw):
-    kind, power, order = "jerk", 3, 3
-
-    def _array(self, motion: Motion) -> np.ndarray:
-        return _take(motion.J, self.cols)
+    kind, power, order, sources = "jerk", 3, 3, ("J",)
 
 
 class _TorqueBand(JointConstraint):
@@ -87,18 +97,28 @@ class Effort(_TorqueBand):
     def __init__(self, motion: Motion):
         super().__init__(motion)
         cols, rows = self.cols, motion.rows
-        L = motion.limits.effort[cols]
+        self._motion, self._L = motion, motion.limits.effort[cols]
         self.value = _take(motion.tau, cols)
-        self.limit = np.broadcast_to(L, self.value.shape)
+        self.limit = np.broadcast_to(self._L, self.value.shape)
         s, w, i = self.terms(motion)
-        self._x = kernels.band_exit(s[rows], w[rows], i[rows], L)
-        self._blocked = None
-        at, peak = kernels.abs_peak(s[rows])
-        if np.any(peak > L):
-            with np.errstate(divide="ignore"):  # a zero (YAML) limit: inf, the worst
-                c = int(np.argmax(peak / L))      # the worst pose
-            self._blocked = _static_block(motion, int(cols[c]), motion.r0 + int(at[c]),
-                                          float(peak[c]), float(L[c]))
+        self._x = kernels.band_exit(s[rows], w[rows], i[rows], self._L)
+
+    def scan_requests(self) -> list[ScanRequest]:
+        # τ against the limit, and the static torque's peak (no limit): where gravity and
+        # friction alone exceed the limit no slowdown helps
+        return [ScanRequest(sk.ABS, ("tau",), self._L, self.cols),
+                ScanRequest(sk.ABS, ("S",), np.full(len(self.cols), np.inf), self.cols)]
+
+    def blocked(self) -> Blocked | None:
+        static = self.scanned(self._motion)[1]
+        at, peak, L = static.abs_at, static.abs_peak, self._L
+        if not np.any(peak > L):
+            return None
+        with np.errstate(divide="ignore"):  # a zero (YAML) limit: inf, the worst
+            c = int(np.argmax(peak / L))      # the worst pose
+        return _static_block(self._motion, int(self.cols[c]), int(at[c]), float(peak[c]),
+                             float(L[c]))
+
 
 class EffortSpeed(_TorqueBand):
     """|τ| ≤ the torque-speed envelope at |q̇|: piecewise the same band, per envelope piece."""
@@ -142,9 +162,17 @@ class Power(JointConstraint):
     def __init__(self, motion: Motion):
         super().__init__(motion)
         v, rows = _take(motion.V, self.cols), motion.rows
-        L = motion.limits.power[self.cols]
-        self.value, self.limit = _take(motion.tau, self.cols) * v, np.broadcast_to(L, v.shape)
-        self._x = kernels.odd_exit(*(X[rows] for X in self.terms(motion)), v[rows], L)
+        self._motion, self._L = motion, motion.limits.power[self.cols]
+        self.limit = np.broadcast_to(self._L, v.shape)
+        self._x = kernels.odd_exit(*(X[rows] for X in self.terms(motion)), v[rows], self._L)
+
+    @property
+    def value(self) -> np.ndarray:
+        """τ·q̇ (formed when asked for: the fused pass forms it sample by sample)."""
+        return _take(self._motion.tau, self.cols) * _take(self._motion.V, self.cols)
+
+    def scan_requests(self) -> list[ScanRequest]:
+        return [ScanRequest(sk.PRODUCT, ("tau", "V"), self._L, self.cols)]
 
     def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
         return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
