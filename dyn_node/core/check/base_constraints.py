@@ -87,13 +87,13 @@ class _TaskKind(LimitedConstraint):
         self._motion = motion
 
     def scan_requests(self) -> list[ScanRequest]:
-        # the value against the limit, and the largest per-sample k over the rows (NaN first)
-        return [ScanRequest(sk.ABS, (self.value,), np.array([self.law.limit])),
-                ScanRequest(sk.ABS, (self.law.time_scale[:, None],), np.array([math.inf]))]
+        return [ScanRequest(sk.ABS, (self.value,), np.array([self.law.limit]))]
 
     @property
     def _k(self) -> float:
-        return float(self.scanned(self._motion)[1].abs_peak[0])
+        """The largest per-sample k over the rows the laws cover (NaN if any is)."""
+        k = self.law.time_scale[self._motion.rows]
+        return float(np.max(k)) if k.size else 0.0
 
     @abstractmethod
     def _law(self, motion: Motion, task: "TaskMotion") -> laws.LawResult:

@@ -59,12 +59,9 @@ class TaskConstraint(LimitedConstraint):
             np.empty((len(self._motion.smp.t), 0))
 
     def scan_requests(self) -> list[ScanRequest]:
-        # per place its value against its limit, then its per-sample time scale (its largest
-        # over the rows the laws cover: the place's factor)
-        return [*(ScanRequest(sk.ABS, (law.value[:, None],), np.array([law.limit]))
-                  for law in self.laws),
-                *(ScanRequest(sk.ABS, (law.time_scale[:, None],), np.array([np.inf]))
-                  for law in self.laws)]
+        # per place its value against its limit
+        return [ScanRequest(sk.ABS, (law.value[:, None],), np.array([law.limit]))
+                for law in self.laws]
 
     def _peak_answer(self, motion: Motion) -> Scanned:
         return merge(self.scanned(motion)[:len(self.laws)])
@@ -79,10 +76,11 @@ class TaskConstraint(LimitedConstraint):
                 f"{motion.smp.t[n]:.2f} s; no slowdown helps")
 
     def _ks(self) -> np.ndarray:
-        """Per place the largest per-sample k over the rows (a NaN sample: inf)."""
-        sc = self.scanned(self._motion)[-len(self.laws):] if self.laws else []
-        return np.array([math.inf if math.isnan(a.abs_peak[0]) else float(a.abs_peak[0])
-                         for a in sc])
+        """Per place the largest per-sample k over the rows (a NaN sample: inf; NaN wins
+        numpy.max)."""
+        rows = self._motion.rows
+        ks = [float(np.max(k)) if (k := law.time_scale[rows]).size else 0.0 for law in self.laws]
+        return np.array([math.inf if math.isnan(k) else k for k in ks])
 
     def time_scale(self) -> np.ndarray:
         return self._ks()
