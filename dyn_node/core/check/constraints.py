@@ -231,33 +231,48 @@ _SOURCES = {"V": 0, "A": 1, "J": 2, "tau": 3, "S": 4}
 
 
 def scan(motion: Motion, requests: Sequence[ScanRequest]) -> list[Scanned]:
-    """Every request's answers from one compiled pass over the samples
-    (:func:`dyn_node.core.compiled.scan_kernels.peak_scan`): the Motion's arrays are read in
-    place; a kind's own arrays (and per-sample limits) are gathered into one column-major pool."""
+    """Every request's answers from the fused compiled pass
+    (:func:`dyn_node.core.compiled.scan_kernels.peak_scan`), the arrays read in place: one call
+    for all the requests on the Motion's arrays, and one per array of a kind's own (a request
+    with several has them side by side in one copy)."""
     from dyn_node.core.compiled import scan_kernels as sk
 
+    groups: dict[int, tuple[np.ndarray | None, list[int]]] = {}
+    for q, r in enumerate(requests):
+        own = [x for x in (*r.sources, r.limit) if isinstance(x, np.ndarray) and x.ndim == 2]
+        P = None if not own else own[0] if len(own) == 1 else np.hstack(own)
+        groups.setdefault(id(P) if len(own) == 1 else -1 - q, (P, []))[1].append(q)
+    answers: list[Scanned | None] = [None] * len(requests)
+    for P, members in groups.values():
+        out = _scan_group(motion, [requests[q] for q in members], P, sk)
+        for q, answer in zip(members, out):
+            answers[q] = answer
+    return answers
+
+
+def _scan_group(motion: Motion, requests: list[ScanRequest], P: np.ndarray | None,
+                sk: Any) -> list[Scanned]:
+    """:func:`scan` of requests whose own arrays are the columns of P (None: none)."""
     M = len(motion.smp.t)
-    widths = [len(r.limit) if r.limit.ndim == 1 else r.limit.shape[1] for r in requests]
-    pool = np.empty((sum(m for r, m in zip(requests, widths) for x in (*r.sources, r.limit)
-                         if isinstance(x, np.ndarray) and x.ndim == 2), M)).T
+    pool = np.empty((M, 0)) if P is None else P
     rows: list[list[int]] = []
     limits: list[float] = []
-    at = 0
-    for r, m in zip(requests, widths):
+    widths = []
+    for r in requests:
+        m = len(r.limit) if r.limit.ndim == 1 else r.limit.shape[1]
+        widths.append(m)
         cols = range(m) if r.cols is None else r.cols.tolist()
-        refs = []
+        refs, at = [], 0
         for x in r.sources:
             if isinstance(x, str):
                 refs.append([(_SOURCES[x], c) for c in cols])
             else:
-                pool[:, at:at + m] = x
                 refs.append([(5, at + c) for c in range(m)])
                 at += m
         refs += [refs[0]] * (3 - len(refs))     # unused sources: the first again
         lcols = [-1] * m
         if r.limit.ndim == 2:
-            pool[:, at:at + m] = r.limit
-            lcols, at = list(range(at, at + m)), at + m
+            lcols = list(range(at, at + m))
             limits += [0.0] * m
         else:
             limits += r.limit.tolist()
