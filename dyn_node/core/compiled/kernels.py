@@ -55,6 +55,24 @@ def _window_at(tt: np.ndarray, E: np.ndarray, n: int, j: int, span: float,
     return E[n] - (E[j] + f * (E[jn] - E[j])) + (before if before > 0 else 0.0) * hold, j
 
 
+@njit(**_JIT)
+def _last_at_or_before(tt: np.ndarray, j: int, start: float) -> int:
+    """Where :func:`_window_at`'s walk from sample j ends for a window starting at ``start``:
+    the last sample in [j, M − 2] at or before it (j itself when the next is after it), tt
+    non-decreasing."""
+    lo, hi = j, len(tt) - 2
+    if hi <= lo or tt[lo + 1] > start:
+        return j
+    # invariant: tt[lo] ≤ start (or lo = j), and every sample after hi is after start or past M − 2
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if tt[mid] <= start:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
 @njit([types.Array(_f8, 2, "C")(_V, _M, _V, _V)], **_JIT)
 def windowed(tt: np.ndarray, cum: np.ndarray, window: np.ndarray,
              hold: np.ndarray) -> np.ndarray:
@@ -114,6 +132,9 @@ def rms_worst(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray, x: np
         worst = -np.inf
         j = 0
         for g in range(len(grid)):
+            # the grid's window starts are ~stride samples apart: found by bisection, where
+            # _window_at would walk there sample by sample (the same sample either way)
+            j = _last_at_or_before(tt, j, tt[grid[g]] - span)
             start_grid[g] = j
             at_grid[g], j = _window_at(tt, E, grid[g], j, span, hold)
             worst = max(worst, at_grid[g])
