@@ -308,53 +308,55 @@ class Position(Constraint):
         cols = np.flatnonzero(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper))
         self.cols, self.where = cols, tuple(names[j] for j in cols)
         self.units = [motion.units["position"][j] for j in cols]
-        self.value = np.asfortranarray(_take(motion.Q, cols))   # each joint's samples contiguous
-        # > 0: beyond a hard limit
-        over = np.maximum(self.value - lim.position_upper[cols],
-                          lim.position_lower[cols] - self.value)
-        self.warnings = self._soft(motion)
-        self._peaks, self._violations = self._hard(motion, over)
+        self._motion = motion
+        # one compiled pass over q for every sample the limits test (position_scan)
+        at_over, at_lo, at_hi, at_mid, late = sk.position_scan(
+            motion.Q, cols, lim.position_lower[cols], lim.position_upper[cols],
+            lim.soft_lower[cols], lim.soft_upper[cols], motion.r0)
+        self.warnings = self._soft(motion, at_lo, at_hi)
+        self._peaks, self._violations = self._hard(motion, at_over, at_mid)
         self._blocked = None
-        if np.any(over[motion.r0:] > 0):   # beyond a hard limit after the start segment
+        if np.any(late):   # beyond a hard limit after the start segment
             v0 = max(self._violations, key=lambda v: abs(v.peak_value - v.limit))
             self._blocked = Blocked(v0.joint, timing_free=True)
 
-    def _soft(self, motion: Motion) -> list[str]:
-        lim, cols, Qp, tt = motion.limits, self.cols, self.value, motion.smp.t
-        # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
-        soft = [(b, side * (Qp - b))
-                for side, b in ((-1, lim.soft_lower[cols]), (1, lim.soft_upper[cols]))]
-        at_soft = [np.argmax(x, axis=0) for _, x in soft]
+    @property
+    def value(self) -> np.ndarray:
+        """q of the limited joints (formed when asked for), each joint's samples contiguous."""
+        return np.asfortranarray(_take(self._motion.Q, self.cols))
+
+    def _soft(self, motion: Motion, at_lo: np.ndarray, at_hi: np.ndarray) -> list[str]:
+        lim, cols, Q, tt = motion.limits, self.cols, motion.Q, motion.smp.t
         out = []
         for c, where in enumerate(self.where):
-            for (bound, beyond), at in zip(soft, at_soft):
-                n = at[c]
-                if beyond[n, c] > 0:
-                    out.append(f"{where} enters its soft-limit zone: q = {_fmt(Qp[n, c])} "
-                               f"{self.units[c]} beyond {_fmt(bound[c])} at t = {tt[n]:.2f} s")
+            j = cols[c]
+            # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
+            for bound, n, beyond in ((lim.soft_lower[j], at_lo[c], -(Q[at_lo[c], j] - lim.soft_lower[j])),
+                                     (lim.soft_upper[j], at_hi[c], Q[at_hi[c], j] - lim.soft_upper[j])):
+                if beyond > 0:
+                    out.append(f"{where} enters its soft-limit zone: q = {_fmt(Q[n, j])} "
+                               f"{self.units[c]} beyond {_fmt(bound)} at t = {tt[n]:.2f} s")
         return out
 
-    def _hard(self, motion: Motion, over: np.ndarray) -> tuple[list[Peak], list[Violation]]:
-        lim, cols, Qp, tt = motion.limits, self.cols, self.value, motion.smp.t
+    def _hard(self, motion: Motion, at_over: np.ndarray, at_mid: np.ndarray
+              ) -> tuple[list[Peak], list[Violation]]:
+        lim, cols, Q, tt = motion.limits, self.cols, motion.Q, motion.smp.t
         lo, hi = lim.position_lower[cols], lim.position_upper[cols]
-        at_over = np.argmax(over, axis=0)
         ranged = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-        at_mid = np.argmax(np.abs(Qp - mid), axis=0)
         peaks, violations = [], []
         for c, where in enumerate(self.where):
-            n = at_over[c]
-            if over[n, c] > 0:
-                bad = over[:, c] > 0
-                q = float(Qp[n, c])
+            n, q = at_over[c], float(Q[at_over[c], cols[c]])
+            if max(q - hi[c], lo[c] - q) > 0:
+                bad = np.maximum(Q[:, cols[c]] - hi[c], lo[c] - Q[:, cols[c]]) > 0
                 violations.append(Violation(
                     where, "position", float(tt[np.argmax(bad)]), float(tt[n]), q,
                     float(hi[c] if q > hi[c] else lo[c]), float(motion.smp.weight[bad].sum()),
                     self.units[c]))
             if ranged[c]:
                 n = at_mid[c]
-                q = float(Qp[n, c])
-                peaks.append(Peak(where, float(abs(Qp[n, c] - mid[c]) / half[c]), float(tt[n]), q,
+                q = float(Q[n, cols[c]])
+                peaks.append(Peak(where, float(abs(q - mid[c]) / half[c]), float(tt[n]), q,
                                   float(hi[c] if q >= mid[c] else lo[c])))
         return peaks, violations
 

@@ -198,3 +198,47 @@ def peak_scan(V: np.ndarray, A: np.ndarray, J: np.ndarray, tau: np.ndarray, S: n
             lim_at[k] = L0 if lc < 0 else P[where, lc]
         abs_peak[k] = abest if abest >= 0 or abest != abest else 0.0
     return peak_at, ratio, first, above, value, lim_at, abs_at, abs_peak
+
+
+@njit(inline="always", **_JIT)
+def _first_larger(x: float, best: float) -> bool:
+    # numpy.argmax's order: a larger value, or the first NaN
+    return x > best or (x != x and best == best)
+
+
+_I = types.Array(_i8, 1, "A", readonly=True)
+
+
+@njit([types.UniTuple(_IC, 5)(_M, _I, _V, _V, _V, _V, types.int64)], **_JIT)
+def position_scan(Q: np.ndarray, cols: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                  soft_lo: np.ndarray, soft_hi: np.ndarray, r0: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The position kind's pass, per column c of q = Q[:, cols[c]] (bounds per c): the first
+    sample (numpy.argmax's) of the largest max(q − hi, lo − q) (NaN if either is, as
+    numpy.maximum; > 0 beyond a hard limit), of the largest −(q − soft_lo) and q − soft_hi
+    (> 0 in a soft-limit zone), of the largest |q − (lo + hi)/2|, and whether q is beyond a
+    hard limit at a sample from r0 on (1, else 0)."""
+    M, m = Q.shape[0], len(cols)
+    at_over, at_lo, at_hi = np.zeros(m, np.int64), np.zeros(m, np.int64), np.zeros(m, np.int64)
+    at_mid, late = np.zeros(m, np.int64), np.zeros(m, np.int64)
+    for c in range(m):
+        j, mid = cols[c], 0.5 * (lo[c] + hi[c])
+        bo = bl = bh = bm = -np.inf
+        for n in range(M):
+            q = Q[n, j]
+            a, b = q - hi[c], lo[c] - q
+            o = np.nan if a != a or b != b else (a if a >= b else b)
+            if _first_larger(o, bo):
+                bo, at_over[c] = o, n
+            if n >= r0 and o > 0:
+                late[c] = 1
+            x = -(q - soft_lo[c])
+            if _first_larger(x, bl):
+                bl, at_lo[c] = x, n
+            x = q - soft_hi[c]
+            if _first_larger(x, bh):
+                bh, at_hi[c] = x, n
+            x = abs(q - mid)
+            if _first_larger(x, bm):
+                bm, at_mid[c] = x, n
+    return at_over, at_lo, at_hi, at_mid, late
