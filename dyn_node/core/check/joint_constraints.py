@@ -133,7 +133,7 @@ class EffortSpeed(_TorqueBand):
         curves_all = motion.limits.effort_speed_curve
         super().__init__(motion, np.array([j for j, cv in enumerate(curves_all) if cv is not None],
                                           dtype=int))
-        cols, rows, r0 = self.cols, motion.rows, motion.r0
+        cols, rows = self.cols, motion.rows
         curves = [curves_all[j] for j in cols]
         npts = np.array([len(cv) for cv in curves])
         sp = np.zeros((len(cols), npts.max()))
@@ -144,14 +144,22 @@ class EffortSpeed(_TorqueBand):
         self.value, self.limit = _take(motion.tau, cols), kernels.envelope_values(ve, sp, ef, npts)
         s, w, i = (X[rows] for X in self.terms(motion))
         self._x = kernels.envelope_exit_min(s, w, i, ve[rows], sp, ef, npts)
-        self._blocked = None
-        for c, j in enumerate(cols):
-            e0 = float(np.interp(0.0, curves[c][:, 0], curves[c][:, 1]))
-            sj = np.abs(motion.S[r0:, j])
-            if np.any(sj > e0):
-                n = int(np.argmax(sj))   # the worst pose
-                self._blocked = _static_block(motion, int(j), r0 + n, float(sj[n]), e0)
-                break
+        # the envelope at standstill: what gravity and friction alone may use
+        self._e0 = [float(np.interp(0.0, cv[:, 0], cv[:, 1])) for cv in curves]
+        self._motion = motion
+
+    def scan_requests(self) -> list[ScanRequest]:
+        # τ against the envelope (its own array), and the static torque's peak (no limit)
+        return [ScanRequest(sk.ABS, ("tau",), self.limit, self.cols),
+                ScanRequest(sk.ABS, ("S",), np.full(len(self.cols), np.inf), self.cols)]
+
+    def blocked(self) -> Blocked | None:
+        static = self.scanned(self._motion)[1]
+        for c, j in enumerate(self.cols):
+            if static.abs_peak[c] > self._e0[c]:      # the worst pose
+                return _static_block(self._motion, int(j), int(static.abs_at[c]),
+                                     float(static.abs_peak[c]), self._e0[c])
+        return None
 
 
 class Power(JointConstraint):
