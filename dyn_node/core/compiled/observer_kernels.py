@@ -209,7 +209,7 @@ def _body_momentum(R: np.ndarray, inertia: np.ndarray, i: int, px: float, py: fl
     H[i, 7], H[i, 8], H[i, 9] = m * cwx, m * cwy, m * cwz
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _contact_jacobian(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray,
                       Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, fjoint: int,
                       fplace: np.ndarray, J: np.ndarray) -> None:
@@ -343,7 +343,7 @@ def _no_estimate(k: int, clock: np.ndarray, power: np.ndarray, TAU: np.ndarray, 
     info[k, I_POWER_STEP] = -1.0
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _observe(t: float, held: bool, max_gap: float, gain: np.ndarray, p: np.ndarray,
              s: np.ndarray, e: np.ndarray, r_: np.ndarray, p_: np.ndarray, s_: np.ndarray,
              e_: np.ndarray, clock: np.ndarray) -> tuple[int, float]:
@@ -380,7 +380,7 @@ def _observe(t: float, held: bool, max_gap: float, gain: np.ndarray, p: np.ndarr
     return kind, dt
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _row_outputs(k: int, r_: np.ndarray, contact_at: np.ndarray, J: np.ndarray,
                  wopt: np.ndarray, G: np.ndarray, U: np.ndarray, ev: np.ndarray, y: np.ndarray,
                  F: np.ndarray, TAU: np.ndarray, W: np.ndarray, info: np.ndarray) -> None:
