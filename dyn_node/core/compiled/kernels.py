@@ -623,10 +623,6 @@ def piecewise_eval(tables: np.ndarray, seg: np.ndarray, s: np.ndarray) -> np.nda
     return out
 
 
-_IC = types.Array(_i8, 1, "C")
-_FC = types.Array(_f8, 1, "C")
-
-
 @njit([types.Array(_i8, 2, "C")(_M, _I)], **_JIT)
 def bin_peaks(val: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Per bin b of samples [edges[b], edges[b + 1]) (edges strictly increasing) and per column
@@ -644,37 +640,6 @@ def bin_peaks(val: np.ndarray, edges: np.ndarray) -> np.ndarray:
                     best, where = v, n
             out[b, c] = where
     return out
-
-
-@njit([types.Tuple((_IC, _FC, _IC, _FC))(_M, _M, _V)], **_JIT)
-def limit_peaks(val: np.ndarray, L: np.ndarray, weight: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per column of values ``val`` (signed: their magnitude is compared) against limits ``L``
-    (M×m; L may be a broadcast view) with sample weights (M, s): the first sample of the
-    largest ratio |val|/L (a zero limit: inf if |val| > 0, else 0) and that ratio; the first
-    sample above its limit (−1: none) and the time spent above it (Σ weight)."""
-    M, m = val.shape
-    peak_at = np.zeros(m, dtype=np.int64)
-    peak = np.zeros(m)
-    first = np.full(m, -1, dtype=np.int64)
-    above = np.zeros(m)
-    constant = L.strides[0] == 0     # a broadcast row: one limit per column
-    for c in range(m):
-        best, where = -np.inf, 0
-        # one positive limit for the column: the largest ratio is at the largest magnitude, so
-        # no division per sample (the test is loop-invariant: the compiler hoists it)
-        scaled = constant and M > 0 and L[0, c] > 0
-        for n in range(M):
-            v, lim = abs(val[n, c]), L[n, c]
-            r = v if scaled else (v / lim if lim > 0 else (np.inf if v > 0 else 0.0))
-            if r > best:
-                best, where = r, n
-            if v > lim:
-                if first[c] < 0:
-                    first[c] = n
-                above[c] += weight[n]
-        peak_at[c], peak[c] = where, (best / L[0, c] if scaled else best)
-    return peak_at, peak, first, above
 
 
 @njit([_F2(_M, _I, _I, _V)], **_JIT)

@@ -6,8 +6,9 @@ the time scale the largest magnitude over the samples the laws cover. Done kind 
 a dozen calls, each a pass over memory, and values such as q̇·q̈ or τ·q̇ formed as whole arrays
 first. :func:`peak_scan` takes every kind's columns at once (``channels``): each channel forms
 its value sample by sample from the check's own arrays (no temporary array) and keeps the
-running answers in registers, as :func:`dyn_node.core.compiled.kernels.limit_peaks` and
-:func:`~dyn_node.core.compiled.kernels.abs_peak` do one kind at a time.
+running answers in registers, bit for bit what the per-kind loops it replaced gave (the ratio
+peak, first exceedance and time over of each kind, and
+:func:`~dyn_node.core.compiled.kernels.abs_peak` of its value).
 """
 from __future__ import annotations
 
@@ -62,7 +63,7 @@ def _channel(op: int, constant: bool, X0: np.ndarray, c0: int, X1: np.ndarray, c
              X2: np.ndarray, c2: int, L0: float, P: np.ndarray, lc: int, weight: np.ndarray,
              r0: int) -> tuple[float, int, int, float, float, int]:
     """One channel's pass: (best ratio, its sample, first sample over, time over, largest |x|
-    from r0 on, its sample), exactly as limit_peaks and abs_peak. Called with ``op`` and
+    from r0 on, its sample), as :func:`peak_scan` describes. Called with ``op`` and
     ``constant`` as literals, so that each inlined copy is a loop without those branches."""
     M = X0.shape[0]
     # one positive limit: the largest ratio is at the largest magnitude (no division)
@@ -154,8 +155,8 @@ def peak_scan(V: np.ndarray, A: np.ndarray, J: np.ndarray, tau: np.ndarray, S: n
     (first sample of the largest ratio |x|/L (a zero limit: inf if |x| > 0, else 0), that ratio,
     first sample with |x| > L (−1: none), Σ weight over those, |x| and L at the largest ratio,
     first sample of the largest |x| from sample r0 on (NaN first, as numpy.argmax), that |x|
-    (0 when no sample is left)) — :func:`~dyn_node.core.compiled.kernels.limit_peaks` and
-    :func:`~dyn_node.core.compiled.kernels.abs_peak` of the same values, bit for bit."""
+    (0 when no sample is left)); the last two as
+    :func:`~dyn_node.core.compiled.kernels.abs_peak` of the same values."""
     M = len(weight)
     K = channels.shape[0]
     peak_at, first, abs_at = (np.zeros(K, dtype=np.int64), np.full(K, -1, dtype=np.int64),
