@@ -567,7 +567,7 @@ def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
     """Random curves (rising and falling pieces; at high speed some fall below what gravity
     alone needs, so samples start outside parts of the envelope) against every sample solved
     exactly with no bounds."""
-    from dyn_node.core.check import feasibility as F
+    from dyn_node.core.check import feasibility as F, task_motion
 
     rng = np.random.default_rng(300 + seed)
     model = base_model("panda")
@@ -586,7 +586,7 @@ def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
     smp = F._sample(traj.times, 0.004, 250_000)
     pp = interpolate(traj, traj.natural_interpolation)
     Q, V, A = F._evaluate(pp.coeffs, pp.breaks, smp, 3)
-    terms = dyn.terms_batch(Q, V, A)
+    terms = task_motion.joint_terms(dyn, Q, V, A)[0]      # the check's own torque route
     x = min(float(envelope_exits(terms.static[:, j], terms.viscous[:, j], terms.inertial[:, j],
                                  V[:, j], m.limits.effort_speed_curve[j]).min())
             for j in range(m.nv))

@@ -18,6 +18,7 @@ from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
 from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
 from dyn_node.core.check.frames import FrameKinematics, FramePoint
 from dyn_node.core.robot.model import Payload, builtin_urdf, load_model
+from dyn_node.errors import ModelError
 
 TOL = 1e-9
 WRENCH = {"frame": "panda_link8", "force": [3.0, -2.0, 20.0], "torque": [0.4, -0.1, 0.2]}
@@ -136,15 +137,23 @@ def _no_pinocchio_pass(monkeypatch) -> list[int]:
 
 
 @pytest.mark.parametrize("margin", [True, False])
-def test_a_task_check_makes_one_compiled_pass_and_a_joint_check_pinocchios(monkeypatch, margin):
+def test_a_check_makes_one_compiled_pass_and_pinocchios_only_where_the_kernel_cannot(
+        monkeypatch, margin):
     calls = _no_pinocchio_pass(monkeypatch)
     model, _ = robot("panda", SECTIONS)
     check_trajectory(Dynamics(model), traj(),
                      FeasibilityOptions(compute_payload_margin=margin, threads=2))
     assert calls[0] == 0
-    bare, _ = robot("panda")
+    bare, _ = robot("panda")           # no task section: the frame pass on the payload point
     check_trajectory(Dynamics(bare), traj(), FeasibilityOptions(compute_payload_margin=margin))
-    assert calls[0] == (3 if margin else 2)     # gravity, RNEA (and the margin's RNEA)
+    assert calls[0] == 0
+    # a model the kernels do not take: Pinocchio's passes (gravity, RNEA, the margin's RNEA)
+    def unsupported(dynamics):
+        raise ModelError("a joint the frame kernels do not take", code="urdf_joint_type")
+
+    monkeypatch.setattr(task_motion, "kinematics", unsupported)
+    check_trajectory(Dynamics(bare), traj(), FeasibilityOptions(compute_payload_margin=margin))
+    assert calls[0] == (3 if margin else 2)
 
 
 def _close(x, y, path: str = "") -> None:
@@ -164,10 +173,11 @@ def _close(x, y, path: str = "") -> None:
         assert x == y, (path, x, y)
 
 
-@pytest.mark.parametrize("sections", [SECTIONS, {"frame_limits": SECTIONS["frame_limits"]}])
-def test_task_verdicts_match_the_pinocchio_pass(monkeypatch, sections):
-    """The whole verdict (ratios, time scale, payload margin, efforts) of a task check equals the
-    one made from Dynamics.terms_batch (Pinocchio's RNEA) to 1e-9."""
+@pytest.mark.parametrize("sections", [SECTIONS, {"frame_limits": SECTIONS["frame_limits"]}, {}])
+def test_verdicts_match_the_pinocchio_pass(monkeypatch, sections):
+    """The whole verdict (ratios, time scale, payload margin, efforts) of a check, with a task
+    section or none, equals the one made from Dynamics.terms_batch (Pinocchio's RNEA) and, for
+    the margin, Pinocchio's RNEA with 1 kg more, to 1e-9."""
     model, _ = robot("panda", sections)
     dyn = Dynamics(model)
     options = FeasibilityOptions(compute_payload_margin=True)
@@ -176,18 +186,20 @@ def test_task_verdicts_match_the_pinocchio_pass(monkeypatch, sections):
 
     def pinocchio_build(dynamics, Q, V, A, **kwargs):
         task = build(dynamics, Q, V, A, **{**kwargs, "rnea": False})
-        return dataclasses.replace(task, terms=dynamics.terms_batch(Q, V, A))
+        return None if task is None else dataclasses.replace(task,
+                                                             terms=dynamics.terms_batch(Q, V, A))
 
     monkeypatch.setattr(task_motion, "build", pinocchio_build)
+    monkeypatch.setattr(task_motion, "joint_terms", lambda *a, **k: (None, None))
     slow = check_trajectory(dyn, traj(), options).to_dict()
-    assert fast["per_joint"] and fast["per_frame"]
+    assert fast["per_joint"] and (fast["per_frame"] or not sections)
     _close(fast | {"compute_time_s": 0.0}, slow | {"compute_time_s": 0.0})
 
 
 @pytest.mark.parametrize("sections", [SECTIONS, {}])
 def test_inverse_dynamics_takes_the_checks_route(sections):
-    """inverse_dynamics gives the check's sample torques bit for bit (task: the frame pass plus
-    J_localᵀ·W; none: terms_batch), and Pinocchio's rnea + friction + J_localᵀ·W to 1e-9."""
+    """inverse_dynamics gives the check's sample torques bit for bit (the frame pass, plus
+    J_localᵀ·W with a task wrench), and Pinocchio's rnea + friction + J_localᵀ·W to 1e-9."""
     model, _ = robot("panda", sections)
     dyn = Dynamics(model)
     m, _ = feasibility._motion(dyn, traj(), FeasibilityOptions(), False, [])
@@ -195,8 +207,6 @@ def test_inverse_dynamics_takes_the_checks_route(sections):
     Q, V, A = m.Q[idx], np.ascontiguousarray(m.V[idx]), np.ascontiguousarray(m.A[idx])
     tau = on_demand.inverse_dynamics(dyn, Q, V, A)
     assert np.array_equal(tau, m.tau[idx])
-    if not sections:
-        assert np.array_equal(tau, dyn.terms_batch(Q, V, A).full)
     _, ref, _ = pinocchio_terms(model, DynamicsOptions(), Q, V, A)
     if sections:
         pm, data = model.pin_model, model.pin_model.createData()

@@ -65,27 +65,6 @@ def test_abs_peak_is_numpy_argmax_of_abs():
     assert K.abs_peak(np.zeros((0, 2)))[1].tolist() == [0.0, 0.0]
 
 
-def test_limit_peaks_match_numpy_with_constant_and_varying_limits():
-    rng = np.random.default_rng(21)
-    M = 600
-    val = np.asfortranarray(rng.normal(scale=2.0, size=(M, 4)))   # signed: magnitudes count
-    weight = rng.uniform(0.5, 1.5, M)
-    lim = np.array([1.5, 3.0, 0.0, 10.0])                     # a zero limit, a never-reached one
-    const = np.broadcast_to(lim, val.shape)                   # the broadcast (fast) path
-    varying = np.asfortranarray(np.tile(lim, (M, 1)))         # the same limits, as a full array
-    a = np.abs(val)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(varying > 0, a / varying, np.where(a > 0, np.inf, 0.0))
-    over = a > varying
-    for L in (const, varying):
-        at, peak, first, above = K.limit_peaks(val, L, weight)
-        np.testing.assert_array_equal(at, np.argmax(ratio, axis=0))
-        np.testing.assert_array_equal(peak, ratio.max(axis=0))
-        np.testing.assert_array_equal(first, np.where(over.any(axis=0), np.argmax(over, axis=0), -1))
-        np.testing.assert_allclose(above, (weight[:, None] * over).sum(axis=0), rtol=1e-12)
-    assert first[3] == -1 and above[3] == 0.0
-
-
 def test_envelope_values_are_numpy_interp_of_the_speed():
     rng = np.random.default_rng(11)
     v = np.asfortranarray(rng.normal(scale=3.0, size=(400, 3)))

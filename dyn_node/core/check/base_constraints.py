@@ -20,7 +20,8 @@ import numpy as np
 from dyn_node.core.check import force_laws as laws
 from dyn_node.core.compiled import kernels, law_kernels
 from dyn_node.core.check.constraints import (Band, Blocked, LimitedConstraint, Motion, PayloadTerms,
-                                             Peak, Violation, _fmt)
+                                             Peak, ScanRequest, Violation, _fmt)
+from dyn_node.core.compiled import scan_kernels as sk
 from dyn_node.core.check.frames import BaseWrench, FrameTerms
 
 if TYPE_CHECKING:
@@ -83,16 +84,16 @@ class _TaskKind(LimitedConstraint):
         self.law = self._law(motion, task)
         self.value = self.law.value[:, None]
         self.limit = np.broadcast_to(self.law.limit, self.value.shape)
-        k = self.law.time_scale[motion.rows]
-        self._k = float(np.max(k)) if k.size else 0.0
-        self._blocked = None
-        if math.isinf(self._k):
-            # the worst still pose among the samples no slowdown helps
-            still = np.where(np.isinf(k), self.law.static_value[motion.rows], -math.inf)
-            n = motion.r0 + int(np.argmax(still))
-            self._blocked = Blocked(self.place, self._still_reason(motion, n) +
-                                    f" at q = {_q_text(motion.Q[n])} (t = {motion.smp.t[n]:.2f} "
-                                    "s); no slowdown helps")
+        self._motion = motion
+
+    def scan_requests(self) -> list[ScanRequest]:
+        return [ScanRequest(sk.ABS, (self.value,), np.array([self.law.limit]))]
+
+    @property
+    def _k(self) -> float:
+        """The largest per-sample k over the rows the laws cover (NaN if any is)."""
+        k = self.law.time_scale[self._motion.rows]
+        return float(np.max(k)) if k.size else 0.0
 
     @abstractmethod
     def _law(self, motion: Motion, task: "TaskMotion") -> laws.LawResult:
@@ -106,7 +107,15 @@ class _TaskKind(LimitedConstraint):
         return np.array([self._k])
 
     def blocked(self) -> Blocked | None:
-        return self._blocked
+        if not math.isinf(self._k):
+            return None
+        # the worst still pose among the samples no slowdown helps
+        motion = self._motion
+        k = self.law.time_scale[motion.rows]
+        still = np.where(np.isinf(k), self.law.static_value[motion.rows], -math.inf)
+        n = motion.r0 + int(np.argmax(still))
+        return Blocked(self.place, self._still_reason(motion, n) + f" at q = "
+                       f"{_q_text(motion.Q[n])} (t = {motion.smp.t[n]:.2f} s); no slowdown helps")
 
     def _detail(self, motion: Motion) -> str:
         """What :meth:`describe` needs beyond the Violation (its ``detail``)."""

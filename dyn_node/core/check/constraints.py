@@ -196,26 +196,150 @@ class Constraint(ABC):
         return None
 
 
+@dataclass(frozen=True)
+class ScanRequest:
+    """What a kind asks of the fused pass (:func:`scan`), one channel per column c of the kind:
+    its value from up to three ``sources`` by ``op`` (scan_kernels.ABS: |a|, DECEL: |a·(b·a <
+    0)|, PRODUCT: |a·b|, SUM3: |a + b + c|), each the name of a Motion array ("V", "A", "J",
+    "tau", "S") read at the motion columns ``cols``, or an M×m array of the kind's own; and its
+    ``limit``: m constants, or M×m per sample (an array of its own)."""
+
+    op: int
+    sources: tuple[str | np.ndarray, ...]
+    limit: np.ndarray
+    cols: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Scanned:
+    """The fused pass's answers for one request, per column (see scan_kernels.peak_scan): the
+    sample of the largest ratio, that ratio, the first sample over the limit (−1: none), the
+    time over it, |value| and limit at the largest ratio, and the sample and size of the
+    largest |value| over the rows the laws cover (from ``Motion.r0``)."""
+
+    peak_at: np.ndarray
+    ratio: np.ndarray
+    first: np.ndarray
+    above: np.ndarray
+    value: np.ndarray
+    limit: np.ndarray
+    abs_at: np.ndarray
+    abs_peak: np.ndarray
+
+
+_SOURCES = {"V": 0, "A": 1, "J": 2, "tau": 3, "S": 4}
+
+
+def scan(motion: Motion, requests: Sequence[ScanRequest]) -> list[Scanned]:
+    """Every request's answers from the fused compiled pass
+    (:func:`dyn_node.core.compiled.scan_kernels.peak_scan`), the arrays read in place: one call
+    for all the requests on the Motion's arrays, and one per array of a kind's own (a request
+    with several has them side by side in one copy)."""
+    from dyn_node.core.compiled import scan_kernels as sk
+
+    groups: dict[int, tuple[np.ndarray | None, list[int]]] = {}
+    for q, r in enumerate(requests):
+        own = [x for x in (*r.sources, r.limit) if isinstance(x, np.ndarray) and x.ndim == 2]
+        P = None if not own else own[0] if len(own) == 1 else np.hstack(own)
+        groups.setdefault(id(P) if len(own) == 1 else -1 - q, (P, []))[1].append(q)
+    answers: list[Scanned | None] = [None] * len(requests)
+    for P, members in groups.values():
+        out = _scan_group(motion, [requests[q] for q in members], P, sk)
+        for q, answer in zip(members, out):
+            answers[q] = answer
+    return answers
+
+
+def _scan_group(motion: Motion, requests: list[ScanRequest], P: np.ndarray | None,
+                sk: Any) -> list[Scanned]:
+    """:func:`scan` of requests whose own arrays are the columns of P (None: none)."""
+    M = len(motion.smp.t)
+    pool = np.empty((M, 0)) if P is None else P
+    rows: list[list[int]] = []
+    limits: list[float] = []
+    widths = []
+    for r in requests:
+        m = len(r.limit) if r.limit.ndim == 1 else r.limit.shape[1]
+        widths.append(m)
+        cols = range(m) if r.cols is None else r.cols.tolist()
+        refs, at = [], 0
+        for x in r.sources:
+            if isinstance(x, str):
+                refs.append([(_SOURCES[x], c) for c in cols])
+            else:
+                refs.append([(5, at + c) for c in range(m)])
+                at += m
+        refs += [refs[0]] * (3 - len(refs))     # unused sources: the first again
+        lcols = [-1] * m
+        if r.limit.ndim == 2:
+            lcols = list(range(at, at + m))
+            limits += [0.0] * m
+        else:
+            limits += r.limit.tolist()
+        rows += [[r.op, *refs[0][c], *refs[1][c], *refs[2][c], lcols[c]] for c in range(m)]
+    channels = np.array(rows, dtype=np.int64).reshape(-1, sk.CHANNEL_COLUMNS)
+    # a Motion array no channel reads may be absent or empty (J without a jerk limit): the
+    # pool stands in for it
+    src = [getattr(motion, name, None) for name in _SOURCES]
+    src = [pool if x is None or not x.size else x for x in src]
+    out = sk.peak_scan(*src, pool, motion.smp.weight, motion.r0, channels,
+                       np.array(limits, dtype=float))
+    answers, k = [], 0
+    for m in widths:
+        answers.append(Scanned(*(x[k:k + m] for x in out)))
+        k += m
+    return answers
+
+
+def merge(answers: Sequence[Scanned]) -> Scanned:
+    """Several requests' answers as one, their columns side by side."""
+    return Scanned(*(np.concatenate(x) for x in zip(*(vars(a).values() for a in answers))))
+
+
+def _limits(L: np.ndarray) -> np.ndarray:
+    """A kind's limit as the fused pass takes it: one per column when it is a broadcast row
+    (the same at every sample), else the M×m array."""
+    return L[0] if L.ndim == 2 and L.strides[0] == 0 and len(L) else L
+
+
 class LimitedConstraint(Constraint):
-    """A kind whose value per sample is compared in magnitude with a limit per sample."""
+    """A kind whose value per sample is compared in magnitude with a limit per sample; its
+    peaks come from the fused pass (:func:`scan`, run by :func:`build` for every kind at
+    once, or on its own when asked first)."""
 
     value: np.ndarray
     limit: np.ndarray
+    _scanned: list[Scanned] | None = None
 
     def values(self) -> np.ndarray:
         return self.value
 
+    def scan_requests(self) -> list[ScanRequest]:
+        """What the fused pass computes for this kind; the first request is its value against
+        its limit (:meth:`report`)."""
+        return [ScanRequest(0, (self.values(),), _limits(self.limit))]
+
+    def scanned(self, motion: Motion) -> list[Scanned]:
+        """The answers to :meth:`scan_requests` (scanned now unless :func:`build` did)."""
+        if self._scanned is None:
+            self._scanned = scan(motion, self.scan_requests())
+        return self._scanned
+
+    def _peak_answer(self, motion: Motion) -> Scanned:
+        """The answers for the value against the limit, every place side by side."""
+        return self.scanned(motion)[0]
+
     def report(self, motion: Motion) -> tuple[list[Peak], list[Violation]]:
-        val, L, tt = self.value, self.limit, motion.smp.t
-        peak, ratio, firsts, dur = kernels.limit_peaks(val, L, motion.smp.weight)
+        sc, tt = self._peak_answer(motion), motion.smp.t
         peaks, violations = [], []
         for c, where in enumerate(self.where):
-            n = int(peak[c])
-            value = abs(float(val[n, c]))
-            peaks.append(Peak(where, float(ratio[c]), float(tt[n]), value, float(L[n, c])))
-            if firsts[c] >= 0:
-                violations.append(Violation(where, self.kind, float(tt[firsts[c]]), float(tt[n]),
-                                            value, float(L[n, c]), float(dur[c]), self.units[c]))
+            n = int(sc.peak_at[c])
+            value, lim = float(sc.value[c]), float(sc.limit[c])
+            peaks.append(Peak(where, float(sc.ratio[c]), float(tt[n]), value, lim))
+            if sc.first[c] >= 0:
+                violations.append(Violation(where, self.kind, float(tt[sc.first[c]]),
+                                            float(tt[n]), value, lim, float(sc.above[c]),
+                                            self.units[c]))
         return peaks, violations
 
 
@@ -243,6 +367,10 @@ class JointConstraint(LimitedConstraint):
     def time_scale(self) -> np.ndarray:
         return _k_of_x(self._x)
 
+    def terms(self, motion: Motion) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The torque terms S, W, I (static, viscous, inertial) of the kind's columns."""
+        return _take(motion.S, self.cols), _take(motion.W, self.cols), _take(motion.I, self.cols)
+
 
 def build(motion: Motion, kinds: Sequence[type[Constraint]]) -> list[Constraint]:
     """The constraints of ``kinds`` (every kind: :data:`dyn_node.core.check.kinds.KINDS`, passed in
@@ -251,7 +379,14 @@ def build(motion: Motion, kinds: Sequence[type[Constraint]]) -> list[Constraint]
     beside the others'."""
     todo = [cls for cls in kinds if cls.applies(motion.dynamics.model)]
     built = {cls: cls(motion) for cls in sorted(todo, key=lambda cls: not cls.background)}
-    return [built[cls] for cls in todo]
+    out = [built[cls] for cls in todo]
+    # every limited kind's peaks and exits in one fused pass, handed back kind by kind
+    limited = [c for c in out if isinstance(c, LimitedConstraint)]
+    requests = [c.scan_requests() for c in limited]
+    answers = iter(scan(motion, [r for rs in requests for r in rs]))
+    for c, rs in zip(limited, requests):
+        c._scanned = [next(answers) for _ in rs]
+    return out
 
 
 # ----------------------------------------------------------------------------------------------

@@ -458,10 +458,12 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
     J = rest[0] if rest else np.zeros((0, nv))
     margin = options.compute_payload_margin and any(c.payload_dependent for c in applicable)
     parallel = _batch_threads(dynamics, options.threads) > 1
-    # with a task section the frame kernel's pass gives the torque terms too (and τ1 with the
-    # margin): one compiled pass, no Pinocchio RNEA; on_demand.inverse_dynamics takes the same
+    # the torque terms (τ1 too) from one compiled frame pass; on_demand.inverse_dynamics alike
     task = task_motion.build(dynamics, Q, V, A, payload_torque=margin, rnea=True)
-    terms = dynamics.terms_batch(Q, V, A, options.threads) if task is None else task.terms
+    terms, unit = (task.terms, task.payload_torque) if task is not None else \
+        task_motion.joint_terms(dynamics, Q, V, A, payload_torque=margin)
+    kernel = terms is not None
+    terms = terms if kernel else dynamics.terms_batch(Q, V, A, options.threads)
     S, W, I, tau = terms.static, terms.viscous, terms.inertial, terms.full
     with np.errstate(invalid="ignore"):
         # |X|.max() < _HUGE without forming |X| (NaN fails either comparison, as it should)
@@ -470,10 +472,8 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
     if huge:
         raise TrajectoryError("the interpolated motion or its torque is not finite (values too "
                               "large for the time steps)", code="non_finite")
-    tau1 = None
-    if margin:
-        tau1 = _payload_torque(dynamics, Q, V, A, tau, options.threads) if task is None \
-            else task.payload_torque
+    tau1 = (unit if kernel else _payload_torque(dynamics, Q, V, A, tau, options.threads)) \
+        if margin else None
     if task is not None and task.task_torque is not None:
         # the environment's −W on the tool: J_frameᵀ·W more, static (it does not scale with k)
         S, tau = (np.add(X, task.task_torque, out=np.empty_like(X)) for X in (S, tau))

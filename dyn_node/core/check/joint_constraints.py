@@ -10,48 +10,61 @@ from typing import ClassVar
 import numpy as np
 
 from dyn_node.core.check.constraints import (Band, Blocked, Constraint, JointConstraint, Motion,
-                                             PayloadTerms, Peak, Violation, _affine_band,
+                                             PayloadTerms, Peak, ScanRequest, Violation,
+                                             _affine_band,
                                              _cumtrapz_rows, _fmt, _Job, _k_of_x, _power_exit,
                                              _static_block, _take, rms_time_scale)
 from dyn_node.core.compiled import kernels
+from dyn_node.core.compiled import scan_kernels as sk
 
 
 class _PowerLaw(JointConstraint):
-    """|value| ∝ x^power (x = 1/k) at every sample: the first exit is (L / peak)^(1/power)."""
+    """|value| ∝ x^power (x = 1/k) at every sample: the first exit is (L / peak)^(1/power), the
+    peak from the fused pass; the value itself is formed only when asked for (:meth:`values`)."""
 
     power: ClassVar[int]
-
-    @abstractmethod
-    def _array(self, motion: Motion) -> np.ndarray:
-        """The value per sample at k = 1, for the limited columns."""
+    #: how the fused pass forms the value from the Motion arrays ``sources``
+    op: ClassVar[int] = sk.ABS
+    sources: ClassVar[tuple[str, ...]]
 
     def __init__(self, motion: Motion):
         super().__init__(motion)
-        val = self._array(motion)
-        L = self.limit_array(motion.limits)[self.cols]
-        self.value, self.limit = val, np.broadcast_to(L, val.shape)
-        self._x = _power_exit(L, kernels.abs_peak(val[motion.rows])[1], self.power)
+        self._motion = motion
+        self._L = self.limit_array(motion.limits)[self.cols]
+        self.limit = np.broadcast_to(self._L, (len(motion.smp.t), len(self.cols)))
+        self._value: np.ndarray | None = None
+
+    @property
+    def value(self) -> np.ndarray:
+        if self._value is None:
+            self._value = self._array(self._motion)
+        return self._value
+
+    def _array(self, motion: Motion) -> np.ndarray:
+        """The value per sample at k = 1, for the limited columns."""
+        return _take(getattr(motion, self.sources[0]), self.cols)
+
+    def scan_requests(self) -> list[ScanRequest]:
+        return [ScanRequest(self.op, self.sources, self._L, self.cols)]
+
+    def time_scale(self) -> np.ndarray:
+        peak = self.scanned(self._motion)[0].abs_peak
+        return _k_of_x(_power_exit(self._L, peak, self.power))
 
 
 class Velocity(_PowerLaw):
-    kind, power, order = "velocity", 1, 1
-
-    def _array(self, motion: Motion) -> np.ndarray:
-        return _take(motion.V, self.cols)
+    kind, power, order, sources = "velocity", 1, 1, ("V",)
 
 
 class Acceleration(_PowerLaw):
-    kind, power = "acceleration", 2
-
-    def _array(self, motion: Motion) -> np.ndarray:
-        return _take(motion.A, self.cols)
+    kind, power, sources = "acceleration", 2, ("A",)
 
 
 class Deceleration(_PowerLaw):
     """|q̈| where |q̇| decreases (q̇·q̈ < 0); that sign does not change with k, so the value
     scales as 1/k² like the acceleration."""
 
-    kind, power = "deceleration", 2
+    kind, power, op, sources = "deceleration", 2, sk.DECEL, ("A", "V")
 
     def _array(self, motion: Motion) -> np.ndarray:
         val = _take(motion.A, self.cols)
@@ -59,32 +72,14 @@ class Deceleration(_PowerLaw):
 
 
 class Jerk(_PowerLaw):
-    kind, power, order = "jerk", 3, 3
-
-    def _array(self, motion: Motion) -> np.ndarray:
-        return _take(motion.J, self.cols)
+    kind, power, order, sources = "jerk", 3, 3, ("J",)
 
 
-class Effort(JointConstraint):
-    """|τ| ≤ L, τ(x) = s + w·x + i·x²: the band's first exit per sample, in closed form."""
+class _TorqueBand(JointConstraint):
+    """A kind whose value is the torque τ itself (against a fixed or a speed-dependent limit):
+    blocked where gravity and friction alone exceed it; affine in the payload mass."""
 
-    kind, payload_dependent = "effort", True
-
-    def __init__(self, motion: Motion):
-        super().__init__(motion)
-        cols, rows = self.cols, motion.rows
-        L = motion.limits.effort[cols]
-        self.value = _take(motion.tau, cols)
-        self.limit = np.broadcast_to(L, self.value.shape)
-        s, w, i = _take(motion.S, cols), _take(motion.W, cols), _take(motion.I, cols)
-        self._x = kernels.band_exit(s[rows], w[rows], i[rows], L)
-        self._blocked = None
-        at, peak = kernels.abs_peak(s[rows])
-        if np.any(peak > L):
-            with np.errstate(divide="ignore"):  # a zero (YAML) limit: inf, the worst
-                c = int(np.argmax(peak / L))      # the worst pose
-            self._blocked = _static_block(motion, int(cols[c]), motion.r0 + int(at[c]),
-                                          float(peak[c]), float(L[c]))
+    _blocked: Blocked | None
 
     def blocked(self) -> Blocked | None:
         return self._blocked
@@ -94,7 +89,38 @@ class Effort(JointConstraint):
                             self.limit)
 
 
-class EffortSpeed(JointConstraint):
+class Effort(_TorqueBand):
+    """|τ| ≤ L, τ(x) = s + w·x + i·x²: the band's first exit per sample, in closed form."""
+
+    kind, payload_dependent = "effort", True
+
+    def __init__(self, motion: Motion):
+        super().__init__(motion)
+        cols, rows = self.cols, motion.rows
+        self._motion, self._L = motion, motion.limits.effort[cols]
+        self.value = _take(motion.tau, cols)
+        self.limit = np.broadcast_to(self._L, self.value.shape)
+        s, w, i = self.terms(motion)
+        self._x = kernels.band_exit(s[rows], w[rows], i[rows], self._L)
+
+    def scan_requests(self) -> list[ScanRequest]:
+        # τ against the limit, and the static torque's peak (no limit): where gravity and
+        # friction alone exceed the limit no slowdown helps
+        return [ScanRequest(sk.ABS, ("tau",), self._L, self.cols),
+                ScanRequest(sk.ABS, ("S",), np.full(len(self.cols), np.inf), self.cols)]
+
+    def blocked(self) -> Blocked | None:
+        static = self.scanned(self._motion)[1]
+        at, peak, L = static.abs_at, static.abs_peak, self._L
+        if not np.any(peak > L):
+            return None
+        with np.errstate(divide="ignore"):  # a zero (YAML) limit: inf, the worst
+            c = int(np.argmax(peak / L))      # the worst pose
+        return _static_block(self._motion, int(self.cols[c]), int(at[c]), float(peak[c]),
+                             float(L[c]))
+
+
+class EffortSpeed(_TorqueBand):
     """|τ| ≤ the torque-speed envelope at |q̇|: piecewise the same band, per envelope piece."""
 
     kind, label, payload_dependent = "effort_speed", "torque-speed envelope", True
@@ -107,7 +133,7 @@ class EffortSpeed(JointConstraint):
         curves_all = motion.limits.effort_speed_curve
         super().__init__(motion, np.array([j for j, cv in enumerate(curves_all) if cv is not None],
                                           dtype=int))
-        cols, rows, r0 = self.cols, motion.rows, motion.r0
+        cols, rows = self.cols, motion.rows
         curves = [curves_all[j] for j in cols]
         npts = np.array([len(cv) for cv in curves])
         sp = np.zeros((len(cols), npts.max()))
@@ -116,23 +142,24 @@ class EffortSpeed(JointConstraint):
             sp[c, :len(cv)], ef[c, :len(cv)] = cv[:, 0], cv[:, 1]
         ve = _take(motion.V, cols)
         self.value, self.limit = _take(motion.tau, cols), kernels.envelope_values(ve, sp, ef, npts)
-        s, w, i = (_take(X, cols)[rows] for X in (motion.S, motion.W, motion.I))
+        s, w, i = (X[rows] for X in self.terms(motion))
         self._x = kernels.envelope_exit_min(s, w, i, ve[rows], sp, ef, npts)
-        self._blocked = None
-        for c, j in enumerate(cols):
-            e0 = float(np.interp(0.0, curves[c][:, 0], curves[c][:, 1]))
-            sj = np.abs(motion.S[r0:, j])
-            if np.any(sj > e0):
-                n = int(np.argmax(sj))   # the worst pose
-                self._blocked = _static_block(motion, int(j), r0 + n, float(sj[n]), e0)
-                break
+        # the envelope at standstill: what gravity and friction alone may use
+        self._e0 = [float(np.interp(0.0, cv[:, 0], cv[:, 1])) for cv in curves]
+        self._motion = motion
+
+    def scan_requests(self) -> list[ScanRequest]:
+        # τ against the envelope (its own array), and the static torque's peak (no limit)
+        return [ScanRequest(sk.ABS, ("tau",), self.limit, self.cols),
+                ScanRequest(sk.ABS, ("S",), np.full(len(self.cols), np.inf), self.cols)]
 
     def blocked(self) -> Blocked | None:
-        return self._blocked
-
-    def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
-        return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
-                            self.limit)
+        static = self.scanned(self._motion)[1]
+        for c, j in enumerate(self.cols):
+            if static.abs_peak[c] > self._e0[c]:      # the worst pose
+                return _static_block(self._motion, int(j), int(static.abs_at[c]),
+                                     float(static.abs_peak[c]), self._e0[c])
+        return None
 
 
 class Power(JointConstraint):
@@ -142,12 +169,18 @@ class Power(JointConstraint):
 
     def __init__(self, motion: Motion):
         super().__init__(motion)
-        cols, rows = self.cols, motion.rows
-        L = motion.limits.power[cols]
-        v = _take(motion.V, cols)
-        self.value, self.limit = _take(motion.tau, cols) * v, np.broadcast_to(L, v.shape)
-        self._x = kernels.odd_exit(_take(motion.S, cols)[rows], _take(motion.W, cols)[rows],
-                                   _take(motion.I, cols)[rows], v[rows], L)
+        v, rows = _take(motion.V, self.cols), motion.rows
+        self._motion, self._L = motion, motion.limits.power[self.cols]
+        self.limit = np.broadcast_to(self._L, v.shape)
+        self._x = kernels.odd_exit(*(X[rows] for X in self.terms(motion)), v[rows], self._L)
+
+    @property
+    def value(self) -> np.ndarray:
+        """τ·q̇ (formed when asked for: the fused pass forms it sample by sample)."""
+        return _take(self._motion.tau, self.cols) * _take(self._motion.V, self.cols)
+
+    def scan_requests(self) -> list[ScanRequest]:
+        return [ScanRequest(sk.PRODUCT, ("tau", "V"), self._L, self.cols)]
 
     def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
         return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
@@ -197,7 +230,7 @@ class RmsEffort(JointConstraint):
         cols, rows, tt = self.cols, motion.rows, motion.smp.t
         R, Wn = motion.limits.rms_effort[cols], motion.limits.rms_window[cols]
         h2 = motion.hold[cols] ** 2
-        S, W, I = _take(motion.S, cols), _take(motion.W, cols), _take(motion.I, cols)
+        S, W, I = self.terms(motion)
         # (a moving start segment's path changes with k: its static torque is not static)
         s_max = np.maximum(kernels.abs_peak(S[rows])[1], np.abs(motion.hold[cols]))
         self._good = ~(s_max > R)
@@ -283,53 +316,55 @@ class Position(Constraint):
         cols = np.flatnonzero(np.isfinite(lim.position_lower) | np.isfinite(lim.position_upper))
         self.cols, self.where = cols, tuple(names[j] for j in cols)
         self.units = [motion.units["position"][j] for j in cols]
-        self.value = np.asfortranarray(_take(motion.Q, cols))   # each joint's samples contiguous
-        # > 0: beyond a hard limit
-        over = np.maximum(self.value - lim.position_upper[cols],
-                          lim.position_lower[cols] - self.value)
-        self.warnings = self._soft(motion)
-        self._peaks, self._violations = self._hard(motion, over)
+        self._motion = motion
+        # one compiled pass over q for every sample the limits test (position_scan)
+        at_over, at_lo, at_hi, at_mid, late = sk.position_scan(
+            motion.Q, cols, lim.position_lower[cols], lim.position_upper[cols],
+            lim.soft_lower[cols], lim.soft_upper[cols], motion.r0)
+        self.warnings = self._soft(motion, at_lo, at_hi)
+        self._peaks, self._violations = self._hard(motion, at_over, at_mid)
         self._blocked = None
-        if np.any(over[motion.r0:] > 0):   # beyond a hard limit after the start segment
+        if np.any(late):   # beyond a hard limit after the start segment
             v0 = max(self._violations, key=lambda v: abs(v.peak_value - v.limit))
             self._blocked = Blocked(v0.joint, timing_free=True)
 
-    def _soft(self, motion: Motion) -> list[str]:
-        lim, cols, Qp, tt = motion.limits, self.cols, self.value, motion.smp.t
-        # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
-        soft = [(b, side * (Qp - b))
-                for side, b in ((-1, lim.soft_lower[cols]), (1, lim.soft_upper[cols]))]
-        at_soft = [np.argmax(x, axis=0) for _, x in soft]
+    @property
+    def value(self) -> np.ndarray:
+        """q of the limited joints (formed when asked for), each joint's samples contiguous."""
+        return np.asfortranarray(_take(self._motion.Q, self.cols))
+
+    def _soft(self, motion: Motion, at_lo: np.ndarray, at_hi: np.ndarray) -> list[str]:
+        lim, cols, Q, tt = motion.limits, self.cols, motion.Q, motion.smp.t
         out = []
         for c, where in enumerate(self.where):
-            for (bound, beyond), at in zip(soft, at_soft):
-                n = at[c]
-                if beyond[n, c] > 0:
-                    out.append(f"{where} enters its soft-limit zone: q = {_fmt(Qp[n, c])} "
-                               f"{self.units[c]} beyond {_fmt(bound[c])} at t = {tt[n]:.2f} s")
+            j = cols[c]
+            # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
+            for bound, n, beyond in ((lim.soft_lower[j], at_lo[c], -(Q[at_lo[c], j] - lim.soft_lower[j])),
+                                     (lim.soft_upper[j], at_hi[c], Q[at_hi[c], j] - lim.soft_upper[j])):
+                if beyond > 0:
+                    out.append(f"{where} enters its soft-limit zone: q = {_fmt(Q[n, j])} "
+                               f"{self.units[c]} beyond {_fmt(bound)} at t = {tt[n]:.2f} s")
         return out
 
-    def _hard(self, motion: Motion, over: np.ndarray) -> tuple[list[Peak], list[Violation]]:
-        lim, cols, Qp, tt = motion.limits, self.cols, self.value, motion.smp.t
+    def _hard(self, motion: Motion, at_over: np.ndarray, at_mid: np.ndarray
+              ) -> tuple[list[Peak], list[Violation]]:
+        lim, cols, Q, tt = motion.limits, self.cols, motion.Q, motion.smp.t
         lo, hi = lim.position_lower[cols], lim.position_upper[cols]
-        at_over = np.argmax(over, axis=0)
         ranged = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-        at_mid = np.argmax(np.abs(Qp - mid), axis=0)
         peaks, violations = [], []
         for c, where in enumerate(self.where):
-            n = at_over[c]
-            if over[n, c] > 0:
-                bad = over[:, c] > 0
-                q = float(Qp[n, c])
+            n, q = at_over[c], float(Q[at_over[c], cols[c]])
+            if max(q - hi[c], lo[c] - q) > 0:
+                bad = np.maximum(Q[:, cols[c]] - hi[c], lo[c] - Q[:, cols[c]]) > 0
                 violations.append(Violation(
                     where, "position", float(tt[np.argmax(bad)]), float(tt[n]), q,
                     float(hi[c] if q > hi[c] else lo[c]), float(motion.smp.weight[bad].sum()),
                     self.units[c]))
             if ranged[c]:
                 n = at_mid[c]
-                q = float(Qp[n, c])
-                peaks.append(Peak(where, float(abs(Qp[n, c] - mid[c]) / half[c]), float(tt[n]), q,
+                q = float(Q[n, cols[c]])
+                peaks.append(Peak(where, float(abs(q - mid[c]) / half[c]), float(tt[n]), q,
                                   float(hi[c] if q >= mid[c] else lo[c])))
         return peaks, violations
 

@@ -16,7 +16,8 @@ import numpy as np
 
 from dyn_node.core.check import force_laws
 from dyn_node.core.check.constraints import (Band, Blocked, LimitedConstraint, Motion, PayloadTerms,
-                                             _affine_band)
+                                             ScanRequest, Scanned, _affine_band, merge)
+from dyn_node.core.compiled import scan_kernels as sk
 from dyn_node.core.check.force_laws import LawResult
 from dyn_node.core.robot.task_limits import FrameLimits
 from dyn_node.core.check.task_motion import FRAME_ROLE
@@ -47,21 +48,23 @@ class TaskConstraint(LimitedConstraint):
         self.where = tuple(w for w, _ in laws)
         self.units = [self.unit] * len(laws)
         self.laws = [law for _, law in laws]
-        M = len(motion.smp.t)
-        self.value = np.empty((M, len(laws)), order="F")
-        for c, law in enumerate(self.laws):
-            self.value[:, c] = law.value
-        self.limit = np.broadcast_to(np.array([law.limit for law in self.laws]), self.value.shape)
-        rows = motion.rows
-        ks = [law.time_scale[rows] for law in self.laws]
-        self._k = np.array([float(np.max(np.where(np.isnan(k), np.inf, k))) if k.size else 0.0
-                            for k in ks])
-        self._blocked = None
-        for c, k in enumerate(ks):
-            if np.any(~(k < np.inf)):
-                n = motion.r0 + int(np.argmax(~(k < np.inf)))
-                self._blocked = Blocked(self.where[c], self._block_text(motion, c, n))
-                break
+        self._motion = motion
+        self.limit = np.broadcast_to(np.array([law.limit for law in self.laws]),
+                                     (len(motion.smp.t), len(laws)))
+
+    @property
+    def value(self) -> np.ndarray:
+        """The places' values side by side (M × places; formed when asked for)."""
+        return np.column_stack([law.value for law in self.laws]) if self.laws else \
+            np.empty((len(self._motion.smp.t), 0))
+
+    def scan_requests(self) -> list[ScanRequest]:
+        # per place its value against its limit
+        return [ScanRequest(sk.ABS, (law.value[:, None],), np.array([law.limit]))
+                for law in self.laws]
+
+    def _peak_answer(self, motion: Motion) -> Scanned:
+        return merge(self.scanned(motion)[:len(self.laws)])
 
     def _block_text(self, motion: Motion, c: int, n: int) -> str:
         law = self.laws[c]
@@ -72,11 +75,23 @@ class TaskConstraint(LimitedConstraint):
                 f"{law.static_value[n]:.3g} {self.unit} of {law.limit:.3g} at t = "
                 f"{motion.smp.t[n]:.2f} s; no slowdown helps")
 
+    def _ks(self) -> np.ndarray:
+        """Per place the largest per-sample k over the rows (a NaN sample: inf; NaN wins
+        numpy.max)."""
+        rows = self._motion.rows
+        ks = [float(np.max(k)) if (k := law.time_scale[rows]).size else 0.0 for law in self.laws]
+        return np.array([math.inf if math.isnan(k) else k for k in ks])
+
     def time_scale(self) -> np.ndarray:
-        return self._k
+        return self._ks()
 
     def blocked(self) -> Blocked | None:
-        return self._blocked
+        motion = self._motion
+        for c in np.flatnonzero(~(self._ks() < np.inf)):
+            k = self.laws[c].time_scale[motion.rows]
+            n = motion.r0 + int(np.argmax(~(k < np.inf)))
+            return Blocked(self.where[c], self._block_text(motion, int(c), n))
+        return None
 
 
 class FrameConstraint(TaskConstraint):

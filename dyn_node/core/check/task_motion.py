@@ -19,6 +19,7 @@ from dyn_node.core.robot.dynamics import Dynamics, TorqueTerms
 from dyn_node.core.check.frames import BaseWrench, FrameBatch, FrameKinematics, FramePoint
 from dyn_node.core.robot.model import RobotModel
 from dyn_node.core.robot.task_limits import TaskLimits
+from dyn_node.errors import ModelError
 
 if TYPE_CHECKING:
     from dyn_node.core.check.constraints import Motion
@@ -190,12 +191,36 @@ def torque_terms(dynamics: Dynamics, batch: FrameBatch, V: np.ndarray, A: np.nda
     return dynamics.split_terms(grv.T, trq.T, V, A)
 
 
+_UNSUPPORTED: "weakref.WeakKeyDictionary[Dynamics, RobotModel]" = weakref.WeakKeyDictionary()
+
+
+def joint_terms(dynamics: Dynamics, Q: np.ndarray, V: np.ndarray, A: np.ndarray, *,
+                payload_torque: bool = False
+                ) -> tuple[TorqueTerms, np.ndarray | None] | tuple[None, None]:
+    """Without a task section: the torque terms of the states from the frame pass on the
+    payload point alone (its RNEA and gravity, ~0.6 of Pinocchio's batched RNEA with the
+    compiled gravity pass on the bench's Panda), and with ``payload_torque`` τ1 per kg there;
+    (None, None) where the kernels cannot take the model (a joint other than one-DoF revolute
+    or prismatic) or a state is not finite: the caller then asks Dynamics.terms_batch."""
+    model = dynamics.model
+    if _UNSUPPORTED.get(dynamics) is model or not all(np.isfinite(X).all() for X in (Q, V, A)):
+        return None, None
+    try:
+        fk, _ = kinematics(dynamics)
+    except ModelError:
+        _UNSUPPORTED[dynamics] = model
+        return None, None
+    batch = fk.compute(Q, V, A, inertia=False, base=False, unit_mass=payload_torque, rnea=True)
+    return torque_terms(dynamics, batch, V, A), batch.unit_mass_torque
+
+
 def inverse_dynamics(dynamics: Dynamics, Q: np.ndarray, V: np.ndarray, A: np.ndarray
                      ) -> np.ndarray | None:
-    """τ (N×nv) at the states by the check's own route when a task section is configured
-    (the frame pass's RNEA terms plus J_frameᵀ·W of a task wrench), None otherwise."""
+    """τ (N×nv) at the states by the check's own route (the frame pass's RNEA terms, plus
+    J_frameᵀ·W of a task wrench), None where the check takes Dynamics.terms_batch."""
     if not configured(dynamics.model.task_limits):
-        return None
+        terms = joint_terms(dynamics, Q, V, A)[0]
+        return None if terms is None else np.ascontiguousarray(terms.full)
     fk, roles = kinematics(dynamics)
     batch = fk.compute(Q, V, A, inertia=False, base=False, rnea=True)
     tau = np.ascontiguousarray(torque_terms(dynamics, batch, V, A).full)

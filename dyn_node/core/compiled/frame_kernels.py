@@ -9,6 +9,44 @@ no call stops to compile.
 
 Everything is computed in world axes at the world origin; the base wrench is moved to the base
 frame's origin and axes at the end.
+
+:func:`frame_rows`, per state k of Q, V, A (N×nv) and per frame f (F of them):
+
+* ``pos[f, k]``, ``vel``, ``acc`` (F×N×3, world axes): the frame point's position, linear
+  velocity J_v·q̇ and classical acceleration J_v·q̈ + J̇_v·q̇ (no gravity); ``omega``,
+  ``alpha``: the frame's angular velocity and acceleration; ``rot[f, k]`` (F×N×9) the
+  frame-to-world rotation, row-major (Pinocchio's oMf rotation);
+* ``tau[ftau[f], k]`` (·×N×nv) for the frames with ``ftau[f]`` ≥ 0: J_localᵀ·W for the
+  frame's wrench W = ``fwrench[f]`` ([force; torque] in the frame's axes, at its origin:
+  Pinocchio's LOCAL Jacobian);
+* with ``with_inertia``: ``Mout[k]`` = M(q) (CRBA, ``armature`` on the diagonal; Mout may
+  be sized 0 when M itself is not wanted), ``ke[k]`` = ½·q̇ᵀMq̇, ``gq[k]`` = g(q) (the
+  generalized gravity, from the same subtree sums), ``mu[f, k]`` = 1/(uᵀJ_vM⁻¹J_vᵀu)
+  with u = vel/|vel| (by the Cholesky factor of M) for the frames with ``fmass[f]`` (the
+  other rows are not written); 0 where |vel| = 0, NaN where M is not positive definite;
+  with ``fcouple`` ≥ 0 (a
+  frame index c) also ``couple[f, k]`` = J_c·M⁻¹·J_vᵀu (3; 0 where |vel| = 0) and
+  ``couple_inertia[k]`` = J_c·M⁻¹·J_cᵀ (xx, xy, xz, yy, yz, zz), J_c the linear Jacobian
+  of frame c's point: what a point mass added there does to m_u (Woodbury);
+* with ``with_base``: the wrench [force; moment] the mounting exerts on the robot at the
+  origin of a frame fixed to the world (``root``) in its axes, split into ``wstatic[k]``
+  (gravity: q̇ = q̈ = 0) and ``wdynamic[k]`` (the momentum rate dh/dt, quadratic in q̇ and
+  linear in q̈), and ``com[k]``, the centre of mass of every body (root link's included),
+  in that frame;
+* with ``funit`` ≥ 0 (a frame index u) and ``unit`` sized N: ``unit[k]`` (N×nv) =
+  J_uᵀ·(a_u − g), the joint torque 1 kg more at frame u's point adds (a point mass: its
+  force m·(a_u − g), J_u the point's linear Jacobian);
+* with ``rnea`` and ``grav`` sized N: ``rnea[k]`` = the rigid-body inverse dynamics
+  M(q)q̈ + C(q, q̇)q̇ + g(q) + armature·q̈ and ``grav[k]`` = g(q) (N×nv), by a backward pass
+  over the bodies' momentum rates and weights (:func:`_rnea_backward`).
+
+Model tables (rows 0..n−1, row 0 the world and the bodies fixed to it): ``parent``,
+``revolute``, ``index``, ``placement``, ``axis`` as :func:`dyn_node.core.compiled.rigid_kernels.gravity_rows`;
+``inertia[i]`` = mass, centre of mass (3, joint frame), rotational inertia about it (xx, xy,
+xz, yy, yz, zz, joint axes); ``gravity`` (3, world); ``root`` that frame's placement in
+the world (12). Frames: ``fjoint[f]`` its joint, ``fplace[f]`` its placement in the joint
+(12), ``fpoint[f]`` the point in frame axes. Arrays sized 0 along N are not written (the
+parts switched off).
 """
 from __future__ import annotations
 
@@ -30,6 +68,7 @@ _C1 = types.Array(_f8, 1, "C")
 _C2 = types.Array(_f8, 2, "C")
 _C3 = types.Array(_f8, 3, "C")
 _A2 = types.Array(_f8, 2, "A")
+_A = np.ndarray
 
 
 @njit(**_JIT)
@@ -312,244 +351,268 @@ def _rnea_backward(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, 
                 bg[j, r] += bg[i, r]
 
 
-# One compiled pass per state over the joint tree: split into calls, per-state overhead
-# would break the check's time budget.
+@njit(inline="always", **_JIT)
+def _joint_motion(Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, w: np.ndarray, al: np.ndarray,
+                  vo: np.ndarray, ao: np.ndarray, parent: np.ndarray, placement: np.ndarray,
+                  axis: np.ndarray, revolute: np.ndarray, i: int, q: float, qd: float,
+                  qdd: float) -> tuple[float, float, float, float, float, float]:
+    """Joint i's pose (:func:`joint_step`), then its frame's ω, α (w[i], al[i]) and its origin's
+    velocity and classical acceleration (vo[i], ao[i]) from the parent's; returns the origin
+    and that acceleration."""
+    a = parent[i]
+    px, py, pz, zx, zy, zz = joint_step(Rw, pw, z, parent, placement, axis, revolute, i, q)
+    # motion of the joint origin from the parent's: r = p_i − p_a moves rigidly with the
+    # parent, plus the prismatic stroke along z
+    wax, way, waz = w[a, 0], w[a, 1], w[a, 2]
+    vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, a, px - pw[a, 0], py - pw[a, 1],
+                                         pz - pw[a, 2])
+    hx, hy, hz = _cross(wax, way, waz, zx, zy, zz)
+    if revolute[i]:
+        w[i, 0], w[i, 1], w[i, 2] = wax + zx * qd, way + zy * qd, waz + zz * qd
+        al[i, 0] = al[a, 0] + zx * qdd + hx * qd
+        al[i, 1] = al[a, 1] + zy * qdd + hy * qd
+        al[i, 2] = al[a, 2] + zz * qdd + hz * qd
+    else:
+        w[i, 0], w[i, 1], w[i, 2] = wax, way, waz
+        al[i, 0], al[i, 1], al[i, 2] = al[a, 0], al[a, 1], al[a, 2]
+        vx, vy, vz = vx + zx * qd, vy + zy * qd, vz + zz * qd
+        ax_ += zx * qdd + 2 * hx * qd
+        ay_ += zy * qdd + 2 * hy * qd
+        az_ += zz * qdd + 2 * hz * qd
+    vo[i, 0], vo[i, 1], vo[i, 2] = vx, vy, vz
+    ao[i, 0], ao[i, 1], ao[i, 2] = ax_, ay_, az_
+    return px, py, pz, ax_, ay_, az_
+
+
+@njit(inline="always", **_JIT)
+def _momentum_rate(w: np.ndarray, al: np.ndarray, i: int, m: float, lx: float, ly: float,
+                   lz: float, cwx: float, cwy: float, cwz: float, Icw: np.ndarray, ax_: float,
+                   ay_: float, az_: float) -> tuple[float, float, float, float, float, float,
+                                                    float, float, float, float, float, float]:
+    """Body i's momentum rate about the world origin: m·a_c (3), and the three parts of its
+    moment c × m·a_c, I·α and ω × I·ω (3 each, summed by the caller in that order)."""
+    wix, wiy, wiz = w[i, 0], w[i, 1], w[i, 2]
+    t1x, t1y, t1z = _cross(al[i, 0], al[i, 1], al[i, 2], lx, ly, lz)
+    t2x, t2y, t2z = _cross(wix, wiy, wiz, lx, ly, lz)
+    t3x, t3y, t3z = _cross(wix, wiy, wiz, t2x, t2y, t2z)
+    mx = m * (ax_ + t1x + t3x)
+    my = m * (ay_ + t1y + t3y)
+    mz = m * (az_ + t1z + t3z)
+    kx, ky, kz = _cross(cwx, cwy, cwz, mx, my, mz)
+    ix, iy, iz = _sym_mul(Icw, al[i, 0], al[i, 1], al[i, 2])
+    jx, jy, jz = _sym_mul(Icw, wix, wiy, wiz)
+    ox, oy, oz = _cross(wix, wiy, wiz, jx, jy, jz)
+    return mx, my, mz, kx, ky, kz, ix, iy, iz, ox, oy, oz
+
+
+@njit(inline="always", **_JIT)
+def _body_rates(bm: np.ndarray, bg: np.ndarray, i: int, m: float, g0: float, g1: float,
+                g2: float, cwx: float, cwy: float, cwz: float, mx: float, my: float, mz: float,
+                nx: float, ny: float, nz: float) -> None:
+    """Body i's momentum rate (m, n) and weight with its moment into bm[i] and bg[i]."""
+    bm[i, 0], bm[i, 1], bm[i, 2] = mx, my, mz
+    bm[i, 3], bm[i, 4], bm[i, 5] = nx, ny, nz
+    gfx, gfy, gfz = m * g0, m * g1, m * g2
+    bg[i, 0], bg[i, 1], bg[i, 2] = gfx, gfy, gfz
+    bg[i, 3], bg[i, 4], bg[i, 5] = _cross(cwx, cwy, cwz, gfx, gfy, gfz)
+
+
+@njit(inline="always", **_JIT)
+def _composite(cm: np.ndarray, ch: np.ndarray, cJ: np.ndarray, Icw: np.ndarray, i: int,
+               m: float, cwx: float, cwy: float, cwz: float) -> None:
+    """Body i's mass, first moment and inertia about the world origin (CRBA's leaves)."""
+    cm[i] = m
+    ch[i, 0], ch[i, 1], ch[i, 2] = m * cwx, m * cwy, m * cwz
+    c2 = cwx * cwx + cwy * cwy + cwz * cwz
+    cJ[i, 0] = Icw[0] + m * (c2 - cwx * cwx)
+    cJ[i, 1] = Icw[1] - m * cwx * cwy
+    cJ[i, 2] = Icw[2] - m * cwx * cwz
+    cJ[i, 3] = Icw[3] + m * (c2 - cwy * cwy)
+    cJ[i, 4] = Icw[4] - m * cwy * cwz
+    cJ[i, 5] = Icw[5] + m * (c2 - cwz * cwz)
+
+
+@njit(inline="always", **_JIT)
+def _kinetic(Mk: np.ndarray, V: np.ndarray, k: int) -> float:
+    """½·q̇ᵀMq̇ of state k."""
+    nv = Mk.shape[0]
+    e = 0.0
+    for r in range(nv):
+        t = 0.0
+        for s in range(nv):
+            t += Mk[r, s] * V[k, s]
+        e += V[k, r] * t
+    return 0.5 * e
+
+
+@njit(inline="always", **_JIT)
+def _frame_motion(Rw: np.ndarray, pw: np.ndarray, w: np.ndarray, al: np.ndarray,
+                  vo: np.ndarray, ao: np.ndarray, j: int, fplace: np.ndarray,
+                  fpoint: np.ndarray, f: int, k: int, Rf: np.ndarray, rot: np.ndarray,
+                  pos: np.ndarray, vel: np.ndarray, omega: np.ndarray, acc: np.ndarray,
+                  alpha: np.ndarray) -> tuple[tuple[float, float, float],
+                                              tuple[float, float, float],
+                                              tuple[float, float, float]]:
+    """Frame f (on joint j) at state k: its rotation (into Rf and rot[f, k], 9), its point's
+    position, velocity and classical acceleration and the frame's ω and α (3 each, [f, k]);
+    returns the frame origin, the point and its velocity."""
+    Rj, P = Rw[j], fplace[f]
+    Rf[0], Rf[1], Rf[2], Rf[3], Rf[4], Rf[5], Rf[6], Rf[7], Rf[8] = _mul9(Rj, P)
+    for r in range(9):
+        rot[f, k, r] = Rf[r]
+    tx, ty, tz = _rot(Rj, P[9], P[10], P[11])
+    ox, oy, oz = pw[j, 0] + tx, pw[j, 1] + ty, pw[j, 2] + tz
+    qx, qy, qz = _rot(Rf, fpoint[f, 0], fpoint[f, 1], fpoint[f, 2])
+    px, py, pz = ox + qx, oy + qy, oz + qz
+    vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, j, px - pw[j, 0], py - pw[j, 1],
+                                         pz - pw[j, 2])
+    pos[f, k, 0], pos[f, k, 1], pos[f, k, 2] = px, py, pz
+    vel[f, k, 0], vel[f, k, 1], vel[f, k, 2] = vx, vy, vz
+    omega[f, k, 0], omega[f, k, 1], omega[f, k, 2] = w[j, 0], w[j, 1], w[j, 2]
+    acc[f, k, 0], acc[f, k, 1], acc[f, k, 2] = ax_, ay_, az_
+    alpha[f, k, 0], alpha[f, k, 1], alpha[f, k, 2] = al[j, 0], al[j, 1], al[j, 2]
+    return (ox, oy, oz), (px, py, pz), (vx, vy, vz)
+
+
+@njit(inline="always", **_JIT)
+def linear_column(z: np.ndarray, pw: np.ndarray, revolute: np.ndarray, i: int, px: float,
+                  py: float, pz: float) -> tuple[float, float, float]:
+    """Joint i's column of the linear Jacobian of the world point p: z × (p − p_i) revolute, z
+    prismatic (world axes). Shared by the frame and the observer kernels."""
+    zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
+    if revolute[i]:
+        return _cross(zx, zy, zz, px - pw[i, 0], py - pw[i, 1], pz - pw[i, 2])
+    return zx, zy, zz
+
+
+@njit(inline="always", **_JIT)
+def _frame_jacobian(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray,
+                    pw: np.ndarray, z: np.ndarray, j: int, f: int, k: int, Rf: np.ndarray,
+                    fwrench: np.ndarray, o: tuple[float, float, float],
+                    p: tuple[float, float, float], v: tuple[float, float, float],
+                    acc: np.ndarray, gravity: np.ndarray, tau: np.ndarray, t: int,
+                    b: np.ndarray, Jc: np.ndarray, unit: np.ndarray, couples: bool,
+                    unitmass: bool) -> float:
+    """Down the chain from frame f's joint j at state k, per joint column c: the task torque
+    J_localᵀ·W (tau[t, k, c] where t ≥ 0; W = ``fwrench[f]`` at the frame origin o), J_vᵀu at
+    the point p with u = v/|v| (b[c]; 0 for a still point), J_v's column (Jc[c], ``couples``)
+    and J_vᵀ(a − g) (unit[k, c], ``unitmass``); zero off the chain. Returns |v|."""
+    vx, vy, vz = v
+    gx, gy, gz = acc[f, k, 0] - gravity[0], acc[f, k, 1] - gravity[1], acc[f, k, 2] - gravity[2]
+    Fx, Fy, Fz = _rot(Rf, fwrench[f, 0], fwrench[f, 1], fwrench[f, 2])
+    Tx, Ty, Tz = _rot(Rf, fwrench[f, 3], fwrench[f, 4], fwrench[f, 5])
+    speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+    uxx, uyy, uzz = (vx / speed, vy / speed, vz / speed) if speed > 0 else (0.0, 0.0, 0.0)
+    for c in range(len(b)):
+        if t >= 0:
+            tau[t, k, c] = 0.0
+        b[c] = 0.0
+        if couples:
+            Jc[c, 0] = Jc[c, 1] = Jc[c, 2] = 0.0
+        if unitmass:
+            unit[k, c] = 0.0
+    i = j
+    while i > 0:
+        c = index[i]
+        zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
+        if t >= 0:
+            # J column: [z × (o − p_i); z] (revolute), [z; 0]: its product with the world wrench
+            if revolute[i]:
+                mx, my, mz = _cross(o[0] - pw[i, 0], o[1] - pw[i, 1], o[2] - pw[i, 2],
+                                    Fx, Fy, Fz)
+                tau[t, k, c] = zx * (mx + Tx) + zy * (my + Ty) + zz * (mz + Tz)
+            else:
+                tau[t, k, c] = zx * Fx + zy * Fy + zz * Fz
+        jx, jy, jz = linear_column(z, pw, revolute, i, p[0], p[1], p[2])
+        b[c] = jx * uxx + jy * uyy + jz * uzz
+        if couples:
+            Jc[c, 0], Jc[c, 1], Jc[c, 2] = jx, jy, jz
+        if unitmass:
+            unit[k, c] = jx * gx + jy * gy + jz * gz
+        i = parent[i]
+    return speed
+
+
+# One compiled pass per state over the joint tree: the helpers above are called per state,
+# joint and frame with scalars in and out (no arrays made), so the pass stays one loop.
 @njit([types.void(_M, _M, _M, _I, _B, _I, _M, _M, _M, _V, _V, _V, _I, _M, _M, _M, _B, _I,
                   types.int64, types.int64, types.boolean, types.boolean, _C3, _C3, _C3, _C3,
                   _C3, _C3, _C3, _C2, _C3, _C2, _C3, _C1, _C2, _C2, _C2, _C2, _A2, _C2,
                   _C2)], **_JIT)
-def frame_rows(Q: np.ndarray, V: np.ndarray, A: np.ndarray, parent: np.ndarray,
-               revolute: np.ndarray, index: np.ndarray, placement: np.ndarray, axis: np.ndarray,
-               inertia: np.ndarray, armature: np.ndarray, gravity: np.ndarray,
-               root: np.ndarray, fjoint: np.ndarray, fplace: np.ndarray, fpoint: np.ndarray,
-               fwrench: np.ndarray, fmass: np.ndarray, ftau: np.ndarray, fcouple: int,
-               funit: int, with_inertia: bool, with_base: bool,
-               pos: np.ndarray, vel: np.ndarray, omega: np.ndarray, acc: np.ndarray,
-               alpha: np.ndarray, rot: np.ndarray, tau: np.ndarray, mu: np.ndarray,
-               couple: np.ndarray, couple_inertia: np.ndarray, Mout: np.ndarray,
-               ke: np.ndarray, gq: np.ndarray, wstatic: np.ndarray, wdynamic: np.ndarray,
-               com: np.ndarray, unit: np.ndarray, rnea: np.ndarray, grav: np.ndarray) -> None:
-    """Per state k of Q, V, A (N×nv) and per frame f (F of them):
-
-    * ``pos[f, k]``, ``vel``, ``acc`` (F×N×3, world axes): the frame point's position, linear
-      velocity J_v·q̇ and classical acceleration J_v·q̈ + J̇_v·q̇ (no gravity); ``omega``,
-      ``alpha``: the frame's angular velocity and acceleration; ``rot[f, k]`` (F×N×9) the
-      frame-to-world rotation, row-major (Pinocchio's oMf rotation);
-    * ``tau[ftau[f], k]`` (·×N×nv) for the frames with ``ftau[f]`` ≥ 0: J_localᵀ·W for the
-      frame's wrench W = ``fwrench[f]`` ([force; torque] in the frame's axes, at its origin:
-      Pinocchio's LOCAL Jacobian);
-    * with ``with_inertia``: ``Mout[k]`` = M(q) (CRBA, ``armature`` on the diagonal; Mout may
-      be sized 0 when M itself is not wanted), ``ke[k]`` = ½·q̇ᵀMq̇, ``gq[k]`` = g(q) (the
-      generalized gravity, from the same subtree sums), ``mu[f, k]`` = 1/(uᵀJ_vM⁻¹J_vᵀu)
-      with u = vel/|vel| (by the Cholesky factor of M) for the frames with ``fmass[f]`` (the
-      other rows are not written); 0 where |vel| = 0, NaN where M is not positive definite;
-      with ``fcouple`` ≥ 0 (a
-      frame index c) also ``couple[f, k]`` = J_c·M⁻¹·J_vᵀu (3; 0 where |vel| = 0) and
-      ``couple_inertia[k]`` = J_c·M⁻¹·J_cᵀ (xx, xy, xz, yy, yz, zz), J_c the linear Jacobian
-      of frame c's point: what a point mass added there does to m_u (Woodbury);
-    * with ``with_base``: the wrench [force; moment] the mounting exerts on the robot at the
-      origin of a frame fixed to the world (``root``) in its axes, split into ``wstatic[k]``
-      (gravity: q̇ = q̈ = 0) and ``wdynamic[k]`` (the momentum rate dh/dt, quadratic in q̇ and
-      linear in q̈), and ``com[k]``, the centre of mass of every body (root link's included),
-      in that frame;
-    * with ``funit`` ≥ 0 (a frame index u) and ``unit`` sized N: ``unit[k]`` (N×nv) =
-      J_uᵀ·(a_u − g), the joint torque 1 kg more at frame u's point adds (a point mass: its
-      force m·(a_u − g), J_u the point's linear Jacobian);
-    * with ``rnea`` and ``grav`` sized N: ``rnea[k]`` = the rigid-body inverse dynamics
-      M(q)q̈ + C(q, q̇)q̇ + g(q) + armature·q̈ and ``grav[k]`` = g(q) (N×nv), by a backward pass
-      over the bodies' momentum rates and weights (:func:`_rnea_backward`).
-
-    Model tables (rows 0..n−1, row 0 the world and the bodies fixed to it): ``parent``,
-    ``revolute``, ``index``, ``placement``, ``axis`` as :func:`dyn_node.core.compiled.rigid_kernels.gravity_rows`;
-    ``inertia[i]`` = mass, centre of mass (3, joint frame), rotational inertia about it (xx, xy,
-    xz, yy, yz, zz, joint axes); ``gravity`` (3, world); ``root`` that frame's placement in
-    the world (12). Frames: ``fjoint[f]`` its joint, ``fplace[f]`` its placement in the joint
-    (12), ``fpoint[f]`` the point in frame axes. Arrays sized 0 along N are not written (the
-    parts switched off).
-    """
-    n = len(parent)
+def frame_rows(Q: _A, V: _A, A: _A, parent: _A, revolute: _A, index: _A, placement: _A, axis: _A,
+               inertia: _A, armature: _A, gravity: _A, root: _A, fjoint: _A, fplace: _A,
+               fpoint: _A, fwrench: _A, fmass: _A, ftau: _A, fcouple: int, funit: int,
+               with_inertia: bool, with_base: bool, pos: _A, vel: _A, omega: _A, acc: _A,
+               alpha: _A, rot: _A, tau: _A, mu: _A, couple: _A, couple_inertia: _A, Mout: _A,
+               ke: _A, gq: _A, wstatic: _A, wdynamic: _A, com: _A, unit: _A, rnea: _A,
+               grav: _A) -> None:
+    """Per state k of Q, V, A (N×nv) and frame f, what the module docstring lists."""
+    n, F = len(parent), len(fjoint)
     N, nv = Q.shape
-    F = len(fjoint)
-    Rw = np.zeros((n, 9))
-    pw = np.zeros((n, 3))
-    z = np.zeros((n, 3))
-    w = np.zeros((n, 3))       # angular velocity of each joint frame
-    vo = np.zeros((n, 3))      # linear velocity of each joint origin
-    al = np.zeros((n, 3))      # angular acceleration
-    ao = np.zeros((n, 3))      # classical linear acceleration of each joint origin
-    cm = np.zeros(n)           # composite (subtree) mass, first moment, inertia about the origin
-    ch = np.zeros((n, 3))
-    cJ = np.zeros((n, 6))
-    Icw = np.zeros(6)
-    Rf = np.zeros(9)
-    L = np.zeros((nv, nv))
-    Ms = np.zeros((nv, nv))    # M when Mout is not asked for
-    sv = np.zeros((n, 3))
-    b = np.zeros(nv)
-    y = np.zeros(nv)
-    inv = np.zeros(nv)         # 1 / diagonal of L
+    Rw, pw, z, w = np.zeros((n, 9)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    vo, al, ao = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    # CRBA's subtree sums; M (when Mout is not asked for), its factor; L⁻¹·J_vᵀu; J_cᵀ
+    cm, ch, cJ, Icw, Rf = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 6)), np.zeros(6), np.zeros(9)
+    L, Ms, sv = np.zeros((nv, nv)), np.zeros((nv, nv)), np.zeros((n, 3))
+    b, y, inv = np.zeros(nv), np.zeros(nv), np.zeros(nv)
+    Yf, Jc = np.zeros((F, nv)), np.zeros((nv, 3))
+    bm, bg = np.zeros((n, 6)), np.zeros((n, 6))    # each body's momentum rate and weight
     coupled = with_inertia and fcouple >= 0
     # M's factor only for the effective masses (the kinetic energy needs M alone)
     factor = with_inertia and (coupled or np.any(fmass))
-    Yf = np.zeros((F, nv))     # L⁻¹·J_vᵀu per frame
-    Jc = np.zeros((nv, 3))     # J_cᵀ, then L⁻¹·J_cᵀ
-    positive = False
-    with_rnea = len(rnea) > 0
-    momentum = with_base or with_rnea
-    bm = np.zeros((n, 6))      # each body's momentum rate and weight about the world origin
-    bg = np.zeros((n, 6))
+    positive, with_rnea, momentum = False, len(rnea) > 0, with_base or len(rnea) > 0
     Rw[0, 0] = Rw[0, 4] = Rw[0, 8] = 1.0
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
-    # bodies fixed to the world: in the static sums only (they never move)
-    m0 = inertia[0, 0]
+    m0 = inertia[0, 0]     # bodies fixed to the world: in the static sums only (never moving)
     s0x, s0y, s0z = m0 * inertia[0, 1], m0 * inertia[0, 2], m0 * inertia[0, 3]
     for k in range(N):
-        Mt, Sx, Sy, Sz = m0, s0x, s0y, s0z
-        fx = fy = fz = nx = ny = nz = 0.0
+        Mt, Sx, Sy, Sz, fx, fy, fz, nx, ny, nz = m0, s0x, s0y, s0z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
         for i in range(1, n):
-            a = parent[i]
             c = index[i]
-            q, qd, qdd = Q[k, c], V[k, c], A[k, c]
-            R = Rw[i]
-            px, py, pz, zx, zy, zz = joint_step(Rw, pw, z, parent, placement, axis, revolute, i, q)
-            # motion of the joint origin from the parent's: r = p_i − p_a moves rigidly with
-            # the parent, plus the prismatic stroke along z
-            wax, way, waz = w[a, 0], w[a, 1], w[a, 2]
-            vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, a, px - pw[a, 0], py - pw[a, 1],
-                                                 pz - pw[a, 2])
-            hx, hy, hz = _cross(wax, way, waz, zx, zy, zz)
-            if revolute[i]:
-                w[i, 0], w[i, 1], w[i, 2] = wax + zx * qd, way + zy * qd, waz + zz * qd
-                al[i, 0] = al[a, 0] + zx * qdd + hx * qd
-                al[i, 1] = al[a, 1] + zy * qdd + hy * qd
-                al[i, 2] = al[a, 2] + zz * qdd + hz * qd
-            else:
-                w[i, 0], w[i, 1], w[i, 2] = wax, way, waz
-                al[i, 0], al[i, 1], al[i, 2] = al[a, 0], al[a, 1], al[a, 2]
-                vx, vy, vz = vx + zx * qd, vy + zy * qd, vz + zz * qd
-                ax_ += zx * qdd + 2 * hx * qd
-                ay_ += zy * qdd + 2 * hy * qd
-                az_ += zz * qdd + 2 * hz * qd
-            vo[i, 0], vo[i, 1], vo[i, 2] = vx, vy, vz
-            ao[i, 0], ao[i, 1], ao[i, 2] = ax_, ay_, az_
+            px, py, pz, ax_, ay_, az_ = _joint_motion(Rw, pw, z, w, al, vo, ao, parent,
+                                                      placement, axis, revolute, i, Q[k, c],
+                                                      V[k, c], A[k, c])
             if not (with_inertia or momentum):
                 continue
-            m = inertia[i, 0]
+            R, m = Rw[i], inertia[i, 0]
             lx, ly, lz = _rot(R, inertia[i, 1], inertia[i, 2], inertia[i, 3])
             cwx, cwy, cwz = px + lx, py + ly, pz + lz
             _world_inertia(R, inertia[i, 4:], Icw)
             if momentum:
                 Mt += m
                 Sx, Sy, Sz = Sx + m * cwx, Sy + m * cwy, Sz + m * cwz
-                # the body's momentum rate about the world origin: m·a_c and
-                # c × m·a_c + I·α + ω × I·ω
-                wix, wiy, wiz = w[i, 0], w[i, 1], w[i, 2]
-                t1x, t1y, t1z = _cross(al[i, 0], al[i, 1], al[i, 2], lx, ly, lz)
-                t2x, t2y, t2z = _cross(wix, wiy, wiz, lx, ly, lz)
-                t3x, t3y, t3z = _cross(wix, wiy, wiz, t2x, t2y, t2z)
-                mx = m * (ax_ + t1x + t3x)
-                my = m * (ay_ + t1y + t3y)
-                mz = m * (az_ + t1z + t3z)
+                mx, my, mz, kx, ky, kz, ix, iy, iz, ox, oy, oz = _momentum_rate(
+                    w, al, i, m, lx, ly, lz, cwx, cwy, cwz, Icw, ax_, ay_, az_)
                 fx, fy, fz = fx + mx, fy + my, fz + mz
-                kx, ky, kz = _cross(cwx, cwy, cwz, mx, my, mz)
-                ix, iy, iz = _sym_mul(Icw, al[i, 0], al[i, 1], al[i, 2])
-                jx, jy, jz = _sym_mul(Icw, wix, wiy, wiz)
-                ox, oy, oz = _cross(wix, wiy, wiz, jx, jy, jz)
                 nx, ny, nz = nx + kx + ix + ox, ny + ky + iy + oy, nz + kz + iz + oz
                 if with_rnea:
-                    bm[i, 0], bm[i, 1], bm[i, 2] = mx, my, mz
-                    bm[i, 3], bm[i, 4], bm[i, 5] = kx + ix + ox, ky + iy + oy, kz + iz + oz
-                    gfx, gfy, gfz = m * g0, m * g1, m * g2
-                    bg[i, 0], bg[i, 1], bg[i, 2] = gfx, gfy, gfz
-                    bg[i, 3], bg[i, 4], bg[i, 5] = _cross(cwx, cwy, cwz, gfx, gfy, gfz)
+                    _body_rates(bm, bg, i, m, g0, g1, g2, cwx, cwy, cwz, mx, my, mz,
+                                kx + ix + ox, ky + iy + oy, kz + iz + oz)
             if with_inertia:
-                cm[i] = m
-                ch[i, 0], ch[i, 1], ch[i, 2] = m * cwx, m * cwy, m * cwz
-                c2 = cwx * cwx + cwy * cwy + cwz * cwz
-                cJ[i, 0] = Icw[0] + m * (c2 - cwx * cwx)
-                cJ[i, 1] = Icw[1] - m * cwx * cwy
-                cJ[i, 2] = Icw[2] - m * cwx * cwz
-                cJ[i, 3] = Icw[3] + m * (c2 - cwy * cwy)
-                cJ[i, 4] = Icw[4] - m * cwy * cwz
-                cJ[i, 5] = Icw[5] + m * (c2 - cwz * cwz)
+                _composite(cm, ch, cJ, Icw, i, m, cwx, cwy, cwz)
         if with_inertia:
             Mk = Mout[k] if len(Mout) else Ms
             _crba(parent, revolute, index, pw, z, cm, ch, cJ, armature, sv, g0, g1, g2, Mk,
                   gq[k])
-            e = 0.0
-            for r in range(nv):
-                t = 0.0
-                for s in range(nv):
-                    t += Mk[r, s] * V[k, s]
-                e += V[k, r] * t
-            ke[k] = 0.5 * e
+            ke[k] = _kinetic(Mk, V, k)
             if factor:
                 positive = _cholesky(Mk, L, inv)
         if with_rnea:
-            _rnea_backward(parent, revolute, index, pw, z, armature, A[k], bm, bg, rnea[k],
-                           grav[k])
+            _rnea_backward(parent, revolute, index, pw, z, armature, A[k], bm, bg, rnea[k], grav[k])
         if with_base:
             _base(root, Mt, Sx, Sy, Sz, g0, g1, g2, fx, fy, fz, nx, ny, nz, wstatic[k],
                   wdynamic[k], com[k])
         for f in range(F):
-            j = fjoint[f]
-            Rj, P = Rw[j], fplace[f]
-            Rf[0], Rf[1], Rf[2], Rf[3], Rf[4], Rf[5], Rf[6], Rf[7], Rf[8] = _mul9(Rj, P)
-            for r in range(9):
-                rot[f, k, r] = Rf[r]
-            tx, ty, tz = _rot(Rj, P[9], P[10], P[11])
-            ox, oy, oz = pw[j, 0] + tx, pw[j, 1] + ty, pw[j, 2] + tz
-            qx, qy, qz = _rot(Rf, fpoint[f, 0], fpoint[f, 1], fpoint[f, 2])
-            px, py, pz = ox + qx, oy + qy, oz + qz
-            vx, vy, vz, ax_, ay_, az_ = _carried(w, al, vo, ao, j, px - pw[j, 0], py - pw[j, 1],
-                                                 pz - pw[j, 2])
-            pos[f, k, 0], pos[f, k, 1], pos[f, k, 2] = px, py, pz
-            vel[f, k, 0], vel[f, k, 1], vel[f, k, 2] = vx, vy, vz
-            omega[f, k, 0], omega[f, k, 1], omega[f, k, 2] = w[j, 0], w[j, 1], w[j, 2]
-            acc[f, k, 0], acc[f, k, 1], acc[f, k, 2] = ax_, ay_, az_
-            alpha[f, k, 0], alpha[f, k, 1], alpha[f, k, 2] = al[j, 0], al[j, 1], al[j, 2]
-            # the Jacobian walk only for the frames whose torque, effective mass or coupling
-            # is wanted (what the configured kinds read)
-            wrenched, massed = ftau[f] >= 0, with_inertia and fmass[f]
-            couples = coupled and f == fcouple
+            j, t = fjoint[f], ftau[f]
+            o, p, v = _frame_motion(Rw, pw, w, al, vo, ao, j, fplace, fpoint, f, k, Rf, rot, pos,
+                                    vel, omega, acc, alpha)
+            # the Jacobian walk only where a torque, effective mass or coupling is wanted
+            massed, couples = with_inertia and fmass[f], coupled and f == fcouple
             unitmass = f == funit and len(unit) > 0
-            if not (wrenched or massed or couples or unitmass):
+            if not (t >= 0 or massed or couples or unitmass):
                 continue
-            gx, gy, gz = acc[f, k, 0] - g0, acc[f, k, 1] - g1, acc[f, k, 2] - g2
-            Fx, Fy, Fz = _rot(Rf, fwrench[f, 0], fwrench[f, 1], fwrench[f, 2])
-            Tx, Ty, Tz = _rot(Rf, fwrench[f, 3], fwrench[f, 4], fwrench[f, 5])
-            speed = math.sqrt(vx * vx + vy * vy + vz * vz)
-            uxx, uyy, uzz = (vx / speed, vy / speed, vz / speed) if speed > 0 else (0.0, 0.0, 0.0)
-            t = ftau[f]
-            for c in range(nv):
-                if wrenched:
-                    tau[t, k, c] = 0.0
-                b[c] = 0.0
-                if couples:
-                    Jc[c, 0] = Jc[c, 1] = Jc[c, 2] = 0.0
-                if unitmass:
-                    unit[k, c] = 0.0
-            i = j
-            while i > 0:
-                c = index[i]
-                zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
-                if revolute[i]:
-                    # J column: [z × (o − p_i); z]; its product with the world wrench
-                    if wrenched:
-                        mx, my, mz = _cross(ox - pw[i, 0], oy - pw[i, 1], oz - pw[i, 2],
-                                            Fx, Fy, Fz)
-                        tau[t, k, c] = zx * (mx + Tx) + zy * (my + Ty) + zz * (mz + Tz)
-                    jx, jy, jz = _cross(zx, zy, zz, px - pw[i, 0], py - pw[i, 1], pz - pw[i, 2])
-                else:
-                    if wrenched:
-                        tau[t, k, c] = zx * Fx + zy * Fy + zz * Fz
-                    jx, jy, jz = zx, zy, zz
-                b[c] = jx * uxx + jy * uyy + jz * uzz
-                if couples:
-                    Jc[c, 0], Jc[c, 1], Jc[c, 2] = jx, jy, jz
-                if unitmass:
-                    unit[k, c] = jx * gx + jy * gy + jz * gz
-                i = parent[i]
+            speed = _frame_jacobian(parent, revolute, index, pw, z, j, f, k, Rf, fwrench, o, p,
+                                    v, acc, gravity, tau, t, b, Jc, unit, couples, unitmass)
             if massed:
                 mu[f, k] = _effective_mass(L, inv, b, y, speed, positive)
                 for c in range(nv):

@@ -55,6 +55,24 @@ def _window_at(tt: np.ndarray, E: np.ndarray, n: int, j: int, span: float,
     return E[n] - (E[j] + f * (E[jn] - E[j])) + (before if before > 0 else 0.0) * hold, j
 
 
+@njit(**_JIT)
+def _last_at_or_before(tt: np.ndarray, j: int, start: float) -> int:
+    """Where :func:`_window_at`'s walk from sample j ends for a window starting at ``start``:
+    the last sample in [j, M − 2] at or before it (j itself when the next is after it), tt
+    non-decreasing."""
+    lo, hi = j, len(tt) - 2
+    if hi <= lo or tt[lo + 1] > start:
+        return j
+    # invariant: tt[lo] ≤ start (or lo = j), and every sample after hi is after start or past M − 2
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if tt[mid] <= start:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
 @njit([types.Array(_f8, 2, "C")(_V, _M, _V, _V)], **_JIT)
 def windowed(tt: np.ndarray, cum: np.ndarray, window: np.ndarray,
              hold: np.ndarray) -> np.ndarray:
@@ -114,6 +132,9 @@ def rms_worst(tt: np.ndarray, s: np.ndarray, w: np.ndarray, i: np.ndarray, x: np
         worst = -np.inf
         j = 0
         for g in range(len(grid)):
+            # the grid's window starts are ~stride samples apart: found by bisection, where
+            # _window_at would walk there sample by sample (the same sample either way)
+            j = _last_at_or_before(tt, j, tt[grid[g]] - span)
             start_grid[g] = j
             at_grid[g], j = _window_at(tt, E, grid[g], j, span, hold)
             worst = max(worst, at_grid[g])
@@ -602,10 +623,6 @@ def piecewise_eval(tables: np.ndarray, seg: np.ndarray, s: np.ndarray) -> np.nda
     return out
 
 
-_IC = types.Array(_i8, 1, "C")
-_FC = types.Array(_f8, 1, "C")
-
-
 @njit([types.Array(_i8, 2, "C")(_M, _I)], **_JIT)
 def bin_peaks(val: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Per bin b of samples [edges[b], edges[b + 1]) (edges strictly increasing) and per column
@@ -623,37 +640,6 @@ def bin_peaks(val: np.ndarray, edges: np.ndarray) -> np.ndarray:
                     best, where = v, n
             out[b, c] = where
     return out
-
-
-@njit([types.Tuple((_IC, _FC, _IC, _FC))(_M, _M, _V)], **_JIT)
-def limit_peaks(val: np.ndarray, L: np.ndarray, weight: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per column of values ``val`` (signed: their magnitude is compared) against limits ``L``
-    (M×m; L may be a broadcast view) with sample weights (M, s): the first sample of the
-    largest ratio |val|/L (a zero limit: inf if |val| > 0, else 0) and that ratio; the first
-    sample above its limit (−1: none) and the time spent above it (Σ weight)."""
-    M, m = val.shape
-    peak_at = np.zeros(m, dtype=np.int64)
-    peak = np.zeros(m)
-    first = np.full(m, -1, dtype=np.int64)
-    above = np.zeros(m)
-    constant = L.strides[0] == 0     # a broadcast row: one limit per column
-    for c in range(m):
-        best, where = -np.inf, 0
-        # one positive limit for the column: the largest ratio is at the largest magnitude, so
-        # no division per sample (the test is loop-invariant: the compiler hoists it)
-        scaled = constant and M > 0 and L[0, c] > 0
-        for n in range(M):
-            v, lim = abs(val[n, c]), L[n, c]
-            r = v if scaled else (v / lim if lim > 0 else (np.inf if v > 0 else 0.0))
-            if r > best:
-                best, where = r, n
-            if v > lim:
-                if first[c] < 0:
-                    first[c] = n
-                above[c] += weight[n]
-        peak_at[c], peak[c] = where, (best / L[0, c] if scaled else best)
-    return peak_at, peak, first, above
 
 
 @njit([_F2(_M, _I, _I, _V)], **_JIT)

@@ -16,6 +16,25 @@ subtree from body i about the world origin:
 * (Cᵀq̇)_i = (ω_i×z)·(L − p×P) + (v_i×z)·P (revolute), (ω_i×z)·P (prismatic): from
   ṗ = Mq̈ + Ṁq̇ with Ṁ = C + Cᵀ, p_i = S_i·H_i and Ṡ_i = v_i×S_i, so Cᵀq̇ = Ṁq̇ − Cq̇ = (v_i×S_i)·H_i;
 * g_i from the subtree's mass and first moment, as :func:`dyn_node.core.compiled.rigid_kernels.gravity_rows`.
+
+:func:`observer_rows`: N joint states (rows of Q, V, E in model order; T stamps in s) through the momentum
+observer, the contact wrench, the contact-level test and the power balance.
+
+``valid[k]``: the row has velocity and effort, all finite, and a finite stamp (else
+NO_ESTIMATE: the history is dropped and the power period restarted); ``reset[k]``: a restart
+was asked before row k (the observer restarts at the next valid row, the power period
+restarts). Observer: r exact over each step for the lag ṙ = K(τ_ext − r), the model terms
+trapezoidal, the effort held (``held``) or trapezoidal; restarts on a step back
+(BACKWARDS) or longer than ``max_gap`` (STAMP_GAP); a repeated stamp gives the estimate
+again without integrating (SAME_INSTANT). ``wopt`` = (ε, β, λ_max) of the wrench,
+``contact_at`` the detector's contact level per joint (N·m|N). State carried between
+calls: ``state`` (4×nv: r, p, s, e), ``clock`` (C_*), ``power`` (P_*).
+
+Out per row: ``TAU`` τ̂_ext (NaN without estimate), ``W`` the wrench at the frame (its
+axes, [force; moment]), ``info`` (I_*: since the restart, σ_min, λ, misfit, ‖force‖, dt,
+some joint over its contact level (1.0/0.0), the power balance's step (what
+:func:`power_step` returned; −1 without estimate), the observer's history dropped here
+(1.0)), ``code`` (ESTIMATE …).
 """
 from __future__ import annotations
 
@@ -24,7 +43,7 @@ import math
 import numpy as np
 from numba import njit, types
 
-from dyn_node.core.compiled.frame_kernels import _mul9, _rot, joint_step
+from dyn_node.core.compiled.frame_kernels import _mul9, _rot, joint_step, linear_column
 from dyn_node.core.compiled.jit import _B, _I, _JIT, _M, _V, _f8
 
 _C1 = types.Array(_f8, 1, "C")
@@ -159,6 +178,65 @@ def _cross(ax: float, ay: float, az: float, bx: float, by: float,
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
 
+@njit(inline="always", **_JIT)
+def _body_momentum(R: np.ndarray, inertia: np.ndarray, i: int, px: float, py: float, pz: float,
+                   vx: float, vy: float, vz: float, w: np.ndarray, H: np.ndarray) -> None:
+    """Body i's momentum about the world origin into H[i]: L = c × P + I_c·ω, P = m·v_c, then
+    its mass and first moment (origin p, origin velocity v, rotation R)."""
+    m = inertia[i, 0]
+    l0, l1, l2 = inertia[i, 1], inertia[i, 2], inertia[i, 3]
+    lx = R[0] * l0 + R[1] * l1 + R[2] * l2
+    ly = R[3] * l0 + R[4] * l1 + R[5] * l2
+    lz = R[6] * l0 + R[7] * l1 + R[8] * l2
+    cwx, cwy, cwz = px + lx, py + ly, pz + lz
+    wix, wiy, wiz = w[i, 0], w[i, 1], w[i, 2]
+    ex, ey, ez = _cross(wix, wiy, wiz, lx, ly, lz)
+    Px, Py, Pz = m * (vx + ex), m * (vy + ey), m * (vz + ez)
+    # I_c·ω in world axes: R·I·Rᵀ·ω
+    I6 = inertia[i, 4:]
+    bx = R[0] * wix + R[3] * wiy + R[6] * wiz
+    by = R[1] * wix + R[4] * wiy + R[7] * wiz
+    bz = R[2] * wix + R[5] * wiy + R[8] * wiz
+    jx = I6[0] * bx + I6[1] * by + I6[2] * bz
+    jy = I6[1] * bx + I6[3] * by + I6[4] * bz
+    jz = I6[2] * bx + I6[4] * by + I6[5] * bz
+    kx, ky, kz = _cross(cwx, cwy, cwz, Px, Py, Pz)
+    H[i, 0] = kx + R[0] * jx + R[1] * jy + R[2] * jz
+    H[i, 1] = ky + R[3] * jx + R[4] * jy + R[5] * jz
+    H[i, 2] = kz + R[6] * jx + R[7] * jy + R[8] * jz
+    H[i, 3], H[i, 4], H[i, 5] = Px, Py, Pz
+    H[i, 6] = m
+    H[i, 7], H[i, 8], H[i, 9] = m * cwx, m * cwy, m * cwz
+
+
+@njit(inline="always", **_JIT)
+def _contact_jacobian(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray,
+                      Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, fjoint: int,
+                      fplace: np.ndarray, J: np.ndarray) -> None:
+    """J (6×nv): the contact frame's Jacobian in its own axes, linear rows first (Pinocchio's
+    LOCAL), from the joints' world poses: column c = [Rfᵀ(z × (o − p)); Rfᵀz] (revolute)."""
+    A = Rw[fjoint]
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = _mul9(A, fplace)
+    tx, ty, tz = _rot(A, fplace[9], fplace[10], fplace[11])
+    ox, oy, oz = pw[fjoint, 0] + tx, pw[fjoint, 1] + ty, pw[fjoint, 2] + tz
+    for r in range(6):
+        for c in range(J.shape[1]):
+            J[r, c] = 0.0
+    i = fjoint
+    while i > 0:
+        c = index[i]
+        zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
+        if revolute[i]:
+            J[3, c] = f00 * zx + f10 * zy + f20 * zz
+            J[4, c] = f01 * zx + f11 * zy + f21 * zz
+            J[5, c] = f02 * zx + f12 * zy + f22 * zz
+        lx, ly, lz = linear_column(z, pw, revolute, i, ox, oy, oz)
+        J[0, c] = f00 * lx + f10 * ly + f20 * lz
+        J[1, c] = f01 * lx + f11 * ly + f21 * lz
+        J[2, c] = f02 * lx + f12 * ly + f22 * lz
+        i = parent[i]
+
+
 @njit(**_JIT)
 def model_terms(q: np.ndarray, v: np.ndarray, parent: np.ndarray, revolute: np.ndarray,
                 index: np.ndarray, placement: np.ndarray, axis: np.ndarray, inertia: np.ndarray,
@@ -167,11 +245,10 @@ def model_terms(q: np.ndarray, v: np.ndarray, parent: np.ndarray, revolute: np.n
                 H: np.ndarray, p: np.ndarray, ctv: np.ndarray, g: np.ndarray,
                 J: np.ndarray) -> None:
     """One state: p = M(q)q̇ (armature included), Cᵀq̇ and g(q) (nv each), and J (6×nv) the
-    contact frame's Jacobian in its own axes, linear rows first (Pinocchio's LOCAL); the rest
-    are scratch (n rows each: rotations, origins, axes, ω, origin velocities, subtree momentum
-    and mass sums [Lx Ly Lz Px Py Pz M Sx Sy Sz])."""
+    contact frame's Jacobian (:func:`_contact_jacobian`); the rest are scratch (n rows each:
+    rotations, origins, axes, ω, origin velocities, subtree momentum and mass sums
+    [Lx Ly Lz Px Py Pz M Sx Sy Sz])."""
     n = len(parent)
-    nv = len(q)
     Rw[0, :] = 0.0
     Rw[0, 0] = Rw[0, 4] = Rw[0, 8] = 1.0
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
@@ -179,7 +256,6 @@ def model_terms(q: np.ndarray, v: np.ndarray, parent: np.ndarray, revolute: np.n
         a = parent[i]
         c = index[i]
         qd = v[c]
-        R = Rw[i]
         px, py, pz, zx, zy, zz = joint_step(Rw, pw, z, parent, placement, axis, revolute, i, q[c])
         # velocity of this origin: the parent's origin velocity carried by ω_a, plus a stroke
         wax, way, waz = w[a, 0], w[a, 1], w[a, 2]
@@ -191,31 +267,7 @@ def model_terms(q: np.ndarray, v: np.ndarray, parent: np.ndarray, revolute: np.n
             w[i, 0], w[i, 1], w[i, 2] = wax, way, waz
             vx, vy, vz = vx + zx * qd, vy + zy * qd, vz + zz * qd
         vo[i, 0], vo[i, 1], vo[i, 2] = vx, vy, vz
-        # the body's momentum about the world origin: P = m·v_c, L = c × P + I_c·ω
-        m = inertia[i, 0]
-        l0, l1, l2 = inertia[i, 1], inertia[i, 2], inertia[i, 3]
-        lx = R[0] * l0 + R[1] * l1 + R[2] * l2
-        ly = R[3] * l0 + R[4] * l1 + R[5] * l2
-        lz = R[6] * l0 + R[7] * l1 + R[8] * l2
-        cwx, cwy, cwz = px + lx, py + ly, pz + lz
-        wix, wiy, wiz = w[i, 0], w[i, 1], w[i, 2]
-        ex, ey, ez = _cross(wix, wiy, wiz, lx, ly, lz)
-        Px, Py, Pz = m * (vx + ex), m * (vy + ey), m * (vz + ez)
-        # I_c·ω in world axes: R·I·Rᵀ·ω
-        I6 = inertia[i, 4:]
-        bx = R[0] * wix + R[3] * wiy + R[6] * wiz
-        by = R[1] * wix + R[4] * wiy + R[7] * wiz
-        bz = R[2] * wix + R[5] * wiy + R[8] * wiz
-        jx = I6[0] * bx + I6[1] * by + I6[2] * bz
-        jy = I6[1] * bx + I6[3] * by + I6[4] * bz
-        jz = I6[2] * bx + I6[4] * by + I6[5] * bz
-        kx, ky, kz = _cross(cwx, cwy, cwz, Px, Py, Pz)
-        H[i, 0] = kx + R[0] * jx + R[1] * jy + R[2] * jz
-        H[i, 1] = ky + R[3] * jx + R[4] * jy + R[5] * jz
-        H[i, 2] = kz + R[6] * jx + R[7] * jy + R[8] * jz
-        H[i, 3], H[i, 4], H[i, 5] = Px, Py, Pz
-        H[i, 6] = m
-        H[i, 7], H[i, 8], H[i, 9] = m * cwx, m * cwy, m * cwz
+        _body_momentum(Rw[i], inertia, i, px, py, pz, vx, vy, vz, w, H)
     # children have larger indices than their parent: subtree sums complete when i is reached
     for i in range(n - 1, 0, -1):
         c = index[i]
@@ -240,29 +292,7 @@ def model_terms(q: np.ndarray, v: np.ndarray, parent: np.ndarray, revolute: np.n
         if a > 0:
             for r in range(10):
                 H[a, r] += H[i, r]
-    # the contact frame: origin o and rotation Rf; column c = [Rfᵀ(z × (o − p)); Rfᵀz]
-    A = Rw[fjoint]
-    f00, f01, f02, f10, f11, f12, f20, f21, f22 = _mul9(A, fplace)
-    tx, ty, tz = _rot(A, fplace[9], fplace[10], fplace[11])
-    ox, oy, oz = pw[fjoint, 0] + tx, pw[fjoint, 1] + ty, pw[fjoint, 2] + tz
-    for r in range(6):
-        for c in range(nv):
-            J[r, c] = 0.0
-    i = fjoint
-    while i > 0:
-        c = index[i]
-        zx, zy, zz = z[i, 0], z[i, 1], z[i, 2]
-        if revolute[i]:
-            lx, ly, lz = _cross(zx, zy, zz, ox - pw[i, 0], oy - pw[i, 1], oz - pw[i, 2])
-            J[3, c] = f00 * zx + f10 * zy + f20 * zz
-            J[4, c] = f01 * zx + f11 * zy + f21 * zz
-            J[5, c] = f02 * zx + f12 * zy + f22 * zz
-        else:
-            lx, ly, lz = zx, zy, zz
-        J[0, c] = f00 * lx + f10 * ly + f20 * lz
-        J[1, c] = f01 * lx + f11 * ly + f21 * lz
-        J[2, c] = f02 * lx + f12 * ly + f22 * lz
-        i = parent[i]
+    _contact_jacobian(parent, revolute, index, Rw, pw, z, fjoint, fplace, J)
 
 
 @njit([types.void(_C1)], **_JIT)
@@ -294,6 +324,83 @@ def power_step(power: np.ndarray, t: float, pw: float, fw: float) -> int:
     return 1 if first else 0
 
 
+@njit(**_JIT)
+def _no_estimate(k: int, clock: np.ndarray, power: np.ndarray, TAU: np.ndarray, W: np.ndarray,
+                 info: np.ndarray, code: np.ndarray) -> None:
+    """Row k without an estimate (invalid): the history dropped, the power period restarted,
+    NaN outputs."""
+    code[k] = NO_ESTIMATE
+    if clock[C_HAS] != 0.0:
+        clock[C_HAS] = 0.0
+        clock[C_AFTER_INVALID] = 1.0
+        info[k, I_DROPPED] = 1.0
+    _power_restart(power)
+    for c in range(TAU.shape[1]):
+        TAU[k, c] = np.nan
+    for c in range(6):
+        W[k, c] = np.nan
+    info[k, I_SINCE] = info[k, I_SIGMA] = info[k, I_FORCE] = np.nan
+    info[k, I_POWER_STEP] = -1.0
+
+
+@njit(inline="always", **_JIT)
+def _observe(t: float, held: bool, max_gap: float, gain: np.ndarray, p: np.ndarray,
+             s: np.ndarray, e: np.ndarray, r_: np.ndarray, p_: np.ndarray, s_: np.ndarray,
+             e_: np.ndarray, clock: np.ndarray) -> tuple[int, float]:
+    """One valid sample at stamp t into the observer (r_ and the last sample p_, s_, e_ and
+    ``clock`` updated): (its row code, dt)."""
+    kind = ESTIMATE
+    dt = 0.0
+    if clock[C_HAS] == 0.0:
+        kind = RESTART_AFTER_INVALID if clock[C_AFTER_INVALID] != 0.0 else RESTART
+    else:
+        dt = t - clock[C_T]
+        if dt < 0:
+            kind = BACKWARDS
+        elif dt > max_gap:
+            kind = STAMP_GAP
+        elif dt == 0.0:
+            kind = SAME_INSTANT
+    if kind == ESTIMATE:
+        for c in range(len(p)):
+            ei = dt * e[c] if held else 0.5 * dt * (e_[c] + e[c])
+            mean = (p[c] - p_[c] - 0.5 * dt * (s_[c] + s[c]) - ei) / dt
+            a = math.exp(-gain[c] * dt)
+            r_[c] = a * r_[c] + (1.0 - a) * mean
+    elif kind != SAME_INSTANT:
+        for c in range(len(p)):
+            r_[c] = 0.0
+        clock[C_T0] = t
+        clock[C_HAS] = 1.0
+        clock[C_AFTER_INVALID] = 0.0
+    if kind != SAME_INSTANT:
+        clock[C_T] = t
+        for c in range(len(p)):
+            p_[c], s_[c], e_[c] = p[c], s[c], e[c]
+    return kind, dt
+
+
+@njit(inline="always", **_JIT)
+def _row_outputs(k: int, r_: np.ndarray, contact_at: np.ndarray, J: np.ndarray,
+                 wopt: np.ndarray, G: np.ndarray, U: np.ndarray, ev: np.ndarray, y: np.ndarray,
+                 F: np.ndarray, TAU: np.ndarray, W: np.ndarray, info: np.ndarray) -> None:
+    """Row k's estimate r_ into TAU, the contact-level test and the wrench (damped_solve) into
+    W and info."""
+    over = False
+    for c in range(len(r_)):
+        TAU[k, c] = r_[c]
+        over = over or abs(r_[c]) > contact_at[c]
+    info[k, I_OVER] = 1.0 if over else 0.0
+    sigma, lam, misfit = damped_solve(J, r_, wopt[0], wopt[1], wopt[2], G, U, ev, y, F)
+    f2 = 0.0
+    for c in range(6):
+        W[k, c] = F[c]
+    for c in range(3):
+        f2 += F[c] * F[c]
+    info[k, I_SIGMA], info[k, I_DAMPING], info[k, I_MISFIT] = sigma, lam, misfit
+    info[k, I_FORCE] = math.sqrt(f2)
+
+
 # One compiled call per batch (or per live sample): per-row overhead of separate calls is what
 # this module removes.
 @njit([types.void(_M, _M, _M, _V, _B, _B, _I, _B, _I, _M, _M, _M, _V, _V, _V, _V,
@@ -308,45 +415,17 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
                   wopt: np.ndarray, contact_at: np.ndarray, state: np.ndarray, clock: np.ndarray,
                   power: np.ndarray, TAU: np.ndarray, W: np.ndarray, info: np.ndarray,
                   code: np.ndarray) -> None:
-    """N joint states (rows of Q, V, E in model order; T stamps in s) through the momentum
-    observer, the contact wrench, the contact-level test and the power balance.
-
-    ``valid[k]``: the row has velocity and effort, all finite, and a finite stamp (else
-    NO_ESTIMATE: the history is dropped and the power period restarted); ``reset[k]``: a restart
-    was asked before row k (the observer restarts at the next valid row, the power period
-    restarts). Observer: r exact over each step for the lag ṙ = K(τ_ext − r), the model terms
-    trapezoidal, the effort held (``held``) or trapezoidal; restarts on a step back
-    (BACKWARDS) or longer than ``max_gap`` (STAMP_GAP); a repeated stamp gives the estimate
-    again without integrating (SAME_INSTANT). ``wopt`` = (ε, β, λ_max) of the wrench,
-    ``contact_at`` the detector's contact level per joint (N·m|N). State carried between
-    calls: ``state`` (4×nv: r, p, s, e), ``clock`` (C_*), ``power`` (P_*).
-
-    Out per row: ``TAU`` τ̂_ext (NaN without estimate), ``W`` the wrench at the frame (its
-    axes, [force; moment]), ``info`` (I_*: since the restart, σ_min, λ, misfit, ‖force‖, dt,
-    some joint over its contact level (1.0/0.0), the power balance's step (what
-    :func:`power_step` returned; −1 without estimate), the observer's history dropped here
-    (1.0)), ``code`` (ESTIMATE …)."""
+    """N joint states through the momentum observer, the contact wrench, the contact-level test
+    and the power balance: arguments and outputs as the module docstring says."""
     N, nv = Q.shape
     n = len(parent)
-    Rw = np.zeros((n, 9))
-    pw = np.zeros((n, 3))
-    z = np.zeros((n, 3))
-    w = np.zeros((n, 3))
-    vo = np.zeros((n, 3))
-    H = np.zeros((n, 10))
-    p = np.zeros(nv)
-    ctv = np.zeros(nv)
-    g = np.zeros(nv)
-    s = np.zeros(nv)
-    J = np.zeros((6, nv))
+    Rw, pw, z, w, vo = (np.zeros((n, 9)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)),
+                        np.zeros((n, 3)))
+    H, p, ctv, g, s, J = (np.zeros((n, 10)), np.zeros(nv), np.zeros(nv), np.zeros(nv),
+                          np.zeros(nv), np.zeros((6, nv)))
     k6 = 6 if nv >= 6 else nv
-    G = np.zeros((k6, k6))
-    U = np.zeros((k6, k6))
-    ev = np.zeros(k6)
-    y = np.zeros(k6)
-    F = np.zeros(6)
+    G, U, ev, y, F = np.zeros((k6, k6)), np.zeros((k6, k6)), np.zeros(k6), np.zeros(k6), np.zeros(6)
     r_, p_, s_, e_ = state[0], state[1], state[2], state[3]
-    eps, band, lam_max = wopt[0], wopt[1], wopt[2]
     for k in range(N):
         for j in range(INFO_COLUMNS):
             info[k, j] = 0.0
@@ -355,18 +434,7 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
             clock[C_AFTER_INVALID] = 0.0
             _power_restart(power)
         if not valid[k]:
-            code[k] = NO_ESTIMATE
-            if clock[C_HAS] != 0.0:
-                clock[C_HAS] = 0.0
-                clock[C_AFTER_INVALID] = 1.0
-                info[k, I_DROPPED] = 1.0
-            _power_restart(power)
-            for c in range(nv):
-                TAU[k, c] = np.nan
-            for c in range(6):
-                W[k, c] = np.nan
-            info[k, I_SINCE] = info[k, I_SIGMA] = info[k, I_FORCE] = np.nan
-            info[k, I_POWER_STEP] = -1.0
+            _no_estimate(k, clock, power, TAU, W, info, code)
             continue
         t = T[k]
         q, v, e = Q[k], V[k], E[k]
@@ -381,48 +449,7 @@ def observer_rows(Q: np.ndarray, V: np.ndarray, E: np.ndarray, T: np.ndarray,
             s[c] = ctv[c] - g[c] - fr
             pw_ += e[c] * vc
             fw_ += fr * vc
-        kind = ESTIMATE
-        dt = 0.0
-        if clock[C_HAS] == 0.0:
-            kind = RESTART_AFTER_INVALID if clock[C_AFTER_INVALID] != 0.0 else RESTART
-        else:
-            dt = t - clock[C_T]
-            if dt < 0:
-                kind = BACKWARDS
-            elif dt > max_gap:
-                kind = STAMP_GAP
-            elif dt == 0.0:
-                kind = SAME_INSTANT
-        if kind == ESTIMATE:
-            for c in range(nv):
-                ei = dt * e[c] if held else 0.5 * dt * (e_[c] + e[c])
-                mean = (p[c] - p_[c] - 0.5 * dt * (s_[c] + s[c]) - ei) / dt
-                a = math.exp(-gain[c] * dt)
-                r_[c] = a * r_[c] + (1.0 - a) * mean
-        elif kind != SAME_INSTANT:
-            for c in range(nv):
-                r_[c] = 0.0
-            clock[C_T0] = t
-            clock[C_HAS] = 1.0
-            clock[C_AFTER_INVALID] = 0.0
-        if kind != SAME_INSTANT:
-            clock[C_T] = t
-            for c in range(nv):
-                p_[c], s_[c], e_[c] = p[c], s[c], e[c]
-        code[k] = kind
+        code[k], info[k, I_DT] = _observe(t, held, max_gap, gain, p, s, e, r_, p_, s_, e_, clock)
         info[k, I_SINCE] = t - clock[C_T0]
-        info[k, I_DT] = dt
-        over = False
-        for c in range(nv):
-            TAU[k, c] = r_[c]
-            over = over or abs(r_[c]) > contact_at[c]
-        info[k, I_OVER] = 1.0 if over else 0.0
-        sigma, lam, misfit = damped_solve(J, r_, eps, band, lam_max, G, U, ev, y, F)
-        f2 = 0.0
-        for c in range(6):
-            W[k, c] = F[c]
-        for c in range(3):
-            f2 += F[c] * F[c]
-        info[k, I_SIGMA], info[k, I_DAMPING], info[k, I_MISFIT] = sigma, lam, misfit
-        info[k, I_FORCE] = math.sqrt(f2)
+        _row_outputs(k, r_, contact_at, J, wopt, G, U, ev, y, F, TAU, W, info)
         info[k, I_POWER_STEP] = power_step(power, t, pw_, fw_)
