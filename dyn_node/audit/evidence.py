@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import math
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -21,6 +20,7 @@ import numpy as np
 
 from dyn_node import __version__
 from dyn_node.errors import FAILURE_LABELS, EVALUATION_ERROR, DynNodeError
+from dyn_node.io.jsonable import json_scalar
 
 SCHEMA_PATH = Path(__file__).resolve().parents[1] / "schemas" / "evidence_record.schema.json"
 SCHEMA_ID = "dyn_node/evidence_record"
@@ -124,17 +124,8 @@ def jsonable(x: Any) -> Any:
         return [jsonable(v) for v in x]
     if isinstance(x, np.ndarray):
         return jsonable(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        if math.isnan(x):
-            return None
-        if math.isinf(x):
-            return "inf" if x > 0 else "-inf"
-        return x
+    if isinstance(x, (bool, np.bool_, int, np.integer, float, np.floating)):
+        return json_scalar(x)
     if x is None or isinstance(x, str):
         return x
     if hasattr(x, "to_dict"):

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Callable, ClassVar, Mapping, Sequence
 import numpy as np
 
 from dyn_node.core.compiled import kernels
+from dyn_node.io.jsonable import json_scalar
 from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.core.robot.limits import JointLimits
 
@@ -106,7 +107,7 @@ class Violation:
     detail: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        out = {k: _json(getattr(self, k)) for k in (
+        out = {k: json_scalar(getattr(self, k)) for k in (
             "joint", "kind", "first_time_s", "peak_time_s", "peak_value", "limit", "duration_s",
             "unit")}
         if self.detail:
@@ -481,16 +482,6 @@ def _rms_bracket(g: Callable[..., np.ndarray], k_up: np.ndarray, m: int
     return np.log(lo), gl, np.log(hi), gh
 
 
-def _json(v: Any) -> Any:
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (float, np.floating)):
-        v = float(v)
-        if math.isnan(v):
-            return None
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return v
     if isinstance(v, np.integer):
         return int(v)
     return v

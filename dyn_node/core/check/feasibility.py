@@ -19,7 +19,7 @@ import numpy as np
 from dyn_node.core.check import constraints, task_motion
 from dyn_node.core.compiled import kernels
 from dyn_node.core.check.constraints import (Blocked, Constraint, Motion, PayloadTerms, Samples,
-                                             Violation, _fmt, _Job, _json, percent_text, with_unit)
+                                             Violation, _fmt, _Job, json_scalar, percent_text, with_unit)
 from dyn_node.core.check.kinds import KIND_CLASS, KINDS
 # reached here by the tests of the helpers they name
 from dyn_node.core.check.constraints import _take, rms_time_scale as _rms_time_scale  # noqa: F401
@@ -187,17 +187,17 @@ class FeasibilityResult:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: NaN (undefined) → null, ±inf → "inf"/"-inf"."""
         return {
-            **{k: _json(v) for k, v in self.summary_values().items() if k != "warnings"},
+            **{k: json_scalar(v) for k, v in self.summary_values().items() if k != "warnings"},
             "level": {OK: "OK", WARN: "WARN", ERROR: "ERROR"}[self.level],
             "message": self.message,
-            "time_scale_by_kind": {k: _json(v) for k, v in self.time_scale_by_kind.items()},
+            "time_scale_by_kind": {k: json_scalar(v) for k, v in self.time_scale_by_kind.items()},
             "violations": [v.to_dict() for v in self.violations],
-            "per_joint": {j: {k: {kk: _json(vv) for kk, vv in e.items()} for k, e in kinds.items()}
+            "per_joint": {j: {k: {kk: json_scalar(vv) for kk, vv in e.items()} for k, e in kinds.items()}
                           for j, kinds in self.per_joint.items()},
-            "per_frame": {p: {k: {kk: _json(vv) for kk, vv in e.items()} for k, e in kinds.items()}
+            "per_frame": {p: {k: {kk: json_scalar(vv) for kk, vv in e.items()} for k, e in kinds.items()}
                           for p, kinds in self.per_frame.items()},
-            "effort_step": {j: _json(v) for j, v in self.effort_step.items()},
-            "waypoint_effort": [[_json(float(x)) for x in row] for row in self.waypoint_effort],
+            "effort_step": {j: json_scalar(v) for j, v in self.effort_step.items()},
+            "waypoint_effort": [[json_scalar(float(x)) for x in row] for row in self.waypoint_effort],
             "warnings": list(self.warnings),
         }
 
