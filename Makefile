@@ -48,6 +48,9 @@ test: $(KERNELS) $(INTERFACES)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 bench: $(KERNELS) $(INTERFACES)
+	@# bytecode as a pip-installed package has it (pip compiles it at install): a shell with
+	@# PYTHONDONTWRITEBYTECODE set would otherwise compile every module at each command's start
+	$(PY) -m compileall -q dyn_node benchmarks
 	$(PY) -m benchmarks.run $(BENCH_ARGS)
 
 # Not in CI: the demo stack at 1 kHz with recording and splitting for SOAK_MINUTES (default 30).

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import select
 import shutil
 import signal
 import struct
@@ -154,22 +155,24 @@ def run_audit(bag: Path, out: Path, timeout_s: float = 600.0) -> dict:
                              "--out", str(out)], cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, start_new_session=True)
     hwm = 0.0
-    while True:
-        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-        if pid:
-            break
-        try:
-            hwm = max(hwm, read_vm(proc.pid, "VmHWM"))
-        except (OSError, ValueError):
-            pass
-        if time.perf_counter() - t0 > timeout_s:
-            os.killpg(proc.pid, signal.SIGKILL)
-            _, status, usage = os.wait4(proc.pid, 0)
-            proc.returncode = -9
-            return dict(wall_s=time.perf_counter() - t0, peak_rss_mib=hwm, rc=None,
-                        finished=False)
-        time.sleep(0.05)
-    wall = time.perf_counter() - t0
+    # its end is seen at once (the process's fd becomes readable), its RSS sampled every 50 ms
+    pidfd = os.pidfd_open(proc.pid)
+    try:
+        while not select.select([pidfd], [], [], 0.05)[0]:
+            try:
+                hwm = max(hwm, read_vm(proc.pid, "VmHWM"))
+            except (OSError, ValueError):
+                pass
+            if time.perf_counter() - t0 > timeout_s:
+                os.killpg(proc.pid, signal.SIGKILL)
+                os.wait4(proc.pid, 0)
+                proc.returncode = -9
+                return dict(wall_s=time.perf_counter() - t0, peak_rss_mib=hwm, rc=None,
+                            finished=False)
+        wall = time.perf_counter() - t0
+        _, status, usage = os.wait4(proc.pid, 0)
+    finally:
+        os.close(pidfd)
     rc = os.waitstatus_to_exitcode(status)
     proc.returncode = rc
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
