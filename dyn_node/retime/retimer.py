@@ -46,6 +46,9 @@ _RATE_W = 2.5
 _SCREENS = 4
 #: the share of :func:`_lead_room` a moving start's first window may take
 _LEAD_SHARE = 0.9
+#: how far above :func:`_least_x` a cap at a moving start stays (TOPP-RA's interpolation
+#: rows see the next stage too)
+_FLOOR_PAD = 1e-3
 #: halvings of the output period at most, for violations at a moving start (:func:`_adjust`)
 _HALVINGS = 3
 #: the share of the limits a moving start that needs all its braking is retried at: the
@@ -247,7 +250,11 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         # the first rounds, which usually pass, check in full at once (a second check of the
         # answer costs more than the payload margin of a round that fails)
         opts = sr.options if rnd <= _FULL_ROUNDS else plain
-        res = check_trajectory(sr.dynamics, out, opts, start=sr.start)
+        try:
+            res = check_trajectory(sr.dynamics, out, opts, start=sr.start)
+        except TrajectoryError as err:   # slowed beyond what the check takes: give up
+            sr.notes.append(str(err))
+            return None
         if res.feasible:
             full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options,
                                                                    start=sr.start)
@@ -287,14 +294,18 @@ def _refuse(sr: _Search) -> None:
                         f"the limits × {sr.margin:.9g} reaches the end")
 
 
-def _denser(sr: _Search) -> bool:
-    """A cap that leaves a moving robot's ṡ₀ no timing is undone and the output period
-    halved instead (at most :data:`_HALVINGS` times): near such a start what breaks a limit is
-    the controller's quintic between points across the window's quick turn, not the law."""
-    if not (sr.sd0 > 0 and sr.halved < _HALVINGS and sr.prev_cap is not None
-            and not np.array_equal(sr.prev_cap, sr.cap)):
+def _denser(sr: _Search, *, undo: bool = True) -> bool:
+    """The output period halved (at most :data:`_HALVINGS` times) where a cap would leave a
+    moving robot's ṡ₀ no timing (``undo``: the last caps undone): near such a start what
+    breaks a limit is the controller's quintic between points across the window's quick
+    turn, not the law."""
+    if not (sr.sd0 > 0 and sr.halved < _HALVINGS):
         return False
-    sr.cap, sr.halved, sr.period = sr.prev_cap, sr.halved + 1, sr.period / 2
+    if undo:
+        if sr.prev_cap is None or np.array_equal(sr.prev_cap, sr.cap):
+            return False
+        sr.cap = sr.prev_cap
+    sr.halved, sr.period = sr.halved + 1, sr.period / 2
     return True
 
 
@@ -454,7 +465,7 @@ def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
             x: np.ndarray) -> bool:
     """Widen the window or cap ṡ² where ``violations`` are; False when nothing can be
     changed."""
-    widen = 1.0
+    widen, halved = 1.0, False
     sr.prev_cap = sr.cap.copy()
     for v in violations:
         if v.kind == "position" or v.limit <= 0:
@@ -472,13 +483,36 @@ def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
         # (q' → 0) the motion between them is what breaks the limit
         lo = max(0, int(np.searchsorted(lw.s, s0)) - _CAP_CELLS)
         hi = min(len(x), int(np.searchsorted(lw.s, s1)) + _CAP_CELLS + 1)
-        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
+        new = x[lo:hi] * factor
+        if sr.sd0 > 0:
+            # from a moving start a cap below what braking reaches leaves no timing at all;
+            # where it would, the output's points get denser instead (:func:`_denser`)
+            floor = _least_x(sr, hi - 1)[lo:hi] * (1 + _FLOOR_PAD)
+            if np.any(floor > new) and not halved and _denser(sr, undo=False):
+                halved = True
+            new = np.maximum(new, floor)
+        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], new)
     if widen > 1.0:
         for kind in _RAMP_KINDS:
             if any(v.kind == kind for v in violations):
                 sr.widened[kind] = sr.widened.get(kind, 0) + 1
         sr.w = max(sr.w * widen, 2 * sr.period)
     return True
+
+
+def _least_x(sr: _Search, upto: int) -> np.ndarray:
+    """The least ṡ² the rows allow at grid points 0 … ``upto`` from the robot's ṡ₀, braking
+    as hard as they allow at each step (the largest lower bound they put on s̈): a cap below
+    it leaves the moving start no timing."""
+    r, d = sr.rows, np.diff(sr.grid)
+    x = np.empty(upto + 1)
+    x[0] = sr.sd0**2
+    for i in range(upto):
+        neg = r.a[i] < 0
+        room = (r.g - r.c[i] - r.b[i] * x[i])[neg]
+        u = float(np.max(room / r.a[i][neg])) if neg.any() else -math.inf
+        x[i + 1] = max(0.0, x[i] + 2 * d[i] * u)
+    return x
 
 
 def _dense(path: Path, lw: timing.Law, w: float, period: float, tolerance: float,
