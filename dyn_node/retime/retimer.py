@@ -95,10 +95,12 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     """The fastest trajectory along ``traj``'s path (model order) that passes
     :func:`~dyn_node.core.check.feasibility.check_trajectory` with ``feasibility``; see the module
     docstring and docs/retime.md. ``start``: the robot's state when the first point lies ahead
-    (t0 > 0): the path then starts from it. Raises :class:`TrajectoryError` for input no
+    (t0 > 0): the path then starts from it (the executed path, ``from_current_state``), and
+    the answer from its q and q̇ when it moves (docs/retime.md, "A moving start"). Raises :class:`TrajectoryError` for input no
     retiming can take (fewer than 2 points, non-finite values, bad times).
     ``uniform_fallback``: also consider the uniform stretch (which keeps the input's own end
-    velocities, while the optimal search starts and ends at rest) and answer the shorter.
+    velocities, while the optimal search ends at rest and starts at rest or at the moving
+    robot's state) and answer the shorter.
     ``input_check``: the caller's ``check_trajectory(dynamics, traj, feasibility, start=start)``
     when it has it (dyn-check, the gate): used instead of checking the input again."""
     validate_input(traj)
