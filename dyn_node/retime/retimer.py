@@ -85,6 +85,8 @@ class _Search:
     #: before the last :func:`_adjust`
     halved: int = 0
     prev_cap: np.ndarray | None = None
+    #: the violations the last round adjusted for, for the report
+    last: str = ""
 
 
 def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = None,
@@ -430,6 +432,9 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
             if share != _FULL:
                 notes.append(f"retried at the limits × {_FULL:.9f}")
         if one is None:
+            if not notes:
+                notes.append("no timing the exact check passes" +
+                             (f" (last: {sr.last})" if sr.last else ""))
             return None
         found.append(one)
     if len(found) == 1:
@@ -469,10 +474,18 @@ def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
     changed."""
     widen, halved = 1.0, False
     sr.prev_cap = sr.cap.copy()
+    sr.last = ", ".join(sorted({f"{v.joint} {v.kind}" for v in violations}))
     for v in violations:
         if v.kind == "position" or v.limit <= 0:
             return False
         ratio = abs(v.peak_value) / v.limit
+        if (sr.sd0 > 0 and v.first_time_s <= 0.0
+                and (v.kind not in _RAMP_KINDS or sr.widened.get(v.kind, 0) >= 1)):
+            # at the robot's own state (a wider window did not cure it): the executed start
+            # segment's own third derivative at ṡ₀, or the robot's q̇: no later timing helps
+            sr.notes.append(f"{v.joint} {v.kind} {ratio:.3g}× its limit at the robot's state "
+                            "(t = 0), which no timing from it changes")
+            return False
         if v.kind in _RAMP_KINDS and sr.widened.get(v.kind, 0) < 3:
             widen = max(widen, ratio * 1.02)
             continue
