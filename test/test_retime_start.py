@@ -172,3 +172,22 @@ def test_ur5_moving_start_keeps_the_executed_path() -> None:
     dist, _ = tree.query(_quintic_scipy(out)(np.linspace(0.0, res.duration_out, 4001)),
                          p=np.inf)
     assert np.max(dist) <= 1e-4
+
+
+def test_law_led_in_at_the_robots_speed() -> None:
+    """The windows' average of a law led in at ṡ0 (constant before t = 0), by hand: for
+    t ≤ 0 every window sees s = ṡ0·τ only, so s̄ = ṡ0·(t − (w + w2)/2), ṡ̄ = ṡ0, s̈̄ = 0; and
+    over a law that holds ṡ0 on, the same line continues (no trace of t = 0)."""
+    from dyn_node.retime import timing
+
+    sd0, w, w2 = 0.8, 0.05, 0.008
+    grid = np.linspace(0.0, 2.0, 201)
+    lw = timing.law(grid, np.full(201, sd0**2), lead=sd0)
+    t = np.array([-0.3, -0.01, 0.0, 0.02, 0.5, 1.0])
+    s, sd, sdd = timing.smoothed(lw, w, t, w2)
+    np.testing.assert_allclose(s, sd0 * (t - (w + w2) / 2), atol=1e-12)
+    np.testing.assert_allclose(sd, sd0, atol=1e-12)
+    np.testing.assert_allclose(sdd, 0.0, atol=1e-9)
+    # at rest before t = 0 (lead 0, as before): the average starts from s = 0
+    s0 = timing.smoothed(timing.law(grid, np.full(201, sd0**2)), w, np.array([0.0]), w2)[0]
+    assert s0[0] == 0.0
