@@ -260,7 +260,8 @@ def test_stops_and_reversals_are_retimed_by_pieces() -> None:
 
 def test_start_state_at_rest_and_moving() -> None:
     """First point 0.5 s ahead: from a state at rest the answer starts at the robot's position;
-    from a moving state only the uniform stretch is tried, checked with its start segment."""
+    from a moving state too, with its velocity (the optimal search on the executed path;
+    test_retime_start has the closed forms), shorter than the uniform stretch."""
     from dyn_node.core.check.feasibility import StartState
 
     dyn = ur5()
@@ -274,9 +275,11 @@ def test_start_state_at_rest_and_moving() -> None:
     assert check_trajectory(dyn, res.trajectory, start=rest).feasible
     moving = StartState(positions=q0, velocities=np.full(6, 0.05), age_s=0.0)
     res = retime(dyn, traj, start=moving)
-    assert res.feasible and res.method == "uniform"
-    assert res.check.start_segment == "checked"
-    np.testing.assert_allclose(res.trajectory.positions, traj.positions)   # the input's points
+    assert res.feasible and res.method == "optimal"
+    np.testing.assert_allclose(res.trajectory.positions[0], q0, atol=1e-12)
+    np.testing.assert_allclose(res.trajectory.velocities[0], 0.05, atol=1e-9)
+    assert check_trajectory(dyn, res.trajectory, start=moving).feasible
+    assert res.duration_out < res.duration_uniform
 
 
 def test_input_check_given_or_made_without_the_payload_margin(ur5_result) -> None:

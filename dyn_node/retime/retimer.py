@@ -44,6 +44,16 @@ _FULL_ROUNDS = 2
 _RATE_W = 2.5
 #: point screens (:func:`_screen`) per search at most
 _SCREENS = 4
+#: the share of :func:`_lead_room` a moving start's first window may take
+_LEAD_SHARE = 0.9
+#: how far above :func:`_least_x` a cap at a moving start stays (TOPP-RA's interpolation
+#: rows see the next stage too)
+_FLOOR_PAD = 1e-3
+#: halvings of the output period at most, for violations at a moving start (:func:`_adjust`)
+_HALVINGS = 3
+#: the share of the limits a moving start that needs all its braking is retried at: the
+#: limits themselves, less the rounding of the check's own sums
+_FULL = 1 - 1e-9
 #: the uniform fallback's factor over the check's time scale (its feasible side)
 _UNIFORM_PAD = 1.001
 
@@ -63,6 +73,20 @@ class _Search:
     w: float
     margin: float
     widened: dict[str, int] = field(default_factory=dict)
+    #: a moving start: the robot's ṡ₀ on this path (0: from rest) and its state, the check's
+    #: start (:func:`_regrid`)
+    sd0: float = 0.0
+    start: StartState | None = None
+    #: why the search gave up, for the report
+    notes: list[str] = field(default_factory=list)
+    #: TOPP-RA had no timing from the moving robot's ṡ₀
+    refused: bool = False
+    #: times the output period was halved for a violation at a moving start, and the caps
+    #: before the last :func:`_adjust`
+    halved: int = 0
+    prev_cap: np.ndarray | None = None
+    #: the violations the last round adjusted for, for the report
+    last: str = ""
 
 
 def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = None,
@@ -73,10 +97,12 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     """The fastest trajectory along ``traj``'s path (model order) that passes
     :func:`~dyn_node.core.check.feasibility.check_trajectory` with ``feasibility``; see the module
     docstring and docs/retime.md. ``start``: the robot's state when the first point lies ahead
-    (t0 > 0): the path then starts from it. Raises :class:`TrajectoryError` for input no
+    (t0 > 0): the path then starts from it (the executed path, ``from_current_state``), and
+    the answer from its q and q̇ when it moves (docs/retime.md, "A moving start"). Raises :class:`TrajectoryError` for input no
     retiming can take (fewer than 2 points, non-finite values, bad times).
     ``uniform_fallback``: also consider the uniform stretch (which keeps the input's own end
-    velocities, while the optimal search starts and ends at rest) and answer the shorter.
+    velocities, while the optimal search ends at rest and starts at rest or at the moving
+    robot's state) and answer the shorter.
     ``input_check``: the caller's ``check_trajectory(dynamics, traj, feasibility, start=start)``
     when it has it (dyn-check, the gate): used instead of checking the input again."""
     validate_input(traj)
@@ -98,43 +124,78 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     uniform_T = nominal.duration * k if 0 < k < math.inf else math.nan
     base = dict(duration_in=duration_in, duration_uniform=uniform_T, input_check=first,
                 source=None if path.untimed else nominal)
-    if not math.isfinite(k):
-        return RetimeResult(False, None, duration_out=math.nan, lower_bound=math.nan,
-                            message=f"no retiming: {first.message}", blocked=_blocked(first),
-                            **base)
-    parts = None if moving_start else _search_paths(dynamics, path, grid_points)
-    x_lb = None
-    if parts is not None and len(parts) == 1:
-        # one piece: T* on the search's own path, grid and torque coefficients (computed once)
-        p, grid, terms = parts[0]
-        x_lb = topp.solve(p, grid, topp.joint_rows(dynamics, p, grid, lower_bound=True,
-                                                   terms=terms), free_ends=True)
-    if x_lb is None:
-        x_lb, grid = _lower_bound(dynamics, path, grid_points)
-    lower = topp.duration(grid, x_lb) if x_lb is not None else math.nan
-    found = None
-    if parts is not None:
-        found = _by_pieces(dynamics, parts, feasibility, path_tolerance, point_period,
-                           limit_margin, max_rounds)
+    # a moving start: the optimal search may brake where the stretch cannot (the robot's q̇0
+    # does not scale), so only its failure makes the check's "no slowdown helps" final
+    if not math.isfinite(k) and not moving_start:
+        return _none(first, base)
+    # from a moving state the search runs on the executed path (docs/retime.md, "A moving
+    # start"): the controller's segment from that state, then the input's
+    v0 = start.velocities if moving_start else None
+    search = (build_path(from_current_state(traj, start.positions, v0)) if moving_start
+              else path)
+    parts = _search_paths(dynamics, search, grid_points)
+    lower = _bound(dynamics, search, parts, grid_points, v0)
+    notes: list[str] = []
+    found = _by_pieces(dynamics, parts, feasibility, path_tolerance, point_period,
+                       limit_margin, max_rounds, start=start if moving_start else None,
+                       notes=notes)
     uniform = None
     # the stretch lasts ≥ uniform_T × 1.001: only worth building when the search lost to it
     beaten = found is not None and found["trajectory"].duration <= uniform_T * _UNIFORM_PAD
-    if (uniform_fallback and not beaten) or found is None:
+    if ((uniform_fallback and not beaten) or found is None) and math.isfinite(k):
         uniform = _uniform(dynamics, path, traj, k, feasibility, start, point_period,
                            moving_start, path_tolerance)
     pick = min((c for c in (found, uniform) if c is not None),
                key=lambda c: c["trajectory"].duration, default=None)
+    why = f" (optimal search: {'; '.join(notes)})" if notes and found is None else ""
+    if pick is None and not math.isfinite(k):
+        return _none(first, base, lower, why)
     if pick is None:
         return RetimeResult(False, None, duration_out=math.nan, lower_bound=lower,
                             message="no retiming passed the exact check (optimal search and "
-                                    "uniform stretch both failed)", **base)
+                                    f"uniform stretch both failed){why}", **base)
     out = pick["trajectory"]
-    msg = (f"retimed ({pick['method']}): {duration_in:.4g} s → {out.duration:.4g} s, uniform "
-           f"{uniform_T:.4g} s, T* {lower:.4g} s; re-check: {pick['check'].message}")
+    frm = " from the moving start state" if moving_start else ""
+    msg = (f"retimed ({pick['method']}{frm}): {duration_in:.4g} s → {out.duration:.4g} s, "
+           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s{why}; re-check: "
+           f"{pick['check'].message}")
     return RetimeResult(True, out, duration_out=out.duration, lower_bound=lower, message=msg,
                         check=pick["check"], method=pick["method"],
                         rounds=pick.get("rounds", 0), smoothing_s=pick.get("w", 0.0),
                         path_deviation=pick["deviation"], **base)
+
+
+def _none(first: FeasibilityResult, base: dict, lower: float = math.nan,
+          why: str = "") -> RetimeResult:
+    """No slowdown helps (the input check's time scale is infinite): nothing returned, the
+    check's reason in ``blocked``."""
+    return RetimeResult(False, None, duration_out=math.nan, lower_bound=lower,
+                        message=f"no retiming: {first.message}{why}", blocked=_blocked(first),
+                        **base)
+
+
+def _bound(dynamics: Dynamics, path: Path, parts: list[tuple], grid_points: int,
+           v0: np.ndarray | None) -> float:
+    """T* (module docstring of topp; from the robot's ṡ₀ when ``v0`` is given)."""
+    x_lb = None
+    if len(parts) == 1:
+        # one piece: T* on the search's own path, grid and torque coefficients (computed once)
+        p, grid, terms = parts[0]
+        x_lb = topp.solve(p, grid, topp.joint_rows(dynamics, p, grid, lower_bound=True,
+                                                   terms=terms), free_ends=True,
+                          sd_start=_start_speed(p, v0))
+    if x_lb is None:
+        x_lb, grid = _lower_bound(dynamics, path, grid_points, _start_speed(path, v0))
+    return topp.duration(grid, x_lb) if x_lb is not None else math.nan
+
+
+def _start_speed(path: Path, v0: np.ndarray | None) -> float:
+    """ṡ₀ on ``path`` for the robot's q̇0 (0 without one): the executed path starts with q' ∥
+    q̇0 (exactly q̇0 by time, its unit direction by arc length)."""
+    if v0 is None:
+        return 0.0
+    d1 = path.derivatives(np.array([path.pp.breaks[0]]))[1][0]
+    return max(0.0, float(d1 @ v0 / (d1 @ d1)))
 
 
 def _input_check(dynamics: Dynamics, nominal: Trajectory, options: FeasibilityOptions,
@@ -154,26 +215,27 @@ def _input_check(dynamics: Dynamics, nominal: Trajectory, options: FeasibilityOp
 
 def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     """The check-driven rounds (module docstring); None when none passes."""
-    reach = topp.Reach(sr.path, sr.grid, sr.rows)
-    x0 = reach.solve()
+    memo: dict = {"reach": topp.Reach(sr.path, sr.grid, sr.rows), "key": None}
+    x0 = _solved(sr, memo)
     if x0 is None:
         return None
     jerk_w, rate_w = timing.switch_window(sr.dynamics, sr.path, sr.grid, x0)
     sr.w = max(sr.w, jerk_w / sr.margin, _RATE_W * rate_w / sr.margin)
+    if sr.sd0 > 0:
+        # the window's lead runs at ṡ₀: no wider than where ṡ₀ is still controllable
+        sr.w = min(sr.w, _LEAD_SHARE * _lead_room(sr, memo["reach"]))
     # later rounds skip the payload margin (it does not decide feasibility); the answer gets
     # the full check with the caller's options
     plain = replace(sr.options, compute_payload_margin=False)
-    x, solved_cap = x0, sr.cap.copy()
     screens = 0
     for rnd in range(1, max_rounds + 1):
         while True:
-            if not np.array_equal(sr.cap, solved_cap):
-                # only a cap changes TOPP-RA's answer (a wider window smooths the same law)
-                solved_cap = sr.cap.copy()
-                x = reach.solve(cap=sr.cap)
+            x = _solved(sr, memo)
+            if x is None and _denser(sr):
+                continue
             if x is None:
                 return None
-            lw = timing.law(sr.grid, x)
+            lw = timing.law(sr.grid, x, sr.sd0)
             pts = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)[0]
             # halfway between the rows' share and the limit: over the share by rounding is
             # no reason to slow down, and near the limit the quintic between points may cross
@@ -192,14 +254,93 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         # the first rounds, which usually pass, check in full at once (a second check of the
         # answer costs more than the payload margin of a round that fails)
         opts = sr.options if rnd <= _FULL_ROUNDS else plain
-        res = check_trajectory(sr.dynamics, out, opts)
+        try:
+            res = check_trajectory(sr.dynamics, out, opts, start=sr.start)
+        except TrajectoryError as err:   # slowed beyond what the check takes: give up
+            sr.notes.append(str(err))
+            return None
         if res.feasible:
-            full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options)
+            full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options,
+                                                                   start=sr.start)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
                         w=sr.w + 2 * sr.period, deviation=dev)
         if not _adjust(sr, res.violations, lw, x):
             return None
     return None
+
+
+def _solved(sr: _Search, memo: dict) -> np.ndarray | None:
+    """TOPP-RA's ṡ² under the search's caps from its ṡ₀, solved again only when a cap changed
+    (a wider window smooths the same law) or, from a moving start, the grid moved with the
+    window (:func:`_regrid`)."""
+    if sr.sd0 > 0 and sr.grid[0] != _lead_start(sr):
+        if not _regrid(sr):
+            return None
+        memo["reach"], memo["key"] = topp.Reach(sr.path, sr.grid, sr.rows), None
+    key = (float(sr.grid[0]), sr.cap.tobytes())
+    if memo["key"] != key:
+        memo["key"] = key
+        x = memo["reach"].solve(cap=sr.cap, sd_start=sr.sd0)
+        # TOPP-RA's forward pass backs a start it cannot hold off (its tolerance): the
+        # robot's ṡ₀ is not the law's to change
+        memo["x"] = x if x is None or x[0] >= sr.sd0**2 * (1 - 1e-12) else None
+        if memo["x"] is None and sr.sd0 > 0 and not np.isfinite(sr.cap).any():
+            _refuse(sr)
+    return memo["x"]
+
+
+def _refuse(sr: _Search) -> None:
+    """TOPP-RA has no timing from the moving robot's ṡ₀ under the rows alone."""
+    if not sr.refused:
+        sr.refused = True
+        sr.notes.append(f"the robot's ṡ0 = {sr.sd0:.6g} (its velocity along the path) is "
+                        "outside TOPP-RA's controllable set at the start: no braking within "
+                        f"the limits × {sr.margin:.9g} reaches the end")
+
+
+def _denser(sr: _Search, *, undo: bool = True) -> bool:
+    """The output period halved (at most :data:`_HALVINGS` times) where a cap would leave a
+    moving robot's ṡ₀ no timing (``undo``: the last caps undone): near such a start what
+    breaks a limit is the controller's quintic between points across the window's quick
+    turn, not the law."""
+    if not (sr.sd0 > 0 and sr.halved < _HALVINGS):
+        return False
+    if undo:
+        if sr.prev_cap is None or np.array_equal(sr.prev_cap, sr.cap):
+            return False
+        sr.cap = sr.prev_cap
+    sr.halved, sr.period = sr.halved + 1, sr.period / 2
+    return True
+
+
+def _lead_room(sr: _Search, reach: topp.Reach) -> float:
+    """The widest window w whose lead at ṡ₀ (:func:`_lead_start`) ends where ṡ₀ is still in
+    TOPP-RA's controllable set (on the current grid): a wider one leaves no timing."""
+    K = reach.controllable(0.0)
+    bad = np.flatnonzero(~(K[:, 1] >= sr.sd0**2))
+    s_max = sr.grid[max(bad[0] - 1, 0)] if bad.size else float(sr.path.pp.breaks[-1])
+    return max(0.0, 2 * (s_max - float(sr.path.pp.breaks[0])) / sr.sd0 - 2 * sr.period)
+
+
+def _lead_start(sr: _Search) -> float:
+    """Where TOPP-RA starts from a moving state: ṡ₀ × half the two windows ahead of the
+    path's start. The law runs at ṡ₀ before it (timing.Law.lead), so the windows' average
+    is at the path's start at t = 0 with exactly ṡ₀ and s̈ = 0: the robot's state."""
+    return float(sr.path.pp.breaks[0] + sr.sd0 * (sr.w + 2 * sr.period) / 2)
+
+
+def _regrid(sr: _Search) -> bool:
+    """The search's grid (same size) from :func:`_lead_start` to the path's end, its rows,
+    and its caps carried over by s; False when that start lies past the end."""
+    s_c, end = _lead_start(sr), float(sr.path.pp.breaks[-1])
+    if not s_c < end:
+        sr.notes.append("the smoothing window from the moving start is longer than the path")
+        return False
+    old = sr.grid
+    sr.grid = np.linspace(s_c, end, len(old))
+    sr.cap = sr.cap[np.clip(np.searchsorted(old, sr.grid), 0, len(old) - 1)]
+    sr.rows = topp.joint_rows(sr.dynamics, sr.path, sr.grid, scale=sr.margin)
+    return True
 
 
 def _screen(dynamics: Dynamics, pts: Trajectory, share: float) -> list[Violation]:
@@ -253,37 +394,53 @@ def _search_paths(dynamics: Dynamics, path: Path, grid_points: int) -> list[tupl
     return out
 
 
-def _lower_bound(dynamics: Dynamics, path: Path, grid_points: int
+def _lower_bound(dynamics: Dynamics, path: Path, grid_points: int, sd0: float = 0.0
                  ) -> tuple[np.ndarray | None, np.ndarray]:
-    """T*'s ṡ² on the whole path by s (the path may pass its stops moving) and its grid."""
+    """T*'s ṡ² on the whole path by s (the path may pass its stops moving) and its grid;
+    ``sd0``: ṡ at the start (a moving robot's)."""
     for n in (grid_points, grid_points + 1):
         # a grid point exactly where the path stops inside (q' = q'' = 0 at a waypoint) leaves
         # TOPP-RA's controllable set undefined there: the next grid steps over it
         grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], n + 1)
         x_lb = topp.solve(path, grid, topp.joint_rows(dynamics, path, grid, lower_bound=True),
-                          free_ends=True)
+                          free_ends=True, sd_start=sd0)
         if x_lb is not None:
             break
     return x_lb, grid
 
 
 def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptions,
-               tolerance: float, period: float, margin: float, max_rounds: int) -> dict | None:
+               tolerance: float, period: float, margin: float, max_rounds: int, *,
+               start: StartState | None = None, notes: list[str] | None = None) -> dict | None:
     """The optimal search on each of :func:`_search_paths`' pieces, the pieces joined at rest
-    and the whole checked again."""
-    found = []
-    for p, grid, terms in parts:
-        rows = topp.joint_rows(dynamics, p, grid, scale=margin, terms=terms)
-        sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
-                     np.full(len(grid), np.inf), 0.0, margin)
-        one = _optimal(sr, max_rounds)
+    and the whole checked again; ``start``: a moving robot's state, where the first piece
+    starts (its velocity along it: ṡ₀)."""
+    found, notes = [], [] if notes is None else notes
+    for i, (p, grid, terms) in enumerate(parts):
+        first = start if i == 0 else None
+        sd0 = _start_speed(p, None if first is None else first.velocities)
+        # a robot that needs every bit of its braking: the limits themselves (the exact
+        # check still decides) when their share leaves its ṡ₀ no timing
+        for share in (margin, _FULL) if sd0 > 0 and margin < _FULL else (margin,):
+            rows = topp.joint_rows(dynamics, p, grid, scale=share, terms=terms)
+            sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
+                         np.full(len(grid), np.inf), 0.0, share, sd0=sd0, start=first,
+                         notes=notes)
+            one = _optimal(sr, max_rounds)
+            if one is not None or not sr.refused:
+                break
+            if share != _FULL:
+                notes.append(f"retried at the limits × {_FULL:.9f}")
         if one is None:
+            if not notes:
+                notes.append("no timing the exact check passes" +
+                             (f" (last: {sr.last})" if sr.last else ""))
             return None
         found.append(one)
     if len(found) == 1:
         return found[0]
     out = _join([f["trajectory"] for f in found])
-    res = check_trajectory(dynamics, out, options)
+    res = check_trajectory(dynamics, out, options, start=start)
     if not res.feasible:
         return None
     return dict(trajectory=out, check=res, method="optimal",
@@ -292,9 +449,11 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
 
 
 def _singular_end(path: Path) -> bool:
-    """The path stops at an end (q' = 0 there: every positions-only path, every stop piece)."""
-    d1 = path.derivatives(path.pp.breaks[[0, -1]])[1]
-    return bool(np.any(np.all(d1 == 0.0, axis=1)))
+    """The path stops at an end (q' = 0 there: every positions-only path, every stop piece;
+    to rounding of the largest |q'| at its knots: a segment from a moving state, solved for
+    its coefficients, ends at 1e-17, not 0)."""
+    d1 = np.abs(path.derivatives(path.pp.breaks)[1])
+    return bool(np.any(np.all(d1[[0, -1]] <= 1e-12 * np.max(d1), axis=1)))
 
 
 def _join(parts: list[Trajectory]) -> Trajectory:
@@ -313,11 +472,20 @@ def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
             x: np.ndarray) -> bool:
     """Widen the window or cap ṡ² where ``violations`` are; False when nothing can be
     changed."""
-    widen = 1.0
+    widen, halved = 1.0, False
+    sr.prev_cap = sr.cap.copy()
+    sr.last = ", ".join(sorted({f"{v.joint} {v.kind}" for v in violations}))
     for v in violations:
         if v.kind == "position" or v.limit <= 0:
             return False
         ratio = abs(v.peak_value) / v.limit
+        if (sr.sd0 > 0 and v.first_time_s <= 0.0
+                and (v.kind not in _RAMP_KINDS or sr.widened.get(v.kind, 0) >= 1)):
+            # at the robot's own state (a wider window did not cure it): the executed start
+            # segment's own third derivative at ṡ₀, or the robot's q̇: no later timing helps
+            sr.notes.append(f"{v.joint} {v.kind} {ratio:.3g}× its limit at the robot's state "
+                            "(t = 0), which no timing from it changes")
+            return False
         if v.kind in _RAMP_KINDS and sr.widened.get(v.kind, 0) < 3:
             widen = max(widen, ratio * 1.02)
             continue
@@ -330,13 +498,36 @@ def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
         # (q' → 0) the motion between them is what breaks the limit
         lo = max(0, int(np.searchsorted(lw.s, s0)) - _CAP_CELLS)
         hi = min(len(x), int(np.searchsorted(lw.s, s1)) + _CAP_CELLS + 1)
-        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
+        new = x[lo:hi] * factor
+        if sr.sd0 > 0:
+            # from a moving start a cap below what braking reaches leaves no timing at all;
+            # where it would, the output's points get denser instead (:func:`_denser`)
+            floor = _least_x(sr, hi - 1)[lo:hi] * (1 + _FLOOR_PAD)
+            if np.any(floor > new) and not halved and _denser(sr, undo=False):
+                halved = True
+            new = np.maximum(new, floor)
+        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], new)
     if widen > 1.0:
         for kind in _RAMP_KINDS:
             if any(v.kind == kind for v in violations):
                 sr.widened[kind] = sr.widened.get(kind, 0) + 1
         sr.w = max(sr.w * widen, 2 * sr.period)
     return True
+
+
+def _least_x(sr: _Search, upto: int) -> np.ndarray:
+    """The least ṡ² the rows allow at grid points 0 … ``upto`` from the robot's ṡ₀, braking
+    as hard as they allow at each step (the largest lower bound they put on s̈): a cap below
+    it leaves the moving start no timing."""
+    r, d = sr.rows, np.diff(sr.grid)
+    x = np.empty(upto + 1)
+    x[0] = sr.sd0**2
+    for i in range(upto):
+        neg = r.a[i] < 0
+        room = (r.g - r.c[i] - r.b[i] * x[i])[neg]
+        u = float(np.max(room / r.a[i][neg])) if neg.any() else -math.inf
+        x[i + 1] = max(0.0, x[i] + 2 * d[i] * u)
+    return x
 
 
 def _dense(path: Path, lw: timing.Law, w: float, period: float, tolerance: float,

@@ -31,13 +31,18 @@ class Law:
     t: np.ndarray
     integral: np.ndarray
     integral2: np.ndarray
+    #: the path's s at the law's s = 0 (the grid's start)
+    origin: float = 0.0
+    #: ṡ before t = 0: 0 (at rest there), or a moving robot's own ṡ₀ (the law extended back
+    #: at that constant speed, so that the window averages start from it)
+    lead: float = 0.0
 
     @property
     def duration(self) -> float:
         return float(self.t[-1])
 
 
-def law(grid: np.ndarray, x: np.ndarray) -> Law:
+def law(grid: np.ndarray, x: np.ndarray, lead: float = 0.0) -> Law:
     sd = np.sqrt(np.maximum(x, 0.0))
     ds = np.diff(grid)
     dt = 2 * ds / np.maximum(sd[:-1] + sd[1:], 1e-300)
@@ -48,12 +53,14 @@ def law(grid: np.ndarray, x: np.ndarray) -> Law:
     integral = np.concatenate(([0.0], np.cumsum(step)))
     step2 = integral[:-1] * dt + rel[:-1] * dt**2 / 2 + sd[:-1] * dt**3 / 6 + u * dt**4 / 24
     return Law(s=rel, sd=sd, u=u, t=t, integral=integral,
-               integral2=np.concatenate(([0.0], np.cumsum(step2))))
+               integral2=np.concatenate(([0.0], np.cumsum(step2))), origin=float(grid[0]),
+               lead=float(lead))
 
 
 def _levels(lw: Law, t: np.ndarray, keys: tuple[int, ...]) -> dict[int, np.ndarray]:
     """The law at times t by derivative order (``keys`` of them): −2 (∫∫s), −1 (∫s), 0 (s),
-    1 (ṡ), 2 (s̈); at rest at s = 0 before t = 0 and at the end after T."""
+    1 (ṡ), 2 (s̈); before t = 0 at the constant ṡ = ``lw.lead`` through s = 0 (at rest when
+    0), at the end after T."""
     i = np.clip(np.searchsorted(lw.t, t, side="right") - 1, 0, len(lw.u) - 1)
     r = np.clip(t - lw.t[i], 0.0, None)
     before, after = t < 0, t > lw.t[-1]
@@ -67,10 +74,13 @@ def _levels(lw: Law, t: np.ndarray, keys: tuple[int, ...]) -> dict[int, np.ndarr
         -2: lambda: (lw.integral2[i] + lw.integral[i] * r + s0 * r**2 / 2 + v * r**3 / 6
                      + u * r**4 / 24),
     }
+    ld, tb = lw.lead, np.minimum(t, 0.0)
+    # before t = 0: s = lead·t and its integrals from t = 0
+    head = {2: 0.0, 1: ld, 0: ld * tb, -1: ld * tb**2 / 2, -2: ld * tb**3 / 6}
     tail = {2: lambda: 0.0, 1: lambda: 0.0, 0: lambda: end,
             -1: lambda: lw.integral[-1] + end * past,
             -2: lambda: lw.integral2[-1] + lw.integral[-1] * past + end * past**2 / 2}
-    return {k: np.where(before, 0.0, np.where(after, tail[k](), law_at[k]())) for k in keys}
+    return {k: np.where(before, head[k], np.where(after, tail[k](), law_at[k]())) for k in keys}
 
 
 def smoothed(lw: Law, w: float, t: np.ndarray, w2: float = 0.0, orders: int = 3
@@ -98,8 +108,8 @@ def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
     n = max(2, int(np.ceil(total / period)) + 1)
     t = np.linspace(0.0, total, n)
     s, sd, sdd = smoothed(lw, w, t, w2)
-    s = np.clip(s, 0.0, lw.s[-1])
-    q, d1, d2 = path.derivatives(s + path.pp.breaks[0])
+    s = np.clip(s, path.pp.breaks[0] - lw.origin, lw.s[-1])
+    q, d1, d2 = path.derivatives(s + lw.origin)
     return Trajectory(times=t, positions=q, velocities=d1 * sd[:, None],
                       accelerations=d2 * (sd**2)[:, None] + d1 * sdd[:, None]), (s, sd, sdd)
 
@@ -115,8 +125,8 @@ def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
     coeffs = interpolate(out, "quintic").coeffs                  # segments × 6 × nv
     # every segment's samples at once: Σ_k c_k r^k (no search for the segment)
     q_out = np.matmul(r[:, :, None] ** np.arange(coeffs.shape[1]), coeffs).reshape(len(tm), -1)
-    s = np.clip(smoothed(lw, w, tm, w2, orders=1)[0], 0.0, lw.s[-1])
-    q_path = path.positions(s + path.pp.breaks[0])
+    s = np.clip(smoothed(lw, w, tm, w2, orders=1)[0], path.pp.breaks[0] - lw.origin, lw.s[-1])
+    q_path = path.positions(s + lw.origin)
     return float(np.max(np.abs(q_out - q_path)))
 
 
