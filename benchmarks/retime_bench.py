@@ -201,6 +201,10 @@ def run(*, quick: bool = False, smoke: bool = False, paths: int | None = None) -
             progress("retime", f"{name} {i + 1}/{n}: {rows[-1]['method']} gap {rows[-1]['gap']:.3f}")
         out[name] = dict(summary=summarize(rows), rows=rows)
     out["wall"] = wall_time(robot("panda"), 1 if smoke else 7)
+    from .retime_start_bench import run as moving_start  # it builds on this module's panel
+
+    progress("retime", f"moving start: {n} cases per robot")
+    out["moving_start"] = moving_start(n)
     return out
 
 
@@ -253,4 +257,14 @@ def render_md(res: dict) -> str:
               f"{w['input_check_s']:.3f} s, without the payload margin; the answer's "
               f"{w['answer_check_s']:.3f} s) are {100 * w['check_share']:.0f} % of the retime "
               "(docs/retime.md, Known limits)."]
+    ms = res.get("moving_start")
+    if ms:
+        lines += ["", "From a moving start state (the panel's paths made quintic, the robot caught "
+                  "partway through and the rest sent as a new goal; benchmarks/retime_start_bench.py):", "",
+                  "| robot | cases | pass the exact check (with the start) | blocked | optimal | "
+                  "T/uniform median | T/T* median | T/T* p95 |", "|---|---|---|---|---|---|---|---|"]
+        for name in ("panda", "ur5"):
+            m = ms[name]
+            lines.append(f"| {name} | {m['cases']} | {m['pass_check']} | {m['blocked']} | {m['optimal']} | "
+                         f"{f(m['vs_uniform_median'])} | {f(m['gap_median'])} | {f(m['gap_p95'])} |")
     return "\n".join(lines)
