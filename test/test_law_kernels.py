@@ -408,3 +408,26 @@ def test_kernels_are_compiled_once_and_never_recompile(name):
     assert len(kernel.signatures) == 1 and not kernel._can_compile
     with pytest.raises(TypeError):
         kernel(*([np.zeros((2, 3), dtype=np.float32)] * len(kernel.signatures[0])))
+
+
+def test_task_reaction_matches_pinocchio_force_action():
+    """law_kernels.task_reaction (the mounting's share of a task wrench, at the base frame) equals
+    Pinocchio's Force moved by SE3 actions: world = oMf·W, base = oMrᵀ·world, with the frame
+    origin o = position − R·point, over random poses, a point off the origin and a tilted,
+    offset base frame."""
+    import pinocchio as pin
+
+    rng = np.random.default_rng(28)
+    N = 40
+    R = np.stack([pin.rpy.rpyToMatrix(*rng.uniform(-np.pi, np.pi, 3)) for _ in range(N)])
+    position = rng.normal(size=(N, 3))
+    point, W = np.array([0.02, -0.01, 0.1]), rng.normal(size=6) * 20.0
+    R0, r0 = pin.rpy.rpyToMatrix(0.1, -0.2, 0.3), np.array([0.3, -0.1, 0.05])
+    got = law_kernels.task_reaction(R.reshape(N, 9), position, point, W, R0, r0)
+    oMr = pin.SE3(R0, r0)
+    for n in range(N):
+        oMf = pin.SE3(R[n], position[n] - R[n] @ point)
+        want = oMr.actInv(oMf.act(pin.Force(W[:3], W[3:])))
+        np.testing.assert_allclose(got[n], np.concatenate([want.linear, want.angular]),
+                                   rtol=0, atol=1e-12)
+    assert np.abs(got).max() > 1.0      # a zero result would pass the comparison trivially
