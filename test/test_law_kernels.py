@@ -431,3 +431,16 @@ def test_task_reaction_matches_pinocchio_force_action():
         np.testing.assert_allclose(got[n], np.concatenate([want.linear, want.angular]),
                                    rtol=0, atol=1e-12)
     assert np.abs(got).max() > 1.0      # a zero result would pass the comparison trivially
+
+
+def test_row_squares_are_the_rows_squared_norms():
+    """law_kernels.row_squares: |x|² and |x| per row (closed forms on Pythagorean rows, and
+    np.linalg.norm on random rows of very different sizes, within an ulp or two)."""
+    X = np.array([[3.0, 4.0, 12.0], [0.0, 0.0, 0.0], [-2.0, 3.0, 6.0]])
+    np.testing.assert_array_equal(law_kernels.row_squares(X, True), [13.0, 0.0, 7.0])
+    np.testing.assert_array_equal(law_kernels.row_squares(X, False), [169.0, 0.0, 49.0])
+    rng = np.random.default_rng(5)
+    Y = rng.normal(size=(500, 3)) * rng.lognormal(sigma=4.0, size=(500, 1))
+    np.testing.assert_allclose(law_kernels.row_squares(Y, True), np.linalg.norm(Y, axis=1),
+                               rtol=1e-15, atol=0)
+    assert np.isnan(law_kernels.row_squares(np.array([[np.nan, 1.0, 0.0]]), True)[0])

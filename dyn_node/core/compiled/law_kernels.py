@@ -120,6 +120,19 @@ def payload_wrench_rows(position: np.ndarray, acceleration: np.ndarray, gravity:
     return f, m
 
 
+@njit([_C1(_M, types.boolean)], **_JIT)
+def row_squares(X: np.ndarray, root: bool) -> np.ndarray:
+    """|x|² per row of N×3 X (its square root with ``root``), summed as (x₀² + x₂²) + x₁²: the
+    order NumPy's einsum("ij,ij->i") takes here, so the task laws' values did not move."""
+    N = X.shape[0]
+    out = np.empty(N)
+    for n in range(N):
+        a, b, c = X[n, 0], X[n, 1], X[n, 2]
+        s = (a * a + c * c) + b * b
+        out[n] = math.sqrt(s) if root else s
+    return out
+
+
 @njit([_C2(_M, _M, _V, _V, _M, _V)], **_JIT)
 def task_reaction(R: np.ndarray, position: np.ndarray, point: np.ndarray, W: np.ndarray,
                   R0: np.ndarray, r0: np.ndarray) -> np.ndarray:
