@@ -408,3 +408,39 @@ def test_kernels_are_compiled_once_and_never_recompile(name):
     assert len(kernel.signatures) == 1 and not kernel._can_compile
     with pytest.raises(TypeError):
         kernel(*([np.zeros((2, 3), dtype=np.float32)] * len(kernel.signatures[0])))
+
+
+def test_task_reaction_matches_pinocchio_force_action():
+    """law_kernels.task_reaction (the mounting's share of a task wrench, at the base frame) equals
+    Pinocchio's Force moved by SE3 actions: world = oMf·W, base = oMrᵀ·world, with the frame
+    origin o = position − R·point, over random poses, a point off the origin and a tilted,
+    offset base frame."""
+    import pinocchio as pin
+
+    rng = np.random.default_rng(28)
+    N = 40
+    R = np.stack([pin.rpy.rpyToMatrix(*rng.uniform(-np.pi, np.pi, 3)) for _ in range(N)])
+    position = rng.normal(size=(N, 3))
+    point, W = np.array([0.02, -0.01, 0.1]), rng.normal(size=6) * 20.0
+    R0, r0 = pin.rpy.rpyToMatrix(0.1, -0.2, 0.3), np.array([0.3, -0.1, 0.05])
+    got = law_kernels.task_reaction(R.reshape(N, 9), position, point, W, R0, r0)
+    oMr = pin.SE3(R0, r0)
+    for n in range(N):
+        oMf = pin.SE3(R[n], position[n] - R[n] @ point)
+        want = oMr.actInv(oMf.act(pin.Force(W[:3], W[3:])))
+        np.testing.assert_allclose(got[n], np.concatenate([want.linear, want.angular]),
+                                   rtol=0, atol=1e-12)
+    assert np.abs(got).max() > 1.0      # a zero result would pass the comparison trivially
+
+
+def test_row_squares_are_the_rows_squared_norms():
+    """law_kernels.row_squares: |x|² and |x| per row (closed forms on Pythagorean rows, and
+    np.linalg.norm on random rows of very different sizes, within an ulp or two)."""
+    X = np.array([[3.0, 4.0, 12.0], [0.0, 0.0, 0.0], [-2.0, 3.0, 6.0]])
+    np.testing.assert_array_equal(law_kernels.row_squares(X, True), [13.0, 0.0, 7.0])
+    np.testing.assert_array_equal(law_kernels.row_squares(X, False), [169.0, 0.0, 49.0])
+    rng = np.random.default_rng(5)
+    Y = rng.normal(size=(500, 3)) * rng.lognormal(sigma=4.0, size=(500, 1))
+    np.testing.assert_allclose(law_kernels.row_squares(Y, True), np.linalg.norm(Y, axis=1),
+                               rtol=1e-15, atol=0)
+    assert np.isnan(law_kernels.row_squares(np.array([[np.nan, 1.0, 0.0]]), True)[0])

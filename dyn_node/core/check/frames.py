@@ -85,8 +85,9 @@ class FrameTerms:
         """½·m_u·|v|² (N, J); needs the inertia terms."""
         if self.effective_mass is None:
             raise ValueError("transferred_energy needs the inertia terms (inertia=True)")
-        v = self.linear_velocity
-        return 0.5 * self.effective_mass * np.einsum("ij,ij->i", v, v)
+        from dyn_node.core.compiled import law_kernels  # compiled: ~5× NumPy's einsum
+
+        return 0.5 * self.effective_mass * law_kernels.row_squares(self.linear_velocity, False)
 
 
 @dataclass(frozen=True)

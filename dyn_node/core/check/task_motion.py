@@ -139,18 +139,15 @@ def reaction(fk: FrameKinematics, batch: FrameBatch, rotation: np.ndarray, index
     """The task wrench W (frame axes, at the frame origin) of point ``index`` as the mounting
     takes it back: [force; moment] (M×6) at the root origin in root axes (+W: the environment's
     −W on the tool is held by the mounting's +W)."""
+    from dyn_node.core.compiled import law_kernels
+
     spec = fk.points[index]
-    W = np.asarray(spec.wrench, dtype=float)
-    R = rotation[index]                                       # M×3×3 frame → world
-    origin = batch.frames[index].position
-    if any(spec.point):      # a point shared with a frame_limits entry: back to the origin
-        origin = origin - np.einsum("mij,j->mi", R, np.asarray(spec.point, dtype=float))
-    # one matrix-vector product over all samples' rows (R is contiguous M×3×3)
-    rows = R.reshape(-1, 3)
-    f = (rows @ W[:3]).reshape(-1, 3)
-    n = (rows @ W[3:]).reshape(-1, 3) + np.cross(origin, f)
     R0, r0 = fk.base_placement
-    return np.hstack([f @ R0, (n - np.cross(r0, f)) @ R0])
+    # one compiled pass over the samples (the NumPy form took ~0.9 ms on the bench's 10 s)
+    return law_kernels.task_reaction(rotation[index].reshape(-1, 9), batch.frames[index].position,
+                                     np.asarray(spec.point, dtype=float),
+                                     np.asarray(spec.wrench, dtype=float), R0,
+                                     np.asarray(r0, dtype=float))
 
 
 def build(dynamics: Dynamics, Q: np.ndarray, V: np.ndarray, A: np.ndarray, *,

@@ -71,7 +71,7 @@ _A2 = types.Array(_f8, 2, "A")
 _A = np.ndarray
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _cross(ax: float, ay: float, az: float, bx: float, by: float,
            bz: float) -> tuple[float, float, float]:
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
@@ -90,21 +90,21 @@ def _carried(w: np.ndarray, al: np.ndarray, vo: np.ndarray, ao: np.ndarray, a: i
             ao[a, 0] + dx + ex, ao[a, 1] + dy + ey, ao[a, 2] + dz + ez)
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _rot(R: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
     # R (row-major 9) times a vector
     return (R[0] * x + R[1] * y + R[2] * z, R[3] * x + R[4] * y + R[5] * z,
             R[6] * x + R[7] * y + R[8] * z)
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _rot_t(R: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
     # Rᵀ times a vector
     return (R[0] * x + R[3] * y + R[6] * z, R[1] * x + R[4] * y + R[7] * z,
             R[2] * x + R[5] * y + R[8] * z)
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _mul9(A: np.ndarray, P: np.ndarray) -> tuple[float, float, float, float, float, float,
                                                  float, float, float]:
     # A · (rotation part of P), both row-major, as 9 values
@@ -139,7 +139,7 @@ def joint_step(Rw: np.ndarray, pw: np.ndarray, z: np.ndarray, parent: np.ndarray
     return px, py, pz, zx, zy, zz
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _world_inertia(R: np.ndarray, I6: np.ndarray, out: np.ndarray) -> None:
     """out (6: xx, xy, xz, yy, yz, zz) = R·I·Rᵀ for a symmetric I given the same way."""
     a, b, c, d, e, f = I6[0], I6[1], I6[2], I6[3], I6[4], I6[5]
@@ -154,14 +154,14 @@ def _world_inertia(R: np.ndarray, I6: np.ndarray, out: np.ndarray) -> None:
             t += 1
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _sym_mul(S: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
     # symmetric 3×3 (xx, xy, xz, yy, yz, zz) times a vector
     return (S[0] * x + S[1] * y + S[2] * z, S[1] * x + S[3] * y + S[4] * z,
             S[2] * x + S[4] * y + S[5] * z)
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _cholesky(Mk: np.ndarray, L: np.ndarray, inv: np.ndarray) -> bool:
     """Lower factor L of Mk = L·Lᵀ, the reciprocals of its diagonal in ``inv``; False when a
     pivot is not positive (M not positive definite: a massless chain)."""
@@ -181,7 +181,7 @@ def _cholesky(Mk: np.ndarray, L: np.ndarray, inv: np.ndarray) -> bool:
     return True
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _crba(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.ndarray,
           z: np.ndarray, cm: np.ndarray, ch: np.ndarray, cJ: np.ndarray, armature: np.ndarray,
           sv: np.ndarray, g0: float, g1: float, g2: float, Mk: np.ndarray,
@@ -243,7 +243,7 @@ def _crba(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.nd
                 cJ[a, r] += cJ[i, r]
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _effective_mass(L: np.ndarray, inv: np.ndarray, b: np.ndarray, y: np.ndarray,
                     speed: float, positive: bool) -> float:
     """1/(bᵀM⁻¹b) = 1/|L⁻¹b|² (b = J_vᵀu, M = LLᵀ, inv: 1/diag L) by forward substitution
@@ -263,7 +263,7 @@ def _effective_mass(L: np.ndarray, inv: np.ndarray, b: np.ndarray, y: np.ndarray
     return 1.0 / s
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _couple(L: np.ndarray, inv: np.ndarray, Jc: np.ndarray, Yf: np.ndarray, positive: bool,
             out: np.ndarray, lam: np.ndarray, fmass: np.ndarray) -> None:
     """Y = L⁻¹·J_cᵀ in place of Jc (forward substitution per column), lam = YᵀY (6) and
@@ -297,7 +297,7 @@ def _couple(L: np.ndarray, inv: np.ndarray, Jc: np.ndarray, Yf: np.ndarray, posi
             out[f, a] = s
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _base(root: np.ndarray, Mt: float, Sx: float, Sy: float, Sz: float, g0: float, g1: float,
           g2: float, fx: float, fy: float, fz: float, nx: float, ny: float, nz: float,
           ws: np.ndarray, wd: np.ndarray, com: np.ndarray) -> None:
@@ -321,7 +321,7 @@ def _base(root: np.ndarray, Mt: float, Sx: float, Sy: float, Sz: float, g0: floa
         com[0] = com[1] = com[2] = np.nan
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _rnea_backward(parent: np.ndarray, revolute: np.ndarray, index: np.ndarray, pw: np.ndarray,
                    z: np.ndarray, armature: np.ndarray, a: np.ndarray, bm: np.ndarray,
                    bg: np.ndarray, tau: np.ndarray, g: np.ndarray) -> None:

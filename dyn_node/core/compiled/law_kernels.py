@@ -120,6 +120,47 @@ def payload_wrench_rows(position: np.ndarray, acceleration: np.ndarray, gravity:
     return f, m
 
 
+@njit([_C1(_M, types.boolean)], **_JIT)
+def row_squares(X: np.ndarray, root: bool) -> np.ndarray:
+    """|x|² per row of N×3 X (its square root with ``root``), summed as (x₀² + x₂²) + x₁²: the
+    order NumPy's einsum("ij,ij->i") takes here, so the task laws' values did not move."""
+    N = X.shape[0]
+    out = np.empty(N)
+    for n in range(N):
+        a, b, c = X[n, 0], X[n, 1], X[n, 2]
+        s = (a * a + c * c) + b * b
+        out[n] = math.sqrt(s) if root else s
+    return out
+
+
+@njit([_C2(_M, _M, _V, _V, _M, _V)], **_JIT)
+def task_reaction(R: np.ndarray, position: np.ndarray, point: np.ndarray, W: np.ndarray,
+                  R0: np.ndarray, r0: np.ndarray) -> np.ndarray:
+    """Per sample (N×9 row-major frame-to-world R, N×3 world ``position`` of the frame's
+    ``point``): the wrench W ([force; torque], frame axes, at the frame origin) in world axes,
+    its moment taken about the world origin then about r0, both in the axes of R0 (N×6)."""
+    N = R.shape[0]
+    out = np.empty((N, 6))
+    for n in range(N):
+        Rn = R[n]
+        ox = position[n, 0] - (Rn[0] * point[0] + Rn[1] * point[1] + Rn[2] * point[2])
+        oy = position[n, 1] - (Rn[3] * point[0] + Rn[4] * point[1] + Rn[5] * point[2])
+        oz = position[n, 2] - (Rn[6] * point[0] + Rn[7] * point[1] + Rn[8] * point[2])
+        fx = Rn[0] * W[0] + Rn[1] * W[1] + Rn[2] * W[2]
+        fy = Rn[3] * W[0] + Rn[4] * W[1] + Rn[5] * W[2]
+        fz = Rn[6] * W[0] + Rn[7] * W[1] + Rn[8] * W[2]
+        # n = R·T + o × f − r0 × f
+        nx = Rn[0] * W[3] + Rn[1] * W[4] + Rn[2] * W[5] + (oy * fz - oz * fy)
+        ny = Rn[3] * W[3] + Rn[4] * W[4] + Rn[5] * W[5] + (oz * fx - ox * fz)
+        nz = Rn[6] * W[3] + Rn[7] * W[4] + Rn[8] * W[5] + (ox * fy - oy * fx)
+        nx, ny, nz = (nx - (r0[1] * fz - r0[2] * fy), ny - (r0[2] * fx - r0[0] * fz),
+                      nz - (r0[0] * fy - r0[1] * fx))
+        for i in range(3):
+            out[n, i] = R0[0, i] * fx + R0[1, i] * fy + R0[2, i] * fz
+            out[n, 3 + i] = R0[0, i] * nx + R0[1, i] * ny + R0[2, i] * nz
+    return out
+
+
 @njit([_C2(_M, _V)], **_JIT)
 def tangential(f: np.ndarray, n: np.ndarray) -> np.ndarray:
     """f − (f·n)·n per row of N×3 f, for the unit axis n."""
