@@ -240,3 +240,25 @@ def test_a_replay_off_by_a_hair_is_found(recorded, monkeypatch):
     for topic in OUTPUTS[:2]:
         assert rc[topic]["matched"] == N and rc[topic]["identical"] is False, rc[topic]
         assert 0.0 < rc[topic]["max_abs_difference"] < 1e-3, rc[topic]
+
+
+def test_one_thread_audits_the_same_without_a_thread_of_its_own(recorded, audited, monkeypatch):
+    """threads=1 (a fleet worker's audit): no pool is ever made, the contact pass runs in turn,
+    the plots are drawn in turn, and the evidence and every plot are the same as with two."""
+    import dyn_node.audit.replay.inputs as inputs
+    import dyn_node.audit.report as report
+
+    def no_pool(*_a, **_k):
+        raise AssertionError("a thread pool was made with threads=1")
+
+    monkeypatch.setattr(inputs, "ThreadPoolExecutor", no_pool)
+    monkeypatch.setattr(report, "ThreadPoolExecutor", no_pool)
+    path, _, tmp = recorded
+    run_audit(AuditOptions(bag=path, out=str(tmp / "single"), threads=1))
+    single = validated(tmp / "single")
+    assert single["outputs"]["contact"] == audited[0]["outputs"]["contact"]
+    assert single["outputs"]["recheck"] == audited[0]["outputs"]["recheck"]
+    pngs = sorted(p.name for p in (tmp / "out").glob("*.png"))
+    assert "contact.png" in pngs
+    for name in pngs:
+        assert (tmp / "single" / name).read_bytes() == (tmp / "out" / name).read_bytes(), name

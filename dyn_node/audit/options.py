@@ -28,6 +28,9 @@ class AuditOptions:
     gap_threshold_s: float = 0.05
     progress: bool | None = None    # None: only when stderr is a terminal
     report: bool = True
+    # 2: the contact pass beside the replay and two plots at once; 1 in a fleet worker, whose
+    # parallelism is the workers (a thread more per worker took the other workers' cores)
+    threads: int = 2
     # models built earlier in this process (a fleet worker's); None (dyn-audit): built per bag
     model_cache: "ModelCache | None" = field(default=None, compare=False, repr=False)
 

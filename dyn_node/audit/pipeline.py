@@ -44,7 +44,7 @@ class Audit:
         reader = source.reader
         recheck = Rechecker(reader.known_topics(), self.decoder)
         replay = Replay(source.configurations, gap_threshold_s=opts.gap_threshold_s,
-                        decoder=self.decoder, sink=recheck)
+                        decoder=self.decoder, sink=recheck, threads=opts.threads)
         if source.model_source == "bag:topic" and len(source.configurations) > 1:
             replay.contact.without_model()  # the node's first core came with a later configuration
         roles = Roles(opts.topics)
@@ -131,5 +131,6 @@ def run_audit(opts: AuditOptions) -> AuditResult:
     if opts.report:
         from dyn_node.audit.report import write_report
 
-        files += write_report(record, series, audit.model, out, contact_series=audit.contact_series)
+        files += write_report(record, series, audit.model, out, contact_series=audit.contact_series,
+                              threads=opts.threads)
     return AuditResult(record, code, out, files, audit.n_msgs, time.perf_counter() - wall0)

@@ -501,9 +501,11 @@ def render_html(record: dict, images: dict[str, bytes]) -> str:
                       *_recheck_section(out), *_gate_section(out), *_controller_section(out)])
 
 
-def write_report(record: dict, series, model, out_dir: str | Path, *, contact_series=None) -> list[Path]:
+def write_report(record: dict, series, model, out_dir: str | Path, *, contact_series=None,
+                 threads: int = 2) -> list[Path]:
     """Write report.html and the PNG plots into ``out_dir``; returns the paths written
-    (``contact_series``: the contact replay's SeriesBins, for contact.png)."""
+    (``contact_series``: the contact replay's SeriesBins, for contact.png; ``threads``: plots
+    drawn at once)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     start_ns = record["inputs"]["time_span"]["start_ns"] or 0
@@ -524,9 +526,12 @@ def write_report(record: dict, series, model, out_dir: str | Path, *, contact_se
             plots["task_limits.png"] = partial(task_plot, record["outputs"]["trajectories"])
     # Two at a time: Pillow lets go of the GIL while it shrinks and PNG-compresses an image,
     # so one plot's encoding runs beside the next one's drawing. Each image is the same bytes.
-    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="dyn-audit-plot") as pool:
-        jobs = {name: pool.submit(draw) for name, draw in plots.items()}
-        images: dict[str, bytes] = {name: job.result() for name, job in jobs.items()}
+    if threads < 2:
+        images: dict[str, bytes] = {name: draw() for name, draw in plots.items()}
+    else:
+        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="dyn-audit-plot") as pool:
+            jobs = {name: pool.submit(draw) for name, draw in plots.items()}
+            images = {name: job.result() for name, job in jobs.items()}
     files = []
     for name, data in images.items():
         (out / name).write_bytes(data)

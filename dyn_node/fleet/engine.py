@@ -205,7 +205,7 @@ def audit_bag(job: BagJob) -> BagOutcome:
     opts = AuditOptions(bag=job.path, robot_description=cfg.robot_description,
                         robot_model=cfg.robot_model, limits=cfg.limits, out=str(job.out_dir),
                         topics=cfg.topics, gap_threshold_s=cfg.gap_threshold_s, progress=False,
-                        report=cfg.report, model_cache=worker_model_cache())
+                        report=cfg.report, model_cache=worker_model_cache(), threads=1)
     try:
         res = run_audit(opts)
     except (AuditError, BagError, DynNodeError) as exc:

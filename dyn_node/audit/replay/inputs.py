@@ -104,7 +104,8 @@ class Replay:
     would have published go to ``sink`` (the re-check; None: not kept)."""
 
     def __init__(self, configurations: Sequence[Config], *, gap_threshold_s: float = 0.05,
-                 decoder: MessageDecoder | None = None, sink: "Rechecker | None" = None):
+                 decoder: MessageDecoder | None = None, sink: "Rechecker | None" = None,
+                 threads: int = 2):
         first = configurations[0]
         self.changes = list(configurations[1:])
         lim = first.model.limits
@@ -139,6 +140,7 @@ class Replay:
         # on a second thread while this one replays the next batch; anything else that touches
         # the contact replay or runs the Monitor per message first waits for it (_contact_ready).
         self._contact_pool: ThreadPoolExecutor | None = None
+        self._threads = threads  # 1: the contact pass runs in turn
         self._contact_job: Future | None = None
         # the question services' request/response pairs, counted in the same tally
         self.services = ServiceReplay(sink, tally=self.tally)
@@ -324,6 +326,9 @@ class Replay:
     def _contact_batch(self, ts: list[int], jb: Any, b: Any) -> None:
         """The contact replay of a batch, on the second thread once the previous one is done."""
         self._contact_ready()
+        if self._threads < 2:
+            self.contact.sample_batch(ts, jb, b)
+            return
         if self._contact_pool is None:
             self._contact_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dyn-audit-contact")
         self._contact_job = self._contact_pool.submit(self.contact.sample_batch, ts, jb, b)
