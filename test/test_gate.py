@@ -441,6 +441,7 @@ def test_clean_shutdown_cancels_what_was_forwarded(module_ros_context, spawn):
     """SIGINT to dyn_node while a forwarded goal runs: the controller's goal ends CANCELED (its
     action status topic says so), the robot held before the trajectory's end."""
     from action_msgs.msg import GoalStatus, GoalStatusArray
+    from rclpy.qos import qos_profile_action_status_default
 
     from dyn_node.ros.fjt_client import FjtClient
 
@@ -451,8 +452,10 @@ def test_clean_shutdown_cancels_what_was_forwarded(module_ros_context, spawn):
     client = FjtClient(module_ros_context, f"{ns}/gate_stop/follow_joint_trajectory", "client_stop")
     probe = Probe(module_ros_context, "gate_stop", ready=("gate_stop",), ns=ns)
     statuses: list = []
+    # transient local, as an action client subscribes to it: the server publishes the status only
+    # when it changes, and a subscription matched after the change still gets the last array
     probe.node.create_subscription(GoalStatusArray, f"{ns}/joint_trajectory_controller/follow_joint_trajectory"
-                                   "/_action/status", statuses.append, 10)
+                                   "/_action/status", statuses.append, qos_profile_action_status_default)
     try:
         client.wait_for_server(90.0)
         probe.wait_ready()
