@@ -63,10 +63,14 @@ def test_press_publishes_truth_and_physics_status(ros_context, spawn):
         spin_until(ros_context, node, lambda: len(truth) >= 200, 40, "200 contact truth messages")
         spin_until(ros_context, node, lambda: float(kv(diag[-1])["max_penetration_m"]) > 0, 10,
                    "a physics status of the press")
+        # each truth shares its step's joint_states stamp; the last truths' joint_states may
+        # still be queued when the spinning above stops, so wait for them (not for later ones)
+        needed = {(m.header.stamp.sec, m.header.stamp.nanosec) for m in truth[-50:]}
+        spin_until(ros_context, node, lambda: needed <= {(m.header.stamp.sec, m.header.stamp.nanosec)
+                                                         for m in js[-3000:]}, 10,
+                   "the joint_states of the last 50 contact truths")
     finally:
         node.destroy_node()
-    js_stamps = {(m.header.stamp.sec, m.header.stamp.nanosec) for m in js}
-    assert all((m.header.stamp.sec, m.header.stamp.nanosec) in js_stamps for m in truth[-50:])
     last = truth[-1]
     assert last.header.frame_id == "panda_link0"
     assert set(last.link_names) <= {"panda_leftfinger", "panda_rightfinger", "panda_hand"} and last.link_names
