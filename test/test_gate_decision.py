@@ -144,3 +144,30 @@ def test_retime_mode_uses_the_nodes_limit_margin(fast):
     assert got[0.85].duration_out > got[0.995].duration_out * 1.05
     for d in got.values():
         assert feasibility.check_trajectory(dyn, d.trajectory).feasible
+
+
+def test_retimed_answer_is_forwarded_only_when_its_check_passes(fast):
+    """The retimer's own check of its answer decides (no second check of the same trajectory);
+    a retimer that brings none gets its answer checked here. Either way, an answer that fails
+    is never forwarded."""
+    from dataclasses import replace
+
+    from dyn_node.retime import retime
+
+    dyn, traj = fast
+    bad_check = feasibility.check_trajectory(dyn, traj)  # the fast goal's: infeasible
+    assert not bad_check.feasible
+
+    def claims_a_failed_check(*a, **k):
+        return replace(retime(*a, **k), check=bad_check)
+
+    def brings_the_input_unchecked(*a, **k):  # "retimed" to the infeasible input itself
+        return replace(retime(*a, **k), trajectory=traj, check=None)
+
+    for fn in (claims_a_failed_check, brings_the_input_unchecked):
+        d = decide(dyn, traj, GateOptions(mode="retime"), start=None, retimer=fn)
+        assert (d.decision, d.reason) == (REJECTED, "retime_failed"), fn.__name__
+        assert "the retimed trajectory failed the re-check" in d.error_string, fn.__name__
+    # the retimer's passing check is taken as it is: forwarded, and it passes when checked again
+    d = decide(dyn, traj, GateOptions(mode="retime"), start=None, retimer=retime)
+    assert d.decision == RETIMED and feasibility.check_trajectory(dyn, d.trajectory).feasible

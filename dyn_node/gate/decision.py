@@ -223,10 +223,11 @@ def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState
     uniform = float(out.duration_uniform)
     if not out.feasible or out.trajectory is None:
         return failed(out.message, uniform)
-    # re-checked here, as the controller will run it: what is forwarded passed this gate's check
+    # what is forwarded passed this gate's check: the retimer's own exact check of its answer
+    # (same options, same start) when it has one, else checked here as the controller will run it
     try:
-        again = feasibility.check_trajectory(dynamics, out.trajectory, check_options, start=start,
-                                             start_unknown=feasibility.NO_CURRENT_STATE)
+        again = out.check if out.check is not None else feasibility.check_trajectory(
+            dynamics, out.trajectory, check_options, start=start, start_unknown=feasibility.NO_CURRENT_STATE)
         ok, why = again.feasible, again.message
     except TrajectoryError as exc:
         ok, why = False, str(exc)
