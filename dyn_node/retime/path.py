@@ -8,7 +8,6 @@ step: rad or m), which is the same spline the check assumes for a positions-only
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,27 +35,10 @@ class Path:
 
     def derivatives(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q, q', q'') at path positions s (M,), each M×nv."""
-        return tuple(evaluate(self.pp, np.clip(s, self.pp.breaks[0], self.pp.breaks[-1]), 3))
+        return self.pp.evaluate(np.clip(s, self.pp.breaks[0], self.pp.breaks[-1]), orders=3)
 
     def positions(self, s: np.ndarray) -> np.ndarray:
-        return evaluate(self.pp, np.clip(s, self.pp.breaks[0], self.pp.breaks[-1]), 1)[0]
-
-
-def evaluate(pp: PiecewisePolynomial, t: np.ndarray, orders: int) -> list[np.ndarray]:
-    """The first ``orders`` derivatives (0: position) of ``pp`` at t inside its breaks: its
-    own ``evaluate`` always computes four, and the retimer's rounds need one to three."""
-    t = np.atleast_1d(np.asarray(t, dtype=float))
-    seg = np.clip(np.searchsorted(pp.breaks, t, side="right") - 1, 0, len(pp.coeffs) - 1)
-    r = (t - pp.breaks[seg])[:, None]
-    c = pp.coeffs[seg]
-    deg = c.shape[1] - 1
-    out = []
-    for d in range(orders):
-        acc = np.zeros((len(t), c.shape[2]))
-        for k in range(deg, d - 1, -1):
-            acc = acc * r + math.perm(k, d) * c[:, k, :]
-        out.append(acc)
-    return out
+        return self.pp.evaluate(np.clip(s, self.pp.breaks[0], self.pp.breaks[-1]), orders=1)[0]
 
 
 def validate_input(traj: Trajectory) -> None:
@@ -153,8 +135,8 @@ class ArcPath:
         s0, s1 = path.pp.breaks[0], path.pp.breaks[-1]
         s = s0 + (s1 - s0) * u * u * (3 - 2 * u)
         s[-1] = s1
-        speed = np.linalg.norm(evaluate(path.pp, s, 2)[1], axis=1)
-        mid = np.linalg.norm(evaluate(path.pp, 0.5 * (s[1:] + s[:-1]), 2)[1], axis=1)
+        speed = np.linalg.norm(path.pp.evaluate(s, orders=2)[1], axis=1)
+        mid = np.linalg.norm(path.pp.evaluate(0.5 * (s[1:] + s[:-1]), orders=2)[1], axis=1)
         self._s = s
         self._l = np.concatenate(([0.0], np.cumsum(np.diff(s) * (speed[:-1] + 4 * mid
                                                                    + speed[1:]) / 6)))

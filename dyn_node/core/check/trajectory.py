@@ -176,15 +176,16 @@ class PiecewisePolynomial:
     breaks: np.ndarray
     coeffs: np.ndarray
 
-    def evaluate(self, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(q, q̇, q̈, q⃛) at times t (M,), each M×nv."""
+    def evaluate(self, t: np.ndarray | float, orders: int = 4) -> tuple[np.ndarray, ...]:
+        """(q, q̇, q̈, q⃛) at times t (M,), each M×nv; the first ``orders`` of them only (the
+        retimer's rounds need one to three)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         seg = np.clip(np.searchsorted(self.breaks, t, side="right") - 1, 0, len(self.coeffs) - 1)
         s = np.clip(t - self.breaks[seg], 0.0, self.breaks[seg + 1] - self.breaks[seg])[:, None]
         c = self.coeffs[seg]  # M × (deg+1) × nv
         deg = c.shape[1] - 1
         out = []
-        for d in range(4):
+        for d in range(orders):
             acc = np.zeros((len(t), c.shape[2]))
             for k in range(deg, d - 1, -1):
                 fac = float(np.prod(np.arange(k - d + 1, k + 1))) if d else 1.0
@@ -192,9 +193,9 @@ class PiecewisePolynomial:
             out.append(acc)
         outside = (t < self.breaks[0]) | (t > self.breaks[-1])
         if np.any(outside):
-            for d in (1, 2, 3):
+            for d in range(1, orders):
                 out[d][outside] = 0.0
-        return out[0], out[1], out[2], out[3]
+        return tuple(out)
 
 
 def _quintic(p0, v0, a0, p1, v1, a1, T):
