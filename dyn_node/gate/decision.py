@@ -198,14 +198,13 @@ def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
             return Decision(FORWARDED, reason="" if result.feasible else "infeasible", trajectory=traj,
                             check_time_s=elapsed, duration_out=traj.duration, **base)
         return Decision(REJECTED, reason="infeasible", trajectory=None, check_time_s=elapsed, **base)
-    return _retimed(dynamics, traj, start, check_options, (retimer, limit_margin), t0, base,
-                    result)
+    return _retimed(dynamics, traj, start, check_options, retimer, limit_margin, t0, base, result)
 
 
 def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState | None,
-             check_options: feasibility.FeasibilityOptions, retimer: tuple[RetimeFn | None, float],
-             t0: float, base: dict[str, Any],
-             checked: feasibility.FeasibilityResult | None = None) -> Decision:
+             check_options: feasibility.FeasibilityOptions, retimer: RetimeFn | None,
+             limit_margin: float, t0: float, base: dict[str, Any],
+             checked: feasibility.FeasibilityResult) -> Decision:
     def failed(message: str, uniform: float = math.nan) -> Decision:
         # a feasible goal (retime_all) whose retiming failed still goes as it came
         kept = traj if base["feasible"] else None
@@ -214,9 +213,9 @@ def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState
                         check_time_s=time.perf_counter() - t0, **base)
 
     try:
-        fn = retimer[0] or load_retimer()
+        fn = retimer or load_retimer()
         # the goal's check just made: the retimer does not check its input again
-        out = fn(dynamics, traj, start=start, feasibility=check_options, limit_margin=retimer[1],
+        out = fn(dynamics, traj, start=start, feasibility=check_options, limit_margin=limit_margin,
                  input_check=checked)
     except TrajectoryError as exc:
         return failed(str(exc))

@@ -482,11 +482,6 @@ def _rms_bracket(g: Callable[..., np.ndarray], k_up: np.ndarray, m: int
     return np.log(lo), gl, np.log(hi), gh
 
 
-    if isinstance(v, np.integer):
-        return int(v)
-    return v
-
-
 def _fmt(x: float) -> str:
     return f"{x:.3g}"
 

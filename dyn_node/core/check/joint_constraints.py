@@ -79,11 +79,6 @@ class _TorqueBand(JointConstraint):
     """A kind whose value is the torque τ itself (against a fixed or a speed-dependent limit):
     blocked where gravity and friction alone exceed it; affine in the payload mass."""
 
-    _blocked: Blocked | None
-
-    def blocked(self) -> Blocked | None:
-        return self._blocked
-
     def payload_band(self, motion: Motion, payload: PayloadTerms) -> Band | None:
         return _affine_band(_take(motion.tau, self.cols), _take(payload.tau1, self.cols),
                             self.limit)

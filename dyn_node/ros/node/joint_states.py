@@ -211,7 +211,7 @@ class JointStatesIO:
                 info = sub.handle.take_message(sub.msg_type, sub.raw)
         except Exception:  # subscription being destroyed: leave it to the executor
             return None
-        return info if info is not None else None
+        return info
 
     def _handle_joint_state(self, fields: tuple | InputError, receipt_ns: int) -> None:
         """``fields`` = (stamp sec, stamp nanosec, names, position, velocity, effort), or the
