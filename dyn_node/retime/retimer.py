@@ -236,7 +236,7 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             if x is None:
                 return None
             lw = timing.law(sr.grid, x, sr.sd0)
-            pts = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)[0]
+            pts = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)
             # halfway between the rows' share and the limit: over the share by rounding is
             # no reason to slow down, and near the limit the quintic between points may cross
             share = (1.0 + sr.margin) / 2
@@ -536,7 +536,7 @@ def _dense(path: Path, lw: timing.Law, w: float, period: float, tolerance: float
     of the path (None when even 1/64 of it does not); windows w, w2 (:func:`timing.smoothed`);
     ``first``: the points at ``period``, when already made."""
     for _ in range(7):
-        out = first if first is not None else timing.points(path, lw, w, period, w2)[0]
+        out = first if first is not None else timing.points(path, lw, w, period, w2)
         first = None
         dev = timing.deviation(path, lw, w, out, w2)
         if dev <= tolerance:

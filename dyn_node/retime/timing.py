@@ -100,10 +100,8 @@ def smoothed(lw: Law, w: float, t: np.ndarray, w2: float = 0.0, orders: int = 3
     return tuple(sum(sg * lev[sh][d - n] for sh, sg in shifts) for d in range(orders))
 
 
-def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
-           ) -> tuple[Trajectory, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The output trajectory (points every ≤ ``period`` s) and its points' s (from the path's
-    start), ṡ and s̈."""
+def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0) -> Trajectory:
+    """The output trajectory: points every ≤ ``period`` s."""
     total = lw.duration + w + w2
     n = max(2, int(np.ceil(total / period)) + 1)
     t = np.linspace(0.0, total, n)
@@ -111,7 +109,7 @@ def points(path: Path, lw: Law, w: float, period: float, w2: float = 0.0
     s = np.clip(s, path.pp.breaks[0] - lw.origin, lw.s[-1])
     q, d1, d2 = path.derivatives(s + lw.origin)
     return Trajectory(times=t, positions=q, velocities=d1 * sd[:, None],
-                      accelerations=d2 * (sd**2)[:, None] + d1 * sdd[:, None]), (s, sd, sdd)
+                      accelerations=d2 * (sd**2)[:, None] + d1 * sdd[:, None])
 
 
 def deviation(path: Path, lw: Law, w: float, out: Trajectory, w2: float = 0.0,
