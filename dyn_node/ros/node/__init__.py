@@ -46,7 +46,6 @@ from trajectory_msgs.msg import JointTrajectory
 
 from dyn_node.core.live.allocator import retain_freed_memory
 from dyn_node.core.live.drops import DropCounter
-from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import DynNodeError, SettingsError
 from dyn_node.core.robot.model import RobotModel
 from dyn_node.core.robot.model_source import build_model, limits_text
@@ -171,14 +170,14 @@ class DynNode(JointStatesIO, ModelState, PeriodicOutputs, TrajectoryWorker, Node
 
     def _start_workers(self) -> None:
         self._jobs: queue.Queue = queue.Queue(maxsize=64)
-        self._worker_dyn: dict[tuple[int, int, bool], Dynamics] = {}
+        self._worker_dyn = threading.local()  # each worker thread's Dynamics (_worker_dynamics)
         # The worker may still be checking when the node is destroyed (destroy_node waits only
         # briefly for it): it publishes under this lock, and not at all once closed is set.
         self._worker_pub_lock = threading.Lock()
         self._worker_closed = False
         self._worker = threading.Thread(target=self._feasibility_loop, name="dyn_node_feasibility", daemon=True)
         self._worker.start()
-        # questions (check, inverse dynamics, retime): services with a worker of their own, apart
+        # questions (check, inverse dynamics, retime): services with a worker per kind, apart
         # from joint_trajectory's, so a planner's questions never delay a command's verdict
         self.questions = QuestionServices(self, core=lambda: self._core, start_state=self._start_state_now,
                                           dynamics=self._worker_dynamics, failed=self._callback_failed)
