@@ -3,8 +3,7 @@ default, with schemas built from the .srv as rosbag2 builds them, decoded by the
 reader (mcap-ros2-support) and by `rosbags`, and re-checked by dyn-audit. A bag whose only inputs
 are service calls audits with exit 0, infeasible questions included.
 
-One node process (Panda, recording) serves the module; the bag holds the calls and, around the
-one asked from the robot's state, joint_states at rest."""
+One node process (Panda, recording) serves the module; the bag holds nothing but the calls."""
 from __future__ import annotations
 
 import importlib.util
@@ -13,16 +12,13 @@ import math
 import re
 import sys
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory
-from builtin_interfaces.msg import Time
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from conftest import REPO, ChildProcess, Collected, Spinner, child_env, python_cmd
@@ -36,20 +32,6 @@ SERVICES = ("check_trajectory", "compute_inverse_dynamics", "retime_trajectory")
 EVENTS = {f"/dyn_node/{s}/_service_event" for s in SERVICES}
 QUESTION_TYPES = {f"/dyn_node/{s}/_service_event": t for s, t in
                   zip(SERVICES, ("CheckTrajectory", "ComputeInverseDynamics", "RetimeTrajectory"))}
-
-
-def _feed_joint_states(node, stop: threading.Event) -> None:
-    """joint_states at READY, at rest, stamped now, every 20 ms until ``stop``."""
-    pub = node.create_publisher(JointState, "/joint_states", 10)
-    try:
-        while not stop.is_set():
-            ns = time.time_ns()
-            msg = JointState(name=NAMES, position=list(READY), velocity=[0.0] * 7)
-            msg.header.stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
-            pub.publish(msg)
-            stop.wait(0.02)
-    finally:
-        node.destroy_publisher(pub)
 
 
 @pytest.fixture(scope="module")
@@ -82,21 +64,7 @@ def bag(module_ros_context, tmp_path_factory) -> Path:
         shake = trajectory_message(NAMES, aggressive.times, aggressive.positions, z, z)
         assert not call("check_trajectory", CheckTrajectory.Request(trajectory=shake)).feasible
         late = trajectory_message(NAMES, [t + 1.0 for t in comfortable.times], comfortable.positions)
-        # from the robot's state: joint_states (at READY) flow until the node has answered one
-        # and the call is answered, so the state it starts from is known
-        gravity = node.create_subscription(JointState, "/dyn_node/gravity_torque",
-                                           got.collector("gravity"), 10)
-        stop_js = threading.Event()
-        feeder = threading.Thread(target=_feed_joint_states, args=(node, stop_js), daemon=True)
-        feeder.start()
-        try:
-            assert got.wait(lambda: bool(got.got["gravity"]), 30), "no gravity_torque answer"
-            r = call("check_trajectory", CheckTrajectory.Request(trajectory=late, from_current_state=True))
-        finally:
-            stop_js.set()
-            feeder.join()
-            node.destroy_subscription(gravity)
-        assert r.accepted and list(r.start_state.name) == NAMES
+        assert call("check_trajectory", CheckTrajectory.Request(trajectory=late, from_current_state=True)).accepted
         bad = trajectory_message(NAMES, comfortable.times, comfortable.positions)
         bad.points[1].positions[0] = math.nan
         assert call("check_trajectory", CheckTrajectory.Request(trajectory=bad)).reason == "non_finite"
@@ -152,6 +120,22 @@ def _events(bag: Path) -> dict[str, list[tuple[Any, Any]]]:
     return out
 
 
+def _channels(f: Path) -> list:
+    from mcap.reader import make_reader
+
+    with open(f, "rb") as fh:
+        return list(make_reader(fh).get_summary().channels.values())
+
+
+def _message_counts(f: Path) -> dict[int, int]:
+    """channel id → messages in the file (channels without messages are absent)."""
+    from mcap.reader import make_reader
+
+    with open(f, "rb") as fh:
+        stats = make_reader(fh).get_summary().statistics
+    return {k: n for k, n in stats.channel_message_counts.items() if n}
+
+
 def test_events_decode_with_mcap_and_rosbags_alike(bag):
     events = _events(bag)
     assert set(events) == EVENTS
@@ -172,12 +156,13 @@ def test_events_decode_with_mcap_and_rosbags_alike(bag):
     assert len(m.effort.points) == len(r.effort.points) == n
     np.testing.assert_array_equal(np.array([list(p.effort) for p in m.effort.points]),
                                   np.array([p.effort for p in r.effort.points]))
-    # the start state the second call was checked from (the fixture's joint_states: READY, at
-    # rest) travels in its response, decoded alike by both readers
-    for start in (responses[1][0].start_state, responses[1][1].start_state):
-        assert list(start.name) == NAMES and list(start.position) == list(READY)
-        assert list(start.velocity) == [0.0] * 7
-    assert 0.0 <= responses[1][0].start_state_age == responses[1][1].start_state_age < 0.5
+    # the second call asked from the robot's state, and the bag holds no joint_states (the
+    # fixture publishes none): both readers decode the same "no state" answer, none invented
+    assert not [c for f in _mcap_files(bag) for c in _channels(f) if c.topic == "/joint_states"
+                and c.id in _message_counts(f)]
+    for resp in responses[1]:
+        assert resp.accepted and list(resp.start_state.name) == [] and math.isnan(resp.start_state_age)
+        assert resp.start_segment == "not_checked (no current state within stale_timeout)"
     ids = events["/dyn_node/compute_inverse_dynamics/_service_event"]
     req = next(mc.request[0] for mc, _ in ids if mc.info.event_type == 1)
     resp = next(rb.response[0] for _, rb in ids if rb.info.event_type == 2)

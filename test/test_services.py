@@ -711,3 +711,65 @@ def test_a_call_that_waited_past_max_queue_age_is_dropped_not_computed(rig):
     assert (r2.accepted, r2.reason, r2.feasible) == (False, "expired", False)
     assert r2.message.startswith("expired: waited ") and "services.max_queue_age (0.2 s)" in r2.message
     assert not r2.effort.points and not r2.statuses
+
+
+class GravityProbe:
+    """test/gravity_probe.py in a process of its own: joint_states to dyn_node every 5 ms, and
+    the receipt time of each ~/gravity_torque answer (this process's own work cannot hold them)."""
+
+    def __init__(self):
+        import subprocess
+        import sys
+
+        self.cp = ChildProcess([sys.executable, str(REPO / "test" / "gravity_probe.py"), "/dyn_node",
+                                "0.005", *[f"{n}={p}" for n, p in zip(NAMES, READY)]],
+                               env=child_env(), cwd=str(REPO), stdin=subprocess.PIPE)
+        assert self._line(60.0) == "ready", self.cp.stop()
+
+    def _line(self, timeout: float) -> str:
+        out: list[str] = []
+        done = threading.Event()
+        reader = threading.Thread(target=lambda: (out.append(self.cp.proc.stdout.readline()), done.set()),
+                                  daemon=True)
+        reader.start()
+        assert done.wait(timeout), "the probe did not answer"
+        return out[0].strip()
+
+    def receipts(self) -> np.ndarray:
+        """Stop the probe; the wall-clock receipt times of the answers it got."""
+        import json
+
+        self.cp.proc.stdin.write("stop\n")
+        self.cp.proc.stdin.flush()
+        data = json.loads(self._line(30.0))
+        self.cp.stop()
+        return np.array([r for r, _ in data["got"]])
+
+
+def _largest_gap(receipts: np.ndarray, t0: float, t1: float) -> tuple[float, int]:
+    inside = receipts[(receipts > t0) & (receipts < t1)]
+    return float(np.max(np.diff(np.concatenate([[t0], inside, [t1]])))), len(inside)
+
+
+def test_a_large_request_does_not_pause_gravity_torques(rig):
+    """joint_states every 5 ms from another process while a 20,000-point check is computed: the
+    largest gap between ~/gravity_torque answers stays within 50 ms of the largest gap in an
+    idle window of the same length right after (the machine's own pauses: it is shared)."""
+    t = np.linspace(0.0, 20.0, 20000)
+    msg = trajectory_message(NAMES, t, np.array(READY) + 0.2 * np.sin(t[:, None] * np.arange(1, 8) * 0.05))
+    probe = GravityProbe()
+    try:
+        t_sent = time.time()
+        r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=msg), timeout=300)
+        t_done = time.time()
+        assert r.accepted and len(r.effort.points) == 20000
+        threading.Event().wait(t_done - t_sent)  # the idle window: nothing asked
+        t_idle = time.time()
+    finally:
+        receipts = probe.receipts()
+    busy, n_busy = _largest_gap(receipts, t_sent, t_done)
+    idle, n_idle = _largest_gap(receipts, t_done, t_idle)
+    # answered all along (at least a third of the 5 ms joint_states), and never paused long
+    assert n_busy >= (t_done - t_sent) / 0.005 / 3, (n_busy, t_done - t_sent)
+    assert busy <= idle + 0.05, f"gravity paused {busy * 1e3:.0f} ms during the request, " \
+        f"{idle * 1e3:.0f} ms idle ({n_busy} and {n_idle} answers in {t_done - t_sent:.2f} s each)"
