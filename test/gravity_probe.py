@@ -1,7 +1,8 @@
 """A process of its own that feeds dyn_node joint_states and times its ``~/gravity_torque``
 answers, so what the test process does (building and parsing huge requests) cannot hold them.
 
-Run as ``python test/gravity_probe.py NODE_NS PERIOD_S JOINT=POS ...``: publishes joint_states
+Run as ``python test/gravity_probe.py NODE JOINT_STATES PERIOD_S JOINT=POS ...`` (NODE: the node's
+fully qualified name, JOINT_STATES: the topic it listens to): publishes joint_states
 every PERIOD_S (header stamp = wall-clock time of publishing), prints ``ready`` once answers come,
 and on a line ``stop`` on stdin prints one JSON line: ``sent`` (wall times of the joint_states
 published) and ``got`` ([receipt wall time, the answer's stamp] of each gravity_torque), then
@@ -21,8 +22,8 @@ def main(argv: list[str]) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
 
-    ns, period = argv[0], float(argv[1])
-    joints = [a.split("=") for a in argv[2:]]
+    ns, js_topic, period = argv[0], argv[1], float(argv[2])
+    joints = [a.split("=") for a in argv[3:]]
     names, q = [n for n, _ in joints], [float(p) for _, p in joints]
     rclpy.init()
     node = rclpy.create_node("gravity_probe")
@@ -37,7 +38,7 @@ def main(argv: list[str]) -> int:
         first.set()
 
     node.create_subscription(JointState, f"{ns}/gravity_torque", on_gravity, 1000)
-    pub = node.create_publisher(JointState, "/joint_states", 100)
+    pub = node.create_publisher(JointState, js_topic, 100)
 
     def tick() -> None:
         now = time.time()
