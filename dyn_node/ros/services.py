@@ -107,8 +107,6 @@ class QuestionServices:
         self._dynamics, self._failed = dynamics, failed
         self._group = ReentrantCallbackGroup()
         self._wake = node.create_guard_condition(lambda: None, callback_group=self._group)
-        #: answered ``expired`` (waited past services.max_queue_age), per kind
-        self.expired = {kind: 0 for kind in SERVICES}
         self._lanes = {kind: _Lane(kind, self._work) for kind in SERVICES}
         callbacks = {CHECK: self._on_check, INVERSE_DYNAMICS: self._on_inverse_dynamics,
                      RETIME: self._on_retime}
@@ -177,7 +175,6 @@ class QuestionServices:
         try:
             waited, most = time.monotonic() - job.queued_at, job.core.settings.services_max_queue_age
             if waited > most:
-                self.expired[job.kind] += 1
                 answers.reject(job.response, answers.EXPIRED, f"expired: waited {waited:.3g} s in "
                                f"the queue, more than services.max_queue_age ({most:g} s)")
             else:
