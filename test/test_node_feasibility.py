@@ -478,3 +478,42 @@ def test_task_place_statuses_reach_feasibility_with_closed_form_peaks(task_harne
         for key, value in ref.values.items():
             if "compute_time" not in key:
                 assert got[key] == format_value(value), (st.name, key)
+
+
+def test_alternating_workers_build_each_dynamics_once(monkeypatch):
+    """Two worker threads taking 20 jobs in turn build one Dynamics each (a shared cache cleared
+    on every miss rebuilt one per job), and a replaced model is rebuilt once per thread."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+    from types import SimpleNamespace
+
+    from dyn_node.core.robot.settings import Settings
+    from dyn_node.ros.node import trajectories
+
+    built: list[int] = []
+    real = trajectories.Dynamics
+
+    def counting(*args, **kwargs):
+        built.append(threading.get_ident())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trajectories, "Dynamics", counting)
+    worker = type("Worker", (trajectories.TrajectoryWorker,), {})()
+    worker._worker_dyn = threading.local()
+    settings = Settings(robot_model="planar_2link")
+    pools = [ThreadPoolExecutor(1), ThreadPoolExecutor(1)]
+    try:
+        def run(core, n: int) -> list:
+            return [pools[i % 2].submit(worker._worker_dynamics, core).result(timeout=30)
+                    for i in range(n)]
+
+        got = run(SimpleNamespace(model=MODEL, settings=settings), 20)
+        assert len(built) == 2 and len(set(built)) == 2
+        assert got[0] is not got[1] and all(d is got[i % 2] for i, d in enumerate(got))
+        other = load_model(builtin="planar_2link")
+        again = run(SimpleNamespace(model=other, settings=settings), 6)
+        assert len(built) == 4 and all(d.model is other for d in again)
+        assert again[0] is not again[1] and all(d is again[i % 2] for i, d in enumerate(again))
+    finally:
+        for p in pools:
+            p.shutdown()

@@ -120,6 +120,22 @@ def _events(bag: Path) -> dict[str, list[tuple[Any, Any]]]:
     return out
 
 
+def _channels(f: Path) -> list:
+    from mcap.reader import make_reader
+
+    with open(f, "rb") as fh:
+        return list(make_reader(fh).get_summary().channels.values())
+
+
+def _message_counts(f: Path) -> dict[int, int]:
+    """channel id → messages in the file (channels without messages are absent)."""
+    from mcap.reader import make_reader
+
+    with open(f, "rb") as fh:
+        stats = make_reader(fh).get_summary().statistics
+    return {k: n for k, n in stats.channel_message_counts.items() if n}
+
+
 def test_events_decode_with_mcap_and_rosbags_alike(bag):
     events = _events(bag)
     assert set(events) == EVENTS
@@ -140,8 +156,13 @@ def test_events_decode_with_mcap_and_rosbags_alike(bag):
     assert len(m.effort.points) == len(r.effort.points) == n
     np.testing.assert_array_equal(np.array([list(p.effort) for p in m.effort.points]),
                                   np.array([p.effort for p in r.effort.points]))
-    # the start state the second call was checked from travels in its response
-    assert list(responses[1][0].start_state.name) == NAMES or responses[1][0].start_state.name == []
+    # the second call asked from the robot's state, and the bag holds no joint_states (the
+    # fixture publishes none): both readers decode the same "no state" answer, none invented
+    assert not [c for f in _mcap_files(bag) for c in _channels(f) if c.topic == "/joint_states"
+                and c.id in _message_counts(f)]
+    for resp in responses[1]:
+        assert resp.accepted and list(resp.start_state.name) == [] and math.isnan(resp.start_state_age)
+        assert resp.start_segment == "not_checked (no current state within stale_timeout)"
     ids = events["/dyn_node/compute_inverse_dynamics/_service_event"]
     req = next(mc.request[0] for mc, _ in ids if mc.info.event_type == 1)
     resp = next(rb.response[0] for _, rb in ids if rb.info.event_type == 2)

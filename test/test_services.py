@@ -6,7 +6,9 @@ against the node, and the recorded service events.
 One node process (Panda, check_queue_depth 3, recording) serves the whole module."""
 from __future__ import annotations
 
+import contextlib
 import math
+import statistics
 import threading
 import time
 from pathlib import Path
@@ -16,9 +18,13 @@ import pinocchio as pin
 import pytest
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.srv import GetParameters
 from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
@@ -81,6 +87,7 @@ class Rig:
         n.create_subscription(JointState, "/dyn_node/gravity_torque",
                               self.got.collector("gravity", stamp_receipt=True), 100)
         self.client = DynClient(n)
+        self.params = AsyncParameterClient(n, "/dyn_node")
         self.spinner = Spinner(ctx, [n])
         def up() -> bool:   # discovered, or the process is gone (no point waiting on)
             return node_process.proc.poll() is not None or bool(
@@ -101,6 +108,28 @@ class Rig:
         fut.add_done_callback(lambda _f: done.set())
         assert done.wait(timeout), f"no response within {timeout} s"
         return fut.result()
+
+    def wait_future(self, fut, timeout: float = 30.0):
+        done = threading.Event()
+        fut.add_done_callback(lambda _f: done.set())
+        assert done.wait(timeout), f"no response within {timeout} s"
+        return fut.result()
+
+    @contextlib.contextmanager
+    def parameters(self, **values):
+        """dyn_node's parameters (``_`` for ``.`` in names) set for the block, then restored."""
+        names = [k.replace("__", ".") for k in values]
+        assert self.params.wait_for_services(10.0)
+        before = self.wait_future(self.params.get_parameters(names)).values
+        old = [Parameter.from_parameter_msg(ParameterMsg(name=n, value=v)) for n, v in
+               zip(names, before)]
+        got = self.wait_future(self.params.set_parameters(
+            [Parameter(n, value=v) for n, v in zip(names, values.values())]))
+        assert all(r.successful for r in got.results), got.results
+        try:
+            yield
+        finally:
+            self.wait_future(self.params.set_parameters(old))
 
     def answer(self, key: str, frame_id: str, timeout: float = 30.0):
         """The first collected message on ``key`` whose header frame_id is ``frame_id``."""
@@ -149,6 +178,21 @@ def local_check(msg: JointTrajectory) -> on_demand.CheckOutcome:
                            efforts=[list(p.effort) for p in pts])
 
 
+def pin_torques(msg: JointTrajectory) -> np.ndarray:
+    """τ at each point of ``msg`` (model order) from Pinocchio's own RNEA plus the URDF's joint
+    friction (viscous and Coulomb), on the point's q, q̇, q̈ (absent: zero)."""
+    pm = MODEL.pin_model
+    data = pm.createData()
+    order = [list(msg.joint_names).index(n) for n in NAMES]
+    out = []
+    for p in msg.points:
+        q, v, a = (np.asarray(x, float)[order] if len(x) else np.zeros(len(NAMES))
+                   for x in (p.positions, p.velocities, p.accelerations))
+        out.append(pin.rnea(pm, data, q, v, a) + np.asarray(pm.damping) * v
+                   + np.asarray(pm.friction) * np.sign(v))
+    return np.array(out)
+
+
 def efforts_of(msg: JointTrajectory, names=NAMES) -> np.ndarray:
     order = [list(msg.joint_names).index(n) for n in names]
     return np.array([[p.effort[i] for i in order] for p in msg.points])
@@ -175,6 +219,8 @@ def test_generated_client_gets_the_cores_answer_bit_for_bit(rig):
         assert r.first_violation_time == w.first_violation_time_s or (
             math.isnan(r.first_violation_time) and math.isnan(w.first_violation_time_s))
         np.testing.assert_array_equal(efforts_of(r.effort), w.waypoint_effort)
+        # and what we did not compute: Pinocchio's RNEA on the request's own q, q̇, q̈
+        np.testing.assert_allclose(efforts_of(r.effort), pin_torques(msg), rtol=0, atol=1e-9)
         assert (r.effort.header.stamp.sec, r.effort.header.frame_id) == (msg.header.stamp.sec, msg.header.frame_id)
         # the statuses are ~/feasibility's, with request "check"
         # the statuses are ~/feasibility's, with request "check" (all but the time it took)
@@ -251,28 +297,36 @@ def test_questions_are_not_published_and_leave_controller_status_alone(rig):
         pub.join()
 
 
-def test_a_long_question_does_not_hold_joint_states(rig):
-    # a 300 s trajectory (about 250,000 samples: seconds of checking) while joint_states flow
+def long_check_message() -> JointTrajectory:
+    """A 300 s trajectory: about 250,000 samples, seconds of checking."""
     t = np.linspace(0.0, 300.0, 400)
-    msg = trajectory_message(NAMES, t, np.array(READY) + 0.2 * np.sin(t[:, None] * np.arange(1, 8) * 0.01))
-    stop = threading.Event()
-    pub = threading.Thread(target=_publish_joint_states, args=(rig, stop), daemon=True)
-    pub.start()
+    return trajectory_message(NAMES, t, np.array(READY) + 0.2 * np.sin(t[:, None] * np.arange(1, 8) * 0.01))
+
+
+def test_a_long_question_does_not_hold_the_executor(rig):
+    """While a check takes seconds, the node's executor still answers: parameter service calls
+    (served on the executor that spins the node, like every callback but joint_states) come back
+    within 0.5 s each. A check computed on the executor would hold them until it ends."""
+    get = rig.node.create_client(GetParameters, "/dyn_node/get_parameters")
     try:
-        t0 = time.monotonic()
-        assert rig.got.wait(lambda: any(t > t0 for t, _ in rig.got.got["gravity"]), 20)
-        done_at: list[float] = []
-        t_sent = time.monotonic()
+        assert get.wait_for_service(timeout_sec=10)
+        msg = long_check_message()
         fut = rig.srv_check.call_async(CheckTrajectory.Request(trajectory=msg))
-        fut.add_done_callback(lambda _f: done_at.append(time.monotonic()))
-        assert rig.got.wait(fut.done, 120)
-        assert fut.result().accepted and fut.result().message == local_check(msg).result.message
-        during = [t for t, _ in rig.got.got["gravity"] if t_sent < t < done_at[0]]
-        # joint_states at 100 Hz kept being answered while the check ran
-        assert len(during) >= 10, (len(during), done_at[0] - t_sent)
+        latencies: list[float] = []
+        while not fut.done() and len(latencies) < 200:
+            t0 = time.monotonic()
+            r = rig.call(get, GetParameters.Request(names=["sample_period"]), timeout=10)
+            if fut.done():  # answered after the check ended: says nothing about "during"
+                break
+            latencies.append(time.monotonic() - t0)
+            assert r.values[0].double_value == SETTINGS.sample_period
+        r = rig.wait_future(fut, 120)
+        assert r.accepted and r.message == local_check(msg).result.message
+        # several answers came while the check ran (it takes seconds), each within 0.5 s
+        assert len(latencies) >= 3, latencies
+        assert max(latencies) < 0.5, latencies
     finally:
-        stop.set()
-        pub.join()
+        rig.node.destroy_client(get)
 
 
 def test_a_burst_beyond_the_queue_is_answered_busy_at_once(rig):
@@ -344,23 +398,68 @@ def test_an_effort_list_empty_or_one_per_joint_is_accepted(rig):
         assert r.accepted and r.reason == "" and r.feasible, r.message
 
 
+def _seconds(d) -> float:
+    return d.sec + d.nanosec * 1e-9
+
+
+def independent_peaks(msg: JointTrajectory) -> dict[str, float]:
+    """The largest |q̇| / velocity limit, |τ| / effort limit and position-range excess of the
+    motion a controller runs through ``msg``'s points (Hermite pieces through the positions,
+    velocities and accelerations given: scipy's BPoly.from_derivatives), sampled every 0.5 ms
+    and at every knot, τ from Pinocchio's RNEA plus the URDF's friction; limits from Pinocchio's
+    model (the URDF's)."""
+    from scipy.interpolate import BPoly
+
+    pm = MODEL.pin_model
+    data = pm.createData()
+    order = [list(msg.joint_names).index(n) for n in NAMES]
+    t = np.array([_seconds(p.time_from_start) for p in msg.points])
+    fields = [np.array([np.asarray(getattr(p, f), float)[order] for p in msg.points])
+              for f in ("positions", "velocities", "accelerations") if len(getattr(msg.points[0], f))]
+    ts = np.union1d(np.arange(0.0, t[-1], 5e-4), t)
+    q = np.empty((len(ts), 7))
+    v, a = np.empty_like(q), np.empty_like(q)
+    for j in range(7):
+        spline = BPoly.from_derivatives(t, np.stack([f[:, j] for f in fields], axis=1))
+        q[:, j], v[:, j], a[:, j] = spline(ts), spline.derivative(1)(ts), spline.derivative(2)(ts)
+    tau = np.array([pin.rnea(pm, data, q[i], v[i], a[i]) for i in range(len(ts))])
+    tau += np.asarray(pm.damping) * v + np.asarray(pm.friction) * np.sign(v)
+    over = np.maximum(q - pm.upperPositionLimit, pm.lowerPositionLimit - q)
+    return {"velocity": float(np.max(np.abs(v) / pm.velocityLimit)),
+            "effort": float(np.max(np.abs(tau) / pm.effortLimit)),
+            "position_excess": float(np.max(over)), "fields": len(fields)}
+
+
 def test_retime_service(rig):
     from dyn_node.retime import retime
     msg = reach(0.3)  # too fast as timed: the retiming must slow it down
+    assert independent_peaks(msg)["effort"] > 1.0 or independent_peaks(msg)["velocity"] > 1.0
     got = rig.client.retime(msg, timeout=60)
+    assert got.accepted and got.feasible and got.verdict is not None and got.verdict.feasible
+    out = got.trajectory
+    # its duration is the last point's time, slower than asked and not below the lower bound
+    assert got.duration_out == pytest.approx(_seconds(out.points[-1].time_from_start), abs=1e-9)
+    assert got.duration_in == pytest.approx(_seconds(msg.points[-1].time_from_start), abs=1e-9)
+    assert got.lower_bound <= got.duration_out and got.duration_in < got.duration_out
+    # the same path: from the request's first point to its last, at rest
+    np.testing.assert_allclose(out.points[0].positions, msg.points[0].positions, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out.points[-1].positions, msg.points[-1].positions, rtol=0, atol=1e-9)
+    # checked by what we did not write: within every limit, and close to one (time-optimal)
+    peaks = independent_peaks(out)
+    assert peaks["fields"] >= 2, "the retimed points carry velocities (the controller's cubic)"
+    assert peaks["velocity"] <= 1.0 + 1e-9 and peaks["effort"] <= 1.0 + 1e-9, peaks
+    assert peaks["position_excess"] <= 1e-9 and max(peaks["velocity"], peaks["effort"]) > 0.9, peaks
+    # and the node's numbers are the core's for the same request
     pts = msg.points
-    traj = on_demand.validated(NAMES, NAMES, [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
+    traj = on_demand.validated(NAMES, NAMES, [_seconds(p.time_from_start) for p in pts],
                                [list(p.positions) for p in pts], [list(p.velocities) for p in pts],
                                [list(p.accelerations) for p in pts])
     want = retime(DYN, traj, start=None, feasibility=on_demand.options_for(SETTINGS))
-    assert got.accepted and got.feasible == want.feasible
     assert (got.duration_in, got.duration_out, got.duration_uniform, got.lower_bound) == (
         want.duration_in, want.duration_out, want.duration_uniform, want.lower_bound)
     assert got.message == want.message
-    if want.trajectory is not None:
-        out = np.array([list(p.positions) for p in got.trajectory.points])
-        np.testing.assert_array_equal(out, want.trajectory.positions)
-        assert got.verdict is not None and got.verdict.feasible
+    np.testing.assert_array_equal(np.array([list(p.positions) for p in out.points]),
+                                  want.trajectory.positions)
 
 
 def test_client_verdict_equals_the_cores(rig):
@@ -488,43 +587,215 @@ def test_dyn_check_rejects_like_the_node(rig, tmp_path):
         st.message.removeprefix("rejected: ")
 
 
-def test_the_audit_reanswers_every_recorded_question(rig, tmp_path):
+def _trigger(rig, name: str):
     from std_srvs.srv import Trigger
 
+    cli = rig.node.create_client(Trigger, f"/dyn_node/{name}")
+    try:
+        assert cli.wait_for_service(timeout_sec=10)
+        return rig.call(cli, Trigger.Request())
+    finally:
+        rig.node.destroy_client(cli)
+
+
+def test_the_audit_reanswers_every_recorded_question(rig, tmp_path):
+    """A bag of this test's own calls (recording restarted around them): each re-answered from
+    the bag alone, identical, and each counted once as the responses say."""
     from dyn_node.audit.bag_audit import AuditOptions, run_audit
 
+    _trigger(rig, "stop_recording")  # whatever earlier tests left recording (or not): closed
+    started = _trigger(rig, "start_recording")
+    assert started.success, started.message
     _, aggressive = demo_trajectories(short=True)
     z = np.zeros((len(aggressive.times), 7))
     shake = trajectory_message(NAMES, aggressive.times, aggressive.positions, z, z)
     assert not rig.client.check(shake, timeout=30).feasible
+    assert rig.client.check(reach(), timeout=30).feasible
     q = np.array([READY, [0.3, 0.2, -0.1, -1.5, 0.2, 1.0, 0.1]])
     rig.client.efforts(states_message(NAMES, q, q * 0.5, q * 0.1), timeout=30)
     with pytest.raises(RequestRejected):
         rig.client.efforts(states_message(NAMES[:6] + ["nope"], q), timeout=30)
-    cli = rig.node.create_client(Trigger, "/dyn_node/stop_recording")
-    assert cli.wait_for_service(timeout_sec=10)
-    fut = cli.call_async(Trigger.Request())
-    done = threading.Event()
-    fut.add_done_callback(lambda _f: done.set())
-    assert done.wait(30) and fut.result().success, fut.result()
-    res = run_audit(AuditOptions(bag=fut.result().message, out=str(tmp_path / "audit"), report=False))
+    # a burst beyond check_queue_depth (3): some answered busy, which the audit counts, not replays
+    long = trajectory_message(NAMES, np.linspace(0.0, 40.0, 400), np.array(READY) + 0.2 * np.sin(
+        np.linspace(0.0, 40.0, 400)[:, None] * np.arange(1, 8) * 0.1))
+    burst = [rig.srv_check.call_async(CheckTrajectory.Request(trajectory=long)) for _ in range(6)]
+    rs = [rig.wait_future(f, 120) for f in burst]
+    n_busy = sum(r.reason == "busy" for r in rs)
+    assert n_busy >= 1 and all(r.accepted or r.reason == "busy" for r in rs)
+    burst_infeasible = sum(r.accepted and not r.feasible for r in rs)
+    stopped = _trigger(rig, "stop_recording")
+    assert stopped.success, stopped.message
+    res = run_audit(AuditOptions(bag=stopped.message, out=str(tmp_path / "audit"), report=False))
     rc = res.record["outputs"]["recheck"]
     check = rc["/dyn_node/check_trajectory/_service_event"]
     ids = rc["/dyn_node/compute_inverse_dynamics/_service_event"]
-    # every answer the node gave in this module (busy ones are not replayed), from the bag alone
-    assert check["matched"] >= 10 and check["unmatched"] == 0 and check["identical"], check
-    assert ids["matched"] >= 4 and ids["unmatched"] == 0 and ids["identical"], ids
+    # every answer given here (busy ones are not replayed), from the bag alone
+    assert (check["matched"], check["unmatched"]) == (2 + 6 - n_busy, 0) and check["identical"], check
+    assert (ids["matched"], ids["unmatched"]) == (2, 0) and ids["identical"], ids
     qs = res.record["outputs"]["questions"]
-    assert qs["check"]["not_accepted"]["busy"] >= 1 and qs["check"]["infeasible"] >= 1
+    assert qs["check"]["not_accepted"] == {"busy": n_busy}
+    assert qs["check"]["infeasible"] == 1 + burst_infeasible
     # every call counted once in the accounting, its "no" as the recorded response says (decoded
     # here by mcap + rosbags): a busy answer is a question answered "rejected"
-    want = question_counts(Path(fut.result().message))
+    want = question_counts(Path(stopped.message))
+    assert want == {"check": (8, 1 + n_busy + burst_infeasible), "inverse_dynamics": (2, 1)}
     c = res.record["outputs"]["trajectory_counts"]
     assert {k: v for k, v in c["by_request"].items() if k != "execute"} == {
         k: {"total": n, "infeasible_or_rejected": no} for k, (n, no) in want.items()}
-    assert want["check"][1] >= qs["check"]["not_accepted"]["busy"] + qs["check"]["infeasible"]
-    assert c["questions"] == sum(n for n, _ in want.values())
-    executed_bad = sum(not t["feasible"] for t in res.record["outputs"]["trajectories"]
-                       if t["request"] == "execute")
+    assert c["questions"] == 10
     # a question answered "no" is not a violation of the run
-    assert res.record["outputs"]["trajectories_infeasible_or_rejected"] == executed_bad
+    assert res.record["outputs"]["trajectories_infeasible_or_rejected"] == 0
+
+
+def _long_retime_message(n: int = 3000) -> JointTrajectory:
+    """A long path (seconds of retiming) through n points."""
+    t = np.linspace(0.0, n * 0.01, n)
+    return trajectory_message(NAMES, t, np.array(READY) + 0.3 * np.sin(t[:, None] * np.arange(1, 8) * 0.05))
+
+
+def test_a_long_retime_does_not_delay_inverse_dynamics(rig):
+    """Inverse-dynamics calls made while a retime runs are answered while it runs, their
+    latency within 50 ms of the same calls' on an idle node (medians: the machine is shared).
+    One queue for every kind would hold each of them until the retime ends."""
+    states = ComputeInverseDynamics.Request(states=states_message(NAMES, np.array([READY] * 2)))
+
+    def latency() -> float:
+        t0 = time.monotonic()
+        r = rig.call(rig.srv_id, states, timeout=30)
+        assert r.accepted and len(r.effort.points) == 2
+        return time.monotonic() - t0
+
+    idle = [latency() for _ in range(15)]
+    fut = rig.srv_retime.call_async(RetimeTrajectory.Request(trajectory=_long_retime_message()))
+    during: list[float] = []
+    while not fut.done() and len(during) < 100:
+        dt = latency()
+        if not fut.done():
+            during.append(dt)
+    assert rig.wait_future(fut, 300).accepted
+    assert len(during) >= 3, (during, "the retime ended before three calls: make it longer")
+    delay = statistics.median(during) - statistics.median(idle)
+    print(f"inverse dynamics during a retime: {len(during)} calls, median "
+          f"{statistics.median(during) * 1e3:.1f} ms, max {max(during) * 1e3:.1f} ms; idle median "
+          f"{statistics.median(idle) * 1e3:.1f} ms, max {max(idle) * 1e3:.1f} ms")
+    assert delay <= 0.05, (delay, sorted(during)[-5:], statistics.median(idle))
+
+
+def test_a_request_over_max_points_is_refused_at_once(rig):
+    """services.max_points bounds every service's request: one point more is refused with the
+    reason before any work; the bound itself is answered."""
+    with rig.parameters(services__max_points=20):
+        t = np.linspace(0.0, 4.0, 21)
+        big = trajectory_message(NAMES, t, np.array(READY) + 0.01 * t[:, None])
+        small = trajectory_message(NAMES, t[:20], np.array(READY) + 0.01 * t[:20, None])
+        for cli, req in ((rig.srv_check, CheckTrajectory.Request), (rig.srv_retime, RetimeTrajectory.Request)):
+            r = rig.call(cli, req(trajectory=big))
+            assert (r.accepted, r.reason, r.feasible) == (False, "too_large", False)
+            assert r.message == "too large: 21 points, more than services.max_points (20)"
+            assert rig.call(cli, req(trajectory=small)).accepted
+        r = rig.call(rig.srv_id, ComputeInverseDynamics.Request(states=big))
+        assert (r.accepted, r.reason) == (False, "too_large") and not r.effort.points
+        assert rig.call(rig.srv_id, ComputeInverseDynamics.Request(states=small)).accepted
+    # the documented default
+    got = rig.wait_future(rig.params.get_parameters(["services.max_points", "services.max_queue_age"]))
+    assert (got.values[0].integer_value, got.values[1].double_value) == (100000, 10.0)
+
+
+def test_a_call_that_waited_past_max_queue_age_is_dropped_not_computed(rig):
+    """Behind a check of seconds, a call queued longer than services.max_queue_age is answered
+    'expired' without being computed; the inverse-dynamics lane, idle, answers meanwhile."""
+    with rig.parameters(services__max_queue_age=0.2):
+        first = rig.srv_check.call_async(CheckTrajectory.Request(trajectory=long_check_message()))
+        second = rig.srv_check.call_async(CheckTrajectory.Request(trajectory=reach()))
+        r = rig.call(rig.srv_id, ComputeInverseDynamics.Request(states=states_message(NAMES, np.array([READY]))))
+        assert r.accepted and not first.done()
+        r1, r2 = rig.wait_future(first, 120), rig.wait_future(second, 120)
+    assert r1.accepted and r1.reason == ""
+    assert (r2.accepted, r2.reason, r2.feasible) == (False, "expired", False)
+    assert r2.message.startswith("expired: waited ") and "services.max_queue_age (0.2 s)" in r2.message
+    assert not r2.effort.points and not r2.statuses
+
+
+class GravityProbe:
+    """test/gravity_probe.py in a process of its own: joint_states to dyn_node every 5 ms, and
+    the receipt time of each ~/gravity_torque answer (this process's own work cannot hold them)."""
+
+    def __init__(self, ns: str):
+        import subprocess
+        import sys
+
+        self.cp = ChildProcess([sys.executable, str(REPO / "test" / "gravity_probe.py"), f"{ns}/dyn_node",
+                                f"{ns}/joint_states", "0.005", *[f"{n}={p}" for n, p in zip(NAMES, READY)]],
+                               env=child_env(), cwd=str(REPO), stdin=subprocess.PIPE)
+        assert self._line(60.0) == "ready", self.cp.stop()
+
+    def _line(self, timeout: float) -> str:
+        out: list[str] = []
+        done = threading.Event()
+        reader = threading.Thread(target=lambda: (out.append(self.cp.proc.stdout.readline()), done.set()),
+                                  daemon=True)
+        reader.start()
+        assert done.wait(timeout), "the probe did not answer"
+        return out[0].strip()
+
+    def receipts(self) -> np.ndarray:
+        """Stop the probe; the wall-clock receipt times of the answers it got."""
+        import json
+
+        self.cp.proc.stdin.write("stop\n")
+        self.cp.proc.stdin.flush()
+        data = json.loads(self._line(30.0))
+        self.cp.stop()
+        return np.array([r for r, _ in data["got"]])
+
+
+def _largest_gap(receipts: np.ndarray, t0: float, t1: float) -> tuple[float, int]:
+    inside = receipts[(receipts > t0) & (receipts < t1)]
+    return float(np.max(np.diff(np.concatenate([[t0], inside, [t1]])))), len(inside)
+
+
+def test_a_large_request_does_not_pause_gravity_torques(rig):
+    """joint_states every 5 ms from another process while a 20,000-point check is computed: the
+    largest gap between ~/gravity_torque answers stays within 50 ms of the largest gap in an
+    idle window of the same length right after (the machine's own pauses: it is shared).
+
+    A pause of the node's own (the GIL held by a garbage collection or a kernel) comes back on
+    every attempt; a shared machine's does not: the best of three attempts is judged, all are
+    reported. A node of its own, not recording: the module's records every service event, and
+    recording a 20,000-point request and response (~10 MB) adds pauses of its own
+    (docs/node.md, Question services)."""
+    ns = "/gravity_pause"
+    node = ChildProcess(python_cmd("dyn_node.ros.node", "--ros-args", "-r", f"__ns:={ns}",
+                                   "-p", "robot_model:=panda"), env=child_env(), cwd=str(REPO))
+    cli = rig.node.create_client(CheckTrajectory, f"{ns}/dyn_node/check_trajectory")
+    probe = None
+    windows: list[tuple[float, float, float]] = []
+    try:
+        assert cli.wait_for_service(timeout_sec=60), node.stop()
+        t = np.linspace(0.0, 20.0, 20000)
+        msg = trajectory_message(NAMES, t, np.array(READY) + 0.2 * np.sin(t[:, None] * np.arange(1, 8) * 0.05))
+        probe = GravityProbe(ns)
+        for _ in range(3):
+            t_sent = time.time()
+            r = rig.call(cli, CheckTrajectory.Request(trajectory=msg), timeout=300)
+            t_done = time.time()
+            assert r.accepted and len(r.effort.points) == 20000
+            threading.Event().wait(t_done - t_sent)  # the idle window: nothing asked
+            windows.append((t_sent, t_done, time.time()))
+        receipts = probe.receipts()
+    finally:
+        if probe is not None:
+            probe.cp.stop()
+        rig.node.destroy_client(cli)
+        node.stop()
+    attempts = []
+    for t_sent, t_done, t_idle in windows:
+        busy, n_busy = _largest_gap(receipts, t_sent, t_done)
+        idle, n_idle = _largest_gap(receipts, t_done, t_idle)
+        # answered all along: at least a third of the 5 ms joint_states
+        assert n_busy >= (t_done - t_sent) / 0.005 / 3, (n_busy, t_done - t_sent)
+        attempts.append((busy - idle, busy, idle, t_done - t_sent))
+    report = "; ".join(f"{b * 1e3:.0f} ms busy, {i * 1e3:.0f} ms idle over {d:.2f} s"
+                       for _, b, i, d in attempts)
+    print(f"gravity_torque largest gaps: {report}")
+    assert min(a[0] for a in attempts) <= 0.05, f"gravity paused during every request: {report}"

@@ -3,7 +3,7 @@
 The numbers come from the same core functions ``dyn-check`` and the audit use
 (:func:`dyn_node.core.check.on_demand.check`, :func:`~dyn_node.core.check.on_demand.inverse_dynamics`, the
 retimer); this module only converts between ``dyn_node_interfaces`` messages and arrays. No
-threads, no node: :mod:`dyn_node.ros.services` calls these on its worker.
+threads, no node: :mod:`dyn_node.ros.services` calls these on its lanes' workers.
 """
 from __future__ import annotations
 
@@ -25,8 +25,9 @@ from dyn_node.ros.convert import status_to_msg, trajectory_arrays
 
 #: reasons of a response that is not accepted, beyond the TrajectoryError codes (non_finite,
 #: unknown_joints, empty_points, ...)
-BUSY, NO_MODEL, RETIMER_UNAVAILABLE, INTERNAL_ERROR, SHUTTING_DOWN = (
-    "busy", "no_model", "retimer_unavailable", "internal_error", "shutting_down")
+BUSY, NO_MODEL, RETIMER_UNAVAILABLE, INTERNAL_ERROR, SHUTTING_DOWN, TOO_LARGE, EXPIRED = (
+    "busy", "no_model", "retimer_unavailable", "internal_error", "shutting_down", "too_large",
+    "expired")
 
 
 def reject(response: Any, reason: str, message: str) -> Any:

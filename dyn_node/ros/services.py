@@ -1,21 +1,26 @@
 """dyn_node's questions as ROS 2 services: ``~/check_trajectory``, ``~/compute_inverse_dynamics``
 and ``~/retime_trajectory`` (types from ``dyn_node_interfaces``).
 
-Requests are answered in order by one worker thread of their own, so a long check never holds
-the executor, the joint_states thread or a trajectory to execute. The service callbacks are
-coroutines in a reentrant callback group: each queues its request and awaits the worker's
-answer (a guard condition wakes the executor when it is ready), so several calls are in flight
-at once and none blocks another callback. A request that cannot be queued is answered at once:
-``accepted: false`` with ``reason`` ``busy`` (``check_queue_depth`` waiting) or ``no_model``.
-Every request gets a response, malformed ones included (with the reason). Service introspection
-publishes each request and response with contents on ``<service>/_service_event``, which the
-recorder records and the audit re-checks.
+Each service has a queue and a worker thread of its own (a *lane*), so a long check never holds
+the executor, the joint_states thread or a trajectory to execute, and a 1 ms inverse-dynamics
+call never waits behind a retime. The service callbacks are coroutines in a reentrant callback
+group: each queues its request and awaits its lane's answer (a guard condition wakes the
+executor when it is ready), so several calls are in flight at once and none blocks another
+callback. A request that cannot be queued is answered at once: ``accepted: false`` with
+``reason`` ``busy`` (``check_queue_depth`` of its kind waiting), ``too_large`` (more points than
+``services.max_points``) or ``no_model``. A call that waited longer than ``services.max_queue_age``
+is answered ``expired`` without being computed: an rclpy service server cannot see its client
+give up (no cancel, no per-request liveness), so the time its caller has most likely waited
+stands for it. Every request gets a response, malformed ones included (with the reason). Service
+introspection publishes each request and response with contents on ``<service>/_service_event``,
+which the recorder records and the audit re-checks.
 """
 from __future__ import annotations
 
 import collections
 import threading
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory
@@ -50,10 +55,47 @@ class _Job:
     future: Future
     core: Any
     start: feasibility.StartState | None
+    queued_at: float = field(default_factory=time.monotonic)
+
+
+def request_points(kind: str, request: Any) -> int:
+    """How many points (states) a request holds: what ``services.max_points`` bounds."""
+    return len(request.states.points if kind == INVERSE_DYNAMICS else request.trajectory.points)
+
+
+class _Lane:
+    """One service's queue and its worker thread (its own Dynamics, from ``dynamics``)."""
+
+    def __init__(self, kind: str, work: Callable[[_Job], None]):
+        self.kind, self._work = kind, work
+        self.jobs: collections.deque[_Job] = collections.deque()
+        self.cond = threading.Condition()
+        self.closed = False
+        self.thread = threading.Thread(target=self._loop, name=f"dyn_node_{kind}", daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while True:
+            with self.cond:
+                while not self.jobs and not self.closed:
+                    self.cond.wait()
+                if self.closed:
+                    return
+                job = self.jobs.popleft()
+            self._work(job)
+
+    def close(self) -> list[_Job]:
+        """Stop the worker; returns the jobs still queued (to be answered by the caller)."""
+        with self.cond:
+            self.closed = True
+            pending = list(self.jobs)
+            self.jobs.clear()
+            self.cond.notify_all()
+        return pending
 
 
 class QuestionServices:
-    """The three services of ``node`` and their worker. ``core()`` returns the node's current
+    """The three services of ``node`` and their lanes. ``core()`` returns the node's current
     core (model, settings) or None; ``start_state(core)`` the robot's state a trajectory received
     now starts from (or None); ``dynamics(core)`` a Dynamics for the calling thread;
     ``failed(what)`` logs and counts an exception."""
@@ -65,9 +107,7 @@ class QuestionServices:
         self._dynamics, self._failed = dynamics, failed
         self._group = ReentrantCallbackGroup()
         self._wake = node.create_guard_condition(lambda: None, callback_group=self._group)
-        self._jobs: collections.deque[_Job] = collections.deque()
-        self._cond = threading.Condition()
-        self._closed = False
+        self._lanes = {kind: _Lane(kind, self._work) for kind in SERVICES}
         callbacks = {CHECK: self._on_check, INVERSE_DYNAMICS: self._on_inverse_dynamics,
                      RETIME: self._on_retime}
         self.services = {}
@@ -76,14 +116,12 @@ class QuestionServices:
             srv.configure_introspection(node.get_clock(), EVENT_QOS,
                                         ServiceIntrospectionState.CONTENTS)
             self.services[kind] = srv
-        self._thread = threading.Thread(target=self._loop, name="dyn_node_services", daemon=True)
-        self._thread.start()
 
     def event_topics(self) -> list[str]:
         """The fully qualified ``<service>/_service_event`` topics of the three services."""
         return [srv.service_name + EVENT_SUFFIX for srv in self.services.values()]
 
-    # --- callbacks (executor thread): queue, then await the worker's answer ----------------
+    # --- callbacks (executor thread): queue, then await the lane's answer -------------------
     async def _on_check(self, request: Any, response: Any) -> Any:
         return await self._ask(CHECK, request, response)
 
@@ -105,42 +143,46 @@ class QuestionServices:
             if core is None:
                 answers.reject(response, answers.NO_MODEL, "no robot model yet")
                 return None
+            n, most = request_points(kind, request), core.settings.services_max_points
+            if n > most:
+                answers.reject(response, answers.TOO_LARGE,
+                               f"too large: {n} points, more than services.max_points ({most})")
+                return None
             start = None
             if getattr(request, "from_current_state", False):
                 start = self._start_state(core)  # at receipt, as for joint_trajectory
-            with self._cond:
-                if self._closed:
+            lane = self._lanes[kind]
+            with lane.cond:
+                if lane.closed:
                     answers.reject(response, answers.SHUTTING_DOWN, "dyn_node is shutting down")
                     return None
-                waiting = len(self._jobs)
+                waiting = len(lane.jobs)
                 if waiting >= core.settings.check_queue_depth:
-                    answers.reject(response, answers.BUSY,
-                                   f"busy: {waiting} requests already waiting (check_queue_depth)")
+                    answers.reject(response, answers.BUSY, f"busy: {waiting} {kind} requests "
+                                   "already waiting (check_queue_depth)")
                     return None
                 future = Future()
-                self._jobs.append(_Job(kind, request, response, future, core, start))
-                self._cond.notify()
+                lane.jobs.append(_Job(kind, request, response, future, core, start))
+                lane.cond.notify()
             return future
         except Exception as exc:  # never leave a caller without an answer
             self._failed(f"{kind} service")
             answers.reject(response, answers.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
             return None
 
-    # --- worker thread ----------------------------------------------------------------------
-    def _loop(self) -> None:
-        while True:
-            with self._cond:
-                while not self._jobs and not self._closed:
-                    self._cond.wait()
-                if self._closed:
-                    return
-                job = self._jobs.popleft()
-            try:
+    # --- lane threads -----------------------------------------------------------------------
+    def _work(self, job: _Job) -> None:
+        try:
+            waited, most = time.monotonic() - job.queued_at, job.core.settings.services_max_queue_age
+            if waited > most:
+                answers.reject(job.response, answers.EXPIRED, f"expired: waited {waited:.3g} s in "
+                               f"the queue, more than services.max_queue_age ({most:g} s)")
+            else:
                 self._answer(job)
-            except Exception as exc:
-                self._failed(f"{job.kind} service")
-                answers.reject(job.response, answers.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
-            self._finish(job)
+        except Exception as exc:
+            self._failed(f"{job.kind} service")
+            answers.reject(job.response, answers.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
+        self._finish(job)
 
     def _answer(self, job: _Job) -> None:
         dyn = self._dynamics(job.core)
@@ -160,17 +202,15 @@ class QuestionServices:
             pass
 
     def close(self) -> None:
-        """Stop the worker; requests still queued are answered ``shutting_down``."""
-        with self._cond:
-            self._closed = True
-            pending = list(self._jobs)
-            self._jobs.clear()
-            self._cond.notify_all()
-        for job in pending:
-            answers.reject(job.response, answers.SHUTTING_DOWN, "dyn_node is shutting down")
-            self._finish(job)
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(timeout=0.5)  # a request in progress is abandoned (daemon thread)
+        """Stop the lanes; requests still queued are answered ``shutting_down``."""
+        for lane in self._lanes.values():
+            for job in lane.close():
+                answers.reject(job.response, answers.SHUTTING_DOWN, "dyn_node is shutting down")
+                self._finish(job)
+        deadline = time.monotonic() + 0.5
+        for lane in self._lanes.values():  # a request in progress is abandoned (daemon threads)
+            if lane.thread.is_alive() and lane.thread is not threading.current_thread():
+                lane.thread.join(timeout=max(0.0, deadline - time.monotonic()))
 
 
-__all__ = ["QuestionServices", "SERVICES", "EVENT_SUFFIX", "CHECK", "INVERSE_DYNAMICS", "RETIME"]
+__all__ = ["QuestionServices", "request_points", "SERVICES", "EVENT_SUFFIX", "CHECK", "INVERSE_DYNAMICS", "RETIME"]

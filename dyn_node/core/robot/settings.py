@@ -127,7 +127,17 @@ class Settings:
                             1, 100000)
     check_queue_depth: int = _param(
         "integer", 8, "question service calls (check, inverse dynamics, retime) waiting to be answered; "
-        "one arriving when this many wait is answered 'accepted: false, reason: busy' (requests)", 1, 10000)
+        "one arriving when this many of its kind wait is answered 'accepted: false, reason: busy' "
+        "(requests per service)", 1, 10000)
+    services_max_points: int = _param(
+        "integer", 100000, "largest point (or state) count a question service answers; a larger "
+        "request is answered at once 'accepted: false, reason: too_large' (points)", 1, 10000000,
+        name="services.max_points")
+    services_max_queue_age: float = _param(
+        "double", 10.0, "a question service call that waited longer than this in its queue is "
+        "answered 'accepted: false, reason: expired' without being computed: its caller has most "
+        "likely given up (s; DynClient's default check timeout)", 1.0e-3, 3600.0,
+        name="services.max_queue_age")
     retime_limit_margin: float = _param(
         "double", 0.995, "share of each limit the retimer's time-optimal pass (TOPP-RA) may use "
         "before the exact check; below 1 leaves room for tracking feedback on a real controller "

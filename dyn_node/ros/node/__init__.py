@@ -26,6 +26,7 @@ deserialisation as the fallback), so the recorder gets exactly the bytes taken a
 """
 from __future__ import annotations
 
+import gc
 import queue
 import sys
 import threading
@@ -46,7 +47,6 @@ from trajectory_msgs.msg import JointTrajectory
 
 from dyn_node.core.live.allocator import retain_freed_memory
 from dyn_node.core.live.drops import DropCounter
-from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import DynNodeError, SettingsError
 from dyn_node.core.robot.model import RobotModel
 from dyn_node.core.robot.model_source import build_model, limits_text
@@ -171,14 +171,14 @@ class DynNode(JointStatesIO, ModelState, PeriodicOutputs, TrajectoryWorker, Node
 
     def _start_workers(self) -> None:
         self._jobs: queue.Queue = queue.Queue(maxsize=64)
-        self._worker_dyn: dict[tuple[int, int, bool], Dynamics] = {}
+        self._worker_dyn = threading.local()  # each worker thread's Dynamics (_worker_dynamics)
         # The worker may still be checking when the node is destroyed (destroy_node waits only
         # briefly for it): it publishes under this lock, and not at all once closed is set.
         self._worker_pub_lock = threading.Lock()
         self._worker_closed = False
         self._worker = threading.Thread(target=self._feasibility_loop, name="dyn_node_feasibility", daemon=True)
         self._worker.start()
-        # questions (check, inverse dynamics, retime): services with a worker of their own, apart
+        # questions (check, inverse dynamics, retime): services with a worker per kind, apart
         # from joint_trajectory's, so a planner's questions never delay a command's verdict
         self.questions = QuestionServices(self, core=lambda: self._core, start_state=self._start_state_now,
                                           dynamics=self._worker_dynamics, failed=self._callback_failed)
@@ -261,6 +261,26 @@ class DynNode(JointStatesIO, ModelState, PeriodicOutputs, TrajectoryWorker, Node
 GIL_SWITCH_INTERVAL_S = 2e-4
 
 
+#: full (generation 2) garbage collections only after this many generation-1 ones (CPython: 10)
+GC_FULL_COLLECTION_THRESHOLD = 1000
+
+
+def _started_node() -> DynNode:
+    """DynNode, with the cyclic garbage collector kept off the joint_states path.
+
+    A full collection holds the GIL while it scans every tracked object: at start ~135,000
+    (modules, model, kernels) and, while a large service request is answered, its messages'
+    (~7 per point). Collections triggered by a 20,000-point request paused joint_states for
+    60-120 ms. What exists at start lives as long as the process: frozen out of the scans. Full
+    collections become rare (every ~7 M allocations instead of ~70 k); the young generations,
+    a few thousand objects each, still collect reference cycles as before."""
+    node = DynNode()
+    gc.freeze()
+    g0, g1, _ = gc.get_threshold()
+    gc.set_threshold(g0, g1, GC_FULL_COLLECTION_THRESHOLD)
+    return node
+
+
 def main(args: list[str] | None = None) -> NoReturn:
     """Entry point of ``ros2 run dyn_node dyn_node``: spin until SIGINT/SIGTERM, then clean up
     and exit (without the interpreter's finalization: :func:`dyn_node.ros.main.end_process`).
@@ -271,7 +291,7 @@ def main(args: list[str] | None = None) -> NoReturn:
     """
     retain_freed_memory()     # each trajectory check then reuses the last one's pages
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # the process's, so here and not in DynNode
-    end_process(spin_until_signalled(DynNode, args, "dyn_node", fatal=(
+    end_process(spin_until_signalled(_started_node, args, "dyn_node", fatal=(
         InvalidParameterValueException, InvalidParameterTypeException, SettingsError)))
 
 

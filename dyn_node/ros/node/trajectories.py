@@ -77,14 +77,18 @@ class TrajectoryWorker:
                 self._callback_failed("trajectory check")
 
     def _worker_dynamics(self, core: NodeCore) -> Dynamics:
-        # one instance per worker thread: a Dynamics holds Pinocchio's scratch data
-        key = (threading.get_ident(), id(core.model), core.settings.include_friction)
-        dyn = self._worker_dyn.get(key)
-        if dyn is None or dyn.model is not core.model:
-            self._worker_dyn.clear()  # one model at a time: drop instances of replaced models
+        """The calling thread's Dynamics for ``core`` (built on its first use there).
+
+        One instance per worker thread (a Dynamics holds Pinocchio's scratch data), kept in a
+        thread-local slot: a shared cache cleared on each miss made the workers evict each
+        other's instance on every alternation. A replaced model replaces the slot's instance."""
+        slot = self._worker_dyn
+        key = (id(core.model), core.settings.include_friction)
+        cached = getattr(slot, "dynamics", None)
+        if cached is None or cached[0] != key or cached[1].model is not core.model:
             dyn = Dynamics(core.model, DynamicsOptions(include_friction=core.settings.include_friction))
-            self._worker_dyn[key] = dyn
-        return dyn
+            cached = slot.dynamics = (key, dyn)
+        return cached[1]
 
     def _check_trajectory(self, data: bytes, receipt_s: float, core: NodeCore,
                           request: str = on_demand.REQUEST_EXECUTE,
