@@ -138,8 +138,10 @@ def test_retime_mode_uses_the_nodes_limit_margin(fast):
     names = list(dyn.model.joint_names)
     args = (names, traj.times.tolist(), traj.positions.tolist(), traj.velocities.tolist(),
             traj.accelerations.tolist())
+    # a fresh state at the goal's first point, at rest (retime mode refuses a goal without one)
+    at_rest = feasibility.StartState(traj.positions[0].copy(), np.zeros(7), 0.0)
     got = {m: decide_goal(dyn, settings_from_mapping({"retime.limit_margin": m}), GateOptions(mode="retime"),
-                          *args, start=None) for m in (0.995, 0.85)}
+                          *args, start=at_rest) for m in (0.995, 0.85)}
     assert all(d.decision == RETIMED for d in got.values())
     assert got[0.85].duration_out > got[0.995].duration_out * 1.05
     for d in got.values():
