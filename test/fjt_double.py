@@ -9,6 +9,7 @@ behave in its first goal tolerance's name, ``double:<behaviour>:<tag>``:
 - ``late``: answers the goal request 2.5 s late (accepts), then runs until cancelled;
 - ``silent``: accepts, never sends feedback, runs until cancelled (then CANCELED);
 - ``reject``: rejects the goal at its goal response;
+- ``long``: as ``ok`` for 8 s (time for a cancel);
 - ``ignore_cancel``: accepts, feedback at 20 Hz, refuses every cancel, SUCCEEDED after 8 s.
 
 Every step of every goal is published as JSON on ``NAMESPACE/double_events`` (reliable,
@@ -84,7 +85,7 @@ def main(ns: str) -> None:
 
     def execute(handle):
         how, _ = behaviour(handle.request)
-        run_s = {"ok": 0.3, "ignore_cancel": 8.0}.get(how, 3600.0)
+        run_s = {"ok": 0.3, "long": 8.0, "ignore_cancel": 8.0}.get(how, 3600.0)
         fb = FollowJointTrajectory.Feedback(joint_names=JOINTS[:7])
         tick = threading.Event()
         for _ in range(int(run_s * 20)):

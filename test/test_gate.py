@@ -421,13 +421,16 @@ def test_downstream_absent_and_crashing(module_ros_context, spawn):
         sim.signal(signal.SIGKILL)
         status, result = crash.result(sent, timeout=20.0)
         assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
+        # silent: the gate cancels downstream, nobody confirms (the controller is dead), it ends
         assert result.error_string == (f"dyn_node gate: downstream action server {ns}/crashing/follow_joint_trajectory "
-                                       "went away during the goal (no feedback and no result for 1 s)")
-        rec = probe.record("downstream_lost", 1)
-        assert rec["status"] == GoalStatus.STATUS_ABORTED
+                                       "went away during the goal (no feedback and no result for 1 s); cancel sent, "
+                                       "not confirmed within 1 s")
+        rec = probe.record("downstream_cancel_unconfirmed", 1)
+        assert (rec["status"], rec["cause"], rec["cancel"]) == (GoalStatus.STATUS_ABORTED, "downstream_silent",
+                                                                "downstream_cancel_unconfirmed")
         # the goal's decision (recorded from its execution) came first, with its inputs
         events = [(r["event"], r["goal_id"]) for r in probe.records]
-        assert events.index(("decision", rec["goal_id"])) < events.index(("downstream_lost", rec["goal_id"]))
+        assert events.index(("decision", rec["goal_id"])) < events.index(("downstream_cancel_unconfirmed", rec["goal_id"]))
         decision = next(r for r in probe.records if r["event"] == "decision" and r["goal_id"] == rec["goal_id"])
         assert (decision["decision"], decision["goal"]["joint_names"]) == ("forwarded", ARM)
     finally:

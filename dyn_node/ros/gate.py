@@ -152,7 +152,8 @@ class Gate:
         self.server = ActionServer(self.io, FollowJointTrajectory, self.server_name,
                                    execute_callback=self._execute, goal_callback=self._on_goal,
                                    handle_accepted_callback=self._on_accepted, cancel_callback=self._on_cancel,
-                                   goal_service_qos_profile=_REQUESTS_QOS, callback_group=group)
+                                   goal_service_qos_profile=_REQUESTS_QOS, result_service_qos_profile=_REQUESTS_QOS,
+                                   cancel_service_qos_profile=_REQUESTS_QOS, callback_group=group)
         self._stop = threading.Event()
         self._worker = threading.Thread(target=self._check_loop, name="dyn_node gate check", daemon=True)
         self._worker.start()
