@@ -291,12 +291,25 @@ def test_cancel_and_preemption_through_the_gate(stack):
 def test_check_mode_forwards_an_infeasible_goal(stack):
     from action_msgs.msg import GoalStatus
 
-    clients, *_ = stack
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from dyn_node.ros.node import FEASIBILITY_QOS
+
+    clients, probe, *_ = stack
+    verdicts: list = []  # check mode says what it let through: the verdict on ~/feasibility
+    probe.node.create_subscription(DiagnosticArray, "/gate_check/feasibility", verdicts.append, FEASIBILITY_QOS)
     sent = clients["check"].send(_goal(INFEASIBLE))
     assert sent.handle.accepted
     status, _ = clients["check"].result(sent)
     assert status == GoalStatus.STATUS_SUCCEEDED  # dyn_sim limits effort only: it ran, too fast
     assert len(sent.feedback) >= 1
+    infeasible = lambda: [a for a in verdicts if a.status[0].message.startswith("infeasible: ")  # noqa: E731
+                          and kv(a.status[0]).get("request") == "execute"]
+    probe.until(lambda: bool(infeasible()), 15.0, "the forwarded goal's verdict on ~/feasibility")
+    assert "velocity" in infeasible()[-1].status[0].message
+    warned = lambda: [st for st in probe.gate_status if kv(st).get("mode") == "check"  # noqa: E731
+                      and int(kv(st)["forwarded_unchecked"]) >= 1]
+    probe.until(lambda: bool(warned()), 20.0, "the check gate's status to count it")
     assert clients["check"].result(clients["check"].send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
 
 
