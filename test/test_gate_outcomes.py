@@ -335,3 +335,64 @@ def test_flood_every_goal_gets_an_answer(paths):
     busy = [r for r in results if r.result.error_string.startswith("dyn_node gate: busy, ")]
     assert len(refused) + len(busy) == n and len(refused) >= 20
     assert all(r.result.error_string == out.busy_text(20) for r in busy)  # the queue was full: 20 waiting
+
+
+@pytest.mark.timeout(90)
+def test_shutdown_cancels_the_running_goal_and_refuses_new_ones(paths, module_ros_context):
+    """A gate in this process in front of the double: close() while a goal runs whose controller
+    ignores cancels (so closing lasts gate.timeout): the goal is cancelled downstream, recorded
+    unconfirmed (cause cancelled_on_shutdown); a goal arriving meanwhile is refused, never sent."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+    from rclpy.node import Node
+
+    from dyn_node.core.check.feasibility import StartState
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.core.robot.settings import Settings
+    from dyn_node.ros.fjt_client import FjtClient
+    from dyn_node.ros.gate import Gate
+
+    out = _texts()
+    _, obs, _ = paths
+    node = Node("gate_inproc", namespace="/inproc", context=module_ros_context)
+    core = SimpleNamespace(model=load_model(builtin="panda"), settings=Settings())
+    records: list[dict] = []
+    state = lambda: (core, StartState(np.array(READY), np.zeros(7), 0.0))  # noqa: E731
+    params = {"gate.controller_action": DOUBLE, "gate.mode": "reject", "gate.retime_all": False,
+              "gate.timeout": TIMEOUT, "gate.max_state_age": 0.1, "gate.start_tolerance": 0.01, "gate.max_pending": 5}
+    gate = Gate(node, params, state, lambda _pub, msg: records.append(json.loads(msg.data)))
+    client = FjtClient(module_ros_context, "/inproc/gate_inproc/follow_joint_trajectory", "client_inproc")
+    closer = threading.Thread(target=gate.close)
+    try:
+        client.wait_for_server(30.0)
+        g, tag = tagged("ignore_cancel")
+        running = client.send(g)
+        assert running.handle.accepted and running.feedback_event.wait(10.0)
+        closer.start()
+        obs.until(lambda: gate._closing, 5.0, "close() to begin")
+        late, late_tag = tagged("ok")
+        refused = client.send(late)
+        assert refused.handle.accepted
+        status, result = client.result(refused)
+        assert (status, result.error_code, result.error_string) == (
+            GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL, out.closing_text())
+        status, result = client.result(running)
+        assert (status, result.error_string) == (GoalStatus.STATUS_ABORTED,
+                                                 out.unconfirmed_text(DOUBLE, TIMEOUT, "cancelled_on_shutdown"))
+        closer.join(10.0)
+        assert not closer.is_alive()
+        assert obs.of(tag, 4) == ["received", "accepted", "cancel_requested", "cancel_refused"]
+        ends = {r["event"]: r for r in records if r["event"] != "decision"}
+        assert (ends["downstream_cancel_unconfirmed"]["cause"], ends["refused_closing"]["status"]) == (
+            "cancelled_on_shutdown", GoalStatus.STATUS_ABORTED)
+        decisions = [(r["decision"], r["reason"]) for r in records if r["event"] == "decision"]
+        assert decisions == [("forwarded", ""), ("not_forwarded", "refused_closing")]
+        assert obs.of(late_tag) == []  # the double's events come in order: it never heard of it
+    finally:
+        client.close()
+        if not closer.is_alive() and not closer.ident:
+            gate.close()
+        node.destroy_node()
