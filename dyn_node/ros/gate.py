@@ -131,7 +131,7 @@ class Gate:
         self._active = 0  # goals between their goal callback and their end
         self._idle = threading.Condition(self._lock)
         self.counts = {FORWARDED: 0, REJECTED: 0, RETIMED: 0, NOT_FORWARDED: 0, "downstream_failures": 0,
-                       "forwarded_unchecked": 0, out.CANCEL_UNCONFIRMED: 0, out.GATE_BUSY: 0}
+                       "forwarded_unchecked": 0, out.CANCEL_UNCONFIRMED: 0, out.GATE_BUSY: 0, out.REFUSED_CLOSING: 0}
         self.last_line = ""
         self.last_decision: Decision | None = None
         self._closing = False
