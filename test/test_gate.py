@@ -316,8 +316,18 @@ def test_check_mode_forwards_an_infeasible_goal(stack):
 @pytest.mark.timeout(60)
 def test_gate_status_counts(stack):
     """dyn_node: gate counts what ~/gate_decisions recorded (both delivered late by DDS here, so
-    wait until they agree) and names the last decision."""
-    _, probe, *_ = stack
+    wait until they agree) and names the last decision. Its own goals: 4 rejected, 4 forwarded
+    (whatever other tests sent before, the counts and the records agree)."""
+    from action_msgs.msg import GoalStatus
+
+    clients, probe, *_ = stack
+    client = clients["reject"]
+    for i in range(4):
+        client.result(client.send(_goal(move(READY, moved(i, 0.5 + 0.01 * i), 0.15))))
+    for i in range(2):  # out and back, each checked and forwarded
+        assert client.result(client.send(_goal(move(READY, moved(2, 0.1 + 0.01 * i), 0.8))))[0] == \
+            GoalStatus.STATUS_SUCCEEDED
+        assert client.result(client.send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
 
     def agree() -> bool:
         st = [s for s in probe.gate_status if kv(s).get("mode") == "reject"]
@@ -334,20 +344,51 @@ def test_gate_status_counts(stack):
     assert int(v["rejected"]) >= 4 and int(v["forwarded"]) >= 4 and int(v["retimed"]) == 0
 
 
-@pytest.mark.timeout(120)
-def test_audit_replays_the_gate_decisions_identically(stack):
-    """The reject gate's bag: dyn-audit decides every recorded goal again, identically, and lists
-    the decisions (last test of the stack: it stops the gate to close its bag)."""
+@pytest.mark.timeout(180)
+def test_audit_replays_the_gate_decisions_identically(stack, module_ros_context, spawn, tmp_path):
+    """A recording gate of its own in front of dyn_sim, sent goals forwarded, rejected and refused
+    by the controller; stopped to close its bag: dyn-audit decides every recorded goal again,
+    identically, and lists the decisions."""
     from dyn_node.audit.bag_audit import AuditOptions, run_audit
+    from dyn_node.ros.fjt_client import goal
 
-    clients, probe, procs, bags = stack
-    # one decision record per goal sent, published off the goal's path (and 47 kB each, which
-    # DDS may deliver late on a busy machine): wait for all of them before the gate stops
-    sent = clients["reject"].goals_sent
-    probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) == sent >= 8, 20.0,
-                f"a decision record for each of the {sent} goals sent")
-    rc, _, err = procs[1].stop(signal.SIGINT)
-    assert rc == 0, err[-2000:]
+    bags = tmp_path / "bags"
+    gate = spawn(gate_cmd("gate_rec", f"gate.controller_action:={JTC}", "record.enabled:=true",
+                          f"record.directory:={bags}"))
+    client = _counting_client()(module_ros_context, "/gate_rec/follow_joint_trajectory", "client_rec")
+    probe = Probe(module_ros_context, "gate_rec", ready=("gate_rec",))
+    try:
+        client.wait_for_server(90.0)
+        probe.wait_ready()
+        _audited_goals(client, goal)
+        # one decision record per goal sent, published off the goal's path (and 47 kB each, which
+        # DDS may deliver late on a busy machine): wait for all of them before the gate stops
+        sent = client.goals_sent
+        probe.until(lambda: len([r for r in probe.records if r["event"] == "decision"]) == sent >= 8, 20.0,
+                    f"a decision record for each of the {sent} goals sent")
+        rc, _, err = gate.stop(signal.SIGINT)
+        assert rc == 0, err[-2000:]
+        _audit_agrees(probe, bags, run_audit, AuditOptions)
+    finally:
+        probe.close()
+        client.close()
+
+
+def _audited_goals(client, goal) -> None:
+    """2 forwarded (out and back), 5 rejected (2 infeasible, 3 malformed), 1 refused by dyn_sim."""
+    from action_msgs.msg import GoalStatus
+
+    assert client.result(client.send(_goal(move(READY, moved(1, 0.15), 1.0))))[0] == GoalStatus.STATUS_SUCCEEDED
+    assert client.result(client.send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
+    for g in (_goal(INFEASIBLE), _goal(move(READY, moved(0, -0.5), 0.15)),
+              goal([0.5, 1.0], [READY, moved(0, float("nan"))], names=ARM), goal([1.0], [READY], names=ARM),
+              goal([0.5, 1.0], [READY, READY], names=ARM[:6] + ["elbow"])):
+        assert client.result(client.send(g))[0] == GoalStatus.STATUS_ABORTED
+    end_moving = goal([0.0, 1.0], [READY, moved(0, 0.1)], names=ARM, velocities=[[0.0] * 7, [0.01] + [0.0] * 6])
+    assert not client.send(end_moving).handle.accepted
+
+
+def _audit_agrees(probe, bags, run_audit, AuditOptions) -> None:
     bag = next(bags.iterdir())
     audit = run_audit(AuditOptions(bag=str(bag), out=str(bags / "audit"), report=True))
     out = audit.record["outputs"]
@@ -389,7 +430,7 @@ def test_audit_replays_the_gate_decisions_identically(stack):
             assert r["goal_id"] in decided, f"{r['event']} recorded before its decision: {r}"
     assert {"result", "downstream_rejected"} <= {r["event"] for r in recs}
     assert [d["verdict"] for d in gate["decisions"]] == [r["verdict"] for r in live]
-    recheck = audit.record["outputs"]["recheck"]["/gate_reject/gate_decisions"]
+    recheck = audit.record["outputs"]["recheck"]["/gate_rec/gate_decisions"]
     assert (recheck["matched"], recheck["identical"]) == (len(live), True), recheck
     report = (bags / "audit" / "report.html").read_text()
     assert "Gate decisions" in report and live[1]["verdict"].split(";")[0] in report

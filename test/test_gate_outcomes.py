@@ -352,7 +352,7 @@ def test_shutdown_cancels_the_running_goal_and_refuses_new_ones(paths, module_ro
     from dyn_node.core.check.feasibility import StartState
     from dyn_node.core.robot.model import load_model
     from dyn_node.core.robot.settings import Settings
-    from dyn_node.ros.fjt_client import FjtClient
+    from dyn_node.ros.fjt_client import FjtClient, wait_future
     from dyn_node.ros.gate import Gate
 
     out = _texts()
@@ -371,6 +371,8 @@ def test_shutdown_cancels_the_running_goal_and_refuses_new_ones(paths, module_ro
         g, tag = tagged("ignore_cancel")
         running = client.send(g)
         assert running.handle.accepted and running.feedback_event.wait(10.0)
+        # its result asked for now, as a client does at once: the server goes with the gate
+        result_of_running = client.thread.call(running.handle.get_result_async, 10.0)
         closer.start()
         obs.until(lambda: gate._closing, 5.0, "close() to begin")
         late, late_tag = tagged("ok")
@@ -379,7 +381,8 @@ def test_shutdown_cancels_the_running_goal_and_refuses_new_ones(paths, module_ro
         status, result = client.result(refused)
         assert (status, result.error_code, result.error_string) == (
             GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL, out.closing_text())
-        status, result = client.result(running)
+        got = wait_future(result_of_running, 30.0, "the running goal's result")
+        status, result = got.status, got.result
         assert (status, result.error_string) == (GoalStatus.STATUS_ABORTED,
                                                  out.unconfirmed_text(DOUBLE, TIMEOUT, "cancelled_on_shutdown"))
         closer.join(10.0)

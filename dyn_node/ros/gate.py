@@ -95,7 +95,8 @@ class _Goal:
     heard: float = field(default_factory=time.monotonic)  # last sign of life downstream (monotonic s)
     poke: Any = None  # a future the gate completes to wake the goal's coroutine
     cancel_requested: bool = False  # set by the cancel callback, before rclpy marks the handle
-    record: Callable[[], None] | None = None  # publishes the decision's record, once
+    record: Callable[..., None] | None = None  # publishes the decision's record, once
+    names: list = field(default_factory=list)  # the model's joint names (the forwarded trajectory's)
 
 
 def declare_gate_parameters(node: Node) -> dict[str, Any]:
@@ -276,8 +277,7 @@ class Gate:
         with self._lock:
             self._running[id(g)] = g  # shutdown cancels it from now on
         self._count(g.decision.decision, g.decision.line, g.decision)
-        if self._executed is not None:
-            self._executed(g.decision, g.down_goal, names)
+        g.names = names
         return self._keep(g)
 
     def _not_forwarded(self, g: _Goal, event: str, text: str) -> GoalResponse:
@@ -347,6 +347,11 @@ class Gate:
                 handle.abort()
                 self._publish_end(g, out.end_record(g.goal_id, event, GoalStatus.STATUS_ABORTED, res))
                 return res
+            if self._executed is not None:  # off the goal response's path
+                try:
+                    self._executed(g.decision, g.down_goal, g.names)
+                except Exception:
+                    self.logger.error(f"gate {g.goal_id[:8]}: verdict or tracking failed:\n{traceback.format_exc()}")
             return await self._follow(handle, g)
         finally:
             self._handles.pop(id(handle), None)
