@@ -125,7 +125,7 @@ def _wait_len(xs: list, n: int, timeout: float = 30.0) -> None:
     while len(xs) < n and time.monotonic() < deadline:
         tick.wait(0.05)  # records arrive on the client's thread
     if len(xs) < n:
-        raise RuntimeError(f"{len(xs)} of {n} decision records arrived")
+        raise RuntimeError(f"{len(xs)} of {n} messages arrived within {timeout:g} s")
 
 
 def _measure(n: int, n_retime: int) -> dict:
@@ -143,6 +143,13 @@ def _measure(n: int, n_retime: int) -> dict:
         for c in clients.values():
             c.wait_for_server(60.0)
         checks = {k: _records(clients[k], f"/bench_{k}/gate_decisions") for k in ("gate", "retime")}
+        from sensor_msgs.msg import JointState
+
+        heard: dict[str, list] = {k: [] for k in ("gate", "retime")}
+        for k, xs in heard.items():  # the gates answer joint_states: they have a state to check from
+            clients[k].thread.node.create_subscription(JointState, f"/bench_{k}/inverse_dynamics", xs.append, 10)
+        for xs in heard.values():
+            _wait_len(xs, 3, 60.0)
         g = _goal()
         block = max(n // 10, 1)
         progress("gate", f"{n} goals each, alternating blocks of {block}")
