@@ -66,12 +66,16 @@ def gate_records(bag: Path) -> list[dict]:
 
 def gate_goal_counts(bag: Path) -> tuple[int, int]:
     """(goals decided, goals executed "no") from the gate's records: a goal was sent to be
-    executed; it is "no" when rejected, or forwarded with an infeasible verdict (check mode); a
-    retimed goal forwarded a feasible one."""
+    executed; it is "no" when rejected or not forwarded (the controller absent, late or refusing),
+    forwarded with an infeasible verdict (check mode), or ended without the controller's result
+    (silent, cancel unconfirmed); a retimed goal forwarded a feasible one."""
     n = bad = 0
+    given_up = {r["goal_id"] for r in gate_records(bag)
+                if r.get("event") in ("downstream_silent", "downstream_cancel_unconfirmed")}
     for rec in gate_records(bag):
         if rec.get("event") != "decision":
             continue
         n += 1
-        bad += rec["decision"] == "rejected" or (rec["decision"] == "forwarded" and not rec["feasible"])
+        ok = rec["decision"] == "retimed" or (rec["decision"] == "forwarded" and rec["feasible"])
+        bad += not ok or rec["goal_id"] in given_up
     return n, bad

@@ -138,8 +138,10 @@ def test_retime_mode_uses_the_nodes_limit_margin(fast):
     names = list(dyn.model.joint_names)
     args = (names, traj.times.tolist(), traj.positions.tolist(), traj.velocities.tolist(),
             traj.accelerations.tolist())
+    # a fresh state at the goal's first point, at rest (retime mode refuses a goal without one)
+    at_rest = feasibility.StartState(traj.positions[0].copy(), np.zeros(7), 0.0)
     got = {m: decide_goal(dyn, settings_from_mapping({"retime.limit_margin": m}), GateOptions(mode="retime"),
-                          *args, start=None) for m in (0.995, 0.85)}
+                          *args, start=at_rest) for m in (0.995, 0.85)}
     assert all(d.decision == RETIMED for d in got.values())
     assert got[0.85].duration_out > got[0.995].duration_out * 1.05
     for d in got.values():
@@ -171,3 +173,54 @@ def test_retimed_answer_is_forwarded_only_when_its_check_passes(fast):
     # the retimer's passing check is taken as it is: forwarded, and it passes when checked again
     d = decide(dyn, traj, GateOptions(mode="retime"), start=None, retimer=retime)
     assert d.decision == RETIMED and feasibility.check_trajectory(dyn, d.trajectory).feasible
+
+
+def _args(traj, names):
+    return (names, traj.times.tolist(), traj.positions.tolist(), traj.velocities.tolist(),
+            traj.accelerations.tolist())
+
+
+def test_reject_and_retime_fail_closed_without_a_fresh_state(slow):
+    """No state, or one older than max_state_age: refused (stale_state, state error) in reject and
+    retime; check forwards it but says it was not judged from the state."""
+    from dyn_node.core.robot.settings import Settings
+    from dyn_node.gate.decision import STALE_STATE, decide_goal
+
+    dyn, traj = slow
+    args = _args(traj, list(dyn.model.joint_names))
+    at = lambda age: feasibility.StartState(traj.positions[0].copy(), np.zeros(7), age)  # noqa: E731
+    for mode in ("reject", "retime"):
+        for start, why in ((None, "no joint_states"), (at(0.25), "joint_states 250 ms old")):
+            d = decide_goal(dyn, Settings(), GateOptions(mode=mode, max_state_age=0.1), *args, start=start)
+            assert (d.decision, d.reason, d.failure_label, d.forwards) == (REJECTED, STALE_STATE, "state error", False)
+            assert d.error_string.startswith(f"rejected: stale_state: {why}"), d.error_string
+            assert d.line == d.error_string  # "rejected: " once
+    fresh = decide_goal(dyn, Settings(), GateOptions(mode="reject", max_state_age=0.1), *args, start=at(0.05))
+    assert (fresh.decision, fresh.reason, fresh.failure_label) == (FORWARDED, "", "planning error")
+    seen = decide_goal(dyn, Settings(), GateOptions(mode="check"), *args, start=None)
+    assert (seen.decision, seen.reason, seen.trajectory is not None) == (FORWARDED, STALE_STATE, True)
+
+
+def test_retime_plans_from_the_extrapolated_state_and_rechecks_from_a_fresh_one(fast):
+    """The retimer starts from q + q̇·lead (the robot moves on while it works); its answer is
+    checked from the state fresh() gives when it is ready, and refused without one."""
+    from dyn_node.gate.decision import RetimePlan, extrapolate
+
+    dyn, traj = fast
+    q0 = traj.positions[0].copy()
+    v = np.zeros(7)
+    v[1] = 1e-3
+    moving = feasibility.StartState(q0, v, 0.01)
+    ahead = extrapolate(moving, 0.2)
+    np.testing.assert_array_equal(ahead.positions, q0 + 0.2 * v)
+    assert (ahead.age_s, extrapolate(moving, 0.0)) == (pytest.approx(0.21), moving)
+    rest = feasibility.StartState(q0, np.zeros(7), 0.02)
+    plan = RetimePlan(0.2, lambda: rest)
+    d = decide(dyn, traj, GateOptions(mode="retime"), start=moving, plan=plan)
+    assert d.decision == RETIMED and d.result is not None and d.result.feasible
+    np.testing.assert_array_equal(plan.planned_from.positions, ahead.positions)
+    assert plan.rechecked_from is rest
+    gone = RetimePlan(0.2, lambda: None)
+    d = decide(dyn, traj, GateOptions(mode="retime"), start=moving, plan=gone)
+    assert (d.decision, d.reason) == (REJECTED, "retime_failed")
+    assert "re-check: stale_state: no joint_states" in d.error_string

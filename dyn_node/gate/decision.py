@@ -9,6 +9,7 @@ behind it, the goal's tolerances and the trajectory forwarded.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -19,23 +20,40 @@ import numpy as np
 from dyn_node.core.check import feasibility
 from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.core.check.trajectory import Trajectory, validate_trajectory
-from dyn_node.errors import SettingsError, TrajectoryError
+from dyn_node.core.check.on_demand import options_for
+from dyn_node.errors import PLANNING_ERROR, STATE_ERROR, SettingsError, TrajectoryError
 
 MODES = ("reject", "retime", "check")
 FORWARDED, REJECTED, RETIMED = "forwarded", "rejected", "retimed"
+#: a goal the check let through that never reached (or was never accepted by) the controller:
+#: the gate was busy or closing, the controller absent, late or refusing (gate.outcomes)
+NOT_FORWARDED = "not_forwarded"
+STALE_STATE = "stale_state"
 RECORD_VERSION = 1
 
 
 @dataclass(frozen=True)
 class GateOptions:
-    """``mode``: reject | retime | check; ``retime_all``: in retime mode, retime feasible goals too."""
+    """``mode``: reject | retime | check; ``retime_all``: in retime mode, retime feasible goals too;
+    ``max_state_age``: the oldest joint_states (s, by receipt) a goal is checked from in reject and
+    retime (older, absent, or without a goal joint: refused, ``stale_state``); ``start_tolerance``:
+    how far (rad) a goal's first point may lie from the measured state (used by the start check)."""
 
     mode: str = "reject"
     retime_all: bool = False
+    max_state_age: float = 0.1
+    start_tolerance: float = 0.01
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise SettingsError(f"gate.mode must be one of {', '.join(MODES)}, not {self.mode!r}")
+        if not (self.max_state_age > 0 and self.start_tolerance >= 0):
+            raise SettingsError("gate.max_state_age must be > 0 and gate.start_tolerance >= 0")
+
+    @property
+    def fails_closed(self) -> bool:
+        """reject and retime refuse what they cannot check from a fresh state; check forwards it."""
+        return self.mode != "check"
 
 
 @dataclass(frozen=True)
@@ -58,6 +76,9 @@ class Decision:
     duration_uniform: float = math.nan
     retime_message: str = ""
     extra: Mapping[str, Any] = field(default_factory=dict)
+    #: the check of what is forwarded (the goal's, or the retimed answer's re-check): the node
+    #: publishes it on ~/feasibility like any executed trajectory's; not part of the record
+    result: Any = field(default=None, compare=False, repr=False)
 
     @property
     def forwards(self) -> bool:
@@ -72,11 +93,18 @@ class Decision:
 
     @property
     def line(self) -> str:
-        """One line for logs and the gate's status."""
+        """One line for logs and the gate's status ("rejected: …" once, never twice)."""
         if self.decision == RETIMED:
             return (f"retimed: {self.duration_in:.3f} s → {self.duration_out:.3f} s "
                     f"(uniform slowdown {self.duration_uniform:.3f} s); was: {self.verdict}")
+        if self.verdict.startswith(f"{self.decision}: "):
+            return self.verdict
         return f"{self.decision}: {self.verdict}"
+
+    @property
+    def failure_label(self) -> str:
+        """``state error`` for a goal refused for want of a fresh state, else ``planning error``."""
+        return STATE_ERROR if self.reason == STALE_STATE else PLANNING_ERROR
 
     def to_dict(self, *, goal_id: str, mode: str, joint_names: list[str]) -> dict[str, Any]:
         """The JSON-ready record (NaN → null)."""
@@ -127,21 +155,68 @@ def load_retimer() -> RetimeFn:
     return retime
 
 
+def state_problem(start: feasibility.StartState | None, max_age: float) -> str:
+    """Why ``start`` cannot be checked from ("" when it can): none (no joint_states within the
+    node's stale_timeout, or none naming every joint), or older than ``max_age`` s."""
+    if start is None:
+        return "no joint_states with every joint (or none recent)"
+    if not start.age_s <= max_age:
+        return f"joint_states {start.age_s * 1e3:.0f} ms old"
+    return ""
+
+
+def stale_state(problem: str, max_age: float) -> Decision:
+    """A goal refused in reject and retime because the robot's state is unknown or too old."""
+    err = TrajectoryError(f"{STALE_STATE}: {problem} (gate.max_state_age {max_age:g} s); the gate "
+                          "does not forward what it cannot check from the robot's state", code=STALE_STATE)
+    return rejected(err)
+
+
 def decide_goal(dynamics: Dynamics, settings: Any, options: GateOptions, names: list[str],
                 times: list[float], positions: Any, velocities: Any, accelerations: Any, *,
-                start: feasibility.StartState | None, retimer: RetimeFn | None = None) -> Decision:
+                start: feasibility.StartState | None, retimer: RetimeFn | None = None,
+                plan: "RetimePlan | None" = None) -> Decision:
     """A goal's trajectory as received (its joint order, empty fields as sent): validated as the
-    node validates an executed trajectory (at least two points), then :func:`decide` with the
-    check options of ``settings`` (the node's). The gate and the audit's replay both call this."""
+    node validates an executed trajectory (at least two points), refused in reject and retime
+    without a fresh ``start`` (:func:`state_problem`), then :func:`decide` with the check options
+    of ``settings`` (the node's). The gate and the audit's replay both call this; ``plan``: see
+    :class:`RetimePlan`."""
     try:
         traj = validate_trajectory(dynamics.model.joint_names, names, times, positions, velocities,
                                    accelerations, min_points=2)
     except TrajectoryError as exc:
         return rejected(exc)
-    opts = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
-                                          effort_warn_ratio=settings.effort_warn_ratio)
-    return decide(dynamics, traj, options, start=start, check_options=opts, retimer=retimer,
-                  limit_margin=settings.retime_limit_margin)
+    problem = state_problem(start, options.max_state_age)
+    if problem and options.fails_closed:
+        return stale_state(problem, options.max_state_age)
+    d = decide(dynamics, traj, options, start=start, check_options=options_for(settings), retimer=retimer,
+               limit_margin=settings.retime_limit_margin, plan=plan)
+    if problem and d.forwards:  # check mode: forwarded, but said to be unjudged from the state
+        return dataclasses.replace(d, reason=STALE_STATE)
+    return d
+
+
+@dataclass
+class RetimePlan:
+    """Retime mode on a moving robot: the retimer plans from the measured state extrapolated by
+    ``lead_s`` (its expected run time: the robot moves on meanwhile, at its measured velocity), and
+    its answer is re-checked from ``fresh()``, the state when it is forwarded (refused when that
+    fails or is stale). The states used are kept (``planned_from``, ``rechecked_from``) for the
+    record; the audit replays with them (``fresh`` returning the recorded one)."""
+
+    lead_s: float
+    fresh: Callable[[], feasibility.StartState | None]
+    max_state_age: float = 0.1
+    planned_from: feasibility.StartState | None = None
+    rechecked_from: feasibility.StartState | None = None
+
+
+def extrapolate(start: feasibility.StartState | None, lead_s: float) -> feasibility.StartState | None:
+    """The state ``lead_s`` s on at the measured velocity (acceleration unknown: 0, as JTC assumes)."""
+    if start is None or lead_s <= 0:
+        return start
+    return feasibility.StartState(start.positions + start.velocities * lead_s, start.velocities.copy(),
+                                  start.age_s + lead_s)
 
 
 def goal_dict(names: list[str], times: list[float], positions: Any, velocities: Any,
@@ -178,10 +253,12 @@ def start_from_dict(d: dict[str, Any] | None) -> feasibility.StartState | None:
 def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
            start: feasibility.StartState | None,
            check_options: feasibility.FeasibilityOptions = feasibility.FeasibilityOptions(),
-           retimer: RetimeFn | None = None, limit_margin: float = 0.995) -> Decision:
+           retimer: RetimeFn | None = None, limit_margin: float = 0.995,
+           plan: RetimePlan | None = None) -> Decision:
     """Check ``traj`` (model order, validated) from ``start`` and decide; see the module docstring.
     ``retimer`` defaults to :func:`load_retimer`'s, loaded only when a goal is to be retimed;
-    ``limit_margin``: the retimer's (the node's ``retime.limit_margin``)."""
+    ``limit_margin``: the retimer's (the node's ``retime.limit_margin``); ``plan``: how a retiming
+    follows the robot (:class:`RetimePlan`; None: planned and re-checked from ``start``)."""
     t0 = time.perf_counter()
     try:
         result = feasibility.check_trajectory(dynamics, traj, check_options, start=start,
@@ -196,27 +273,32 @@ def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
         elapsed = time.perf_counter() - t0
         if result.feasible or options.mode == "check":
             return Decision(FORWARDED, reason="" if result.feasible else "infeasible", trajectory=traj,
-                            check_time_s=elapsed, duration_out=traj.duration, **base)
+                            check_time_s=elapsed, duration_out=traj.duration, result=result, **base)
         return Decision(REJECTED, reason="infeasible", trajectory=None, check_time_s=elapsed, **base)
-    return _retimed(dynamics, traj, start, check_options, retimer, limit_margin, t0, base, result)
+    return _retimed(dynamics, traj, start, check_options, retimer, limit_margin, t0, base, result, plan)
 
 
 def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState | None,
              check_options: feasibility.FeasibilityOptions, retimer: RetimeFn | None,
              limit_margin: float, t0: float, base: dict[str, Any],
-             checked: feasibility.FeasibilityResult) -> Decision:
+             checked: feasibility.FeasibilityResult, plan: RetimePlan | None = None) -> Decision:
     def failed(message: str, uniform: float = math.nan) -> Decision:
         # a feasible goal (retime_all) whose retiming failed still goes as it came
         kept = traj if base["feasible"] else None
         return Decision(FORWARDED if kept is not None else REJECTED, reason="retime_failed",
                         trajectory=kept, retime_message=message, duration_uniform=uniform,
-                        check_time_s=time.perf_counter() - t0, **base)
+                        check_time_s=time.perf_counter() - t0, result=checked if kept is not None else None,
+                        **base)
 
+    planned = start
+    if plan is not None:  # from where the robot will be when the answer goes out
+        planned = plan.planned_from = extrapolate(start, plan.lead_s)
     try:
         fn = retimer or load_retimer()
-        # the goal's check just made: the retimer does not check its input again
-        out = fn(dynamics, traj, start=start, feasibility=check_options, limit_margin=limit_margin,
-                 input_check=checked)
+        # the goal's check just made (from the measured state): the retimer checks its input
+        # again only when it plans from an extrapolated one
+        out = fn(dynamics, traj, start=planned, feasibility=check_options, limit_margin=limit_margin,
+                 input_check=checked if planned is start else None)
     except TrajectoryError as exc:
         return failed(str(exc))
     uniform = float(out.duration_uniform)
@@ -224,15 +306,29 @@ def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState
         return failed(out.message, uniform)
     # what is forwarded passed this gate's check: the retimer's own exact check of its answer
     # (same options, same start) when it has one, else checked here as the controller will run it
-    try:
-        again = out.check if out.check is not None else feasibility.check_trajectory(
-            dynamics, out.trajectory, check_options, start=start, start_unknown=feasibility.NO_CURRENT_STATE)
-        ok, why = again.feasible, again.message
-    except TrajectoryError as exc:
-        ok, why = False, str(exc)
+    ok, why, again = _recheck(dynamics, out, check_options, start, plan)
     if not ok:
         return failed(f"the retimed trajectory failed the re-check: {why}", uniform)
     base["duration_in"] = float(out.duration_in) if out.duration_in > 0 else traj.duration
     return Decision(RETIMED, reason="", trajectory=out.trajectory, retime_message=out.message,
                     duration_out=float(out.duration_out), duration_uniform=uniform,
-                    check_time_s=time.perf_counter() - t0, **base)
+                    check_time_s=time.perf_counter() - t0, result=again, **base)
+
+
+def _recheck(dynamics: Dynamics, out: Any, check_options: feasibility.FeasibilityOptions,
+             start: feasibility.StartState | None, plan: RetimePlan | None) -> tuple[bool, str, Any]:
+    """The retimed answer checked as the controller will run it: from a fresh state when the
+    retiming follows the robot (never a stale "feasible"), else the retimer's own exact check
+    (same options and start) when it has one."""
+    recheck_from = start
+    if plan is not None:
+        recheck_from = plan.rechecked_from = plan.fresh()
+        problem = state_problem(recheck_from, plan.max_state_age)
+        if problem:
+            return False, f"{STALE_STATE}: {problem} when the answer was ready", None
+    try:
+        again = out.check if out.check is not None and plan is None else feasibility.check_trajectory(
+            dynamics, out.trajectory, check_options, start=recheck_from, start_unknown=feasibility.NO_CURRENT_STATE)
+    except TrajectoryError as exc:
+        return False, str(exc), None
+    return bool(again.feasible), again.message, again

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
 
 import numpy as np
-from builtin_interfaces.msg import Time
+from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import JointState
-from trajectory_msgs.msg import JointTrajectory
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from dyn_node.bag.cdr import decode_joint_state
 from dyn_node.core.robot.status import Status
@@ -26,12 +26,29 @@ def stamp_to_s(stamp: Time) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-def s_to_stamp(t: float) -> Time:
+def _sec_nanosec(t: float) -> tuple[int, int]:
+    """The one rounding rule of seconds → (sec, nanosec): floor, nanoseconds rounded to nearest,
+    a carry when they round to 10⁹ (so 0.9999999999 s is 1 s 0 ns, never 0 s 10⁹ ns)."""
     sec = int(t // 1)
     nanosec = int(round((t - sec) * 1e9))
     if nanosec >= 1_000_000_000:
         sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    return sec, nanosec
+
+
+def s_to_stamp(t: float) -> Time:
+    sec, nanosec = _sec_nanosec(t)
     return Time(sec=sec, nanosec=nanosec)
+
+
+def s_to_duration(t: float) -> Duration:
+    """Seconds → builtin_interfaces/Duration (time_from_start), by :func:`s_to_stamp`'s rule."""
+    sec, nanosec = _sec_nanosec(t)
+    return Duration(sec=sec, nanosec=nanosec)
+
+
+def duration_to_s(d: Duration) -> float:
+    return d.sec + d.nanosec * 1e-9
 
 
 def to_byte(value: int | bool) -> bytes:
@@ -165,9 +182,28 @@ def trajectory_arrays(msg: JointTrajectory) -> tuple[list[str], list[float], Any
     """(names, times s, positions, velocities, accelerations): N×k arrays (lists of per-point
     sequences when the points disagree in length)."""
     pts = msg.points
-    times = [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts]
+    times = [duration_to_s(p.time_from_start) for p in pts]
     return (list(msg.joint_names), times, _rows([p.positions for p in pts]),
             _rows([p.velocities for p in pts]), _rows([p.accelerations for p in pts]))
+
+
+def trajectory_message(traj: Any, joint_names: Sequence[str], header: Any) -> JointTrajectory:
+    """A model-order core Trajectory as a JointTrajectory under ``header`` (velocities and
+    accelerations when it has them; times by :func:`s_to_duration`)."""
+    points = []
+    for i, t in enumerate(np.asarray(traj.times, dtype=float)):
+        p = JointTrajectoryPoint(positions=traj.positions[i].tolist(), time_from_start=s_to_duration(float(t)))
+        if traj.velocities is not None:
+            p.velocities = traj.velocities[i].tolist()
+        if traj.accelerations is not None:
+            p.accelerations = traj.accelerations[i].tolist()
+        points.append(p)
+    return JointTrajectory(header=header, joint_names=list(joint_names), points=points)
+
+
+def goal_trajectory_message(template: JointTrajectory, traj: Any, joint_names: Sequence[str]) -> JointTrajectory:
+    """``template`` (a goal's JointTrajectory, header kept) with ``traj``'s points (model order)."""
+    return trajectory_message(traj, joint_names, template.header)
 
 
 def fill_trajectory_effort(msg: JointTrajectory, effort_model_order: np.ndarray,

@@ -9,10 +9,9 @@ from typing import Any, Sequence
 
 
 def duration(t: float) -> Any:
-    from builtin_interfaces.msg import Duration
+    from dyn_node.ros.convert import s_to_duration  # the one rounding rule
 
-    sec = int(t)
-    return Duration(sec=sec, nanosec=int(round((t - sec) * 1e9)))
+    return s_to_duration(t)
 
 
 def goal(times: Sequence[float], points: Sequence[Sequence[float]], *, names: Sequence[str],

@@ -5,24 +5,26 @@ With ``gate.controller_action`` set, dyn_node serves ``~/follow_joint_trajectory
 like an executed trajectory and decided by :mod:`dyn_node.gate.decision` (``gate.mode``).
 
 - Forwarded (or retimed): the downstream goal response is the client's (a goal the controller
-  rejects is rejected); feedback is relayed; the terminal status (SUCCEEDED / ABORTED / CANCELED)
-  and the result pass through unchanged; a cancel from the client cancels downstream. Pre-emption
-  is the controller's: a new goal forwarded to it ends the running one, and that end is relayed.
-- Rejected: accepted, then ended at once ABORTED with ``INVALID_GOAL`` and the verdict line as
-  ``error_string`` (a goal response cannot carry text; MoveIt logs the string).
-- Downstream absent or silent for ``gate.timeout`` s, or gone mid-goal: ABORTED, ``INVALID_GOAL``,
-  with an ``error_string`` saying so. On a clean shutdown what was forwarded is cancelled.
+  rejects is rejected); feedback is relayed; the terminal status and the result pass through
+  unchanged; a cancel from the client cancels downstream. Pre-emption is the controller's.
+- Refused (the check's rejection, a stale state in reject/retime, the gate busy or closing, the
+  controller absent or late): accepted, then ended at once ABORTED ``INVALID_GOAL`` with the
+  reason as ``error_string`` (a goal response cannot carry text; MoveIt logs the string).
+- The invariant: no goal the controller accepted for a client's goal is left running once the
+  client's goal ended. A late acceptance is cancelled on arrival; silence for ``gate.timeout``,
+  a client cancel and shutdown cancel downstream and wait (bounded) for the controller's end;
+  what the controller never confirms is recorded ``downstream_cancel_unconfirmed``.
 
-Each decision is published (and recorded) on ``~/gate_decisions`` as a JSON std_msgs/String,
-and each forwarded goal's end likewise (``event: result``); ``dyn_node: gate`` in /diagnostics
-counts them. Only the decision is on a goal's path: its record (the goal and the forwarded
-trajectory as JSON, ~2 ms for 100 points) is made once the client has its goal response, and
-before the goal's end record. The action server, the client and their callbacks live on a helper
-node spun by an executor of its own, so a goal never waits for dyn_node's executor, nor delays it.
+Each goal's decision and its end are published (and recorded) on ``~/gate_decisions``
+(:mod:`dyn_node.gate.outcomes`); ``dyn_node: gate`` in /diagnostics counts them. The action
+server and the downstream client live on a helper node spun by one thread of their own; every
+goal is a coroutine on it (goal callback, execution, following: rclpy futures, no thread per goal,
+no polling), and the checks run on one worker thread behind a bounded queue (``gate.max_pending``).
 """
 from __future__ import annotations
 
 import json
+import queue
 import threading
 import time
 import traceback
@@ -30,28 +32,26 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-import numpy as np
 from action_msgs.msg import GoalStatus
 from control_msgs.action import FollowJointTrajectory
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
-from trajectory_msgs.msg import JointTrajectoryPoint
 
 from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
 from dyn_node.core.robot.settings import ParamSpec
 from dyn_node.core.robot.status import ERROR, NAME_PREFIX, OK, WARN, Status
-from dyn_node.core.check.trajectory import Trajectory
-from dyn_node.errors import PLANNING_ERROR, STATE_ERROR, TrajectoryError
-from dyn_node.gate.decision import (FORWARDED, REJECTED, RETIMED, Decision, GateOptions, decide_goal, goal_dict,
-                                    rejected, start_dict)
-from dyn_node.ros.fjt_client import ClientThread
+from dyn_node.errors import STATE_ERROR, TrajectoryError
+from dyn_node.gate import outcomes as out
+from dyn_node.gate.decision import (FORWARDED, NOT_FORWARDED, REJECTED, RETIMED, Decision, GateOptions, RetimePlan,
+                                    decide_goal, goal_dict, rejected, start_dict)
+from dyn_node.ros.actions import Waits, end_canceled
+from dyn_node.ros.convert import goal_trajectory_message, trajectory_arrays
 from dyn_node.ros.params import KINDS, parameter_descriptor
-from dyn_node.ros.sim.action import end_canceled
 
 STATUS_NAME = NAME_PREFIX + "gate"
 Result = FollowJointTrajectory.Result
@@ -64,10 +64,19 @@ GATE_PARAMETERS: tuple[ParamSpec, ...] = (
               "infeasible goal"),
     ParamSpec("gate.retime_all", "bool", False, "retime mode: retime feasible goals too"),
     ParamSpec("gate.timeout", "double", 5.0, "how long (s) the gate waits for the downstream server "
-              "and its goal response; also how long it may vanish mid-goal", 0.01, 3600.0),
+              "and its goal response, for a sign of life during a goal, and for a cancel's "
+              "confirmation", 0.01, 3600.0),
+    ParamSpec("gate.max_state_age", "double", 0.1, "reject and retime: the oldest joint_states (s, by "
+              "receipt) a goal is checked from; older, none, or without a goal joint: refused "
+              "(stale_state, state error)", 0.001, 60.0),
+    ParamSpec("gate.start_tolerance", "double", 0.01, "how far (rad) a goal's first point may lie from "
+              "the measured state (MoveIt's allowed_start_tolerance)", 0.0, 10.0),
+    ParamSpec("gate.max_pending", "integer", 50, "goals waiting for their check at most; one more is "
+              "refused at once (gate_busy)", 1, 100000),
 )
 DECISIONS_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
-_POLL_S = 0.05  # how often a forwarded goal's execute callback looks at cancel and the server
+# a flood of goal requests waits in the server's queue for the executor, not dropped at depth 10
+_REQUESTS_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 
 
 @dataclass
@@ -75,321 +84,447 @@ class _Goal:
     """One goal through the gate, from its goal callback to its end."""
 
     goal_id: str
-    decision: Decision
+    goal: Any
+    t0: float = field(default_factory=time.monotonic)
+    decision: Decision | None = None
     down_goal: Any = None
     down: Any = None  # downstream ClientGoalHandle once accepted
-    abort_text: str = ""  # ends ABORTED/INVALID_GOAL with this (rejected, downstream trouble)
+    end: tuple[str, str] | None = None  # (outcome event, error_string): refused before execution
     handle: Any = None
     feedback: list = field(default_factory=list)  # received before the client's goal was accepted
-    heard: float = field(default_factory=time.monotonic)  # last feedback (monotonic s)
-    record: Callable[[], None] | None = None  # publishes the decision's record, once
+    heard: float = field(default_factory=time.monotonic)  # last sign of life downstream (monotonic s)
+    poke: Any = None  # a future the gate completes to wake the goal's coroutine
+    cancel_requested: bool = False  # set by the cancel callback, before rclpy marks the handle
+    record: Callable[..., None] | None = None  # publishes the decision's record, once
+    names: list = field(default_factory=list)  # the model's joint names (the forwarded trajectory's)
 
 
 def declare_gate_parameters(node: Node) -> dict[str, Any]:
-    out = {}
+    out_ = {}
     for p in GATE_PARAMETERS:
         d: ParameterDescriptor = parameter_descriptor(p.name, KINDS[p.kind], p.description, low=p.low,
                                                       high=p.high, read_only=True)
-        out[p.name] = node.declare_parameter(p.name, p.default, d).value
-    return out
-
-
-def to_joint_trajectory(template: Any, tr: Trajectory, names: list[str]) -> Any:
-    """``template`` (the goal's JointTrajectory, header kept) with ``tr``'s points (model order)."""
-    msg = type(template)()
-    msg.header = template.header
-    msg.joint_names = list(names)
-    for i, t in enumerate(tr.times):
-        p = JointTrajectoryPoint(positions=tr.positions[i].tolist())
-        if tr.velocities is not None:
-            p.velocities = tr.velocities[i].tolist()
-        if tr.accelerations is not None:
-            p.accelerations = tr.accelerations[i].tolist()
-        sec = int(np.floor(t))
-        p.time_from_start.sec, p.time_from_start.nanosec = sec, min(int(round((t - sec) * 1e9)), 999_999_999)
-        msg.points.append(p)
-    return msg
+        out_[p.name] = node.declare_parameter(p.name, p.default, d).value
+    return out_
 
 
 class Gate:
     """The gate of one DynNode. ``state()`` → (core, StartState | None): the node's model and
     settings and the robot's state now (:meth:`dyn_node.ros.node.DynNode.execution_state`);
-    ``publish(pub, msg)`` publishes and records."""
+    ``publish(pub, msg)`` publishes and records; ``executed(decision, goal, names)``: called for
+    each goal the controller accepted (the node publishes its verdict and tracks it)."""
 
     def __init__(self, node: Node, params: dict[str, Any], state: Callable[[], tuple[Any, Any]],
-                 publish: Callable[[Any, Any], None]):
-        self.options = GateOptions(mode=params["gate.mode"], retime_all=params["gate.retime_all"])
+                 publish: Callable[[Any, Any], None], executed: Callable[..., None] | None = None):
+        self.options = GateOptions(mode=params["gate.mode"], retime_all=params["gate.retime_all"],
+                                   max_state_age=float(params["gate.max_state_age"]),
+                                   start_tolerance=float(params["gate.start_tolerance"]))
         self.downstream = params["gate.controller_action"]
         self.timeout = float(params["gate.timeout"])
-        self._state, self._publish = state, publish
+        self._state, self._publish, self._executed = state, publish, executed
         self._lock = threading.Lock()
-        self._check_lock = threading.Lock()  # one check at a time, on one Dynamics
-        self._dyn: Dynamics | None = None
+        self._dyn: Dynamics | None = None  # the check worker's
+        self._retime_s = 0.2  # the retimer's expected run time (s), learnt from its runs
+        self._jobs: queue.Queue = queue.Queue(maxsize=int(params["gate.max_pending"]))
         self._goals: dict[int, _Goal] = {}  # id(goal request) → goal, until its execution starts
-        self._running_goals: dict[int, _Goal] = {}
-        self.counts = {FORWARDED: 0, REJECTED: 0, RETIMED: 0, "downstream_failures": 0}
+        self._running: dict[int, _Goal] = {}  # accepted downstream, until the client's goal ends
+        self._handles: dict[int, _Goal] = {}  # id(server goal handle) → goal, while it executes
+        self._active = 0  # goals between their goal callback and their end
+        self._idle = threading.Condition(self._lock)
+        self.counts = {FORWARDED: 0, REJECTED: 0, RETIMED: 0, NOT_FORWARDED: 0, "downstream_failures": 0,
+                       "forwarded_unchecked": 0, out.CANCEL_UNCONFIRMED: 0, out.GATE_BUSY: 0, out.REFUSED_CLOSING: 0}
         self.last_line = ""
-        self.last_decision = ""
+        self.last_decision: Decision | None = None
         self._closing = False
+        self.logger = node.get_logger()
         self.pub = node.create_publisher(String, "~/gate_decisions", DECISIONS_QOS)
         self.server_name = node.resolve_topic_name("~/follow_joint_trajectory")
         self.io = Node("_dyn_node_gate", context=node.context, namespace=node.get_namespace(),
                        use_global_arguments=False, enable_rosout=False, start_parameter_services=False)
-        # the downstream client on a thread of its own (see ClientThread: requests and responses
-        # on one thread); the server in a group of its own (an action waitable run by two threads
-        # at once loses requests); execute callbacks run as tasks, outside any group
-        self.down = ClientThread(node.context, self.downstream, "_dyn_node_gate_client",
-                                 namespace=node.get_namespace(), use_global_arguments=False)
-        self.client = self.down.client
+        # server and client on one thread: rclpy registers a request's future after sending it,
+        # so a second thread taking the response in between would lose it (see fjt_client)
+        # and one reentrant group: a mutually exclusive one stays held while a goal's coroutine
+        # waits, and nothing else (the client's response, a timer) could run
+        self.executor = SingleThreadedExecutor(context=node.context)
+        self.executor.add_node(self.io)
+        group = ReentrantCallbackGroup()
+        self.waits = Waits(self.io, self.executor, group)
+        self.client = ActionClient(self.io, FollowJointTrajectory, self.downstream, callback_group=group)
         self.server = ActionServer(self.io, FollowJointTrajectory, self.server_name,
                                    execute_callback=self._execute, goal_callback=self._on_goal,
-                                   handle_accepted_callback=self._on_accepted,
-                                   cancel_callback=lambda _h: CancelResponse.ACCEPT,
-                                   callback_group=MutuallyExclusiveCallbackGroup())
-        self.logger = node.get_logger()
-        self.executor = MultiThreadedExecutor(num_threads=4, context=node.context)
-        self.executor.add_node(self.io)
+                                   handle_accepted_callback=self._on_accepted, cancel_callback=self._on_cancel,
+                                   goal_service_qos_profile=_REQUESTS_QOS, result_service_qos_profile=_REQUESTS_QOS,
+                                   cancel_service_qos_profile=_REQUESTS_QOS, callback_group=group)
         self._stop = threading.Event()
+        self._worker = threading.Thread(target=self._check_loop, name="dyn_node gate check", daemon=True)
+        self._worker.start()
         self._thread = threading.Thread(target=self._spin, name="dyn_node gate", daemon=True)
         self._thread.start()
         self.logger.info(f"gate: {self.server_name} → {self.downstream} ({self.options.mode})")
 
     def _spin(self) -> None:
-        # spin_once with a stop flag (see dyn_node.ros.sim.action.JtcFace._spin)
         while not self._stop.is_set() and self.executor.context.ok():
             self.executor.spin_once(timeout_sec=0.1)
 
-    # --- the decision (goal callback) -----------------------------------------------------------
+    # --- the check (worker thread) --------------------------------------------------------------
+    def _check_loop(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            g, fut = job
+            try:
+                answer = self._check(g.goal)
+            except Exception as exc:  # a failing check still answers the client
+                self.logger.error(f"gate: check failed:\n{traceback.format_exc()}")
+                answer = rejected(TrajectoryError(f"check failed: {exc!r}", code="evaluation_failed")), [], {}
+            fut.set_result(answer)
+
     def _check(self, goal: Any) -> tuple[Decision, list[str], dict]:
         """The decision, the model's joint names, and what the record needs of the decision's
         inputs (the goal's arrays and the start state, made JSON-ready by :meth:`_record`)."""
         core, start = self._state()
-        pts = goal.trajectory.points
-        arrays = (list(goal.trajectory.joint_names),
-                  [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
-                  [p.positions for p in pts], [p.velocities for p in pts], [p.accelerations for p in pts])
-        inputs = {"arrays": arrays, "start": start}
+        arrays = trajectory_arrays(goal.trajectory)
+        inputs: dict[str, Any] = {"arrays": arrays, "start": start}
         if core is None:
             return rejected(TrajectoryError("no robot model yet", code="no_model")), [], inputs
         model, settings = core.model, core.settings
-        with self._check_lock:
-            if self._dyn is None or self._dyn.model is not model:
-                self._dyn = Dynamics(model, DynamicsOptions(include_friction=settings.include_friction))
-            return (decide_goal(self._dyn, settings, self.options, *arrays, start=start),
-                    list(model.joint_names), inputs)
+        if self._dyn is None or self._dyn.model is not model:
+            self._dyn = Dynamics(model, DynamicsOptions(include_friction=settings.include_friction))
+        plan = None
+        if self.options.mode == "retime":
+            plan = RetimePlan(self._retime_s, lambda: self._state()[1], self.options.max_state_age)
+            inputs["plan"] = plan
+        d = decide_goal(self._dyn, settings, self.options, *arrays, start=start, plan=plan)
+        if plan is not None and d.decision == RETIMED:  # the next plan leads by what this one took
+            self._retime_s = 0.7 * self._retime_s + 0.3 * d.check_time_s
+        return d, list(model.joint_names), inputs
 
-    def _on_goal(self, goal: Any) -> GoalResponse:
-        try:
-            return self._answer(goal)
-        except Exception:  # the client gets an answer whatever happens here
-            self.logger.error(f"gate: goal callback failed, goal rejected:\n{traceback.format_exc()}")
-            return GoalResponse.REJECT
-
-    def _answer(self, goal: Any) -> GoalResponse:
-        gid = uuid.uuid4().hex  # the gate's own id: rclpy shows the goal callback no goal id
-        try:
-            decision, names, inputs = self._check(goal)
-        except Exception as exc:  # a failing check must still answer the client
-            decision, names, inputs = rejected(TrajectoryError(f"check failed: {exc!r}", code="evaluation_failed")), [], {}
-        g = _Goal(goal_id=gid, decision=decision)
+    # --- the goal callback: decide, forward, answer ---------------------------------------------
+    async def _on_goal(self, goal: Any) -> GoalResponse:
+        g = _Goal(goal_id=uuid.uuid4().hex, goal=goal)  # the gate's id: rclpy shows no goal id here
         with self._lock:
-            self.counts[decision.decision] += 1
-            self.last_line, self.last_decision = decision.line, decision.decision
-        g.record = lambda: self._record(g, names, goal, inputs)
+            self._active += 1
+        try:
+            return await self._answer(g)
+        except Exception as exc:  # the client gets an answer whatever happens here
+            self.logger.error(f"gate: goal callback failed, goal refused:\n{traceback.format_exc()}")
+            self._refuse(g, out.REFUSED, f"dyn_node gate: internal error: {exc!r}")
+            return self._keep(g)
+
+    async def _answer(self, g: _Goal) -> GoalResponse:
+        if self._closing:
+            return self._refuse_unchecked(g, out.REFUSED_CLOSING, out.closing_text())
+        fut = self.waits.future()
+        try:
+            self._jobs.put_nowait((g, fut))
+        except queue.Full:
+            return self._refuse_unchecked(g, out.GATE_BUSY, out.busy_text(self._jobs.qsize()))
+        await fut
+        decision, names, inputs = fut.result()
+        g.decision = decision
+        g.record = lambda *a: self._record(g, names, inputs, *a)
         if not decision.forwards:
-            g.abort_text = decision.error_string
-            return self._keep(goal, g, GoalResponse.ACCEPT)
-        down_goal = goal
+            self._count(decision.decision, decision.line, decision)
+            self._refuse(g, out.REFUSED, decision.error_string)
+            return self._keep(g)
+        g.down_goal = g.goal
         if decision.decision == RETIMED:
-            down_goal = FollowJointTrajectory.Goal()
-            for f in down_goal.get_fields_and_field_types():
-                setattr(down_goal, f, getattr(goal, f))
-            down_goal.trajectory = to_joint_trajectory(goal.trajectory, decision.trajectory, names)
-        g.down_goal = down_goal
-        try:
-            return self._keep(goal, g, self._forward(g))
-        except Exception:  # answered REJECT by _on_goal: no execution will record the decision
-            self._publish_decision(g)
-            raise
+            g.down_goal = FollowJointTrajectory.Goal()
+            for f in g.down_goal.get_fields_and_field_types():
+                setattr(g.down_goal, f, getattr(g.goal, f))
+            g.down_goal.trajectory = goal_trajectory_message(g.goal.trajectory, decision.trajectory, names)
+        return await self._forward(g, names)
 
-    def _keep(self, goal: Any, g: _Goal, response: GoalResponse) -> GoalResponse:
-        if response == GoalResponse.ACCEPT:
-            with self._lock:
-                self._goals[id(goal)] = g
-        return response
+    def _refuse_unchecked(self, g: _Goal, event: str, text: str) -> GoalResponse:
+        """Refused before any check (busy, closing): recorded as not forwarded, not replayed."""
+        g.decision = rejected(TrajectoryError(text, code=event))
+        g.record = lambda *a: self._record(g, [], {}, NOT_FORWARDED, event)
+        self._count(NOT_FORWARDED, f"not forwarded: {text}", g.decision, extra=event)
+        self._refuse(g, event, text)
+        return self._keep(g)
 
-    def _forward(self, g: _Goal) -> GoalResponse:
-        """Send downstream and wait for its goal response (at most gate.timeout s each)."""
-        if not self.client.wait_for_server(timeout_sec=self.timeout):
-            return self._downstream_failed(g, f"downstream action server {self.downstream} not available "
-                                              f"within {self.timeout:g} s (gate.timeout)")
-        fut = self.down.call(lambda: self.client.send_goal_async(g.down_goal,
-                                                                 feedback_callback=lambda m: self._relay(g, m)),
-                             self.timeout)
-        done = threading.Event()
-        if fut is not None:
-            fut.add_done_callback(lambda _f: done.set())
-        if fut is None or not done.wait(self.timeout):
-            return self._downstream_failed(g, f"downstream action server {self.downstream} did not answer "
-                                              f"the goal request within {self.timeout:g} s (gate.timeout)")
-        g.down = fut.result()
-        if not g.down.accepted:  # no execution follows: the decision is recorded here
-            self._publish_decision(g)
-            self._record_result(g, "downstream_rejected", None, None)
-            return GoalResponse.REJECT
-        return GoalResponse.ACCEPT
+    def _refuse(self, g: _Goal, event: str, text: str) -> None:
+        g.end = (event, text)
 
-    def _downstream_failed(self, g: _Goal, text: str) -> GoalResponse:
+    def _keep(self, g: _Goal) -> GoalResponse:
         with self._lock:
-            self.counts["downstream_failures"] += 1
-        g.abort_text = f"dyn_node gate: {text}"
-        self.logger.error(g.abort_text)
+            self._goals[id(g.goal)] = g
         return GoalResponse.ACCEPT
+
+    async def _forward(self, g: _Goal, names: list[str]) -> GoalResponse:
+        """Send downstream and wait for its goal response: at most gate.timeout s from the
+        decision for the server and the response together."""
+        deadline = time.monotonic() + self.timeout
+        while not self.client.server_is_ready():  # only while the server is absent
+            if self._closing or time.monotonic() >= deadline:
+                return self._not_forwarded(g, out.DOWNSTREAM_UNAVAILABLE,
+                                           out.unavailable_text(self.downstream, self.timeout))
+            await self.waits.sleep(min(0.02, deadline - time.monotonic()))
+        if self._closing:
+            return self._not_forwarded(g, out.REFUSED_CLOSING, out.closing_text())
+        fut = self.client.send_goal_async(g.down_goal, feedback_callback=lambda m: self._relay(g, m))
+        if not await self.waits.any((fut,), deadline - time.monotonic()):
+            self.executor.create_task(self._cancel_late(g, fut))
+            return self._not_forwarded(g, out.DOWNSTREAM_LATE, out.late_text(self.downstream, self.timeout))
+        g.down = fut.result()
+        if not g.down.accepted:  # no execution follows: the goal's records are made here
+            self._count(NOT_FORWARDED, f"not forwarded: the controller rejected it; {g.decision.line}", g.decision)
+            self._publish_decision(g, NOT_FORWARDED, out.DOWNSTREAM_REJECTED)
+            self._publish_end(g, out.end_record(g.goal_id, out.DOWNSTREAM_REJECTED, None))
+            self._done(g)
+            return GoalResponse.REJECT
+        with self._lock:
+            self._running[id(g)] = g  # shutdown cancels it from now on
+        self._count(g.decision.decision, g.decision.line, g.decision)
+        g.names = names
+        return self._keep(g)
+
+    def _not_forwarded(self, g: _Goal, event: str, text: str) -> GoalResponse:
+        with self._lock:
+            self.counts["downstream_failures"] += event in (out.DOWNSTREAM_UNAVAILABLE, out.DOWNSTREAM_LATE)
+        self.logger.error(text)
+        self._count(NOT_FORWARDED, f"not forwarded: {text}", g.decision)
+        self._refuse(g, event, text)
+        return self._keep(g)
+
+    async def _cancel_late(self, g: _Goal, fut: Any) -> None:
+        """A goal response after gate.timeout: an acceptance is cancelled on arrival (the client's
+        goal ended long ago) and the cancel's confirmation recorded."""
+        await self.waits.any((fut,), None)
+        gh = fut.result()
+        if gh is None or not gh.accepted:
+            return
+        confirmed = await self._cancel_downstream(gh)
+        self.logger.warning(f"gate {g.goal_id[:8]}: late acceptance by {self.downstream} cancelled "
+                            f"({'confirmed' if confirmed else 'not confirmed'})")
+        self._publish_end(g, out.end_record(g.goal_id, out.LATE_GOAL_CANCELLED, None,
+                                            cancel=out.CONFIRMED if confirmed else out.CANCEL_UNCONFIRMED))
+
+    async def _cancel_downstream(self, gh: Any) -> bool:
+        """Cancel ``gh`` and wait (gate.timeout) for its end: whether the controller ended it."""
+        res = gh.get_result_async()
+        gh.cancel_goal_async()
+        return await self.waits.any((res,), self.timeout)
 
     # --- execution ------------------------------------------------------------------------------
     def _on_accepted(self, handle: Any) -> None:
         with self._lock:
-            g = self._goals[id(handle.request)]
+            g = self._goals.pop(id(handle.request))
             g.handle, early = handle, g.feedback
             g.feedback = []
+        self._handles[id(handle)] = g
         for fb in early:
             handle.publish_feedback(fb)
         handle.execute()
 
+    def _on_cancel(self, handle: Any) -> CancelResponse:
+        g = self._handles.get(id(handle))
+        if g is not None:
+            g.cancel_requested = True
+            self._wake(g)
+        return CancelResponse.ACCEPT
+
     def _relay(self, g: _Goal, msg: Any) -> None:
         g.heard = time.monotonic()
-        with self._lock:
-            if g.handle is None:
-                g.feedback.append(msg.feedback)
-                return
-        if g.handle.is_active:
+        if g.handle is None:
+            g.feedback.append(msg.feedback)
+        elif g.handle.is_active:
             g.handle.publish_feedback(msg.feedback)
 
-    def _execute(self, handle: Any) -> Any:
-        with self._lock:
-            g = self._goals.pop(id(handle.request))
-            if not g.abort_text:
-                self._running_goals[id(g)] = g  # a clean shutdown cancels it from now on
+    def _wake(self, g: _Goal) -> None:
+        poke = g.poke
+        if poke is not None and not poke.done():
+            poke.set_result(True)
+
+    async def _execute(self, handle: Any) -> Any:
+        g = self._handles[id(handle)]
         try:
             self._publish_decision(g)
-            if g.abort_text:
+            if g.end is not None:
+                event, text = g.end
+                res = Result(error_code=Result.INVALID_GOAL, error_string=text)
                 handle.abort()
-                return Result(error_code=Result.INVALID_GOAL, error_string=g.abort_text)
-            return self._follow(handle, g)
+                self._publish_end(g, out.end_record(g.goal_id, event, GoalStatus.STATUS_ABORTED, res))
+                return res
+            if self._executed is not None:  # off the goal response's path
+                try:
+                    self._executed(g.decision, g.down_goal, g.names)
+                except Exception:
+                    self.logger.error(f"gate {g.goal_id[:8]}: verdict or tracking failed:\n{traceback.format_exc()}")
+            return await self._follow(handle, g)
         finally:
-            with self._lock:
-                self._running_goals.pop(id(g), None)
+            self._handles.pop(id(handle), None)
+            self._done(g)
 
-    def _follow(self, handle: Any, g: _Goal) -> Any:
-        """Wait for the downstream result, passing a cancel on. The controller is taken for gone
-        when it sends no feedback (joint_trajectory_controller sends it at 20 Hz) for
-        gate.timeout s: a killed process stays in the DDS graph until its lease ends (20 s)."""
-        fut = self.down.call(g.down.get_result_async, self.timeout)
-        done = threading.Event()
-        if fut is not None:
-            fut.add_done_callback(lambda _f: done.set())
-        cancel_sent = False
+    async def _follow(self, handle: Any, g: _Goal) -> Any:
+        """Wait for the downstream result; cancel downstream on a client cancel, on shutdown, or
+        after gate.timeout s without feedback (joint_trajectory_controller sends it at 20 Hz; a
+        killed process stays in the DDS graph until its lease ends), then wait gate.timeout s for
+        the controller's end."""
+        res_fut = g.down.get_result_async()
+        cause, cancel_at = None, None
         g.heard = time.monotonic()
-        while not done.wait(_POLL_S):
-            if handle.is_cancel_requested and not cancel_sent:
-                self.down.call(g.down.cancel_goal_async, self.timeout)
-                cancel_sent = True
-            if time.monotonic() - g.heard > self.timeout:
-                text = (f"dyn_node gate: downstream action server {self.downstream} went away during "
-                        f"the goal (no feedback and no result for {self.timeout:g} s)")
-                with self._lock:
-                    self.counts["downstream_failures"] += 1
-                self.logger.error(text)
-                self._record_result(g, "downstream_lost", GoalStatus.STATUS_ABORTED, None)
-                handle.abort()
-                return Result(error_code=Result.INVALID_GOAL, error_string=text)
-        res = fut.result()
-        self._record_result(g, "result", res.status, res.result)
-        if res.status == GoalStatus.STATUS_SUCCEEDED:
+        while not res_fut.done():
+            if cause is None:
+                cause = ("client_cancel" if g.cancel_requested or handle.is_cancel_requested else
+                         out.CANCELLED_ON_SHUTDOWN if self._closing else None)
+            if cause is not None and cancel_at is None:
+                g.down.cancel_goal_async()
+                cancel_at = time.monotonic()
+            deadline = (cancel_at if cancel_at is not None else g.heard) + self.timeout
+            if time.monotonic() >= deadline:
+                if cancel_at is not None:
+                    break  # the controller never confirmed
+                cause = out.DOWNSTREAM_SILENT
+                continue
+            g.poke = self.waits.future()
+            await self.waits.any((res_fut, g.poke), deadline - time.monotonic())
+        return self._end(handle, g, res_fut, cause)
+
+    def _end(self, handle: Any, g: _Goal, res_fut: Any, cause: str | None) -> Any:
+        """End the client's goal after following it (see :mod:`dyn_node.gate.outcomes`)."""
+        elapsed = time.monotonic() - g.t0
+        if not res_fut.done():
+            with self._lock:
+                self.counts[out.CANCEL_UNCONFIRMED] += 1
+                self.counts["downstream_failures"] += cause == out.DOWNSTREAM_SILENT
+            text = (out.silent_text(self.downstream, self.timeout, False) if cause == out.DOWNSTREAM_SILENT
+                    else out.unconfirmed_text(self.downstream, self.timeout, cause))
+            self.logger.error(f"gate {g.goal_id[:8]}: {text}")
+            res = Result(error_code=Result.INVALID_GOAL, error_string=text)
+            handle.abort()
+            self._publish_end(g, out.end_record(g.goal_id, out.CANCEL_UNCONFIRMED, GoalStatus.STATUS_ABORTED, res,
+                                                cancel=out.CANCEL_UNCONFIRMED, cause=cause, elapsed_s=elapsed))
+            return res
+        got = res_fut.result()
+        if cause == out.DOWNSTREAM_SILENT:  # the controller ended it once cancelled: still aborted
+            with self._lock:
+                self.counts["downstream_failures"] += 1
+            text = out.silent_text(self.downstream, self.timeout, True)
+            self.logger.error(f"gate {g.goal_id[:8]}: {text}")
+            res = Result(error_code=Result.INVALID_GOAL, error_string=text)
+            handle.abort()
+            self._publish_end(g, out.end_record(g.goal_id, cause, GoalStatus.STATUS_ABORTED, res,
+                                                cancel=out.CONFIRMED, elapsed_s=elapsed))
+            return res
+        event = out.CANCELLED_ON_SHUTDOWN if cause == out.CANCELLED_ON_SHUTDOWN else out.RESULT
+        if got.status == GoalStatus.STATUS_SUCCEEDED:
             handle.succeed()
-        elif res.status == GoalStatus.STATUS_CANCELED:
-            end_canceled(handle)  # cancelled by the client, or pre-empted by the controller
+        elif got.status == GoalStatus.STATUS_CANCELED:
+            end_canceled(handle)  # cancelled by the client or the gate, or pre-empted by the controller
         else:
             handle.abort()
-        return res.result
+        self._publish_end(g, out.end_record(g.goal_id, event, got.status, got.result,
+                                            cancel=out.CONFIRMED if cause else None, elapsed_s=elapsed))
+        return got.result
+
+    def _done(self, g: _Goal) -> None:
+        with self._lock:
+            self._running.pop(id(g), None)
+            self._active -= 1
+            self._idle.notify_all()
 
     # --- records and status ---------------------------------------------------------------------
-    def _publish_decision(self, g: _Goal) -> None:
-        """The decision's record and log line, off the goal's path: from its execution (the
-        client has its goal response, the controller its goal), or before a REJECT answer; always
-        before the goal's ``event: result`` record. A failing record never fails the goal."""
-        with self._lock:  # once: execution and close() may both get here
+    def _count(self, key: str, line: str, decision: Decision, extra: str | None = None) -> None:
+        with self._lock:
+            self.counts[key] += 1
+            if extra:
+                self.counts[extra] += 1
+            unchecked = key == FORWARDED and self.options.mode == "check" and decision.reason != ""
+            self.counts["forwarded_unchecked"] += unchecked
+            self.last_line, self.last_decision = line, decision
+
+    def _publish_decision(self, g: _Goal, decision: str | None = None, reason: str | None = None) -> None:
+        """The decision's record and log line, off the goal's path and before its end record. A
+        goal the check let through but the controller never got says ``not_forwarded``."""
+        with self._lock:  # once
             record, g.record = g.record, None
         if record is None:
             return
+        if decision is None and g.end is not None and g.decision is not None and g.decision.forwards:
+            decision, reason = NOT_FORWARDED, g.end[0]
         try:
-            record()
-        except Exception:
+            record(decision, reason) if decision else record()
+        except Exception:  # a failing record never fails the goal
             self.logger.error(f"gate {g.goal_id[:8]}: decision record failed:\n{traceback.format_exc()}")
 
-    def _record(self, g: _Goal, names: list[str], goal: Any, inputs: dict) -> None:
+    def _record(self, g: _Goal, names: list[str], inputs: dict, decision: str | None = None,
+                reason: str | None = None) -> None:
         d = g.decision
+        goal = g.goal
         rec = d.to_dict(goal_id=g.goal_id, mode=self.options.mode, joint_names=names)
         if inputs:
             rec.update(goal=goal_dict(*inputs["arrays"]), start=start_dict(inputs["start"]),
-                       retime_all=self.options.retime_all)
-        rec.update(event="decision", downstream=self.downstream, tolerances={
+                       retime_all=self.options.retime_all, max_state_age=self.options.max_state_age)
+            plan = inputs.get("plan")
+            if plan is not None:
+                rec.update(retime_lead_s=plan.lead_s, planned_from=start_dict(plan.planned_from),
+                           rechecked_from=start_dict(plan.rechecked_from))
+        if decision is not None:  # checked, then not forwarded: the check's decision kept apart
+            rec.update(checked_decision=rec["decision"] if inputs else None, checked_reason=rec["reason"],
+                       checked_forwarded=rec["forwarded"], decision=decision, reason=reason or rec["reason"],
+                       forwarded=None)
+        rec.update(event="decision", downstream=self.downstream, failure_label=d.failure_label, tolerances={
             "path": [[t.name, t.position, t.velocity, t.acceleration] for t in goal.path_tolerance],
             "goal": [[t.name, t.position, t.velocity, t.acceleration] for t in goal.goal_tolerance],
             "goal_time_s": goal.goal_time_tolerance.sec + goal.goal_time_tolerance.nanosec * 1e-9})
-        line = f"gate {g.goal_id[:8]}: {d.line}"
-        if d.decision == REJECTED:  # one severity per call site: rclpy's logger insists
-            self.logger.warning(line)
-        else:
+        line = f"gate {g.goal_id[:8]}: " + (d.line if decision is None else f"not forwarded ({reason}); checked: {d.line}")
+        if rec["decision"] in (FORWARDED, RETIMED) and d.reason == "":
             self.logger.info(line)
+        else:  # one severity per call site: rclpy's logger insists
+            self.logger.warning(line)
         self._publish(self.pub, String(data=json.dumps(rec, allow_nan=False)))
 
-    def _record_result(self, g: _Goal, event: str, status: int | None, result: Any) -> None:
-        rec = {"version": 1, "event": event, "goal_id": g.goal_id, "status": status,
-               "error_code": None if result is None else int(result.error_code),
-               "error_string": "" if result is None else result.error_string}
-        self._publish(self.pub, String(data=json.dumps(rec, allow_nan=False)))
+    def _publish_end(self, g: _Goal, rec: dict) -> None:
+        self._publish_decision(g)  # always first
+        try:
+            self._publish(self.pub, String(data=json.dumps(rec, allow_nan=False)))
+        except Exception:
+            self.logger.error(f"gate {g.goal_id[:8]}: end record failed:\n{traceback.format_exc()}")
 
     def status(self) -> Status:
         with self._lock:
             counts, line, last = dict(self.counts), self.last_line, self.last_decision
         values = {"mode": self.options.mode, "controller_action": self.downstream,
                   "forwarded": counts[FORWARDED], "rejected": counts[REJECTED], "retimed": counts[RETIMED],
+                  "not_forwarded": counts[NOT_FORWARDED], "forwarded_unchecked": counts["forwarded_unchecked"],
+                  "gate_busy": counts[out.GATE_BUSY],
+                  "downstream_cancel_unconfirmed": counts[out.CANCEL_UNCONFIRMED],
                   "downstream_failures": counts["downstream_failures"], "last_decision": line}
         if not self.client.server_is_ready():
             values["failure_label"] = STATE_ERROR
             return Status(STATUS_NAME, ERROR, f"downstream action server {self.downstream} not available",
                           values=values)
-        if last == REJECTED:
-            values["failure_label"] = PLANNING_ERROR
+        if last is not None and (line.startswith((REJECTED, NOT_FORWARDED.replace("_", " ")))
+                                 or (line.startswith(FORWARDED) and last.reason != "")):
+            values["failure_label"] = last.failure_label
             return Status(STATUS_NAME, WARN, f"last goal {line}", values=values)
         return Status(STATUS_NAME, OK, line or "no goal yet", values=values)
 
     def close(self) -> None:
-        """Cancel what was forwarded and is still running (waiting up to gate.timeout s for the
-        controller to confirm), then stop. A crash cancels nothing: the client's own timeout applies."""
+        """Refuse new goals, cancel what was forwarded and still runs (each waiting gate.timeout s
+        for the controller's end), then stop. A crash cancels nothing: the client's timeout applies."""
         self._closing = True
         with self._lock:
-            goals = list(self._running_goals.values())
-            unexecuted = list(self._goals.values())
-        for g in unexecuted:  # answered, never executed: their decisions still go in the bag
-            self._publish_decision(g)
-        waits = []
-        deadline = time.monotonic() + self.timeout
-        for g in goals:
-            done = threading.Event()
-            fut = self.down.call(g.down.cancel_goal_async, max(0.1, deadline - time.monotonic()))
-            if fut is not None:
-                fut.add_done_callback(lambda _f, e=done: e.set())
-                waits.append(done)
-        confirmed = sum(done.wait(max(0.0, deadline - time.monotonic())) for done in waits)
-        if goals:
-            self.logger.info(f"gate: shutting down, {len(goals)} forwarded goal(s) cancelled "
-                             f"({confirmed} confirmed by {self.downstream})")
+            running = list(self._running.values())
+        for g in running:
+            self._wake(g)
+        deadline = time.monotonic() + 2 * self.timeout + 1.0
+        with self._lock:
+            self._idle.wait_for(lambda: self._active <= 0, timeout=max(0.0, deadline - time.monotonic()))
+            left = self._active
+        if running or left:
+            self.logger.info(f"gate: shutting down, {len(running)} forwarded goal(s) cancelled"
+                             + (f", {left} goal(s) not ended in time" if left else ""))
+        try:
+            self._jobs.put_nowait(None)
+        except queue.Full:
+            pass  # a daemon thread: it ends with the process
         self._stop.set()
         self._thread.join(timeout=5.0)
         self.server.destroy()
-        self.down.close()
+        self.client.destroy()
         self.executor.shutdown(timeout_sec=2.0)
         self.io.destroy_node()
 
@@ -399,7 +534,26 @@ def attach_gate(node: Any, params: dict[str, Any]) -> Gate | None:
     set in ``params`` (:func:`declare_gate_parameters`); None otherwise."""
     if not params["gate.controller_action"]:
         return None
-    gate = Gate(node, params, node.execution_state, node._publish)
+    gate = Gate(node, params, node.execution_state, node._publish, executed=lambda *a: _executed(node, *a))
     node.recording.add_publisher(gate.pub)
     node.status_providers.append(gate.status)
     return gate
+
+
+def _executed(node: Any, decision: Decision, goal: Any, names: list[str]) -> None:
+    """A goal the controller accepted: its verdict on ~/feasibility (request ``execute``) and the
+    controller tracker following it, as for a trajectory on the joint_trajectory topic."""
+    from dyn_node.core.check.on_demand import REQUEST_EXECUTE
+    from dyn_node.ros.convert import stamp_to_s, verdict_array
+
+    core = node._core
+    if core is None or decision.trajectory is None or list(core.model.joint_names) != names:
+        return
+    header = goal.trajectory.header
+    stamp_s = stamp_to_s(header.stamp)
+    start = stamp_s if stamp_s != 0.0 else node.get_clock().now().nanoseconds * 1e-9
+    with node._io_lock:
+        core.tracker.set_trajectory(decision.trajectory, start)
+    if decision.result is not None:
+        node._publish_verdict(node._pub_feasibility, verdict_array(decision.result.statuses(core.model.name),
+                                                                   header.stamp, header.frame_id, REQUEST_EXECUTE))

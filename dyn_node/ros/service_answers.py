@@ -11,7 +11,6 @@ import math
 from typing import Any, Sequence
 
 import numpy as np
-from builtin_interfaces.msg import Duration
 from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, RetimeTrajectory
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -19,9 +18,8 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from dyn_node.core.check import feasibility, on_demand
 from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.core.robot.settings import Settings
-from dyn_node.core.check.trajectory import Trajectory
 from dyn_node.errors import TrajectoryError
-from dyn_node.ros.convert import status_to_msg, trajectory_arrays
+from dyn_node.ros.convert import status_to_msg, trajectory_arrays, trajectory_message
 
 #: reasons of a response that is not accepted, beyond the TrajectoryError codes (non_finite,
 #: unknown_joints, empty_points, ...)
@@ -51,14 +49,6 @@ def _start_fields(response: Any, joint_names: Sequence[str],
     response.start_state_age = float(start.age_s)
 
 
-def _duration(t: float) -> Duration:
-    sec = math.floor(t)
-    nsec = int(round((t - sec) * 1e9))
-    if nsec >= 1_000_000_000:
-        sec, nsec = sec + 1, nsec - 1_000_000_000
-    return Duration(sec=int(sec), nanosec=nsec)
-
-
 def with_effort(traj: JointTrajectory, effort_model_order: np.ndarray,
                 model_joints: Sequence[str]) -> JointTrajectory:
     """A copy of ``traj`` whose points carry the N×nv model-order efforts in its joint order."""
@@ -69,20 +59,6 @@ def with_effort(traj: JointTrajectory, effort_model_order: np.ndarray,
                                    time_from_start=p.time_from_start)
               for p, row in zip(traj.points, eff)]
     return JointTrajectory(header=traj.header, joint_names=list(traj.joint_names), points=points)
-
-
-def trajectory_msg(traj: Trajectory, joint_names: Sequence[str], header: Any) -> JointTrajectory:
-    """A model-order :class:`Trajectory` as a JointTrajectory (velocities and accelerations when
-    it has them)."""
-    points = []
-    for i, t in enumerate(np.asarray(traj.times, dtype=float)):
-        p = JointTrajectoryPoint(positions=traj.positions[i].tolist(), time_from_start=_duration(t))
-        if traj.velocities is not None:
-            p.velocities = traj.velocities[i].tolist()
-        if traj.accelerations is not None:
-            p.accelerations = traj.accelerations[i].tolist()
-        points.append(p)
-    return JointTrajectory(header=header, joint_names=list(joint_names), points=points)
 
 
 def point_efforts(traj: JointTrajectory) -> list[Sequence[float]]:
@@ -162,7 +138,7 @@ def answer_retime(dynamics: Dynamics, settings: Settings, request: RetimeTraject
     response.reason = ""
     response.feasible = bool(result.feasible)
     if result.trajectory is not None:
-        response.trajectory = trajectory_msg(result.trajectory, model.joint_names,
+        response.trajectory = trajectory_message(result.trajectory, model.joint_names,
                                              request.trajectory.header)
     response.duration_in = float(result.duration_in)
     response.duration_out = float(result.duration_out)

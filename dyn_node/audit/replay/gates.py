@@ -4,9 +4,13 @@ start state the record carries, with the configuration in force) and compared: d
 verdict line, numbers and the trajectory forwarded, identical. A goal was sent to be executed: it
 counts as an executed trajectory (request kind ``gate_goal``, :mod:`dyn_node.audit.accounting`),
 infeasible or rejected when the gate rejected it or forwarded it infeasible (``check`` mode); a
-retimed goal counts as the feasible trajectory it forwarded. The decisions themselves are listed
-apart in the evidence (``outputs.gate``). Retimed decisions are not replayed where
-``dyn_node.retime`` is missing.
+retimed goal counts as the feasible trajectory it forwarded. A goal the controller never got or
+the gate gave up on (``not_forwarded`` decisions; ends such as ``downstream_silent`` or
+``downstream_cancel_unconfirmed``, :data:`dyn_node.gate.outcomes.NOT_EXECUTED_ENDS`) is not an
+executed feasible trajectory: it counts as "no". A ``not_forwarded`` decision is replayed against
+the check's decision it keeps (``checked_decision``). The decisions themselves are listed apart in
+the evidence (``outputs.gate``). Retimed decisions are not replayed where ``dyn_node.retime`` is
+missing.
 """
 from __future__ import annotations
 
@@ -42,10 +46,12 @@ class GateReplay:
     def __init__(self, sink: Any = None, *, tally: RequestTally | None = None):
         self.sink = sink
         self.tally = tally if tally is not None else RequestTally()
-        self.bad = 0  # goals executed infeasible or rejected
+        self.bad = 0  # goals executed infeasible or rejected, or not executed
         self._own: dict[str, Recheck] = {}
+        self._yes: set[str] = set()  # goals counted executed feasible, until an end says otherwise
         self.summary: dict[str, Any] = {"requests": 0, "answered": 0, "forwarded": 0, "rejected": 0,
-                                        "retimed": 0, "not_replayed": 0, "results": {}, "decisions": []}
+                                        "retimed": 0, "not_forwarded": 0, "not_executed": 0, "not_replayed": 0,
+                                        "results": {}, "decisions": []}
 
     def _check(self, topic: str) -> Recheck:
         if self.sink is None:
@@ -64,32 +70,57 @@ class GateReplay:
             check.unmatched += 1
             return
         if rec.get("event") != "decision":
-            key = rec.get("event", "?")
-            self.summary["results"][key] = self.summary["results"].get(key, 0) + 1
+            self._end(rec)
             return
         s = self.summary
         s["requests"] += 1
         ok = executed_feasible(rec)
         self.tally.add(GATE_GOAL, answered_yes=ok)
         self.bad += not ok
+        s["not_executed"] += rec.get("decision") == "not_forwarded"
+        if ok:
+            self._yes.add(rec["goal_id"])
         s[rec["decision"]] = s.get(rec["decision"], 0) + 1
         if len(s["decisions"]) < MAX_LISTED:
             s["decisions"].append({"t_ns": m.log_time_ns, "goal_id": rec["goal_id"], "decision": rec["decision"],
                                    "reason": rec["reason"], "verdict": rec["verdict"]})
-        if "goal" not in rec or (rec["decision"] == "retimed" or rec.get("mode") == "retime") \
+        if "goal" not in rec or rec["decision"] == "not_forwarded" and not rec.get("checked_decision") \
+                or (rec["decision"] == "retimed" or rec.get("mode") == "retime") \
                 and importlib.util.find_spec("dyn_node.retime") is None:
             s["not_replayed"] += 1
             return
         s["answered"] += 1
         self._compare(rec, dynamics, settings, check, {"t_ns": m.log_time_ns, "goal_id": rec["goal_id"]})
 
+    def _end(self, rec: dict) -> None:
+        """An end record: counted by event; a goal counted executed feasible whose end says the
+        controller never ran it (or the gate gave up on it) counts as "no" from now on."""
+        from dyn_node.gate.outcomes import NOT_EXECUTED_ENDS
+
+        key = rec.get("event", "?")
+        self.summary["results"][key] = self.summary["results"].get(key, 0) + 1
+        if key in NOT_EXECUTED_ENDS and rec.get("goal_id") in self._yes:
+            self._yes.discard(rec["goal_id"])
+            self.bad += 1
+            self.tally.no[GATE_GOAL] = self.tally.no.get(GATE_GOAL, 0) + 1
+            self.summary["not_executed"] += 1
+
     def _compare(self, rec: dict, dynamics: Any, settings: Any, check: Recheck, where: dict) -> None:
         # here, not at the top: a bag without gate goals never loads the check's kernels for it
-        from dyn_node.gate.decision import GateOptions, decide_goal, goal_arrays, start_from_dict
+        from dyn_node.gate.decision import GateOptions, RetimePlan, decide_goal, goal_arrays, start_from_dict
 
-        d = decide_goal(dynamics, settings, GateOptions(mode=rec["mode"], retime_all=bool(rec.get("retime_all"))),
-                        *goal_arrays(rec["goal"]), start=start_from_dict(rec["start"]))
+        options = GateOptions(mode=rec["mode"], retime_all=bool(rec.get("retime_all")),
+                              max_state_age=float(rec.get("max_state_age", math.inf)))
+        plan = None
+        if "retime_lead_s" in rec:  # retime mode followed the robot: replayed from the states it used
+            again = start_from_dict(rec.get("rechecked_from"))
+            plan = RetimePlan(float(rec["retime_lead_s"]), lambda: again, options.max_state_age)
+        d = decide_goal(dynamics, settings, options, *goal_arrays(rec["goal"]), start=start_from_dict(rec["start"]),
+                        plan=plan)
         mine = d.to_dict(goal_id=rec["goal_id"], mode=rec["mode"], joint_names=list(dynamics.model.joint_names))
+        if rec["decision"] == "not_forwarded":  # the check's decision is what is replayed
+            rec = {**rec, "decision": rec["checked_decision"], "reason": rec.get("checked_reason"),
+                   "forwarded": rec.get("checked_forwarded")}
         differing = [k for k in ("decision", "reason", "feasible", "verdict", "error_string", "worst_joint",
                                  "worst_constraint", "retime_message") if not _same(rec.get(k), mine.get(k))]
         worst, at = 0.0, None

@@ -636,8 +636,8 @@ def _verdict(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
         else:
             head = "feasible: no limits apply"
         k = scale.k
-        tail = (f"; could run {_fmt_factor(1 / k)}× faster" if 0 < k < 1 else
-                "; no speed-dependent limit binds" if k == 0 else "; no margin left")
+        tail = (f"; could run {_fmt_factor(1 / k)}× faster" if 1e-6 < k < 1 else  # k ≤ 1e-6: a hold
+                "; holds still: no speed-dependent limit binds" if k <= 1e-6 else "; no margin left")
         if scale.start_binds:
             tail += " (the segment from the current state binds)"
         message = head + tail

@@ -128,8 +128,7 @@ class TrajectoryWorker:
         if error is not None:
             statuses = feasibility.rejected_statuses(error, hid, len(times), duration)
         else:
-            options = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
-                                                     effort_warn_ratio=settings.effort_warn_ratio)
+            options = on_demand.options_for(settings)
             try:
                 result = feasibility.check_trajectory(self._worker_dynamics(core), traj, options,
                                                       start=start_state,

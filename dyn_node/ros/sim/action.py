@@ -33,13 +33,13 @@ from control_msgs.msg import JointTrajectoryControllerState
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from dyn_node.core.robot.settings import ParamSpec
 from dyn_node.core.check.trajectory import validate_trajectory
 from dyn_node.errors import DynNodeError
+from dyn_node.ros.actions import end_canceled
 from dyn_node.sim import jtc
 
 #: dyn_sim parameters of the controller face (declared with the others, read at start-up)
@@ -85,14 +85,6 @@ def _point(q: np.ndarray, v: np.ndarray | None = None, effort: np.ndarray | None
     if effort is not None:
         p.effort = effort.tolist()
     return p
-
-
-def end_canceled(handle: Any) -> None:
-    """CANCELED from EXECUTING (the controller's pre-emption): rcl_action allows CANCELED only
-    from CANCELING, so the cancel transition is taken first, as a cancel request would."""
-    if not handle.is_cancel_requested:
-        handle._update_state(_rclpy.GoalEvent.CANCEL_GOAL)
-    handle.canceled()
 
 
 class JtcFace:
