@@ -25,7 +25,7 @@ from dyn_node.core.check.constraints import Violation
 from dyn_node.core.check.kinds import KIND_CLASS
 from dyn_node.core.check.trajectory import Trajectory, from_current_state
 from dyn_node.errors import TrajectoryError
-from dyn_node.retime import timing, topp
+from dyn_node.retime import candidates, timing, topp
 from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
                                   validate_input)
 from dyn_node.retime.result import RetimeResult
@@ -54,8 +54,6 @@ _HALVINGS = 3
 #: the share of the limits a moving start that needs all its braking is retried at: the
 #: limits themselves, less the rounding of the check's own sums
 _FULL = 1 - 1e-9
-#: the uniform fallback's factor over the check's time scale (its feasible side)
-_UNIFORM_PAD = 1.001
 
 
 @dataclass
@@ -87,6 +85,9 @@ class _Search:
     prev_cap: np.ndarray | None = None
     #: the violations the last round adjusted for, for the report
     last: str = ""
+    #: the best candidate's duration so far (the stretch's): a round whose law alone lasts
+    #: longer cannot win, and the search stops there
+    best: float = math.inf
 
 
 def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = None,
@@ -136,15 +137,18 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     parts = _search_paths(dynamics, search, grid_points)
     lower = _bound(dynamics, search, parts, grid_points, v0)
     notes: list[str] = []
+    # the stretch first: the search is cut as soon as it cannot beat it (bounded wall time)
+    uniform = None
+    if math.isfinite(k):
+        uniform = candidates.stretch(dynamics, path, traj, k, feasibility, start, point_period,
+                                     moving_start,
+                                     lambda *a: _dense(*a[:4], path_tolerance))
+    best = uniform["trajectory"].duration if uniform is not None else math.inf
     found = _by_pieces(dynamics, parts, feasibility, path_tolerance, point_period,
                        limit_margin, max_rounds, start=start if moving_start else None,
-                       notes=notes)
-    uniform = None
-    # the stretch lasts ≥ uniform_T × 1.001: only worth building when the search lost to it
-    beaten = found is not None and found["trajectory"].duration <= uniform_T * _UNIFORM_PAD
-    if ((uniform_fallback and not beaten) or found is None) and math.isfinite(k):
-        uniform = _uniform(dynamics, path, traj, k, feasibility, start, point_period,
-                           moving_start, path_tolerance)
+                       notes=notes, best=best if uniform_fallback else math.inf)
+    if not uniform_fallback and found is not None:
+        uniform = None
     pick = min((c for c in (found, uniform) if c is not None),
                key=lambda c: c["trajectory"].duration, default=None)
     why = f" (optimal search: {'; '.join(notes)})" if notes and found is None else ""
@@ -157,12 +161,22 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     out = pick["trajectory"]
     frm = " from the moving start state" if moving_start else ""
     msg = (f"retimed ({pick['method']}{frm}): {duration_in:.4g} s → {out.duration:.4g} s, "
-           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s{why}; re-check: "
-           f"{pick['check'].message}")
+           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s; {_won(found, uniform)}{why}; "
+           f"re-check: {pick['check'].message}")
     return RetimeResult(True, out, duration_out=out.duration, lower_bound=lower, message=msg,
                         check=pick["check"], method=pick["method"],
                         rounds=pick.get("rounds", 0), smoothing_s=pick.get("w", 0.0),
                         path_deviation=pick["deviation"], **base)
+
+
+def _won(found: dict | None, uniform: dict | None) -> str:
+    """Which candidate won and by how much (the note of docs/retime.md)."""
+    if found is None or uniform is None:
+        return f"only the {'optimal search' if uniform is None else 'stretch'} passed"
+    a, b = found["trajectory"].duration, uniform["trajectory"].duration
+    if a <= b:
+        return f"optimal search {100 * (1 - a / b):.1f} % shorter than the stretch"
+    return f"the stretch {100 * (1 - b / a):.1f} % shorter than the optimal search"
 
 
 def _none(first: FeasibilityResult, base: dict, lower: float = math.nan,
@@ -236,6 +250,10 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             if x is None:
                 return None
             lw = timing.law(sr.grid, x, sr.sd0)
+            if lw.duration + sr.w + 2 * sr.period > sr.best:
+                sr.notes.append(f"cut after {rnd} round(s): {lw.duration + sr.w:.4g} s cannot "
+                                f"beat {sr.best:.4g} s")
+                return None
             pts = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)
             # halfway between the rows' share and the limit: over the share by rounding is
             # no reason to slow down, and near the limit the quintic between points may cross
@@ -255,16 +273,16 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         # answer costs more than the payload margin of a round that fails)
         opts = sr.options if rnd <= _FULL_ROUNDS else plain
         try:
-            res = check_trajectory(sr.dynamics, out, opts, start=sr.start)
+            res, over = candidates.judge(sr.dynamics, out, opts, sr.start)
         except TrajectoryError as err:   # slowed beyond what the check takes: give up
             sr.notes.append(str(err))
             return None
-        if res.feasible:
+        if res.feasible and not over:
             full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options,
                                                                    start=sr.start)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
                         w=sr.w + 2 * sr.period, deviation=dev)
-        if not _adjust(sr, res.violations, lw, x):
+        if not _adjust(sr, over, lw, x):
             return None
     return None
 
@@ -411,7 +429,8 @@ def _lower_bound(dynamics: Dynamics, path: Path, grid_points: int, sd0: float = 
 
 def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptions,
                tolerance: float, period: float, margin: float, max_rounds: int, *,
-               start: StartState | None = None, notes: list[str] | None = None) -> dict | None:
+               start: StartState | None = None, notes: list[str] | None = None,
+               best: float = math.inf) -> dict | None:
     """The optimal search on each of :func:`_search_paths`' pieces, the pieces joined at rest
     and the whole checked again; ``start``: a moving robot's state, where the first piece
     starts (its velocity along it: ṡ₀)."""
@@ -423,9 +442,10 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
         # check still decides) when their share leaves its ṡ₀ no timing
         for share in (margin, _FULL) if sd0 > 0 and margin < _FULL else (margin,):
             rows = topp.joint_rows(dynamics, p, grid, scale=share, terms=terms)
+            spent = sum(f["trajectory"].duration for f in found)
             sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
                          np.full(len(grid), np.inf), 0.0, share, sd0=sd0, start=first,
-                         notes=notes)
+                         notes=notes, best=best - spent)
             one = _optimal(sr, max_rounds)
             if one is not None or not sr.refused:
                 break
@@ -440,8 +460,10 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
     if len(found) == 1:
         return found[0]
     out = _join([f["trajectory"] for f in found])
-    res = check_trajectory(dynamics, out, options, start=start)
-    if not res.feasible:
+    res, over = candidates.judge(dynamics, out, options, start)
+    if not res.feasible or over:
+        notes.append("the pieces joined fail: " + (candidates.describe(over) if over
+                                                   else res.message))
         return None
     return dict(trajectory=out, check=res, method="optimal",
                 rounds=sum(f["rounds"] for f in found), w=max(f["w"] for f in found),
@@ -543,31 +565,6 @@ def _dense(path: Path, lw: timing.Law, w: float, period: float, tolerance: float
             return out, dev
         period /= 2
     return None, math.nan
-
-
-def _uniform(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
-             options: FeasibilityOptions, start: StartState | None, period: float,
-             moving_start: bool, tolerance: float) -> dict | None:
-    """The input stretched by the check's time scale (× 1.001, then 1.01 when the resampled
-    points miss by rounding), checked; with a moving start state the input's own points
-    stretched (the controller interpolates the segment from that state)."""
-    from dyn_node.core.check.start_segment import stretched
-
-    k = max(k, 1e-9) if k > 0 else 1.0
-    for pad in (_UNIFORM_PAD, 1.01):
-        kk = k * pad
-        if moving_start:
-            out, dev = stretched(traj, kk), 0.0
-        else:
-            grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], 2)
-            lw = timing.law(grid, np.full(2, 1.0 / kk**2))
-            out, dev = _dense(path, lw, 0.0, period, tolerance)
-            if out is None:
-                return None
-        res = check_trajectory(dynamics, out, options, start=start)
-        if res.feasible:
-            return dict(trajectory=out, check=res, method="uniform", deviation=dev)
-    return None
 
 
 def _still(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
