@@ -26,6 +26,8 @@ from dyn_node.retime.path import Path
 FRACTIONS = np.array([0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875])
 #: how far over a limit an interior sample may be (the sums' rounding), relative
 SLACK = 1e-6
+#: the unit field of the screen's violations (they are ratios, found between points)
+BETWEEN = "between points"
 #: the stretch's factors over the check's time scale, tried in turn (docs/retime.md: every
 #: answer ≤ 1.005 × the time scale × the input's duration)
 STRETCH_PADS = (1.001, 1.005)
@@ -59,6 +61,12 @@ def inside(dynamics: Dynamics, out: Trajectory, share: float = 1.0) -> list[Viol
         found += _worst(kind, value, limit, t, lim.names, share)
     if np.any(np.isfinite(lim.effort)) or np.any(np.isfinite(lim.effort_rate)):
         tau = dynamics.rnea_batch(Q, V, A)
+        if dynamics.model.task_limits.task_wrench is not None:
+            from dyn_node.core.check import task_motion
+
+            task = task_motion.build(dynamics, Q, V, A)
+            if task is not None and task.task_torque is not None:
+                tau = tau + task.task_torque   # a task wrench's torque: the check's effort has it
         found += _worst("effort", tau, lim.effort, t, lim.names, share)
         per = tau.reshape(len(dt), len(f), -1)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -80,7 +88,7 @@ def _worst(kind: str, value: np.ndarray, limit: np.ndarray, t: np.ndarray, names
         n = int(np.argmax(ratio[:, j]))
         out.append(Violation(joint=names[j], kind=kind, first_time_s=float(t[n]),
                              peak_time_s=float(t[n]), peak_value=float(ratio[n, j] * limit[j]),
-                             limit=float(limit[j]), duration_s=0.0, unit=""))
+                             limit=float(limit[j]), duration_s=0.0, unit=BETWEEN))
     return out
 
 

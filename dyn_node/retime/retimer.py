@@ -32,6 +32,8 @@ from dyn_node.retime.result import RetimeResult
 
 #: third-order kinds: their violations widen the smoothing window first
 _RAMP_KINDS = ("jerk", "effort_rate")
+#: halvings of the output period at most for overshoots between points (:func:`_finer`)
+_FINER = 2
 #: the least half-width (grid cells) of a local cap
 _CAP_CELLS = 8
 #: rounds checked with the caller's options in full (payload margin too)
@@ -88,6 +90,14 @@ class _Search:
     #: the best candidate's duration so far (the stretch's): a round whose law alone lasts
     #: longer cannot win, and the search stops there
     best: float = math.inf
+    #: halvings of the output period for overshoots between points (:func:`_finer`)
+    finer: int = 0
+    #: the second smoothing window (timing.smoothed): two output periods, kept when only
+    #: :func:`_finer` halves the period (a narrower one would steepen the corners it rounds)
+    w2: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.w2 = self.w2 or 2 * self.period
 
 
 def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = None,
@@ -250,11 +260,11 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             if x is None:
                 return None
             lw = timing.law(sr.grid, x, sr.sd0)
-            if lw.duration + sr.w + 2 * sr.period > sr.best:
+            if lw.duration + sr.w + sr.w2 > sr.best:
                 sr.notes.append(f"cut after {rnd} round(s): {lw.duration + sr.w:.4g} s cannot "
                                 f"beat {sr.best:.4g} s")
                 return None
-            pts = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)
+            pts = timing.points(sr.path, lw, sr.w, sr.period, sr.w2)
             # halfway between the rows' share and the limit: over the share by rounding is
             # no reason to slow down, and near the limit the quintic between points may cross
             share = (1.0 + sr.margin) / 2
@@ -266,7 +276,7 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             screens += 1
             if not _adjust(sr, hits, lw, x):
                 return None
-        out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, 2 * sr.period, pts)
+        out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, sr.w2, pts)
         if out is None:
             return None
         # the first rounds, which usually pass, check in full at once (a second check of the
@@ -281,10 +291,23 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options,
                                                                    start=sr.start)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
-                        w=sr.w + 2 * sr.period, deviation=dev)
+                        w=sr.w + sr.w2, deviation=dev)
+        if res.feasible and _finer(sr, over):
+            continue
         if not _adjust(sr, over, lw, x):
             return None
     return None
+
+
+def _finer(sr: _Search, over: Sequence[Violation]) -> bool:
+    """Points twice as dense (at most :data:`_FINER` times) when the check passed and only the
+    screen between points found a little over (the quintic between points rounds the law's
+    corners: its error shrinks with the period, a cap would cost time)."""
+    worst = max(abs(v.peak_value) / v.limit for v in over)
+    if worst > 1.05 or sr.finer >= _FINER:
+        return False
+    sr.finer, sr.period = sr.finer + 1, sr.period / 2
+    return True
 
 
 def _solved(sr: _Search, memo: dict) -> np.ndarray | None:
@@ -328,6 +351,7 @@ def _denser(sr: _Search, *, undo: bool = True) -> bool:
             return False
         sr.cap = sr.prev_cap
     sr.halved, sr.period = sr.halved + 1, sr.period / 2
+    sr.w2 = 2 * sr.period
     return True
 
 
@@ -337,14 +361,14 @@ def _lead_room(sr: _Search, reach: topp.Reach) -> float:
     K = reach.controllable(0.0)
     bad = np.flatnonzero(~(K[:, 1] >= sr.sd0**2))
     s_max = sr.grid[max(bad[0] - 1, 0)] if bad.size else float(sr.path.pp.breaks[-1])
-    return max(0.0, 2 * (s_max - float(sr.path.pp.breaks[0])) / sr.sd0 - 2 * sr.period)
+    return max(0.0, 2 * (s_max - float(sr.path.pp.breaks[0])) / sr.sd0 - sr.w2)
 
 
 def _lead_start(sr: _Search) -> float:
     """Where TOPP-RA starts from a moving state: ṡ₀ × half the two windows ahead of the
     path's start. The law runs at ṡ₀ before it (timing.Law.lead), so the windows' average
     is at the path's start at t = 0 with exactly ṡ₀ and s̈ = 0: the robot's state."""
-    return float(sr.path.pp.breaks[0] + sr.sd0 * (sr.w + 2 * sr.period) / 2)
+    return float(sr.path.pp.breaks[0] + sr.sd0 * (sr.w + sr.w2) / 2)
 
 
 def _regrid(sr: _Search) -> bool:
@@ -512,7 +536,10 @@ def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
             widen = max(widen, ratio * 1.02)
             continue
         order = max(1, KIND_CLASS[v.kind].order if v.kind in KIND_CLASS else 2)
-        factor = min(0.98, ratio ** (-2.0 / order) * 0.98)
+        # a small overshoot between points (candidates.inside) needs a small cap: the law's
+        # own excess over the rows between grid points, not a limit the law broke
+        pad = 0.995 if v.unit == candidates.BETWEEN else 0.98
+        factor = min(pad, ratio ** (-2.0 / order) * pad)
         t0 = v.first_time_s - sr.w
         t1 = max(v.peak_time_s, v.first_time_s + v.duration_s) + sr.w
         s0, s1 = (float(timing.smoothed(lw, sr.w, np.array([tt]))[0][0]) for tt in (t0, t1))
