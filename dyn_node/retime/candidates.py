@@ -111,7 +111,7 @@ def describe(found: list[Violation]) -> str:
 
 def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
             options: FeasibilityOptions, start, period: float, moving_start: bool,
-            dense) -> dict | None:
+            dense, tolerance: float) -> dict | None:
     """The input stretched by the check's time scale × :data:`STRETCH_PADS`: resampled as
     quintic points on the path (s = t/k; positions, velocities, accelerations), else, when the
     path's acceleration jumps at a knot (cubic points) so that no quintic follows it, the
@@ -120,13 +120,19 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
     from dyn_node.core.check.start_segment import stretched
 
     k = max(k, 1e-9) if k > 0 else 1.0
-    tries = [(pad, False) for pad in STRETCH_PADS] if not moving_start else []
+    tries = [(pad, "path") for pad in STRETCH_PADS] if not moving_start else []
+    if traj.velocities is not None and traj.accelerations is None and not moving_start:
+        tries += [(pad, "averaged") for pad in STRETCH_PADS]
     if traj.velocities is not None:
-        tries += [(pad, True) for pad in STRETCH_PADS]
-    for pad, own in tries:
+        tries += [(pad, "own") for pad in STRETCH_PADS]
+    for pad, how in tries:
         kk = k * pad
-        if own:
+        if how == "own":
             out, dev = stretched(traj, kk), 0.0
+        elif how == "averaged":
+            out, dev = averaged(dynamics, stretched(traj, kk), period, tolerance)
+            if out is None:
+                continue
         else:
             grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], 2)
             lw = timing.law(grid, np.full(2, 1.0 / kk**2))
@@ -146,3 +152,75 @@ def plain(options: FeasibilityOptions) -> FeasibilityOptions:
     """``options`` without the payload margin (it does not decide feasibility)."""
     return replace(options, compute_payload_margin=False)
 
+
+
+def knot_window(dynamics: Dynamics, q: np.ndarray, v: np.ndarray, a_lo: np.ndarray,
+                a_hi: np.ndarray, period: float) -> float:
+    """The window that ramps each jump of q̈ (a_lo → a_hi at states q, v; rows) within 90 % of
+    the jerk and effort-rate limits; at least two output periods."""
+    lim = dynamics.model.limits
+    W = 2 * period
+    if not len(q):
+        return W
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if np.any(np.isfinite(lim.jerk)):
+            r = np.where(np.isfinite(lim.jerk), np.abs(a_hi - a_lo) / (0.9 * lim.jerk), 0)
+            W = max(W, float(np.nanmax(r)))
+        if np.any(np.isfinite(lim.effort_rate)):
+            dtau = np.abs(dynamics.rnea_batch(q, v, a_hi) - dynamics.rnea_batch(q, v, a_lo))
+            r = np.where(np.isfinite(lim.effort_rate), dtau / (0.9 * lim.effort_rate), 0)
+            W = max(W, float(np.nanmax(r)))
+    return W
+
+
+def averaged(dynamics: Dynamics, traj: Trajectory, period: float, tolerance: float,
+             W: float | None = None) -> tuple[Trajectory | None, float]:
+    """``traj`` (cubic points, already stretched) averaged over a moving window W in joint space,
+    as quintic points every ≤ ``period``: q̄(t) = (1/W)∫_{t−W}^{t} q, held at its ends, so the
+    motion starts and ends at rest and lasts W longer. Its velocity and acceleration are
+    averages of the input's (within the same limits), and each jump of q̈ at a knot (the cubic
+    is C¹ only: no quintic follows it) becomes a ramp of length W, W sized so that the jumps
+    stay within 90 % of the jerk and effort-rate limits. (None, dev) when q̄ strays more than
+    ``tolerance`` from the input's curve (measured at the window's centre)."""
+    pp = interpolate(traj, traj.jtc_interpolation)
+    b, c = pp.breaks, pp.coeffs
+    if W is None:
+        knots = b[1:-1]
+        a_lo = pp.evaluate(np.maximum(knots - 1e-12 * (1 + abs(b[-1])), b[0]), orders=3)[2]
+        q, v, a_hi = pp.evaluate(knots, orders=3)
+        W = knot_window(dynamics, q, v, a_lo, a_hi, period)
+    # the antiderivative F of q, piece by piece (local coefficients c_k/(k+1), constants summed)
+    deg = c.shape[1]
+    C = np.zeros((c.shape[0], deg + 1, c.shape[2]))
+    C[:, 1:, :] = c / np.arange(1, deg + 1)[None, :, None]
+    h = np.diff(b)
+    ends = np.einsum("sk,skj->sj", h[:, None] ** np.arange(deg + 1)[None, :], C)
+    C[1:, 0, :] = np.cumsum(ends, axis=0)[:-1]
+    q0, q1, F1 = traj.positions[0], traj.positions[-1], np.sum(ends, axis=0)
+
+    def F(t):
+        seg = np.clip(np.searchsorted(b, t, side="right") - 1, 0, len(h) - 1)
+        r = np.clip(t - b[seg], 0.0, h[seg])[:, None]
+        val = np.einsum("mk,mkj->mj", r ** np.arange(deg + 1)[None, :], C[seg])
+        before, after = t < b[0], t > b[-1]
+        val[before] = (q0 * (t[before] - b[0])[:, None])
+        val[after] = F1 + q1 * (t[after] - b[-1])[:, None]
+        return val
+
+    def Q(t, order):
+        out = pp.evaluate(t, orders=order + 1)[order]
+        if order == 0:
+            out[t < b[0]], out[t > b[-1]] = q0, q1
+        return out
+
+    total = b[-1] - b[0] + W
+    n = max(2, int(np.ceil(total / period)) + 1)
+    t = b[0] + np.linspace(0.0, total, n)
+    P = (F(t) - F(t - W)) / W
+    V = (Q(t, 0) - Q(t - W, 0)) / W
+    A = (Q(t, 1) - Q(t - W, 1)) / W
+    mid = np.linspace(b[0], b[-1] + W, 4 * n)
+    dev = float(np.max(np.abs((F(mid) - F(mid - W)) / W - Q(mid - W / 2, 0))))
+    if dev > tolerance:
+        return None, dev
+    return Trajectory(times=t - b[0], positions=P, velocities=V, accelerations=A), dev

@@ -179,6 +179,10 @@ class ArcPath:
         q2 = (d2 - t * np.sum(t * d2, axis=1, keepdims=True)) / n**2
         return q, t, q2
 
+    def arc_of(self, s: np.ndarray) -> np.ndarray:
+        """ℓ at the base path's s (from the table: linear between its points)."""
+        return np.interp(s, self._s, self._l)
+
     def positions(self, ell: np.ndarray) -> np.ndarray:
         ell = np.clip(np.atleast_1d(np.asarray(ell, dtype=float)), 0.0, self._l[-1])
         return self.base.positions(self._s_of(ell))

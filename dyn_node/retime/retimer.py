@@ -152,7 +152,8 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     if math.isfinite(k):
         uniform = candidates.stretch(dynamics, path, traj, k, feasibility, start, point_period,
                                      moving_start,
-                                     lambda *a: _dense(*a[:4], path_tolerance))
+                                     lambda *a: _dense(*a[:4], path_tolerance),
+                                     path_tolerance)
     best = uniform["trajectory"].duration if uniform is not None else math.inf
     found = _by_pieces(dynamics, parts, feasibility, path_tolerance, point_period,
                        limit_margin, max_rounds, start=start if moving_start else None,
@@ -279,6 +280,9 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, sr.w2, pts)
         if out is None:
             return None
+        out, dev = _knots_averaged(sr, x, out, dev)
+        if out is None:
+            return None
         # the first rounds, which usually pass, check in full at once (a second check of the
         # answer costs more than the payload margin of a round that fails)
         opts = sr.options if rnd <= _FULL_ROUNDS else plain
@@ -297,6 +301,31 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         if not _adjust(sr, over, lw, x):
             return None
     return None
+
+
+def _knots_averaged(sr: _Search, x: np.ndarray, out: Trajectory, dev: float
+                    ) -> tuple[Trajectory | None, float]:
+    """On a path whose q'' jumps at its knots (cubic points: C¹ only) the output's q̈ jumps
+    there by Δq''·ṡ², which no smoothing of the law spreads: the output averaged in joint space
+    over the window that ramps those jumps within the jerk and effort-rate limits
+    (candidates.averaged); unchanged elsewhere."""
+    p = sr.path
+    base = p.base if isinstance(p, ArcPath) else p
+    if (sr.sd0 > 0 or base.untimed or base.nominal.natural_interpolation != "cubic"
+            or len(base.pp.breaks) < 3):
+        return out, dev
+    knots = base.pp.breaks[1:-1]
+    if isinstance(p, ArcPath):
+        knots = p.arc_of(knots)
+    eps = 1e-9 * max(1.0, float(p.pp.breaks[-1]))
+    q, d1, d2 = p.derivatives(knots)
+    lo = p.derivatives(knots - eps)[2]
+    xk = np.interp(knots, sr.grid, x)
+    sd = np.sqrt(np.maximum(xk, 0.0))[:, None]
+    W = candidates.knot_window(sr.dynamics, q, d1 * sd, lo * xk[:, None], d2 * xk[:, None],
+                               sr.period)
+    avg, more = candidates.averaged(sr.dynamics, out, sr.period, sr.tolerance - dev, W)
+    return avg, dev + more
 
 
 def _finer(sr: _Search, over: Sequence[Violation]) -> bool:
