@@ -44,17 +44,23 @@ def waypoint_path(dyn, rng, n: int, segment_s: float | None = None):
     """``n`` waypoints in 15–85 % of each joint's range, gravity under 80 % of the effort limit
     at each, timed 1.2× the slowest joint's velocity-limited step (or ``segment_s`` a step),
     Catmull-Rom velocities."""
+    from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+
     lim = dyn.model.limits
     lo, hi = lim.position_lower, lim.position_upper
     while True:
         P = lo + (hi - lo) * (0.15 + 0.7 * rng.random((n, dyn.model.nv)))
-        if np.all(np.abs(dyn.gravity_batch(P)) < 0.8 * lim.effort):
-            break
-    if segment_s is None:
-        steps = np.max(np.abs(np.diff(P, axis=0)) / lim.velocity, axis=1) * 1.2
-    else:
-        steps = np.full(n - 1, segment_s)
-    return catmull_rom(np.concatenate(([0.0], np.cumsum(steps))), P)
+        if not np.all(np.abs(dyn.gravity_batch(P)) < 0.8 * lim.effort):
+            continue
+        if segment_s is None:
+            steps = np.max(np.abs(np.diff(P, axis=0)) / lim.velocity, axis=1) * 1.2
+        else:
+            steps = np.full(n - 1, segment_s)
+        tr = catmull_rom(np.concatenate(([0.0], np.cumsum(steps))), P)
+        # a curve some slowdown makes feasible (its cubic may overshoot a position limit)
+        k = check_trajectory(dyn, tr, FeasibilityOptions(compute_payload_margin=False)).time_scale
+        if np.isfinite(k):
+            return tr
 
 
 def verify(dyn, out) -> dict[str, float]:
