@@ -23,7 +23,7 @@ from dyn_node.retime import timing
 from dyn_node.retime.path import Path
 
 #: interior fractions of each segment the screen evaluates (its ends are the check's points)
-FRACTIONS = np.array([0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875])
+FRACTIONS = np.array([0.2, 0.4, 0.6, 0.8])
 #: how far over a limit an interior sample may be (the sums' rounding), relative
 SLACK = 1e-6
 #: the unit field of the screen's violations (they are ratios, found between points)
@@ -120,12 +120,15 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
     from dyn_node.core.check.start_segment import stretched
 
     k = max(k, 1e-9) if k > 0 else 1.0
-    tries = [(pad, "path") for pad in STRETCH_PADS] if not moving_start else []
-    if traj.velocities is not None and traj.accelerations is None and not moving_start:
-        tries += [(pad, "averaged") for pad in STRETCH_PADS]
-    if traj.velocities is not None:
-        tries += [(pad, "own") for pad in STRETCH_PADS]
+    cubic = traj.velocities is not None and traj.accelerations is None
+    # a cubic's q̈ jumps at its knots: averaged first (a quintic that follows the path does not)
+    hows = ([] if moving_start else ["averaged", "path"] if cubic else ["path"])
+    hows += ["own"] if traj.velocities is not None else []
+    tries = [(pad, how) for how in hows for pad in STRETCH_PADS]
+    needs: dict[str, float] = {}
     for pad, how in tries:
+        if needs.get(how, 0.0) > pad:
+            continue         # the smaller pad's candidate needs more than this pad gives
         kk = k * pad
         if how == "own":
             out, dev = stretched(traj, kk), 0.0
@@ -145,6 +148,7 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
             continue
         if res.feasible and not over:
             return dict(trajectory=out, check=res, method="uniform", deviation=dev)
+        needs[how] = pad * (res.time_scale if not res.feasible else 1.0 + SLACK)
     return None
 
 

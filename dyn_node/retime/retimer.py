@@ -147,19 +147,21 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     parts = _search_paths(dynamics, search, grid_points)
     lower = _bound(dynamics, search, parts, grid_points, v0)
     notes: list[str] = []
-    # the stretch first: the search is cut as soon as it cannot beat it (bounded wall time)
+    # the stretch lasts k·T_in × (1.001 … 1.005) (candidates.STRETCH_PADS): the search is cut
+    # as soon as it cannot beat that, and the stretch is built only when the search lost to it
+    # or failed (bounded wall time)
+    best = uniform_T * candidates.STRETCH_PADS[-1] if uniform_fallback else math.inf
+    found = _by_pieces(dynamics, parts, feasibility, path_tolerance, point_period,
+                       limit_margin, max_rounds, start=start if moving_start else None,
+                       notes=notes, best=best if math.isfinite(best) else math.inf)
     uniform = None
-    if math.isfinite(k):
+    beaten = found is not None and (found["trajectory"].duration
+                                    <= uniform_T * candidates.STRETCH_PADS[0])
+    if math.isfinite(k) and (found is None or (uniform_fallback and not beaten)):
         uniform = candidates.stretch(dynamics, path, traj, k, feasibility, start, point_period,
                                      moving_start,
                                      lambda *a: _dense(*a[:4], path_tolerance),
                                      path_tolerance)
-    best = uniform["trajectory"].duration if uniform is not None else math.inf
-    found = _by_pieces(dynamics, parts, feasibility, path_tolerance, point_period,
-                       limit_margin, max_rounds, start=start if moving_start else None,
-                       notes=notes, best=best if uniform_fallback else math.inf)
-    if not uniform_fallback and found is not None:
-        uniform = None
     pick = min((c for c in (found, uniform) if c is not None),
                key=lambda c: c["trajectory"].duration, default=None)
     why = f" (optimal search: {'; '.join(notes)})" if notes and found is None else ""
@@ -172,7 +174,7 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     out = pick["trajectory"]
     frm = " from the moving start state" if moving_start else ""
     msg = (f"retimed ({pick['method']}{frm}): {duration_in:.4g} s → {out.duration:.4g} s, "
-           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s; {_won(found, uniform)}{why}; "
+           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s; {_won(found, uniform, uniform_T)}{why}; "
            f"re-check: {pick['check'].message}")
     return RetimeResult(True, out, duration_out=out.duration, lower_bound=lower, message=msg,
                         check=pick["check"], method=pick["method"],
@@ -180,8 +182,12 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
                         path_deviation=pick["deviation"], **base)
 
 
-def _won(found: dict | None, uniform: dict | None) -> str:
+def _won(found: dict | None, uniform: dict | None, uniform_T: float) -> str:
     """Which candidate won and by how much (the note of docs/retime.md)."""
+    if found is not None and uniform is None and math.isfinite(uniform_T):
+        a = found["trajectory"].duration
+        return (f"optimal search {100 * (1 - a / uniform_T):.1f} % shorter than the stretch "
+                "(not built: it lasts at least the uniform time)")
     if found is None or uniform is None:
         return f"only the {'optimal search' if uniform is None else 'stretch'} passed"
     a, b = found["trajectory"].duration, uniform["trajectory"].duration
