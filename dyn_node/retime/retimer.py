@@ -287,8 +287,8 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         if out is None:
             return None
         out, dev = _knots_averaged(sr, x, out, dev)
-        if out is None:
-            return None
+        if out is None:        # ṡ² capped at the knots: the next round solves again
+            continue
         # the first rounds, which usually pass, check in full at once (a second check of the
         # answer costs more than the payload margin of a round that fails)
         opts = sr.options if rnd <= _FULL_ROUNDS else plain
@@ -314,24 +314,37 @@ def _knots_averaged(sr: _Search, x: np.ndarray, out: Trajectory, dev: float
     """On a path whose q'' jumps at its knots (cubic points: C¹ only) the output's q̈ jumps
     there by Δq''·ṡ², which no smoothing of the law spreads: the output averaged in joint space
     over the window that ramps those jumps within the jerk and effort-rate limits
-    (candidates.averaged); unchanged elsewhere."""
+    (candidates.averaged); unchanged elsewhere. (None, dev) when that strays beyond the path
+    tolerance: ṡ² is then capped at the knots for the next round."""
     p = sr.path
     base = p.base if isinstance(p, ArcPath) else p
     if (sr.sd0 > 0 or base.untimed or base.nominal.natural_interpolation != "cubic"
             or len(base.pp.breaks) < 3):
         return out, dev
-    knots = base.pp.breaks[1:-1]
+    sk = base.pp.breaks[1:-1]
+    eps = 1e-9 * max(1.0, float(base.pp.breaks[-1]))
+    q, d1, d2 = base.derivatives(sk)
+    jump = d2 - base.derivatives(sk - eps)[2]
+    at = sk
     if isinstance(p, ArcPath):
-        knots = p.arc_of(knots)
-    eps = 1e-9 * max(1.0, float(p.pp.breaks[-1]))
-    q, d1, d2 = p.derivatives(knots)
-    lo = p.derivatives(knots - eps)[2]
-    xk = np.interp(knots, sr.grid, x)
-    sd = np.sqrt(np.maximum(xk, 0.0))[:, None]
-    W = candidates.knot_window(sr.dynamics, q, d1 * sd, lo * xk[:, None], d2 * xk[:, None],
-                               sr.period)
+        # by arc length only the part of q'' across the path jumps: (q'' − t(t·q''))/|q'|²
+        n = np.linalg.norm(d1, axis=1, keepdims=True)
+        d1 = d1 / n
+        jump = (jump - d1 * np.sum(d1 * jump, axis=1, keepdims=True)) / n**2
+        at = p.arc_of(sk)
+    xk = np.interp(at, sr.grid, x)
+    W = candidates.knot_window(sr.dynamics, q, d1 * np.sqrt(np.maximum(xk, 0.0))[:, None],
+                               np.zeros_like(jump), jump * xk[:, None], sr.period)
     avg, more = candidates.averaged(sr.dynamics, out, sr.period, sr.tolerance - dev, W)
-    return avg, dev + more
+    if avg is not None:
+        return avg, dev + more
+    # beyond the path tolerance: the window's deviation goes as the jumps cubed (W ∝ Δq̈,
+    # deviation ∝ Δq̈·W²), and the jumps as ṡ²: ṡ² capped around the knots to fit
+    factor = 0.9 * max((sr.tolerance - dev) / more, 0.0) ** (1 / 3)
+    for i in np.searchsorted(sr.grid, at):
+        lo, hi = max(0, i - _CAP_CELLS), min(len(x), i + _CAP_CELLS + 1)
+        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
+    return None, dev
 
 
 def _finer(sr: _Search, over: Sequence[Violation]) -> bool:
