@@ -6,7 +6,8 @@ every segment, Pinocchio's rnea).
   step 1.2× the slowest joint's velocity-limited time; libfranka's acceleration and jerk
   limits, effort at 40 % of the URDF's, effort rate 1,000 N·m/s (seeds 100 + i).
 - hard: a waypoint passed at 0.3× and at 1e-3× the Catmull-Rom speed (seeds 200 + i), a
-  250-waypoint path, tiny moves of 1e-6 and 1e-9 rad, and untimed waypoints that turn back.
+  250-waypoint path (a walk of steps up to 0.3 rad; both in the middle 40 % of each range,
+  where the cubic stays inside the limits), tiny moves of 1e-6 and 1e-9 rad, and untimed waypoints that turn back.
 
     python -m benchmarks.retime_panels --paths 10
 """
@@ -36,12 +37,13 @@ def hard_panel(dyn, n: int) -> list[tuple[str, object]]:
     out = []
     for i in range(max(1, n // 4)):
         for share in (0.3, 1e-3):
-            tr = waypoint_path(dyn, np.random.default_rng(200 + i), 6)
+            tr = waypoint_path(dyn, np.random.default_rng(200 + i), 6, spread=0.4)
             v = tr.velocities.copy()
             v[3] *= share
             out.append((f"near stop {share:g}× seed {200 + i}",
                         Trajectory(times=tr.times, positions=tr.positions, velocities=v)))
-    out.append(("250 waypoints seed 300", waypoint_path(dyn, np.random.default_rng(300), 250)))
+    out.append(("250 waypoints seed 300", waypoint_path(dyn, np.random.default_rng(300), 250,
+                                                        spread=0.4, step=0.3)))
     q = np.array([0.0, -0.5, 0.0, -2.0, 0.0, 1.6, 0.8])
     z = np.zeros((2, 7))
     for step in (1e-6, 1e-9):

@@ -40,18 +40,16 @@ def catmull_rom(times: np.ndarray, P: np.ndarray):
     return Trajectory(times=np.asarray(times, float), positions=P, velocities=V)
 
 
-def waypoint_path(dyn, rng, n: int, segment_s: float | None = None):
-    """``n`` waypoints in 15–85 % of each joint's range, gravity under 80 % of the effort limit
+def waypoint_path(dyn, rng, n: int, segment_s: float | None = None, spread: float = 0.7,
+                  step: float | None = None):
+    """``n`` waypoints in the middle ``spread`` of each joint's range (15–85 %), gravity under 80 % of the effort limit
     at each, timed 1.2× the slowest joint's velocity-limited step (or ``segment_s`` a step),
     Catmull-Rom velocities."""
     from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
 
     lim = dyn.model.limits
-    lo, hi = lim.position_lower, lim.position_upper
-    while True:
-        P = lo + (hi - lo) * (0.15 + 0.7 * rng.random((n, dyn.model.nv)))
-        if not np.all(np.abs(dyn.gravity_batch(P)) < 0.8 * lim.effort):
-            continue
+    for _ in range(1000):
+        P = _draw(dyn, rng, n, spread, step)
         if segment_s is None:
             steps = np.max(np.abs(np.diff(P, axis=0)) / lim.velocity, axis=1) * 1.2
         else:
@@ -61,6 +59,25 @@ def waypoint_path(dyn, rng, n: int, segment_s: float | None = None):
         k = check_trajectory(dyn, tr, FeasibilityOptions(compute_payload_margin=False)).time_scale
         if np.isfinite(k):
             return tr
+    raise RuntimeError("no waypoint path some slowdown makes feasible in 1000 draws")
+
+
+def _draw(dyn, rng, n: int, spread: float, step: float | None) -> np.ndarray:
+    """``n`` waypoints, each drawn until gravity there is under 80 % of the effort limits:
+    uniform in the middle ``spread`` of each range, or (``step``) each a uniform step of at
+    most ``step`` rad per joint from the previous one, kept in that middle."""
+    lim = dyn.model.limits
+    lo, hi = lim.position_lower, lim.position_upper
+    a, b = lo + (hi - lo) * (1 - spread) / 2, hi - (hi - lo) * (1 - spread) / 2
+    P = []
+    while len(P) < n:
+        if step is None or not P:
+            q = a + (b - a) * rng.random(dyn.model.nv)
+        else:
+            q = np.clip(P[-1] + step * (2 * rng.random(dyn.model.nv) - 1), a, b)
+        if np.all(np.abs(dyn.gravity_batch(q[None, :])[0]) < 0.8 * lim.effort):
+            P.append(q)
+    return np.array(P)
 
 
 def verify(dyn, out) -> dict[str, float]:
