@@ -10,8 +10,6 @@ points that both pass (a velocity reversal inside 125 µs) would otherwise be an
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from dyn_node.core.check.constraints import Violation
@@ -155,12 +153,6 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
             return dict(trajectory=out, check=res, method="uniform", deviation=dev)
         needs[how] = pad * (res.time_scale if not res.feasible else 1.0 + SLACK)
     return None
-
-
-def plain(options: FeasibilityOptions) -> FeasibilityOptions:
-    """``options`` without the payload margin (it does not decide feasibility)."""
-    return replace(options, compute_payload_margin=False)
-
 
 
 def knot_window(dynamics: Dynamics, q: np.ndarray, v: np.ndarray, a_lo: np.ndarray,
