@@ -185,7 +185,12 @@ def summarize(rows: list[dict]) -> dict:
         gap_median=statistics.median(gaps) if gaps else None,
         gap_p95=float(np.percentile(gaps, 95)) if gaps else None,
         vs_uniform_median=statistics.median(unif) if unif else None,
+        vs_uniform_p95=float(np.percentile(unif, 95)) if unif else None,
+        vs_uniform_max=max(unif, default=None),
+        stretch_won=sum(r["method"] == "uniform" for r in ok),
         wall_median_s=statistics.median(r["wall_s"] for r in rows),
+        wall_p95_s=float(np.percentile([r["wall_s"] for r in rows], 95)),
+        wall_max_s=max(r["wall_s"] for r in rows),
         toppra_violating={k: dict(paths=len(v), median_ratio=statistics.median(v), max_ratio=max(v))
                           for k, v in sorted(kinds.items())})
 
@@ -200,6 +205,9 @@ def run(*, quick: bool = False, smoke: bool = False, paths: int | None = None) -
             rows.append(one(dyn, tr))
             progress("retime", f"{name} {i + 1}/{n}: {rows[-1]['method']} gap {rows[-1]['gap']:.3f}")
         out[name] = dict(summary=summarize(rows), rows=rows)
+    from .retime_panels import run as panels  # issue 39's waypoint and hard panels
+
+    out["panels"] = panels(3 if smoke else 8 if quick else 20, progress)
     out["wall"] = wall_time(robot("panda"), 1 if smoke else 7)
     from .retime_start_bench import run as moving_start  # it builds on this module's panel
 
@@ -231,13 +239,21 @@ def render_md(res: dict) -> str:
              "benchmarks/retime_bench.py). Targets: all pass, gap median ≤ 1.05, p95 ≤ 1.15, "
              "÷ uniform median ≤ 0.90.", "",
              "| robot | pass the exact check | within 1e-4 (SciPy) | optimal (not the fallback) | "
-             "T/T* median | T/T* p95 | T/uniform median | retime median (s) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "T/T* median | T/T* p95 | T/uniform median | p95 | max | retime median (s) | p95 | "
+             "max |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name in ("panda", "ur5"):
         s = res[name]["summary"]
         lines.append(f"| {name} | {s['rechecked']}/{s['paths']} | {s['within_tolerance']} | "
                      f"{s['optimal']} | {f(s['gap_median'])} | {f(s['gap_p95'])} | "
-                     f"{f(s['vs_uniform_median'])} | {f(s['wall_median_s'], 2)} |")
+                     f"{f(s['vs_uniform_median'])} | {f(s.get('vs_uniform_p95'))} | "
+                     f"{f(s.get('vs_uniform_max'))} | {f(s['wall_median_s'], 2)} | "
+                     f"{f(s.get('wall_p95_s'), 2)} | {f(s.get('wall_max_s'), 2)} |")
+    if res.get("panels"):
+        from .retime_panels import render_md as panels_md
+
+        lines += ["", "Issue 39's panels (benchmarks/retime_panels.py; Panda, libfranka's "
+                  "acceleration and jerk, effort at 40 %, effort rate 1,000 N·m/s; each answer "
+                  "verified with SciPy and Pinocchio):", "", *panels_md(res["panels"])]
     lines += ["", "TOPP-RA's own output (velocity, acceleration, torque constraints; its spline "
               "sampled at 100 Hz) checked by our check: paths violating each kind, median and "
               "largest peak ÷ limit.", "", "| robot | kind | paths | median | max |",

@@ -81,3 +81,18 @@ def test_unreadable_input_exits_2(tmp_path, capsys):
     code, _, err = run(capsys, bad, REACH_CSV, "--retime", tmp_path / "rt")
     assert code == 2 and "UNREADABLE" in err
     assert (tmp_path / "rt" / "panda_reach.csv").is_file()
+
+
+def test_exit_codes_with_and_without_retime(tmp_path, capsys):
+    """docs/dyn-check.md's table, row by row: an infeasible input exits 1 when only checked and
+    0 when its retiming is written (the code is the retiming's with --retime); a file no
+    retiming fixes exits 1 (test_no_retiming_exits_1_and_writes_nothing), an input printed
+    REJECTED whose retiming is written 0 (test_untimed_waypoints_are_retimed), an unreadable
+    one 2 (test_unreadable_input_exits_2)."""
+    code, text, _ = run(capsys, SHAKE)
+    assert code == 1 and "INFEASIBLE" in text
+    out = tmp_path / "shake.yaml"
+    code, text, _ = run(capsys, SHAKE, "--retime", out)
+    assert code == 0 and "INFEASIBLE" in text and out.is_file()
+    code, text, _ = run(capsys, REACH_CSV)
+    assert code == 0 and "FEASIBLE" in text and "INFEASIBLE" not in text

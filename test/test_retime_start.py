@@ -56,7 +56,7 @@ CASES = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("name", sorted(set(CASES) - {"brake"}))
 def test_closed_form_time_from_a_moving_start(name: str) -> None:
     v0, D, t0, q1, v1, T = CASES[name]
     traj, st = one_joint_case(v0, D, t0, q1, v1, T)
@@ -85,10 +85,25 @@ def test_closed_form_time_from_a_moving_start(name: str) -> None:
                        velocities=out.velocities[1:], accelerations=out.accelerations[1:])
     again = check_trajectory(dyn, ahead, start=st)
     assert again.feasible and again.start_segment == "checked"
-    if name == "brake":
-        # braking at the limit within the first 10 ms, never faster than the robot was
-        assert np.min(out.accelerations[out.times <= 0.01, 0]) <= -A * 0.999
-        assert np.max(out.velocities[:, 0]) <= v0 + 1e-3
+
+
+def test_brake_at_the_limits_is_never_answered_over_them() -> None:
+    """0.9 rad/s with 0.2045 rad to go needs all the braking there is (0.2025 rad at 2 rad/s²):
+    the search at the limits themselves rounds its corners with quintics that go 1–2 % over
+    between the points (issue 39: the check sampled them only at the points), so whatever is
+    answered must hold between them: SciPy's quintic through the points, densely sampled."""
+    v0, D, t0, q1, v1, T = CASES["brake"]
+    traj, st = one_joint_case(v0, D, t0, q1, v1, T)
+    dyn = one_joint(a=A)
+    res = retime(dyn, traj, start=st, grid_points=2000, point_period=0.002)
+    assert res.feasible and check_trajectory(dyn, res.trajectory, start=st).feasible
+    out = res.trajectory
+    cols = [out.positions, out.velocities] + ([out.accelerations]
+                                              if out.accelerations is not None else [])
+    pp = BPoly.from_derivatives(out.times, np.stack(cols, axis=1))
+    t = np.linspace(out.times[0], out.times[-1], 200_001)
+    assert np.max(np.abs(pp(t, 2))) <= A * (1 + 1e-6)
+    assert np.max(np.abs(pp(t, 1))) <= 1.0 * (1 + 1e-6)
 
 
 def test_toppra_called_directly_with_sd_start() -> None:

@@ -335,8 +335,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="dyn-check", description="Check trajectory files (YAML, JSON or CSV) for dynamic "
         "feasibility, as dyn_node checks joint_trajectory, with no ROS graph.",
         epilog="exit codes: " + "; ".join(f"{c} {MEANINGS[c]}" for c in (0, 1, 2)) + " (a file that "
-               "cannot be read or parsed, or no usable model). "
-               f"--retime stretches by time_scale × {1 + RETIME_MARGIN:g}.")
+               "cannot be read or parsed, or no usable model); with --retime the code is the "
+               "retiming's: 0 every file's retiming written (an infeasible or rejected input "
+               "included), 1 some file got none. "
+               f"--retime-method uniform stretches by time_scale × {1 + RETIME_MARGIN:g}.")
     p.add_argument("trajectories", nargs="+", metavar="TRAJECTORY", help="trajectory files (.yaml, .yml, .json, .csv)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--robot-model", default="", metavar="NAME", help="built-in model (panda, ur5, planar_2link)")
@@ -376,7 +378,9 @@ def run(args: argparse.Namespace, out: Any = None) -> int:
             print(f"  evidence: {d / 'evidence.json'}, report: {d / 'report.html'}", file=out)
         if dests:
             written.append(_retime_one(checker, v, dests[i], args, out))
-    if dests:   # with --retime: 1 when some file got no feasible retiming (nothing written)
+    # with --retime the code is the retiming's (docs/dyn-check.md, "exit code"): 1 when some
+    # file got no feasible retiming (nothing written), 0 when each got one, whatever the input
+    if dests:
         return exit_code(violations=not all(written), partial=False,
                          unusable=any(not v.readable for v in verdicts))
     return exit_code(violations=any(v.readable and not v.feasible for v in verdicts), partial=False,

@@ -81,29 +81,39 @@ def build_path(traj: Trajectory) -> Path:
 
 
 
+#: a waypoint passed at most this share of its neighbourhood's speed (∞-norm of q') is a stop:
+#: the path turns back there or nearly (a cusp), which no parameterisation by arc length
+#: resolves on a grid, and stopping costs next to nothing against passing that slowly
+NEAR_STOP = 1e-2
+
+
 def stops(path: Path) -> np.ndarray:
-    """Interior knots of a timed path where it stops with q' = q'' = 0 (waypoints at rest with
-    quintic segments): the path is singular there and may turn back."""
-    nom = path.nominal
-    if path.untimed or nom.velocities is None or len(nom.times) < 3:
+    """Interior knots where the path stops or nearly (:data:`NEAR_STOP`): waypoints at rest
+    with quintic segments (q' = q'' = 0), turns back of a spline (q' = 0 by symmetry) and
+    waypoints passed at a tiny share of the neighbouring speeds; the path is (nearly) singular
+    there and may turn back."""
+    b = path.pp.breaks
+    if len(b) < 3:
         return np.zeros(0, dtype=int)
-    v = nom.velocities[1:-1]
-    a = nom.accelerations[1:-1] if nom.accelerations is not None else np.zeros_like(v)
-    return np.flatnonzero(np.all(v == 0.0, axis=1) & np.all(a == 0.0, axis=1)) + 1
+    knot = np.max(np.abs(path.derivatives(b)[1]), axis=1)
+    mid = np.max(np.abs(path.derivatives(0.5 * (b[1:] + b[:-1]))[1]), axis=1)
+    near = np.maximum(np.maximum(mid[:-1], mid[1:]), np.maximum(knot[:-2], knot[2:]))
+    return np.flatnonzero(knot[1:-1] <= NEAR_STOP * near) + 1
 
 
 def pieces(path: Path) -> list[Path]:
-    """The path cut at its :func:`stops` (each piece a path of its own, from rest to rest)."""
-    cuts = [0, *stops(path).tolist(), len(path.nominal.times) - 1]
+    """The path cut at its :func:`stops`: each piece the same polynomials between two of them
+    (a path of its own, from rest to rest)."""
+    cuts = [0, *stops(path).tolist(), len(path.pp.breaks) - 1]
     nom = path.nominal
     out = []
     for a, b in zip(cuts[:-1], cuts[1:]):
-        sl = slice(a, b + 1)
+        pp = PiecewisePolynomial(path.pp.breaks[a:b + 1].copy(), path.pp.coeffs[a:b].copy())
+        sl = slice(a, b + 1) if len(nom.times) == len(path.pp.breaks) else slice(None)
         sub = Trajectory(times=nom.times[sl], positions=nom.positions[sl],
                          velocities=None if nom.velocities is None else nom.velocities[sl],
                          accelerations=None if nom.accelerations is None else nom.accelerations[sl])
-        out.append(Path(pp=interpolate(sub, nom.natural_interpolation), nominal=sub,
-                        untimed=False))
+        out.append(Path(pp=pp, nominal=sub, untimed=path.untimed))
     return out
 
 
@@ -168,6 +178,10 @@ class ArcPath:
         t = d1 / n
         q2 = (d2 - t * np.sum(t * d2, axis=1, keepdims=True)) / n**2
         return q, t, q2
+
+    def arc_of(self, s: np.ndarray) -> np.ndarray:
+        """ℓ at the base path's s (from the table: linear between its points)."""
+        return np.interp(s, self._s, self._l)
 
     def positions(self, ell: np.ndarray) -> np.ndarray:
         ell = np.clip(np.atleast_1d(np.asarray(ell, dtype=float)), 0.0, self._l[-1])

@@ -25,13 +25,15 @@ from dyn_node.core.check.constraints import Violation
 from dyn_node.core.check.kinds import KIND_CLASS
 from dyn_node.core.check.trajectory import Trajectory, from_current_state
 from dyn_node.errors import TrajectoryError
-from dyn_node.retime import timing, topp
+from dyn_node.retime import candidates, timing, topp
 from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
                                   validate_input)
 from dyn_node.retime.result import RetimeResult
 
 #: third-order kinds: their violations widen the smoothing window first
 _RAMP_KINDS = ("jerk", "effort_rate")
+#: halvings of the output period at most for overshoots between points (:func:`_finer`)
+_FINER = 2
 #: the least half-width (grid cells) of a local cap
 _CAP_CELLS = 8
 #: rounds checked with the caller's options in full (payload margin too)
@@ -54,8 +56,6 @@ _HALVINGS = 3
 #: the share of the limits a moving start that needs all its braking is retried at: the
 #: limits themselves, less the rounding of the check's own sums
 _FULL = 1 - 1e-9
-#: the uniform fallback's factor over the check's time scale (its feasible side)
-_UNIFORM_PAD = 1.001
 
 
 @dataclass
@@ -87,6 +87,17 @@ class _Search:
     prev_cap: np.ndarray | None = None
     #: the violations the last round adjusted for, for the report
     last: str = ""
+    #: the best candidate's duration so far (the stretch's): a round whose law alone lasts
+    #: longer cannot win, and the search stops there
+    best: float = math.inf
+    #: halvings of the output period for overshoots between points (:func:`_finer`)
+    finer: int = 0
+    #: the second smoothing window (timing.smoothed): two output periods, kept when only
+    #: :func:`_finer` halves the period (a narrower one would steepen the corners it rounds)
+    w2: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.w2 = self.w2 or 2 * self.period
 
 
 def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = None,
@@ -136,15 +147,21 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     parts = _search_paths(dynamics, search, grid_points)
     lower = _bound(dynamics, search, parts, grid_points, v0)
     notes: list[str] = []
+    # the stretch lasts k·T_in × (1.001 … 1.005) (candidates.STRETCH_PADS): the search is cut
+    # as soon as it cannot beat that, and the stretch is built only when the search lost to it
+    # or failed (bounded wall time)
+    best = uniform_T * candidates.STRETCH_PADS[-1] if uniform_fallback else math.inf
     found = _by_pieces(dynamics, parts, feasibility, path_tolerance, point_period,
                        limit_margin, max_rounds, start=start if moving_start else None,
-                       notes=notes)
+                       notes=notes, best=best if math.isfinite(best) else math.inf)
     uniform = None
-    # the stretch lasts ≥ uniform_T × 1.001: only worth building when the search lost to it
-    beaten = found is not None and found["trajectory"].duration <= uniform_T * _UNIFORM_PAD
-    if ((uniform_fallback and not beaten) or found is None) and math.isfinite(k):
-        uniform = _uniform(dynamics, path, traj, k, feasibility, start, point_period,
-                           moving_start, path_tolerance)
+    beaten = found is not None and (found["trajectory"].duration
+                                    <= uniform_T * candidates.STRETCH_PADS[0])
+    if math.isfinite(k) and (found is None or (uniform_fallback and not beaten)):
+        uniform = candidates.stretch(dynamics, path, traj, k, feasibility, start, point_period,
+                                     moving_start,
+                                     lambda *a: _dense(*a[:4], path_tolerance),
+                                     path_tolerance)
     pick = min((c for c in (found, uniform) if c is not None),
                key=lambda c: c["trajectory"].duration, default=None)
     why = f" (optimal search: {'; '.join(notes)})" if notes and found is None else ""
@@ -157,12 +174,26 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     out = pick["trajectory"]
     frm = " from the moving start state" if moving_start else ""
     msg = (f"retimed ({pick['method']}{frm}): {duration_in:.4g} s → {out.duration:.4g} s, "
-           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s{why}; re-check: "
-           f"{pick['check'].message}")
+           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s; {_won(found, uniform, uniform_T)}{why}; "
+           f"re-check: {pick['check'].message}")
     return RetimeResult(True, out, duration_out=out.duration, lower_bound=lower, message=msg,
                         check=pick["check"], method=pick["method"],
                         rounds=pick.get("rounds", 0), smoothing_s=pick.get("w", 0.0),
                         path_deviation=pick["deviation"], **base)
+
+
+def _won(found: dict | None, uniform: dict | None, uniform_T: float) -> str:
+    """Which candidate won and by how much (the note of docs/retime.md)."""
+    if found is not None and uniform is None and math.isfinite(uniform_T):
+        a = found["trajectory"].duration
+        return (f"optimal search {100 * (1 - a / uniform_T):.1f} % shorter than the stretch "
+                "(not built: it lasts at least the uniform time)")
+    if found is None or uniform is None:
+        return f"only the {'optimal search' if uniform is None else 'stretch'} passed"
+    a, b = found["trajectory"].duration, uniform["trajectory"].duration
+    if a <= b:
+        return f"optimal search {100 * (1 - a / b):.1f} % shorter than the stretch"
+    return f"the stretch {100 * (1 - b / a):.1f} % shorter than the optimal search"
 
 
 def _none(first: FeasibilityResult, base: dict, lower: float = math.nan,
@@ -236,7 +267,11 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             if x is None:
                 return None
             lw = timing.law(sr.grid, x, sr.sd0)
-            pts = timing.points(sr.path, lw, sr.w, sr.period, 2 * sr.period)
+            if lw.duration + sr.w + sr.w2 > sr.best:
+                sr.notes.append(f"cut after {rnd} round(s): {lw.duration + sr.w:.4g} s cannot "
+                                f"beat {sr.best:.4g} s")
+                return None
+            pts = timing.points(sr.path, lw, sr.w, sr.period, sr.w2)
             # halfway between the rows' share and the limit: over the share by rounding is
             # no reason to slow down, and near the limit the quintic between points may cross
             share = (1.0 + sr.margin) / 2
@@ -248,25 +283,79 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
             screens += 1
             if not _adjust(sr, hits, lw, x):
                 return None
-        out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, 2 * sr.period, pts)
+        out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, sr.w2, pts)
         if out is None:
             return None
+        out, dev = _knots_averaged(sr, x, out, dev)
+        if out is None:        # ṡ² capped at the knots: the next round solves again
+            continue
         # the first rounds, which usually pass, check in full at once (a second check of the
         # answer costs more than the payload margin of a round that fails)
         opts = sr.options if rnd <= _FULL_ROUNDS else plain
         try:
-            res = check_trajectory(sr.dynamics, out, opts, start=sr.start)
+            res, over = candidates.judge(sr.dynamics, out, opts, sr.start)
         except TrajectoryError as err:   # slowed beyond what the check takes: give up
             sr.notes.append(str(err))
             return None
-        if res.feasible:
+        if res.feasible and not over:
             full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options,
                                                                    start=sr.start)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
-                        w=sr.w + 2 * sr.period, deviation=dev)
-        if not _adjust(sr, res.violations, lw, x):
+                        w=sr.w + sr.w2, deviation=dev)
+        if res.feasible and _finer(sr, over):
+            continue
+        if not _adjust(sr, over, lw, x):
             return None
     return None
+
+
+def _knots_averaged(sr: _Search, x: np.ndarray, out: Trajectory, dev: float
+                    ) -> tuple[Trajectory | None, float]:
+    """On a path whose q'' jumps at its knots (cubic points: C¹ only) the output's q̈ jumps
+    there by Δq''·ṡ², which no smoothing of the law spreads: the output averaged in joint space
+    over the window that ramps those jumps within the jerk and effort-rate limits
+    (candidates.averaged); unchanged elsewhere. (None, dev) when that strays beyond the path
+    tolerance: ṡ² is then capped at the knots for the next round."""
+    p = sr.path
+    base = p.base if isinstance(p, ArcPath) else p
+    if (sr.sd0 > 0 or base.untimed or base.nominal.natural_interpolation != "cubic"
+            or len(base.pp.breaks) < 3):
+        return out, dev
+    sk = base.pp.breaks[1:-1]
+    eps = 1e-9 * max(1.0, float(base.pp.breaks[-1]))
+    q, d1, d2 = base.derivatives(sk)
+    jump = d2 - base.derivatives(sk - eps)[2]
+    at = sk
+    if isinstance(p, ArcPath):
+        # by arc length only the part of q'' across the path jumps: (q'' − t(t·q''))/|q'|²
+        n = np.linalg.norm(d1, axis=1, keepdims=True)
+        d1 = d1 / n
+        jump = (jump - d1 * np.sum(d1 * jump, axis=1, keepdims=True)) / n**2
+        at = p.arc_of(sk)
+    xk = np.interp(at, sr.grid, x)
+    W = candidates.knot_window(sr.dynamics, q, d1 * np.sqrt(np.maximum(xk, 0.0))[:, None],
+                               np.zeros_like(jump), jump * xk[:, None], sr.period)
+    avg, more = candidates.averaged(sr.dynamics, out, sr.period, sr.tolerance - dev, W)
+    if avg is not None:
+        return avg, dev + more
+    # beyond the path tolerance: the window's deviation goes as the jumps cubed (W ∝ Δq̈,
+    # deviation ∝ Δq̈·W²), and the jumps as ṡ²: ṡ² capped around the knots to fit
+    factor = 0.9 * max((sr.tolerance - dev) / more, 0.0) ** (1 / 3)
+    for i in np.searchsorted(sr.grid, at):
+        lo, hi = max(0, i - _CAP_CELLS), min(len(x), i + _CAP_CELLS + 1)
+        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
+    return None, dev
+
+
+def _finer(sr: _Search, over: Sequence[Violation]) -> bool:
+    """Points twice as dense (at most :data:`_FINER` times) when the check passed and only the
+    screen between points found a little over (the quintic between points rounds the law's
+    corners: its error shrinks with the period, a cap would cost time)."""
+    worst = max(abs(v.peak_value) / v.limit for v in over)
+    if worst > 1.05 or sr.finer >= _FINER:
+        return False
+    sr.finer, sr.period = sr.finer + 1, sr.period / 2
+    return True
 
 
 def _solved(sr: _Search, memo: dict) -> np.ndarray | None:
@@ -310,6 +399,7 @@ def _denser(sr: _Search, *, undo: bool = True) -> bool:
             return False
         sr.cap = sr.prev_cap
     sr.halved, sr.period = sr.halved + 1, sr.period / 2
+    sr.w2 = 2 * sr.period
     return True
 
 
@@ -319,14 +409,14 @@ def _lead_room(sr: _Search, reach: topp.Reach) -> float:
     K = reach.controllable(0.0)
     bad = np.flatnonzero(~(K[:, 1] >= sr.sd0**2))
     s_max = sr.grid[max(bad[0] - 1, 0)] if bad.size else float(sr.path.pp.breaks[-1])
-    return max(0.0, 2 * (s_max - float(sr.path.pp.breaks[0])) / sr.sd0 - 2 * sr.period)
+    return max(0.0, 2 * (s_max - float(sr.path.pp.breaks[0])) / sr.sd0 - sr.w2)
 
 
 def _lead_start(sr: _Search) -> float:
     """Where TOPP-RA starts from a moving state: ṡ₀ × half the two windows ahead of the
     path's start. The law runs at ṡ₀ before it (timing.Law.lead), so the windows' average
     is at the path's start at t = 0 with exactly ṡ₀ and s̈ = 0: the robot's state."""
-    return float(sr.path.pp.breaks[0] + sr.sd0 * (sr.w + 2 * sr.period) / 2)
+    return float(sr.path.pp.breaks[0] + sr.sd0 * (sr.w + sr.w2) / 2)
 
 
 def _regrid(sr: _Search) -> bool:
@@ -411,7 +501,8 @@ def _lower_bound(dynamics: Dynamics, path: Path, grid_points: int, sd0: float = 
 
 def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptions,
                tolerance: float, period: float, margin: float, max_rounds: int, *,
-               start: StartState | None = None, notes: list[str] | None = None) -> dict | None:
+               start: StartState | None = None, notes: list[str] | None = None,
+               best: float = math.inf) -> dict | None:
     """The optimal search on each of :func:`_search_paths`' pieces, the pieces joined at rest
     and the whole checked again; ``start``: a moving robot's state, where the first piece
     starts (its velocity along it: ṡ₀)."""
@@ -423,9 +514,10 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
         # check still decides) when their share leaves its ṡ₀ no timing
         for share in (margin, _FULL) if sd0 > 0 and margin < _FULL else (margin,):
             rows = topp.joint_rows(dynamics, p, grid, scale=share, terms=terms)
+            spent = sum(f["trajectory"].duration for f in found)
             sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
                          np.full(len(grid), np.inf), 0.0, share, sd0=sd0, start=first,
-                         notes=notes)
+                         notes=notes, best=best - spent)
             one = _optimal(sr, max_rounds)
             if one is not None or not sr.refused:
                 break
@@ -440,8 +532,10 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
     if len(found) == 1:
         return found[0]
     out = _join([f["trajectory"] for f in found])
-    res = check_trajectory(dynamics, out, options, start=start)
-    if not res.feasible:
+    res, over = candidates.judge(dynamics, out, options, start)
+    if not res.feasible or over:
+        notes.append("the pieces joined fail: " + (candidates.describe(over) if over
+                                                   else res.message))
         return None
     return dict(trajectory=out, check=res, method="optimal",
                 rounds=sum(f["rounds"] for f in found), w=max(f["w"] for f in found),
@@ -490,7 +584,10 @@ def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
             widen = max(widen, ratio * 1.02)
             continue
         order = max(1, KIND_CLASS[v.kind].order if v.kind in KIND_CLASS else 2)
-        factor = min(0.98, ratio ** (-2.0 / order) * 0.98)
+        # a small overshoot between points (candidates.inside) needs a small cap: the law's
+        # own excess over the rows between grid points, not a limit the law broke
+        pad = 0.995 if v.unit == candidates.BETWEEN else 0.98
+        factor = min(pad, ratio ** (-2.0 / order) * pad)
         t0 = v.first_time_s - sr.w
         t1 = max(v.peak_time_s, v.first_time_s + v.duration_s) + sr.w
         s0, s1 = (float(timing.smoothed(lw, sr.w, np.array([tt]))[0][0]) for tt in (t0, t1))
@@ -543,31 +640,6 @@ def _dense(path: Path, lw: timing.Law, w: float, period: float, tolerance: float
             return out, dev
         period /= 2
     return None, math.nan
-
-
-def _uniform(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
-             options: FeasibilityOptions, start: StartState | None, period: float,
-             moving_start: bool, tolerance: float) -> dict | None:
-    """The input stretched by the check's time scale (× 1.001, then 1.01 when the resampled
-    points miss by rounding), checked; with a moving start state the input's own points
-    stretched (the controller interpolates the segment from that state)."""
-    from dyn_node.core.check.start_segment import stretched
-
-    k = max(k, 1e-9) if k > 0 else 1.0
-    for pad in (_UNIFORM_PAD, 1.01):
-        kk = k * pad
-        if moving_start:
-            out, dev = stretched(traj, kk), 0.0
-        else:
-            grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], 2)
-            lw = timing.law(grid, np.full(2, 1.0 / kk**2))
-            out, dev = _dense(path, lw, 0.0, period, tolerance)
-            if out is None:
-                return None
-        res = check_trajectory(dynamics, out, options, start=start)
-        if res.feasible:
-            return dict(trajectory=out, check=res, method="uniform", deviation=dev)
-    return None
 
 
 def _still(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,

@@ -1,0 +1,227 @@
+"""What every candidate answer of the retimer passes before it may be returned, and the uniform
+stretch candidate.
+
+:func:`judge`: the exact check (:func:`~dyn_node.core.check.feasibility.check_trajectory`, the
+retimer's options and start) and :func:`inside`, a screen of each output segment *between* its
+points: the controller's quintic (cubic) evaluated at interior fractions, its velocity,
+acceleration and jerk, and the RNEA torque and its rate there, against the limits. Until the
+check evaluates every piece's extrema exactly, a segment whose polynomial swings between two
+points that both pass (a velocity reversal inside 125 µs) would otherwise be answered.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from dyn_node.core.check.constraints import Violation
+from dyn_node.core.check.feasibility import FeasibilityOptions, FeasibilityResult, check_trajectory
+from dyn_node.core.check.trajectory import Trajectory, interpolate
+from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.errors import TrajectoryError
+from dyn_node.retime import timing
+from dyn_node.retime.path import Path
+
+#: interior fractions of each segment the screen evaluates (its ends are the check's points)
+FRACTIONS = np.array([0.2, 0.4, 0.6, 0.8])
+#: how far over a limit an interior sample may be (the sums' rounding), relative
+SLACK = 1e-6
+#: the share of the effort-rate limit the screen flags from (its samples are a fifth of a
+#: segment apart; measured: a 250-waypoint stretch 0.9 % over between them)
+RATE_SHARE = 0.995
+#: the unit field of the screen's violations (they are ratios, found between points)
+BETWEEN = "between points"
+#: the stretch's factors over the check's time scale, tried in turn (docs/retime.md: every
+#: answer ≤ 1.005 × the time scale × the input's duration)
+STRETCH_PADS = (1.001, 1.005)
+
+
+def inside(dynamics: Dynamics, out: Trajectory, share: float = 1.0) -> list[Violation]:
+    """Interior samples of ``out``'s segments over ``share`` × (1 + :data:`SLACK`) of a joint
+    limit (velocity, acceleration, jerk, effort, effort rate): one :class:`Violation` per joint
+    and kind at its worst sample."""
+    pp = interpolate(out, out.jtc_interpolation)
+    dt = np.diff(out.times)
+    f = np.concatenate(([0.0], FRACTIONS, [1.0]))
+    r = dt[:, None] * f[None, :]
+    seg = np.repeat(np.arange(len(dt)), len(f))
+    c = pp.coeffs[seg]                                   # M × (deg+1) × nv
+    x = r.ravel()[:, None]
+    deg = c.shape[1] - 1
+    vals = []
+    for d in range(4):
+        acc = np.zeros((len(x), c.shape[2]))
+        for k in range(deg, d - 1, -1):
+            fac = float(np.prod(np.arange(k - d + 1, k + 1))) if d else 1.0
+            acc = acc * x + fac * c[:, k, :]
+        vals.append(acc)
+    Q, V, A, J = vals
+    lim = dynamics.model.limits
+    t = (out.times[:-1, None] + r).ravel()
+    found = []
+    for kind, value, limit in (("velocity", V, lim.velocity), ("acceleration", A, lim.acceleration),
+                               ("jerk", J, lim.jerk)):
+        found += _worst(kind, value, limit, t, lim.names, share)
+    if np.any(np.isfinite(lim.effort)) or np.any(np.isfinite(lim.effort_rate)):
+        tau = dynamics.rnea_batch(Q, V, A)
+        if dynamics.model.task_limits.task_wrench is not None:
+            from dyn_node.core.check import task_motion
+
+            task = task_motion.build(dynamics, Q, V, A)
+            if task is not None and task.task_torque is not None:
+                tau = tau + task.task_torque   # a task wrench's torque: the check's effort has it
+        found += _worst("effort", tau, lim.effort, t, lim.names, share)
+        # the rate at each sample (central differences of RNEA along the polynomial), flagged
+        # from 99.5 % of the limit: between samples 1/5 of a segment apart it may peak higher
+        h = 1e-3 * np.repeat(dt / 5, len(f))[:, None]
+        ahead = [V + A * h + J * h * h / 2, A + J * h]
+        back = [V - A * h + J * h * h / 2, A - J * h]
+        rate = (dynamics.rnea_batch(Q + V * h + A * h * h / 2, *ahead)
+                - dynamics.rnea_batch(Q - V * h + A * h * h / 2, *back)) / (2 * h)
+        found += _worst("effort_rate", rate, lim.effort_rate, t, lim.names, share * RATE_SHARE)
+    return found
+
+
+def _worst(kind: str, value: np.ndarray, limit: np.ndarray, t: np.ndarray, names, share: float
+           ) -> list[Violation]:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.abs(value) / limit
+    ratio = np.where(np.isfinite(limit) & (limit > 0), ratio, 0.0)
+    ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+    out = []
+    for j in np.flatnonzero(np.max(ratio, axis=0) > share * (1 + SLACK)):
+        n = int(np.argmax(ratio[:, j]))
+        out.append(Violation(joint=names[j], kind=kind, first_time_s=float(t[n]),
+                             peak_time_s=float(t[n]), peak_value=float(ratio[n, j] * limit[j]),
+                             limit=float(limit[j]), duration_s=0.0, unit=BETWEEN))
+    return out
+
+
+def judge(dynamics: Dynamics, out: Trajectory, options: FeasibilityOptions,
+          start) -> tuple[FeasibilityResult, list[Violation]]:
+    """The exact check of ``out`` and, when it passes, :func:`inside`: (the check, what is
+    over between points); the answer may be returned only when the list is empty and the check
+    feasible."""
+    res = check_trajectory(dynamics, out, options, start=start)
+    if not res.feasible:
+        return res, list(res.violations)
+    return res, inside(dynamics, out)
+
+
+def describe(found: list[Violation]) -> str:
+    v = max(found, key=lambda v: abs(v.peak_value) / v.limit)
+    return (f"between points: {v.joint} {v.kind} {abs(v.peak_value) / v.limit:.3g}× its limit "
+            f"at t = {v.peak_time_s:.4g} s")
+
+
+def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
+            options: FeasibilityOptions, start, period: float, moving_start: bool,
+            dense, tolerance: float) -> dict | None:
+    """The input stretched by the check's time scale × :data:`STRETCH_PADS`: resampled as
+    quintic points on the path (s = t/k; positions, velocities, accelerations), else, when the
+    path's acceleration jumps at a knot (cubic points) so that no quintic follows it, the
+    input's own points stretched (their interpolation is the one the check's k is of); each
+    judged (:func:`judge`). With a moving start state the input's own points only."""
+    from dyn_node.core.check.start_segment import stretched
+
+    k = max(k, 1e-9) if k > 0 else 1.0
+    cubic = traj.velocities is not None and traj.accelerations is None
+    # a cubic's q̈ jumps at its knots: averaged first (a quintic that follows the path does not)
+    hows = ([] if moving_start else ["averaged", "path"] if cubic else ["path"])
+    hows += ["own"] if traj.velocities is not None else []
+    tries = [(pad, how) for how in hows for pad in STRETCH_PADS]
+    needs: dict[str, float] = {}
+    for pad, how in tries:
+        if needs.get(how, 0.0) > pad:
+            continue         # the smaller pad's candidate needs more than this pad gives
+        kk = k * pad
+        if how == "own":
+            out, dev = stretched(traj, kk), 0.0
+        elif how == "averaged":
+            out, dev = averaged(dynamics, stretched(traj, kk), period, tolerance)
+            if out is None:
+                continue
+        else:
+            grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], 2)
+            lw = timing.law(grid, np.full(2, 1.0 / kk**2))
+            out, dev = dense(path, lw, 0.0, period)
+            if out is None:
+                continue
+        try:
+            res, over = judge(dynamics, out, options, start)
+        except TrajectoryError:
+            continue
+        if res.feasible and not over:
+            return dict(trajectory=out, check=res, method="uniform", deviation=dev)
+        needs[how] = pad * (res.time_scale if not res.feasible else 1.0 + SLACK)
+    return None
+
+
+def knot_window(dynamics: Dynamics, q: np.ndarray, v: np.ndarray, a_lo: np.ndarray,
+                a_hi: np.ndarray, period: float) -> float:
+    """The window that ramps each jump of q̈ (a_lo → a_hi at states q, v; rows) within 90 % of
+    the jerk and effort-rate limits; at least two output periods."""
+    lim = dynamics.model.limits
+    W = 2 * period
+    if not len(q):
+        return W
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if np.any(np.isfinite(lim.jerk)):
+            r = np.where(np.isfinite(lim.jerk), np.abs(a_hi - a_lo) / (0.9 * lim.jerk), 0)
+            W = max(W, float(np.nanmax(r)))
+        if np.any(np.isfinite(lim.effort_rate)):
+            dtau = np.abs(dynamics.rnea_batch(q, v, a_hi) - dynamics.rnea_batch(q, v, a_lo))
+            r = np.where(np.isfinite(lim.effort_rate), dtau / (0.9 * lim.effort_rate), 0)
+            W = max(W, float(np.nanmax(r)))
+    return W
+
+
+def averaged(dynamics: Dynamics, traj: Trajectory, period: float, tolerance: float,
+             W: float | None = None) -> tuple[Trajectory | None, float]:
+    """``traj`` (cubic points, already stretched) averaged over a moving window W in joint space,
+    as quintic points every ≤ ``period``: q̄(t) = (1/W)∫_{t−W}^{t} q, held at its ends, so the
+    motion starts and ends at rest and lasts W longer. Its velocity and acceleration are
+    averages of the input's (within the same limits), and each jump of q̈ at a knot (the cubic
+    is C¹ only: no quintic follows it) becomes a ramp of length W, W sized so that the jumps
+    stay within 90 % of the jerk and effort-rate limits. (None, dev) when q̄ strays more than
+    ``tolerance`` from the input's curve (measured at the window's centre)."""
+    pp = interpolate(traj, traj.jtc_interpolation)
+    b, c = pp.breaks, pp.coeffs
+    if W is None:
+        knots = b[1:-1]
+        a_lo = pp.evaluate(np.maximum(knots - 1e-12 * (1 + abs(b[-1])), b[0]), orders=3)[2]
+        q, v, a_hi = pp.evaluate(knots, orders=3)
+        W = knot_window(dynamics, q, v, a_lo, a_hi, period)
+    # the antiderivative F of q, piece by piece (local coefficients c_k/(k+1), constants summed)
+    deg = c.shape[1]
+    C = np.zeros((c.shape[0], deg + 1, c.shape[2]))
+    C[:, 1:, :] = c / np.arange(1, deg + 1)[None, :, None]
+    h = np.diff(b)
+    ends = np.einsum("sk,skj->sj", h[:, None] ** np.arange(deg + 1)[None, :], C)
+    C[1:, 0, :] = np.cumsum(ends, axis=0)[:-1]
+    q0, q1, F1 = traj.positions[0], traj.positions[-1], np.sum(ends, axis=0)
+
+    def F(t):
+        seg = np.clip(np.searchsorted(b, t, side="right") - 1, 0, len(h) - 1)
+        r = np.clip(t - b[seg], 0.0, h[seg])[:, None]
+        val = np.einsum("mk,mkj->mj", r ** np.arange(deg + 1)[None, :], C[seg])
+        before, after = t < b[0], t > b[-1]
+        val[before] = (q0 * (t[before] - b[0])[:, None])
+        val[after] = F1 + q1 * (t[after] - b[-1])[:, None]
+        return val
+
+    def Q(t, order):
+        out = pp.evaluate(t, orders=order + 1)[order]
+        if order == 0:
+            out[t < b[0]], out[t > b[-1]] = q0, q1
+        return out
+
+    total = b[-1] - b[0] + W
+    n = max(2, int(np.ceil(total / period)) + 1)
+    t = b[0] + np.linspace(0.0, total, n)
+    P = (F(t) - F(t - W)) / W
+    V = (Q(t, 0) - Q(t - W, 0)) / W
+    A = (Q(t, 1) - Q(t - W, 1)) / W
+    mid = np.linspace(b[0], b[-1] + W, 4 * n)
+    dev = float(np.max(np.abs((F(mid) - F(mid - W)) / W - Q(mid - W / 2, 0))))
+    if dev > tolerance:
+        return None, dev
+    return Trajectory(times=t - b[0], positions=P, velocities=V, accelerations=A), dev
