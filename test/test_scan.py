@@ -163,23 +163,3 @@ def _scipy_peak(pp, j: int, kind: str) -> float:
     tl = np.concatenate([t, t - 1e-12, t + 1e-12])
     tl = tl[(tl >= pp.breaks[0]) & (tl <= pp.breaks[-1])]
     return float(np.max(np.abs(a(tl)) * (v(tl) * a(tl) < 0)))
-
-
-@pytest.mark.parametrize("r0", [0, 300])
-def test_position_pass_is_numpys_argmax(r0):
-    rng = np.random.default_rng(11)
-    Q = rng.normal(size=(M, 5)) * 2.0                 # row-major, as the check holds q
-    Q[200, 3] = Q[600, 3] = 9.0                       # a tie beyond the limit: the first
-    Q[50, 4] = np.nan
-    cols = np.array([0, 1, 3, 4])
-    lo, hi = np.array([-3.0, -np.inf, -2.0, -1.0]), np.array([3.0, 1.0, 2.0, np.inf])
-    slo, shi = lo + 0.5, np.array([2.5, np.inf, 1.5, 0.5])
-    got = sk.position_scan(Q, cols, lo, hi, slo, shi, r0)
-    q = Q[:, cols]
-    over = np.maximum(q - hi, lo - q)
-    mid = 0.5 * (lo + hi)
-    want = (np.argmax(over, axis=0), np.argmax(-(q - slo), axis=0), np.argmax(q - shi, axis=0),
-            np.argmax(np.abs(q - mid), axis=0), np.any(over[r0:] > 0, axis=0).astype(int))
-    for g, w in zip(got, want):
-        np.testing.assert_array_equal(g, w)
-    assert got[0][2] == 200 and got[0][3] == 50 and got[4][2] == 1
