@@ -37,15 +37,20 @@ def franka_model(**extra):
 
 
 def random_pieces(rng, n: int, shortest: float = 1e-4, longest: float = 0.03) -> PiecewisePolynomial:
-    """n pieces of random lengths (log-uniform), each linear, cubic or quintic (zero-padded),
-    from a pose near HOME with velocities ~1 rad/s and accelerations ~10 rad/s² whatever the
-    length (so short pieces carry large jerks), independent of their neighbours (every knot
-    a step in some derivative)."""
+    """n pieces of random lengths (log-uniform), each linear, cubic, quintic or a rest-to-rest
+    quintic (zero-padded), from a pose near HOME with velocities ~1 rad/s and accelerations ~10
+    rad/s² whatever the length (so short pieces carry large jerks), independent of their
+    neighbours (every knot a step in some derivative)."""
     T = np.exp(rng.uniform(np.log(shortest), np.log(longest), n))
     coeffs = np.zeros((n, 6, NV))
     for k in range(n):
-        deg = rng.choice([1, 3, 5])
+        deg = rng.choice([1, 3, 5, 6])           # 6: a rest-to-rest quintic (q̈ peaks inside)
         coeffs[k, 0] = HOME + rng.uniform(-0.3, 0.3, NV)
+        if deg == 6:
+            # up to 10 rad/s² at its peak, 10/√3·Δ/T²
+            delta = rng.uniform(-10.0, 10.0, NV) * T[k] ** 2 * np.sqrt(3) / 10
+            coeffs[k, 3:] = np.outer([10, -15, 6] / T[k] ** np.arange(3, 6), delta)
+            continue
         coeffs[k, 1] = rng.uniform(-1.0, 1.0, NV)
         for p in range(2, deg + 1):
             coeffs[k, p] = rng.uniform(-10.0, 10.0, NV) / (p * (p - 1) * T[k] ** (p - 2))
@@ -63,20 +68,34 @@ def scipy_range(pp: PiecewisePolynomial, k: int, j: int, order: int) -> tuple[fl
     return float(vals.max()), float(vals.min())
 
 
-def test_piece_range_is_scipys_extremum_on_every_piece():
+def test_column_range_is_scipys_extremum_on_every_piece():
     pp = random_pieces(np.random.default_rng(3), 60)
     cols = np.arange(NV)
     for order in range(4):
-        hi, t_hi, lo, t_lo = pk.piece_range(pp.coeffs, np.diff(pp.breaks), order, cols)
         for k in range(len(pp.coeffs)):
+            one = pp.coeffs[k:k + 1]
+            hi, t_hi, lo, t_lo, law_hi, law_lo = pk.column_range(one, pp.breaks[k:k + 2], order,
+                                                                 cols, 0)
+            np.testing.assert_array_equal([hi, lo], [law_hi, law_lo])
             for j in range(NV):
                 want_hi, want_lo = scipy_range(pp, k, j, order)
                 scale = max(abs(want_hi), abs(want_lo), 1e-300)
-                assert abs(hi[k, j] - want_hi) <= 1e-9 * scale, (order, k, j)
-                assert abs(lo[k, j] - want_lo) <= 1e-9 * scale, (order, k, j)
+                assert abs(hi[j] - want_hi) <= 1e-9 * scale, (order, k, j)
+                assert abs(lo[j] - want_lo) <= 1e-9 * scale, (order, k, j)
                 # reached where reported
-                at = np.polyval(np.polyder(pp.coeffs[k, ::-1, j], order), [t_hi[k, j], t_lo[k, j]])
-                np.testing.assert_allclose(at, [hi[k, j], lo[k, j]], rtol=0, atol=1e-9 * scale)
+                at = np.polyval(np.polyder(one[0, ::-1, j], order),
+                                [t_hi[j] - pp.breaks[k], t_lo[j] - pp.breaks[k]])
+                np.testing.assert_allclose(at, [hi[j], lo[j]], rtol=0, atol=1e-9 * scale)
+        # all pieces at once (the ends first, then the insides that could beat them), and from
+        # piece 5 on
+        hi, t_hi, lo, t_lo, law_hi, law_lo = pk.column_range(pp.coeffs, pp.breaks, order, cols, 5)
+        for j in range(NV):
+            each = np.array([scipy_range(pp, k, j, order) for k in range(len(pp.coeffs))])
+            scale = np.abs(each).max()
+            assert abs(hi[j] - each[:, 0].max()) <= 1e-9 * scale
+            assert abs(lo[j] - each[:, 1].min()) <= 1e-9 * scale
+            assert abs(law_hi[j] - each[5:, 0].max()) <= 1e-9 * scale
+            assert abs(law_lo[j] - each[5:, 1].min()) <= 1e-9 * scale
 
 
 def test_roots_of_a_quintic_with_close_and_double_roots():
@@ -89,9 +108,9 @@ def test_roots_of_a_quintic_with_close_and_double_roots():
     # 1e-8: the conditioning of the root beside the double one (p′ ≈ 2.4e-8 there) times the
     # rounding of the coefficients themselves
     assert first[0] == 0.0 and total[0] == pytest.approx(0.5001, abs=1e-8)
-    hi, t_hi, lo, t_lo = pk.piece_range(coeffs, np.array([1.0]), 0, np.array([0]))
+    hi, t_hi, lo, t_lo, *_ = pk.column_range(coeffs, np.array([0.0, 1.0]), 0, np.array([0]), 0)
     want_hi, want_lo = scipy_range(PiecewisePolynomial(np.array([0.0, 1.0]), coeffs), 0, 0, 0)
-    assert hi[0, 0] == pytest.approx(want_hi, rel=1e-12) and lo[0, 0] == pytest.approx(want_lo, rel=1e-12)
+    assert hi[0] == pytest.approx(want_hi, rel=1e-12) and lo[0] == pytest.approx(want_lo, rel=1e-12)
 
 
 def _truth(pp: PiecewisePolynomial, per_piece_min: int = 400, rate_hz: float = 1e5):
@@ -240,44 +259,55 @@ def test_effort_rate_peak_just_before_a_knot():
 
 
 def test_position_bump_between_samples_on_7200_segments():
-    """Issue 36: 10 s of 7,200 quintic segments along panda_joint1's upper limit (just inside at
-    every point), one of which bulges 1e-4 rad over it between the check's samples: infeasible,
-    the bulge's exact peak reported."""
+    """Issue 36: 10 s of 7,200 quintic segments along panda_joint1's upper limit (inside it at
+    every point), one of which bulges 1e-4 rad over it between 1 ms samples: infeasible, the
+    bulge's exact peak reported."""
     hi = float(PANDA.limits.position_upper[0])
     times = np.linspace(0.0, 10.0, 7201)
     pos = np.tile(HOME, (7201, 1))
-    pos[:, 0] = hi - 1e-5
+    pos[:, 0] = hi - 3.95e-4
     vel, acc = np.zeros_like(pos), np.zeros_like(pos)
     T = times[1] - times[0]
     # segment 3000: leaves at q̇ = c, returns at rest; bulge peak found by scipy below
-    c = 0.3
+    c = 1.8
     vel[3000, 0] = c
     traj = validate_trajectory(NAMES, NAMES, times, pos, vel, acc)
     pp = F.interpolate(traj, "quintic")
     top, _ = scipy_range(pp, 3000, 0, 0)
-    assert 5e-5 < top - hi < 2e-4
+    assert 0.9e-4 < top - hi < 1.1e-4                # ~1e-4 rad over the limit
     r = F.check_trajectory(Dynamics(PANDA), traj)
-    smp = F._sample(pp.breaks, 0.001, 250_000, exact_peaks.min_steps(pp))
+    smp = F._sample(pp.breaks, 0.001, 250_000)     # 1 ms steps, as the check sampled it
     Q = F._evaluate(pp.coeffs, pp.breaks, smp, 1)[0]
-    assert Q[:, 0].max() < top - 1e-6              # the samples miss the bulge's top
+    assert Q[:, 0].max() < hi                      # those samples stay inside the limit
     assert not r.feasible
     (v,) = [v for v in r.violations if v.kind == "position"]
     assert v.joint == "panda_joint1" and v.peak_value == pytest.approx(top, rel=1e-12)
     assert times[3000] < v.first_time_s < v.peak_time_s < times[3001]
 
 
-def test_min_steps_by_degree_and_budget():
+def test_min_steps_by_degree_inner_peaks_and_budget():
     pp = random_pieces(np.random.default_rng(5), 40)
     deg = exact_peaks.piece_degrees(pp)
     nz = [max(p for p in range(6) if np.any(pp.coeffs[k, p] != 0)) for k in range(40)]
     assert deg.tolist() == nz
     least = exact_peaks.min_steps(pp)
+    # INNER_PEAK_STEPS exactly where some joint's |q̈| or |q⃛| peaks inside (scipy)
+    for k in range(40):
+        inner = False
+        for j in range(NV):
+            for order in (2, 3):
+                ends = np.abs(np.polyval(np.polyder(pp.coeffs[k, ::-1, j], order),
+                                         [0.0, pp.breaks[k + 1] - pp.breaks[k]])).max()
+                inner |= max(map(abs, scipy_range(pp, k, j, order))) > (1 + 1e-3) * ends
+        want = max(exact_peaks.MIN_STEPS_BY_DEGREE[deg[k]], exact_peaks.INNER_PEAK_STEPS * inner)
+        assert least[k] == want, k
+    assert 0 < np.sum(least == exact_peaks.INNER_PEAK_STEPS) < 40
     smp = F._sample(pp.breaks, 1e-3, 250_000, least)
     steps = np.diff(smp.first, append=len(smp.t)) - 1
     assert np.all(steps >= least) and np.all(steps >= np.ceil(np.diff(pp.breaks) / 1e-3 - 1e-9))
     # a tight budget takes steps from the pieces with most, and says so
-    tight = F._sample(pp.breaks, 1e-3, 220, least)
+    tight = F._sample(pp.breaks, 1e-3, 400, least)
     cut = np.diff(tight.first, append=len(tight.t)) - 1
-    assert len(smp.t) > 220 >= len(tight.t) and np.all(cut >= 1)
+    assert len(smp.t) > 400 >= len(tight.t) and np.all(cut >= 1)
     warn = exact_peaks.sampling_warnings(tight, least, 1e-3)
     assert any("short segment(s)" in w for w in warn)

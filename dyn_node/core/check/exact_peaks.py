@@ -21,9 +21,13 @@ from dyn_node.core.check.trajectory import PiecewisePolynomial
 from dyn_node.core.compiled import peak_kernels as pk
 
 #: Steps per piece at least, by the piece's polynomial degree (index): a linear piece's torque
-#: is nearly linear; a cubic's (q̈ linear) and a quintic's (q̈ cubic, q⃛ quadratic) need interior
-#: samples for their peaks, and ≥ 4 steps for the fourth-order effort-rate differences.
-MIN_STEPS_BY_DEGREE = (1, 2, 4, 8, 8, 8)
+#: is nearly linear; a quadratic's or higher needs ≥ 4 steps for the fourth-order effort-rate
+#: differences, which resolve a torque peak at the piece's ends exactly.
+MIN_STEPS_BY_DEGREE = (1, 2, 4, 4, 4, 4)
+#: Steps at least in a piece whose |q̈| or |q⃛| peaks inside it (a rest-to-rest quintic's
+#: inertial torque peaks at s = 0.21 T): uniform steps miss such a peak by ~1/n² of it, 0.1 %
+#: at 32 steps and 0.04 % at 48 for a rest-to-rest quintic (docs/limits.md).
+INNER_PEAK_STEPS = 48
 
 
 def piece_degrees(pp: PiecewisePolynomial) -> np.ndarray:
@@ -34,9 +38,14 @@ def piece_degrees(pp: PiecewisePolynomial) -> np.ndarray:
 
 
 def min_steps(pp: PiecewisePolynomial) -> np.ndarray:
-    """Per piece, the fewest sample steps the torque kinds take on it (by its degree)."""
+    """Per piece, the fewest sample steps the torque kinds take on it: by its degree, and
+    :data:`INNER_PEAK_STEPS` where some joint's acceleration or jerk peaks inside it (by more
+    than 0.1 % over the piece's ends, which are samples anyway)."""
     table = np.asarray(MIN_STEPS_BY_DEGREE)
-    return table[np.minimum(piece_degrees(pp), len(table) - 1)]
+    least = table[np.minimum(piece_degrees(pp), len(table) - 1)]
+    inner = (pk.inner_peaks(pp.coeffs, pp.breaks, 2, 1e-3)
+             | pk.inner_peaks(pp.coeffs, pp.breaks, 3, 1e-3))
+    return np.where(inner, np.maximum(least, INNER_PEAK_STEPS), least)
 
 
 def sampling_warnings(smp: Samples, least: np.ndarray, period: float) -> list[str]:
@@ -74,28 +83,21 @@ def _first_law_piece(motion: Motion) -> int:
     return int(motion.smp.seg[motion.r0]) if motion.r0 < len(motion.smp.seg) else 0
 
 
-def _best(val: np.ndarray, at: np.ndarray, breaks: np.ndarray, seg0: int) -> ExactPeaks:
-    """The per-piece maxima (K×m, s from each piece's start) reduced to per-column peaks."""
-    k = np.argmax(val, axis=0)
-    cols = np.arange(val.shape[1])
-    law = val[seg0:].max(axis=0) if len(val) > seg0 else np.zeros(val.shape[1])
-    return ExactPeaks(val[k, cols], breaks[k] + at[k, cols], law)
-
-
 def magnitude_peaks(motion: Motion, order: int, cols: np.ndarray) -> ExactPeaks:
     """|q⁽ᵒʳᵈᵉʳ⁾| (velocity 1, acceleration 2, jerk 3) exactly, per column of ``cols``."""
     pp = motion.pieces
-    hi, t_hi, lo, t_lo = pk.piece_range(pp.coeffs, np.diff(pp.breaks), order, cols)
+    hi, t_hi, lo, t_lo, law_hi, law_lo = pk.column_range(pp.coeffs, pp.breaks, order, cols,
+                                                         _first_law_piece(motion))
     up = hi >= -lo
-    return _best(np.where(up, hi, -lo), np.where(up, t_hi, t_lo), pp.breaks,
-                 _first_law_piece(motion))
+    return ExactPeaks(np.where(up, hi, -lo), np.where(up, t_hi, t_lo),
+                      np.maximum(law_hi, -law_lo))
 
 
 def deceleration_peaks(motion: Motion, cols: np.ndarray) -> ExactPeaks:
     """The supremum of |q̈| where q̇·q̈ < 0 exactly, per column of ``cols``."""
     pp = motion.pieces
-    val, at = pk.piece_deceleration(pp.coeffs, np.diff(pp.breaks), cols)
-    return _best(val, at, pp.breaks, _first_law_piece(motion))
+    return ExactPeaks(*pk.column_deceleration(pp.coeffs, pp.breaks, cols,
+                                              _first_law_piece(motion)))
 
 
 def report(kind: str, motion: Motion, peaks: ExactPeaks, cols: np.ndarray, L: np.ndarray,
@@ -136,11 +138,7 @@ class PositionRange:
 
 def position_range(motion: Motion, cols: np.ndarray) -> PositionRange:
     pp = motion.pieces
-    hi, t_hi, lo, t_lo = pk.piece_range(pp.coeffs, np.diff(pp.breaks), 0, cols)
-    top, bottom = _best(hi, t_hi, pp.breaks, 0), _best(-lo, t_lo, pp.breaks, 0)
-    seg0 = _first_law_piece(motion)
-    return PositionRange(top.value, top.time_s, -bottom.value, bottom.time_s,
-                         hi[seg0:].max(axis=0), lo[seg0:].min(axis=0))
+    return PositionRange(*pk.column_range(pp.coeffs, pp.breaks, 0, cols, _first_law_piece(motion)))
 
 
 def position_excess(motion: Motion, cols: np.ndarray, lower: np.ndarray, upper: np.ndarray

@@ -22,7 +22,6 @@ from dyn_node.core.compiled.jit import _I, _JIT, _V, _f8, _i8
 MAXP = 6
 
 _T3 = types.Array(_f8, 3, "A", readonly=True)
-_KM = types.Array(_f8, 2, "C")
 
 
 @njit(**_JIT)
@@ -113,7 +112,8 @@ def _roots(D: np.ndarray, deg: int, T: float, out: np.ndarray) -> int:
 
 
 @njit(**_JIT)
-def _piece_range(D: np.ndarray, deg: int, T: float, roots: np.ndarray) -> tuple[float, float, float, float]:
+def _piece_range(D: np.ndarray, deg: int, T: float,
+                 roots: np.ndarray) -> tuple[float, float, float, float]:
     """(max, its s, min, its s) of D[0] over [0, T]: at the ends or the roots of D[1] inside."""
     f0 = _horner(D[0], deg + 1, 0.0) if deg >= 0 else 0.0
     hi, t_hi, lo, t_lo = f0, 0.0, f0, 0.0
@@ -128,22 +128,67 @@ def _piece_range(D: np.ndarray, deg: int, T: float, roots: np.ndarray) -> tuple[
     return hi, t_hi, lo, t_lo
 
 
-@njit([types.UniTuple(_KM, 4)(_T3, _V, _i8, _I)], **_JIT)
-def piece_range(coeffs: np.ndarray, T: np.ndarray, order: int, cols: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per piece k and column c (joint cols[c]): the largest and smallest value of derivative
-    ``order`` of the polynomial over [0, T[k]] and the time from the piece's start of each,
-    as four K×m arrays (max, s of max, min, s of min)."""
+@njit(**_JIT)
+def _ends(src: np.ndarray, k: int, j: int, order: int, T: float) -> tuple[float, float, float]:
+    """Derivative ``order`` of column j on piece k: its value at s = 0 and at s = T, and R, a
+    bound of |value(s) − value(0)| on [0, T] (Σ |coefficient|·Tᵖ beyond the constant)."""
+    f0, fT, R, tp = 0.0, 0.0, 0.0, 1.0
+    for p in range(order, src.shape[1]):
+        fac = 1.0
+        for i in range(p - order + 1, p + 1):
+            fac *= i
+        c = fac * src[k, p, j]
+        if p == order:
+            f0 = c
+        else:
+            R += abs(c) * tp
+        fT += c * tp
+        tp *= T
+    return f0, fT, R
+
+
+_C1 = types.Array(_f8, 1, "C")
+
+
+@njit([types.UniTuple(_C1, 6)(_T3, _V, _i8, _I, _i8)], **_JIT)
+def column_range(coeffs: np.ndarray, breaks: np.ndarray, order: int, cols: np.ndarray,
+                 seg0: int) -> tuple[np.ndarray, ...]:
+    """Per column c (joint cols[c]) of derivative ``order``: its largest value and the time
+    (on the breaks' clock), its smallest and that time, over every piece; and its largest and
+    smallest from piece ``seg0`` on. The ends of every piece first; then only the pieces whose
+    bound (value at the start ± R) could beat them are solved for their insides."""
     K, m = coeffs.shape[0], len(cols)
-    hi, t_hi = np.empty((K, m)), np.empty((K, m))
-    lo, t_lo = np.empty((K, m)), np.empty((K, m))
+    hi, t_hi, lo, t_lo = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    law_hi, law_lo = np.full(m, -np.inf), np.full(m, np.inf)
     D = np.empty((MAXP, MAXP))
     roots = np.empty(MAXP)
-    for k in range(K):
-        for c in range(m):
-            deg = _chain(coeffs, k, cols[c], order, D)
-            hi[k, c], t_hi[k, c], lo[k, c], t_lo[k, c] = _piece_range(D, deg, T[k], roots)
-    return hi, t_hi, lo, t_lo
+    for c in range(m):
+        j = cols[c]
+        h, th, l, tl = -np.inf, breaks[0], np.inf, breaks[0]
+        for k in range(K):
+            f0, fT, _ = _ends(coeffs, k, j, order, breaks[k + 1] - breaks[k])
+            for f, t in ((f0, breaks[k]), (fT, breaks[k + 1])):
+                if f > h:
+                    h, th = f, t
+                if f < l:
+                    l, tl = f, t
+                if k >= seg0:
+                    law_hi[c], law_lo[c] = max(law_hi[c], f), min(law_lo[c], f)
+        for k in range(K):
+            T = breaks[k + 1] - breaks[k]
+            f0, _, R = _ends(coeffs, k, j, order, T)
+            top, bottom = (law_hi[c], law_lo[c]) if k >= seg0 else (h, l)
+            if f0 + R <= top and f0 - R >= bottom:
+                continue              # its inside cannot beat the ends already seen
+            ph, sh, pl, sl = _piece_range(D, _chain(coeffs, k, j, order, D), T, roots)
+            if ph > h:
+                h, th = ph, breaks[k] + sh
+            if pl < l:
+                l, tl = pl, breaks[k] + sl
+            if k >= seg0:
+                law_hi[c], law_lo[c] = max(law_hi[c], ph), min(law_lo[c], pl)
+        hi[c], t_hi[c], lo[c], t_lo[c] = h, th, l, tl
+    return hi, t_hi, lo, t_lo, law_hi, law_lo
 
 
 @njit(**_JIT)
@@ -162,33 +207,50 @@ def _stops_at(DV: np.ndarray, dv: int, s: float) -> bool:
     return (_horner(DV[0], dv + 1, s) if dv >= 0 else 0.0) == 0.0
 
 
-@njit([types.UniTuple(_KM, 2)(_T3, _V, _I)], **_JIT)
-def piece_deceleration(coeffs: np.ndarray, T: np.ndarray, cols: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Per piece and column: the supremum of |q̈| where |q̇| decreases (q̇·q̈ < 0) and its s.
-    Candidates: both ends, the extrema of q̈ inside (roots of q⃛) and the stops inside (roots of
-    q̇, approached from a deceleration whenever q̈ ≠ 0 there); a piece ending at q̇ = 0 with
-    q̈ ≠ 0 decelerates into its end."""
+@njit(**_JIT)
+def _piece_decel(DV: np.ndarray, dv: int, DA: np.ndarray, da: int, T: float,
+                 r: np.ndarray) -> tuple[float, float]:
+    """The supremum of |q̈| where q̇·q̈ < 0 on one piece and its s. Candidates: both ends, the
+    extrema of q̈ inside (roots of q⃛) and the stops inside (roots of q̇, approached from a
+    deceleration whenever q̈ ≠ 0 there); a piece ending at q̇ = 0 with q̈ ≠ 0 decelerates
+    into its end."""
+    best, s_best = _decel_at(DV, dv, DA, da, 0.0, False), 0.0
+    f = _decel_at(DV, dv, DA, da, T, _stops_at(DV, dv, T))
+    if f > best:
+        best, s_best = f, T
+    for stop in range(2):
+        n = _roots(DV, dv, T, r) if stop else _roots(DA[1:], da - 1, T, r)
+        for i in range(n):
+            f = _decel_at(DV, dv, DA, da, r[i], stop == 1)
+            if f > best:
+                best, s_best = f, r[i]
+    return best, s_best
+
+
+@njit([types.UniTuple(_C1, 3)(_T3, _V, _I, _i8)], **_JIT)
+def column_deceleration(coeffs: np.ndarray, breaks: np.ndarray, cols: np.ndarray,
+                        seg0: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per column: the supremum of |q̈| where |q̇| decreases (q̇·q̈ < 0) over every piece, its
+    time, and the same from piece ``seg0`` on. Pieces whose |q̈| bound (|q̈(0)| + R) cannot beat
+    the best so far are skipped; the others solved (:func:`_piece_decel`)."""
     K, m = coeffs.shape[0], len(cols)
-    val, at = np.zeros((K, m)), np.zeros((K, m))
+    val, at, law = np.zeros(m), np.full(m, breaks[0]), np.zeros(m)
     DV, DA = np.empty((MAXP, MAXP)), np.empty((MAXP, MAXP))
     r = np.empty(MAXP)
-    for k in range(K):
-        for c in range(m):
-            dv = _chain(coeffs, k, cols[c], 1, DV)
-            da = _chain(coeffs, k, cols[c], 2, DA)
-            best, s_best = _decel_at(DV, dv, DA, da, 0.0, False), 0.0
-            f = _decel_at(DV, dv, DA, da, T[k], _stops_at(DV, dv, T[k]))
-            if f > best:
-                best, s_best = f, T[k]
-            for stop in range(2):
-                n = _roots(DV, dv, T[k], r) if stop else _roots(DA[1:], da - 1, T[k], r)
-                for i in range(n):
-                    f = _decel_at(DV, dv, DA, da, r[i], stop == 1)
-                    if f > best:
-                        best, s_best = f, r[i]
-            val[k, c], at[k, c] = best, s_best
-    return val, at
+    for c in range(m):
+        j = cols[c]
+        for k in range(K):
+            T = breaks[k + 1] - breaks[k]
+            a0, _, R = _ends(coeffs, k, j, 2, T)
+            if abs(a0) + R <= (law[c] if k >= seg0 else val[c]):
+                continue
+            dv = _chain(coeffs, k, j, 1, DV)
+            best, s = _piece_decel(DV, dv, DA, _chain(coeffs, k, j, 2, DA), T, r)
+            if best > val[c]:
+                val[c], at[c] = best, breaks[k] + s
+            if k >= seg0:
+                law[c] = max(law[c], best)
+    return val, at, law
 
 
 @njit(**_JIT)
@@ -297,3 +359,25 @@ def segment_rate(F: np.ndarray, first: np.ndarray, last: np.ndarray,
             else:
                 _rate3(F, f, l_, c, h[f], D)
     return D
+
+
+@njit([types.Array(types.boolean, 1, "C")(_T3, _V, _i8, _f8)], **_JIT)
+def inner_peaks(coeffs: np.ndarray, breaks: np.ndarray, order: int, margin: float) -> np.ndarray:
+    """Per piece: whether some column's |derivative ``order``| peaks inside it, above
+    (1 + margin) × its larger end (the samples at the ends would not resolve that peak)."""
+    K, nv = coeffs.shape[0], coeffs.shape[2]
+    out = np.zeros(K, dtype=np.bool_)
+    D = np.empty((MAXP, MAXP))
+    roots = np.empty(MAXP)
+    for k in range(K):
+        T = breaks[k + 1] - breaks[k]
+        for j in range(nv):
+            f0, fT, R = _ends(coeffs, k, j, order, T)
+            end = (1.0 + margin) * max(abs(f0), abs(fT))
+            if abs(f0) + R <= end:
+                continue
+            hi, _, lo, _ = _piece_range(D, _chain(coeffs, k, j, order, D), T, roots)
+            if max(hi, -lo) > end:
+                out[k] = True
+                break
+    return out
