@@ -69,8 +69,8 @@ def sampling_warnings(smp: Samples, least: np.ndarray, period: float) -> list[st
 
 @dataclass(frozen=True)
 class ExactPeaks:
-    """One kind's exact peaks per column: the largest |value| over every piece and over the
-    pieces the time-scale laws cover (from ``seg0``), with its time and signed value."""
+    """One kind's exact peaks per column: the largest |value| over every piece, with its time,
+    and the largest over the pieces the time-scale laws cover (from the first law piece)."""
 
     value: np.ndarray        # |value| at the peak, per column
     time_s: np.ndarray
