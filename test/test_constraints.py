@@ -133,6 +133,8 @@ KINDS = {
 #: the closed forms against the kernels' arithmetic: finite differences (effort rate) and the
 #: trapezoid windows (RMS) are approximations of their own
 TOL = {"effort_rate": 2e-3, "rms_effort": 2e-3}
+#: the kinds whose peaks are exact on each polynomial piece (core.check.exact_peaks)
+EXACT = ("velocity", "acceleration", "deceleration", "jerk")
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
@@ -153,10 +155,19 @@ def test_kind_through_the_interface(kind):
     peaks, violations = c.report(motion)
     ratio = np.abs(c.values()) / L
     for col, p in enumerate(peaks):
-        n = int(np.argmax(ratio[:, col]))
-        assert p.where == NAMES[col]
-        assert p.ratio == pytest.approx(ratio[n, col], rel=1e-12)
-        assert p.time_s == tt[n] and p.limit == L[col]
+        assert p.where == NAMES[col] and p.limit == L[col]
+        if kind in EXACT:
+            # the kinematic kinds' peaks are exact (the closed form's extremum, between samples
+            # or not): as large as on a grid 10⁴ times finer, and reached at the time reported
+            fine = np.linspace(0.0, T, 1_000_001)
+            assert p.ratio == pytest.approx(np.max(np.abs(reference(fine)[:, col])) / L[col],
+                                            rel=1e-9)
+            assert p.ratio >= np.max(ratio[:, col]) * (1 - 1e-12)
+            at = np.array([p.time_s - 1e-12, p.time_s])   # deceleration: its sup from the left
+            assert np.max(np.abs(reference(at)[:, col])) / L[col] == pytest.approx(p.ratio, rel=1e-9)
+        else:
+            n = int(np.argmax(ratio[:, col]))
+            assert p.ratio == pytest.approx(ratio[n, col], rel=1e-12) and p.time_s == tt[n]
     assert {v.joint for v in violations} == set(NAMES) and {v.kind for v in violations} == {kind}
     # the time-scale factor against the stretched trajectory, checked directly
     k = float(np.max(c.time_scale()))
@@ -178,7 +189,12 @@ def test_position_through_the_interface():
     # joint 1 goes 0.2 → 1.2: beyond its upper bound 1.0 from where q = 1
     (v,) = violations
     assert v.joint == NAMES[0] and v.peak_value == pytest.approx(1.2, abs=1e-12)
-    assert v.limit == 1.0 and v.first_time_s == tt[np.argmax(q[:, 0] > 1.0)]
+    # the exact crossing of q = 1 (between samples): 10s³ − 15s⁴ + 6s⁵ = 0.8
+    s_cross = np.polynomial.Polynomial([-0.8, 0, 0, 10, -15, 6]).roots()
+    s_cross = float(s_cross[(abs(s_cross.imag) < 1e-12) & (s_cross.real > 0) & (s_cross.real < 1)].real[0])
+    assert v.limit == 1.0 and v.first_time_s == pytest.approx(s_cross * T, rel=1e-12)
+    assert tt[np.argmax(q[:, 0] > 1.0) - 1] < v.first_time_s <= tt[np.argmax(q[:, 0] > 1.0)]
+    assert v.duration_s == pytest.approx(T - v.first_time_s, rel=1e-12)
     assert c.blocked() == C.Blocked(NAMES[0], timing_free=True)
     mid, half = (lo + hi) / 2, (hi - lo) / 2
     for col, p in enumerate(peaks):

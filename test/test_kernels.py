@@ -110,18 +110,23 @@ def test_rms_windows_match_a_direct_windowed_integral(seed):
     assert math.isnan(only[0]) and math.isnan(only[2]) and only[1] == got[1]
 
 
-def test_segment_derivative_is_exact_for_quadratics_and_stays_inside_segments():
+def test_segment_rate_is_exact_for_quartics_and_stays_inside_segments():
     from dyn_node.core.check.feasibility import _sample
-    smp = _sample(np.array([0.0, 0.5, 0.53, 1.2]), 0.05, 10_000)   # one segment of one step
-    t = smp.t
-    # a different quadratic per segment, so a difference across a boundary would show
-    F = np.stack([(1 + smp.seg) * t ** 2 + 3 * t, -2 * t ** 2 + smp.seg * t], axis=1)
-    D = K.segment_derivative(F, smp.first, smp.last, smp.h)
-    exact = np.stack([2 * (1 + smp.seg) * t + 3, -4 * t + smp.seg], axis=1)
-    one_step = np.isin(smp.seg, np.flatnonzero(smp.last - smp.first == 1))
-    np.testing.assert_allclose(D[~one_step], exact[~one_step], rtol=1e-9, atol=1e-9)
+    from dyn_node.core.compiled import peak_kernels as pk
+    # 10, 1, 2 and 14 steps: fourth order, the chord, second order, fourth order
+    smp = _sample(np.array([0.0, 0.5, 0.53, 0.63, 1.2]), 0.05, 10_000)
+    t, seg = smp.t, smp.seg
+    # a different quartic per segment, so a difference across a knot would show
+    F = np.stack([(1 + seg) * t ** 4 - 2 * t ** 3 + 3 * t, -2 * t ** 2 + seg * t], axis=1)
+    D = pk.segment_rate(np.asfortranarray(F), smp.first, smp.last, smp.h)
+    exact = np.stack([4 * (1 + seg) * t ** 3 - 6 * t ** 2 + 3, -4 * t + seg], axis=1)
+    steps = (smp.last - smp.first)[seg]
+    np.testing.assert_allclose(D[steps >= 4], exact[steps >= 4], rtol=1e-9, atol=1e-9)
+    # two steps: second order, exact for the quadratic column
+    np.testing.assert_allclose(D[steps == 2, 1], exact[steps == 2, 1], rtol=1e-9, atol=1e-9)
     # a one-step segment gets the chord slope at both ends
     f, l_ = smp.first[1], smp.last[1]
+    assert l_ - f == 1
     np.testing.assert_allclose(D[[f, l_]], np.repeat((F[l_] - F[f])[None] / smp.h[f], 2, 0))
 
 

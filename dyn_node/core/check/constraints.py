@@ -23,6 +23,7 @@ from dyn_node.core.robot.limits import JointLimits
 if TYPE_CHECKING:
     from dyn_node.core.robot.model import RobotModel
     from dyn_node.core.check.task_motion import TaskMotion
+    from dyn_node.core.check.trajectory import PiecewisePolynomial
 
 Band = tuple[float, float]
 
@@ -67,6 +68,9 @@ class Motion:
     units: Mapping[str, list[str]]
     #: the frame terms the task kinds read (None: no task section configured)
     task: "TaskMotion | None" = None
+    #: the executed trajectory's pieces, sample segment k = piece k: the kinematic kinds'
+    #: exact peaks (:mod:`dyn_node.core.check.exact_peaks`)
+    pieces: "PiecewisePolynomial | None" = None
 
     @property
     def limits(self) -> JointLimits:

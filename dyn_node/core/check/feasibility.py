@@ -16,7 +16,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from dyn_node.core.check import constraints, task_motion
+from dyn_node.core.check import constraints, exact_peaks, task_motion
 from dyn_node.core.compiled import kernels
 from dyn_node.core.check.constraints import (Blocked, Constraint, Motion, PayloadTerms, Samples,
                                              Violation, _fmt, _Job, json_scalar, percent_text, with_unit)
@@ -244,11 +244,12 @@ def _colmax(X: np.ndarray) -> np.ndarray:
     return X[np.argmax(X, axis=0), np.arange(X.shape[1])]
 
 
-def _sample(times: np.ndarray, period: float, max_samples: int) -> Samples:
-    """Every segment sampled on its own: uniform steps of at most ``period``, fewer only for the
-    longest segments when the samples would exceed ``max_samples`` (:func:`segment_steps`)."""
+def _sample(times: np.ndarray, period: float, max_samples: int,
+            min_steps: np.ndarray | None = None) -> Samples:
+    """Every segment sampled on its own: uniform steps of at most ``period``, at least ``min_steps``,
+    fewer only for the longest when samples would exceed ``max_samples`` (:func:`segment_steps`)."""
     T = np.diff(times)
-    n = segment_steps(times, period, max_samples)
+    n = segment_steps(times, period, max_samples, min_steps)
     counts = n + 1
     first = np.concatenate(([0], np.cumsum(counts)[:-1]))
     last = first + n
@@ -445,13 +446,9 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
     model = dynamics.model
     nv = model.nv
     pp = interpolate(work, work.natural_interpolation)
-    smp = _sample(work.times, options.sample_period, options.max_samples)
-    coarse = smp.h[smp.last] > options.sample_period * (1 + 1e-9)
-    if np.any(coarse):
-        steps = np.diff(smp.first, append=len(smp.t)) - 1
-        warnings.append(f"{int(coarse.sum())} long segment(s) sampled with "
-                        f"{int(steps[coarse].min())} steps (up to {smp.h.max() * 1e3:.3g} ms) "
-                        f"instead of {options.sample_period * 1e3:.3g} ms, to bound memory")
+    least = exact_peaks.min_steps(pp)
+    smp = _sample(pp.breaks, options.sample_period, options.max_samples, least)
+    warnings += exact_peaks.sampling_warnings(smp, least, options.sample_period)
     applicable = [cls for cls in KINDS if cls.applies(model)]
     n_derivatives = 1 + max((cls.order for cls in applicable), default=2)
     Q, V, A, *rest = _evaluate(pp.coeffs, pp.breaks, smp, max(3, n_derivatives))
@@ -490,8 +487,7 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
     return Motion(dynamics=dynamics, smp=smp, Q=Q, V=V, A=A, J=J, S=S, W=W, I=I, tau=tau, G=G,
                   coulomb=coulomb, hold=dynamics.gravity(Q[0]), task=task,
                   r0=int(smp.first[1]) if fixed_start else 0,
-                  parallel=parallel,
-                  units=joint_units(model)), tau1
+                  parallel=parallel, units=joint_units(model), pieces=pp), tau1
 
 
 def _effort_steps(motion: Motion, work: Trajectory, warnings: list[str]) -> dict[str, float]:

@@ -9,22 +9,23 @@ from typing import ClassVar
 
 import numpy as np
 
+from dyn_node.core.check import exact_peaks
 from dyn_node.core.check.constraints import (Band, Blocked, Constraint, JointConstraint, Motion,
                                              PayloadTerms, Peak, ScanRequest, Violation,
                                              _affine_band,
                                              _cumtrapz_rows, _fmt, _Job, _k_of_x, _power_exit,
                                              _static_block, _take, rms_time_scale)
 from dyn_node.core.compiled import kernels
+from dyn_node.core.compiled import peak_kernels as pk
 from dyn_node.core.compiled import scan_kernels as sk
 
 
 class _PowerLaw(JointConstraint):
-    """|value| ∝ x^power (x = 1/k) at every sample: the first exit is (L / peak)^(1/power), the
-    peak from the fused pass; the value itself is formed only when asked for (:meth:`values`)."""
+    """|value| ∝ x^power (x = 1/k) at every instant: the first exit is (L / peak)^(1/power),
+    the peak taken exactly on each polynomial piece (:mod:`~dyn_node.core.check.exact_peaks`);
+    the per-sample value is formed only when asked for (:meth:`values`)."""
 
     power: ClassVar[int]
-    #: how the fused pass forms the value from the Motion arrays ``sources``
-    op: ClassVar[int] = sk.ABS
     sources: ClassVar[tuple[str, ...]]
 
     def __init__(self, motion: Motion):
@@ -33,6 +34,10 @@ class _PowerLaw(JointConstraint):
         self._L = self.limit_array(motion.limits)[self.cols]
         self.limit = np.broadcast_to(self._L, (len(motion.smp.t), len(self.cols)))
         self._value: np.ndarray | None = None
+        self._peaks = self._exact(motion)
+
+    def _exact(self, motion: Motion) -> exact_peaks.ExactPeaks:
+        return exact_peaks.magnitude_peaks(motion, self.order, self.cols)
 
     @property
     def value(self) -> np.ndarray:
@@ -45,11 +50,14 @@ class _PowerLaw(JointConstraint):
         return _take(getattr(motion, self.sources[0]), self.cols)
 
     def scan_requests(self) -> list[ScanRequest]:
-        return [ScanRequest(self.op, self.sources, self._L, self.cols)]
+        return []       # exact peaks: nothing for the fused pass over the samples
+
+    def report(self, motion: Motion) -> tuple[list[Peak], list[Violation]]:
+        return exact_peaks.report(self.kind, motion, self._peaks, self.cols, self._L,
+                                  self.where, self.units, self.order)
 
     def time_scale(self) -> np.ndarray:
-        peak = self.scanned(self._motion)[0].abs_peak
-        return _k_of_x(_power_exit(self._L, peak, self.power))
+        return _k_of_x(_power_exit(self._L, self._peaks.law_peak, self.power))
 
 
 class Velocity(_PowerLaw):
@@ -62,9 +70,13 @@ class Acceleration(_PowerLaw):
 
 class Deceleration(_PowerLaw):
     """|q̈| where |q̇| decreases (q̇·q̈ < 0); that sign does not change with k, so the value
-    scales as 1/k² like the acceleration."""
+    scales as 1/k² like the acceleration. Its exact peak is the supremum over each deceleration
+    phase (one ending in a stop reaches its |q̈| at the stop)."""
 
-    kind, power, op, sources = "deceleration", 2, sk.DECEL, ("A", "V")
+    kind, power, sources = "deceleration", 2, ("A", "V")
+
+    def _exact(self, motion: Motion) -> exact_peaks.ExactPeaks:
+        return exact_peaks.deceleration_peaks(motion, self.cols)
 
     def _array(self, motion: Motion) -> np.ndarray:
         val = _take(motion.A, self.cols)
@@ -183,7 +195,9 @@ class Power(JointConstraint):
 
 
 class EffortRate(JointConstraint):
-    """|dτ/dt| ≤ L, by finite differences inside each segment (τ is smooth there); Coulomb
+    """|dτ/dt| ≤ L, by fourth-order differences inside each segment (τ is smooth there; each
+    knot's two sides are one-sided rates of their own segments, never a difference across
+    it: :func:`~dyn_node.core.compiled.peak_kernels.segment_rate`); Coulomb
     friction's step at a velocity reversal is left out, and says so."""
 
     kind, label, payload_dependent = "effort_rate", "effort rate", True
@@ -192,7 +206,7 @@ class EffortRate(JointConstraint):
         super().__init__(motion)
         cols, rows, smp = self.cols, motion.rows, motion.smp
         L = motion.limits.effort_rate[cols]
-        dG, dW, dI = (kernels.segment_derivative(_take(X, cols), smp.first, smp.last, smp.h)
+        dG, dW, dI = (pk.segment_rate(_take(X, cols), smp.first, smp.last, smp.h)
                       for X in (motion.G, motion.W, motion.I))
         self.value = dG + dW + dI
         self.limit = np.broadcast_to(L, self.value.shape)
@@ -207,8 +221,8 @@ class EffortRate(JointConstraint):
         coul = np.asarray(dyn.model.pin_model.friction, dtype=float)[cols] \
             if dyn.options.include_friction else 0.0
         smooth0 = _take(motion.tau, cols) - coul * np.sign(_take(motion.V, cols))
-        d0 = kernels.segment_derivative(smooth0, smp.first, smp.last, smp.h)
-        d1 = kernels.segment_derivative(_take(payload.tau1, cols), smp.first, smp.last, smp.h)
+        d0 = pk.segment_rate(smooth0, smp.first, smp.last, smp.h)
+        d1 = pk.segment_rate(_take(payload.tau1, cols), smp.first, smp.last, smp.h)
         return _affine_band(d0, d1, self.limit)
 
 
@@ -312,14 +326,13 @@ class Position(Constraint):
         self.cols, self.where = cols, tuple(names[j] for j in cols)
         self.units = [motion.units["position"][j] for j in cols]
         self._motion = motion
-        # one compiled pass over q for every sample the limits test (position_scan)
-        at_over, at_lo, at_hi, at_mid, late = sk.position_scan(
-            motion.Q, cols, lim.position_lower[cols], lim.position_upper[cols],
-            lim.soft_lower[cols], lim.soft_upper[cols], motion.r0)
-        self.warnings = self._soft(motion, at_lo, at_hi)
-        self._peaks, self._violations = self._hard(motion, at_over, at_mid)
+        # q's exact extremes on every piece (exact_peaks), not its samples
+        rng = exact_peaks.position_range(motion, cols)
+        self.warnings = self._soft(motion, rng)
+        self._peaks, self._violations = self._hard(motion, rng)
         self._blocked = None
-        if np.any(late):   # beyond a hard limit after the start segment
+        lo, hi = lim.position_lower[cols], lim.position_upper[cols]
+        if np.any((rng.late_max > hi) | (rng.late_min < lo)):   # beyond after the start segment
             v0 = max(self._violations, key=lambda v: abs(v.peak_value - v.limit))
             self._blocked = Blocked(v0.joint, timing_free=True)
 
@@ -328,38 +341,43 @@ class Position(Constraint):
         """q of the limited joints (formed when asked for), each joint's samples contiguous."""
         return np.asfortranarray(_take(self._motion.Q, self.cols))
 
-    def _soft(self, motion: Motion, at_lo: np.ndarray, at_hi: np.ndarray) -> list[str]:
-        lim, cols, Q, tt = motion.limits, self.cols, motion.Q, motion.smp.t
+    def _soft(self, motion: Motion, rng: "exact_peaks.PositionRange") -> list[str]:
+        lim, cols = motion.limits, self.cols
         out = []
         for c, where in enumerate(self.where):
             j = cols[c]
             # beyond a soft bound when > 0 (an infinite bound gives −inf, never a warning)
-            for bound, n, beyond in ((lim.soft_lower[j], at_lo[c], -(Q[at_lo[c], j] - lim.soft_lower[j])),
-                                     (lim.soft_upper[j], at_hi[c], Q[at_hi[c], j] - lim.soft_upper[j])):
+            for bound, q, t, beyond in (
+                    (lim.soft_lower[j], rng.q_min[c], rng.t_min[c], lim.soft_lower[j] - rng.q_min[c]),
+                    (lim.soft_upper[j], rng.q_max[c], rng.t_max[c], rng.q_max[c] - lim.soft_upper[j])):
                 if beyond > 0:
-                    out.append(f"{where} enters its soft-limit zone: q = {_fmt(Q[n, j])} "
-                               f"{self.units[c]} beyond {_fmt(bound)} at t = {tt[n]:.2f} s")
+                    out.append(f"{where} enters its soft-limit zone: q = {_fmt(q)} "
+                               f"{self.units[c]} beyond {_fmt(bound)} at t = {t:.2f} s")
         return out
 
-    def _hard(self, motion: Motion, at_over: np.ndarray, at_mid: np.ndarray
+    def _hard(self, motion: Motion, rng: "exact_peaks.PositionRange"
               ) -> tuple[list[Peak], list[Violation]]:
-        lim, cols, Q, tt = motion.limits, self.cols, motion.Q, motion.smp.t
+        lim, cols = motion.limits, self.cols
         lo, hi = lim.position_lower[cols], lim.position_upper[cols]
         ranged = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        over = np.maximum(rng.q_max - hi, lo - rng.q_min)
+        bad = np.flatnonzero(over > 0)
+        first, outside = exact_peaks.position_excess(motion, cols[bad], lo[bad], hi[bad])
         peaks, violations = [], []
         for c, where in enumerate(self.where):
-            n, q = at_over[c], float(Q[at_over[c], cols[c]])
-            if max(q - hi[c], lo[c] - q) > 0:
-                bad = np.maximum(Q[:, cols[c]] - hi[c], lo[c] - Q[:, cols[c]]) > 0
-                violations.append(Violation(
-                    where, "position", float(tt[np.argmax(bad)]), float(tt[n]), q,
-                    float(hi[c] if q > hi[c] else lo[c]), float(motion.smp.weight[bad].sum()),
-                    self.units[c]))
+            up = rng.q_max[c] - hi[c] >= lo[c] - rng.q_min[c]
+            q, t = (rng.q_max[c], rng.t_max[c]) if up else (rng.q_min[c], rng.t_min[c])
+            if over[c] > 0:
+                n = int(np.flatnonzero(bad == c)[0])
+                t0 = first[n] if np.isfinite(first[n]) else t
+                violations.append(Violation(where, "position", float(min(t0, t)), float(t),
+                                            float(q), float(hi[c] if up else lo[c]),
+                                            float(outside[n]), self.units[c]))
             if ranged[c]:
-                n = at_mid[c]
-                q = float(Q[n, cols[c]])
-                peaks.append(Peak(where, float(abs(q - mid[c]) / half[c]), float(tt[n]), q,
+                up = rng.q_max[c] - mid[c] >= mid[c] - rng.q_min[c]
+                q, t = (rng.q_max[c], rng.t_max[c]) if up else (rng.q_min[c], rng.t_min[c])
+                peaks.append(Peak(where, float(abs(q - mid[c]) / half[c]), float(t), float(q),
                                   float(hi[c] if q >= mid[c] else lo[c])))
         return peaks, violations
 

@@ -305,15 +305,19 @@ MIN_SEGMENT_STEPS = 32
 MAX_STEP_GROWTH = 4.0
 
 
-def segment_steps(times: np.ndarray, period: float, max_samples: int) -> np.ndarray:
-    """Steps per segment: ⌈T/period⌉ each (at least 1); when the samples (steps + 1 per segment)
-    would exceed ``max_samples``, the longest segments give up steps first: all are capped at
-    the largest count that fits, none below its floor (see :data:`MIN_SEGMENT_STEPS`), so a
-    short segment keeps its resolution however long the rest is. Raises
-    :class:`TrajectoryError` (``too_long``) when the floors alone do not fit."""
+def segment_steps(times: np.ndarray, period: float, max_samples: int,
+                  min_steps: np.ndarray | None = None) -> np.ndarray:
+    """Steps per segment: ⌈T/period⌉ each and at least ``min_steps`` (per segment; default 1:
+    a segment shorter than the period is sampled inside too); when the samples (steps + 1 per
+    segment) would exceed ``max_samples``, the segments with most steps give up steps first:
+    all are capped at the largest count that fits, none below its floor (see
+    :data:`MIN_SEGMENT_STEPS`; ``min_steps`` is a wish, not a floor), so a short segment keeps
+    its resolution however long the rest is. Raises :class:`TrajectoryError` (``too_long``)
+    when the floors alone do not fit."""
     T = np.diff(times)
+    least = np.ones(len(T)) if min_steps is None else np.maximum(1.0, min_steps)
     with np.errstate(over="ignore", invalid="ignore"):
-        want = np.maximum(1.0, np.ceil(T / period - 1e-9))
+        want = np.maximum(least, np.ceil(T / period - 1e-9))
         floor = np.minimum(want, np.minimum(float(MIN_SEGMENT_STEPS),
                                             np.maximum(1.0, np.ceil(T / (MAX_STEP_GROWTH * period)))))
     budget = max_samples - len(T)

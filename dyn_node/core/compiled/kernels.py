@@ -640,26 +640,3 @@ def bin_peaks(val: np.ndarray, edges: np.ndarray) -> np.ndarray:
                     best, where = v, n
             out[b, c] = where
     return out
-
-
-@njit([_F2(_M, _I, _I, _V)], **_JIT)
-def segment_derivative(F: np.ndarray, first: np.ndarray, last: np.ndarray,
-                       h: np.ndarray) -> np.ndarray:
-    """d/dt of samples F (M×m, per second) inside each segment (samples first[k]..last[k], step
-    h): central differences in the interior, second-order one-sided at segment ends (first
-    order for one-step segments). Column-major M×m."""
-    M, m = F.shape
-    D = np.empty((m, M)).T
-    for c in range(m):
-        for k in range(len(first)):
-            f, l_ = first[k], last[k]
-            if l_ - f >= 2:
-                for n in range(f + 1, l_):
-                    D[n, c] = (F[n + 1, c] - F[n - 1, c]) / (2 * h[n])
-                D[f, c] = (-3 * F[f, c] + 4 * F[f + 1, c] - F[f + 2, c]) / (2 * h[f])
-                D[l_, c] = (3 * F[l_, c] - 4 * F[l_ - 1, c] + F[l_ - 2, c]) / (2 * h[f])
-            else:
-                d1 = (F[l_, c] - F[f, c]) / h[f]
-                D[f, c] = d1
-                D[l_, c] = d1
-    return D
