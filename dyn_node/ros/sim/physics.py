@@ -5,7 +5,9 @@ settings. Publications: ``~/contact_truth`` (dyn_node_interfaces/ContactTruth) w
 joint_states message while some robot–scene contact is active, stamped like it, and a
 ``dyn_sim: physics`` status on ``/diagnostics`` every ``physics_diagnostics_period`` s of
 simulation time (solver iterations and residual, MuJoCo warnings, largest penetration, energy
-budget and its error; a diverging step is an ERROR labelled ``evaluation error``).
+budget and its error; a diverging step is an ERROR labelled ``evaluation error``). When the
+simulator's divergence guard stops the physics (:attr:`Simulator.fault`) the ERROR is published at
+once, with the fault's line (joint, quantity, step), and repeated each period until ``~/reset``.
 """
 from __future__ import annotations
 
@@ -106,6 +108,7 @@ class SimPhysics:
         self.diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._period_steps = max(1, int(round(period_s / sim.config.timestep)))
         self._next_report = self._period_steps
+        self._fault_said = None
 
     def on_publish(self) -> None:
         """After each joint_states publication: the truth while in contact, the status when due."""
@@ -115,6 +118,11 @@ class SimPhysics:
             if truth.active:
                 self.truth_pub.publish(truth_message(truth, self._stamp(steps), self.base_frame))
                 self.truth_published += 1
+        fault = self.sim.fault
+        if fault is not None and fault is not self._fault_said:
+            self._fault_said = fault
+            self.node.get_logger().error(f"dyn_sim: {fault.text}")
+            self._next_report = steps  # said now, not at the end of the period
         if self.sim.physics is not None and steps >= self._next_report:
             self._next_report = steps + self._period_steps
             st = self.sim.physics.report(self.sim.data)
