@@ -42,7 +42,7 @@ def sampled_loop_radius(M: np.ndarray, kp: np.ndarray, kd: np.ndarray, dt: float
     eye = np.eye(n)
     vel = np.hstack([-dt * P, eye - dt * D])
     pos = (np.hstack([eye - 0.5 * dt * dt * P, dt * eye - 0.5 * dt * dt * D]) if rk4
-           else np.hstack([eye, dt * eye]) + dt * vel)
+           else np.hstack([eye, np.zeros((n, n))]) + dt * vel)  # e + dt·ė_new
     return float(np.abs(np.linalg.eigvals(np.vstack([pos, vel]))).max())
 
 
