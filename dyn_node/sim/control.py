@@ -53,13 +53,18 @@ def damping_rate_dt(M: np.ndarray, damping: np.ndarray, dt: float) -> float:
     return float(np.linalg.eigvalsh(Li @ np.diag(damping) @ Li.T).max()) * dt
 
 
-def choose_integrator(asked: str, M: np.ndarray, damping: np.ndarray, dt: float) -> tuple[str, str]:
-    """(integrator used, "" or the one line saying why it is not ``asked``)."""
+def choose_integrator(asked: str, M: np.ndarray, damping: np.ndarray, dt: float, *,
+                      auto: bool = True) -> tuple[str, str]:
+    """(integrator used, "" or the one line about it). ``auto`` (the integrator was not chosen by
+    the user): an explicit one the damping is too stiff for becomes implicitfast; else it is kept
+    and the line says it will diverge."""
     rate = damping_rate_dt(M, damping, dt)
     if asked in ("rk4", "euler") and rate > MAX_DAMPING_DT:
-        return "implicitfast", (f"integrator {asked} cannot integrate the URDF's joint damping at timestep "
-                                f"{dt:g} s (λ_max(M⁻¹D)·dt = {rate:.3g} > {MAX_DAMPING_DT:g}): using "
-                                "implicitfast, which integrates damping implicitly")
+        why = (f"integrator {asked} cannot integrate the URDF's joint damping at timestep {dt:g} s "
+               f"(λ_max(M⁻¹D)·dt = {rate:.3g} > {MAX_DAMPING_DT:g})")
+        if auto:
+            return "implicitfast", f"{why}: using implicitfast, which integrates damping implicitly"
+        return asked, f"{why}: kept as asked; expect the physics to diverge (implicitfast would not)"
     return asked, ""
 
 

@@ -58,6 +58,9 @@ class SimConfig:
     solver: SolverSettings = SolverSettings()
     #: MuJoCo's mjENBL_ENERGY (data.energy = potential, kinetic); no effect on the dynamics
     energy: bool = False
+    #: solver.integrator is a default, not the user's choice: implicitfast replaces an explicit
+    #: integrator the URDF's damping is too stiff for (dyn_node.sim.control.choose_integrator)
+    integrator_auto: bool = True
 
 
 @dataclass(frozen=True)
@@ -219,8 +222,8 @@ class Simulator:
         M0 = self._inertia(q0)
         self._damping = self.mj.dof_damping[self._di].copy()
         #: the MuJoCo integrator in use, and "" or why it is not the one asked for
-        self.integrator, self.integrator_note = choose_integrator(config.solver.integrator, M0, self._damping,
-                                                                  config.timestep)
+        self.integrator, self.integrator_note = choose_integrator(
+            config.solver.integrator, M0, self._damping, config.timestep, auto=config.integrator_auto)
         self.mj.opt.integrator = int(INTEGRATORS[self.integrator])
         self._rk4 = self.integrator == "rk4"
         # implicit integrators solve (M + dt·D)·q̈ = f: the computed torque wants that matrix

@@ -30,7 +30,8 @@ _DEF = SolverSettings()
 SCENE_PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("scene_file", "string", "", "YAML of static objects the robot collides with "
               "(docs/SIMULATOR.md); empty: no scene, contacts off"),
-    ParamSpec("integrator", "string", _DEF.integrator, "MuJoCo integrator: rk4, euler, implicit, implicitfast"),
+    ParamSpec("integrator", "string", "auto", "MuJoCo integrator: auto (rk4, or implicitfast when the URDF's "
+              "damping is too stiff for it at the timestep), rk4, euler, implicit, implicitfast"),
     ParamSpec("solver", "string", _DEF.solver, "MuJoCo constraint solver (with a scene): newton, cg, pgs"),
     ParamSpec("solver_iterations", "integer", _DEF.iterations, "solver iteration limit", 1, 10000),
     ParamSpec("solver_tolerance", "double", _DEF.tolerance, "solver tolerance (MuJoCo's)", 0.0, 1.0),
@@ -47,7 +48,8 @@ SCENE_PARAMETERS: tuple[ParamSpec, ...] = (
 
 def sim_config_extras(p: dict[str, Any], model: RobotModel) -> dict[str, Any]:
     """SimConfig keyword arguments from the parameters: scene (validated), solver, energy on."""
-    solver = SolverSettings(integrator=p["integrator"], solver=p["solver"],
+    auto = p["integrator"] == "auto"
+    solver = SolverSettings(integrator=_DEF.integrator if auto else p["integrator"], solver=p["solver"],
                             iterations=int(p["solver_iterations"]), tolerance=float(p["solver_tolerance"]),
                             noslip_iterations=int(p["solver_noslip_iterations"]),
                             solref=tuple(p["contact_solref"]), solimp=tuple(p["contact_solimp"]))
@@ -55,7 +57,7 @@ def sim_config_extras(p: dict[str, Any], model: RobotModel) -> dict[str, Any]:
     if p["scene_file"]:
         links = [el.get("name") for el in ET.fromstring(model.urdf).findall("link")]
         scene = load_scene(p["scene_file"], link_names=links)
-    return {"scene": scene, "solver": solver, "energy": True}
+    return {"scene": scene, "solver": solver, "energy": True, "integrator_auto": auto}
 
 
 def truth_message(truth: ContactTruth, stamp: TimeMsg, frame_id: str) -> Any:
