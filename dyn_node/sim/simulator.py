@@ -1,4 +1,4 @@
-"""A simulated robot: MuJoCo at a fixed step with a joint-space PD + feedforward controller.
+"""A simulated robot: MuJoCo at a fixed step with a computed-torque joint controller.
 
 The independent "other side" of the demo: it integrates the same URDF with MuJoCo (never
 Pinocchio) and executes trajectories as ros2_control's joint_trajectory_controller does, with
@@ -180,7 +180,7 @@ def default_initial_positions(model: RobotModel) -> np.ndarray:
 
 
 class Simulator:
-    """MuJoCo simulation of ``model`` under a PD + feedforward joint controller.
+    """MuJoCo simulation of ``model`` under computed torque (or a user's PD + feedforward).
 
     Deterministic: the same calls give the same states. Not thread-safe (the ROS adapter steps it
     from one thread and hands trajectories over through :meth:`execute`).
