@@ -208,3 +208,30 @@ def test_a_diverging_simulation_is_an_error_status_and_aborts_the_goal(ros_conte
     rc, out, errtext = proc.stop(signal.SIGINT)
     assert rc == 0, errtext
     assert "kept as asked; expect the physics to diverge" in out + errtext
+
+
+@pytest.mark.timeout(120)
+def test_stamped_goals_are_judged_on_the_simulation_clock(sim):
+    """Issue 37: in real time dyn_sim's stamps are wall-clock start + simulation time, and a
+    goal's stamp is compared on that clock: one stamped 10 s ago with 1 s of points ends in the
+    past and is rejected (JTC's rule); one stamped 0.3 s ahead runs and succeeds."""
+    import time
+
+    from action_msgs.msg import GoalStatus
+    from builtin_interfaces.msg import Time
+    from dyn_node.ros.fjt_client import goal
+
+    client, proc = sim
+
+    def stamped(offset_s: float):
+        g = goal([1.0], [moved(0, 0.05)], names=ARM, goal_tolerance=[(n, 0.01) for n in ARM])
+        ns = time.time_ns() + int(offset_s * 1e9)
+        g.trajectory.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        return g
+
+    assert not client.send(stamped(-10.0)).handle.accepted
+    sent = client.send(stamped(0.3))
+    assert sent.handle.accepted
+    assert client.result(sent)[0] == GoalStatus.STATUS_SUCCEEDED
+    rc, out, err = proc.stop(signal.SIGINT)
+    assert rc == 0 and "trajectory with a non-zero start time ends in the past" in out + err
