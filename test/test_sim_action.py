@@ -163,12 +163,13 @@ def test_a_diverging_simulation_is_an_error_status_and_aborts_the_goal(ros_conte
     moves it (the saturated torque bounds a huge gain's chatter, so a gain alone does not; the
     core test drives one unsaturated). The goal ends ABORTED with the fault's line,
     'dyn_sim: physics' goes ERROR with it (joint, quantity, step), joint_states never carries the
-    diverging values, and dyn_sim said at start that rk4 would diverge."""
+    diverging values, dyn_sim said at start that rk4 would diverge, and ~/reset clears it."""
     from action_msgs.msg import GoalStatus
     from control_msgs.action import FollowJointTrajectory
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
     from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
 
     from conftest import Collected, Spinner
     from dyn_node.core.robot.model import example_robot_data_dir
@@ -199,6 +200,15 @@ def test_a_diverging_simulation_is_an_error_status_and_aborts_the_goal(ros_conte
         err = next(s for s in got.got["diag"] if s.level == bytes([2]))
         assert result.error_string == f"dyn_sim: {err.message}" and " of joint joint" in err.message
         assert kv(err)["failure_label"] == "evaluation error"
+        # ~/reset: the robot held at rest where it stopped; the status clears
+        reset = node.create_client(Trigger, "/dyn_sim/reset")
+        assert reset.wait_for_service(timeout_sec=30.0)
+        fut = reset.call_async(Trigger.Request())
+        assert got.wait(fut.done, 30) and fut.result().success
+        assert fut.result().message.startswith("reset (was: physics diverged at step ")
+        n = len(got.got["diag"])
+        assert got.wait(lambda: len(got.got["diag"]) > n + 1, 30)
+        assert got.got["diag"][-1].level == bytes([0]), got.got["diag"][-1].message
     finally:
         client.close()
         spinner.stop()
