@@ -108,3 +108,19 @@ def test_panel(arm):
         assert not math.isnan(r.succeeded_s), r
         assert r.max_error_rad <= TRACK_TOL and r.finite and not r.fault, r
         assert r.max_speed_rad_s <= 2 * 1.875 * 0.2 / PANEL_GOAL_S + SPEED_SLACK, r
+
+
+@pytest.mark.parametrize("steps_before", [0, 5])
+def test_mujocos_own_reset_is_a_fault_even_on_the_first_step(panda, steps_before, tmp_path, monkeypatch):
+    """A velocity beyond MuJoCo's mjMAXVAL: MuJoCo warns and resets the data (clock included);
+    the guard names MuJoCo's warning and puts the last good state back, on the very first step
+    too (where MuJoCo's restarted clock looks like an ordinary step)."""
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes MUJOCO_LOG.TXT in the cwd
+    sim = Simulator(panda)
+    sim.step(steps_before)  # 0: none
+    good = sim.q
+    sim.data.qvel[sim.robot.dof_ids[2]] = 1e11
+    sim.step()
+    assert sim.fault is not None and sim.fault.step == steps_before + 1
+    assert "MuJoCo's badqvel warning" in sim.fault.text and sim.fault.quantity == "velocity"
+    np.testing.assert_array_equal(sim.q, good)

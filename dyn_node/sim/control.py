@@ -110,7 +110,9 @@ WARNING_NAMES = {int(w): n.removeprefix("mjWARN_").lower() for n, w in mujoco.mj
 
 
 class DivergenceGuard:
-    """Checks every step (see :meth:`check`) and keeps the last good state to return to."""
+    """Checks every step (see :meth:`check`) and keeps the last good state to return to. Kept
+    lean (it runs every step): three sums for NaN/Inf, MuJoCo's clock for its own reset (it
+    resets the data, time included, on a bad qpos/qvel/qacc), one M·q̇ for the energy."""
 
     BAD = {int(mujoco.mjtWarning.mjWARN_BADQPOS): "position", int(mujoco.mjtWarning.mjWARN_BADQVEL): "velocity",
            int(mujoco.mjtWarning.mjWARN_BADQACC): "acceleration"}
@@ -119,9 +121,8 @@ class DivergenceGuard:
                  names: tuple[str, ...]):
         self.mj, self.qi, self.di, self.names = mj, qi, di, names
         self._qpos, self._qvel = d.qpos.copy(), d.qvel.copy()
-        self._warn = self._counts(d)
         self._Mv = np.zeros(mj.nv)
-        self._ke = self._kinetic(d)
+        self.remember(d)
 
     def _counts(self, d: mujoco.MjData) -> np.ndarray:
         return np.array([d.warning[w].number for w in self.BAD])
@@ -135,45 +136,55 @@ class DivergenceGuard:
         self._qpos[:], self._qvel[:] = d.qpos, d.qvel
         self._warn = self._counts(d)
         self._ke = self._kinetic(d)
+        self._time = d.time
 
     def check(self, d: mujoco.MjData, step: int, time: float) -> Fault | None:
         """After a step: a Fault (and ``d`` back at the last good state) or None (``d`` is good)."""
         fault = self._find(d, step, time)
         if fault is None:
             self._qpos[:], self._qvel[:] = d.qpos, d.qvel
+            self._time = d.time
             return None
+        t = self._time
         d.qpos[:], d.qvel[:] = self._qpos, self._qvel
         d.qacc[:] = 0.0
         d.qfrc_applied[:] = 0.0
         mujoco.mj_forward(self.mj, d)
-        self._warn = self._counts(d)
+        self.remember(d)
+        self._time = d.time = t
         return fault
 
     def _find(self, d: mujoco.MjData, step: int, time: float) -> Fault | None:
-        for quantity, arr, ids in (("position", d.qpos, self.qi), ("velocity", d.qvel, self.di),
-                                   ("acceleration", d.qacc, self.di)):
-            x = arr[ids]
-            bad = ~np.isfinite(x)
-            if bad.any():
-                i = int(np.argmax(bad))
-                return Fault(step, time, self.names[i], quantity, float(x[i]), "not finite")
-        counts = self._counts(d)
-        if np.any(counts > self._warn):
-            # MuJoCo found a huge or bad value and reset the state itself
-            k = int(np.argmax(counts > self._warn))
-            w = list(self.BAD)[k]
-            idx = int(d.warning[w].lastinfo)
-            dof = list(self.di).index(idx) if idx in set(self.di.tolist()) else int(np.argmax(np.abs(self._qvel[self.di])))
-            quantity = self.BAD[w]
-            name = WARNING_NAMES[w]
-            return Fault(step, time, self.names[dof], quantity, math.nan,
-                         f"MuJoCo's {name} warning: it reset the state")
+        if not math.isfinite(float(d.qpos.sum() + d.qvel.sum() + d.qacc.sum())):
+            for quantity, arr, ids in (("position", d.qpos, self.qi), ("velocity", d.qvel, self.di),
+                                       ("acceleration", d.qacc, self.di)):
+                x = arr[ids]
+                bad = ~np.isfinite(x)
+                if bad.any():
+                    i = int(np.argmax(bad))
+                    return Fault(step, time, self.names[i], quantity, float(x[i]), "not finite")
+        dt = self.mj.opt.timestep
+        # after MuJoCo's reset its clock restarts at 0 (one step: dt), which only the first
+        # step's own clock cannot tell apart: there, the counters are read
+        if d.time < self._time + 0.5 * dt or (self._time < dt and np.any(self._counts(d) > self._warn)):
+            return self._mujoco_reset(d, step, time)
         ke = self._kinetic(d)
         if ke > ENERGY_JUMP_FACTOR * self._ke + ENERGY_JUMP_J:
             v = d.qvel[self.di]
             i = int(np.argmax(np.abs(v)))
-            fault = Fault(step, time, self.names[i], "velocity", float(v[i]),
-                          f"kinetic energy jumped from {self._ke:.3g} J to {ke:.3g} J in one step")
-            return fault
+            return Fault(step, time, self.names[i], "velocity", float(v[i]),
+                         f"kinetic energy jumped from {self._ke:.3g} J to {ke:.3g} J in one step")
         self._ke = ke
         return None
+
+    def _mujoco_reset(self, d: mujoco.MjData, step: int, time: float) -> Fault:
+        """MuJoCo found a NaN, Inf or huge value and reset the data itself: which, and where."""
+        counts = self._counts(d)
+        new = counts > self._warn
+        k = int(np.argmax(new)) if new.any() else 2
+        w = list(self.BAD)[k]
+        idx = int(d.warning[w].lastinfo)
+        dofs = self.di.tolist()
+        dof = dofs.index(idx) if idx in dofs else int(np.argmax(np.abs(self._qvel[self.di])))
+        return Fault(step, time, self.names[dof], self.BAD[w], math.nan,
+                     f"MuJoCo's {WARNING_NAMES[w]} warning: it reset the state")
