@@ -410,13 +410,19 @@ def retime_md(sec: dict) -> str:
     return _status(sec) or render_md(sec["result"])
 
 
+def sim_md(sec: dict) -> str:
+    from .sim_bench import render_md
+    return _status(sec) or render_md(sec["result"])
+
+
 SECTIONS = [("dynamics", "Dynamics", dynamics_md), ("live", "Live path", live_md),
             ("feasibility", "Feasibility check", feasibility_md),
             ("recording", "Recording and audit", recording_md), ("fleet", "Fleet (dyn-fleet on Ray)", fleet_md),
             ("services", "Question services", services_md),
             ("parsing", "Parsing trajectory files", parsing_md),
             ("retime", "Retiming (dyn_node.retime)", retime_md),
-            ("gate", "FollowJointTrajectory gate", gate_md)]
+            ("gate", "FollowJointTrajectory gate", gate_md),
+            ("sim", "Simulator (dyn_sim's controller panel)", sim_md)]
 
 
 def render(doc: dict) -> str:

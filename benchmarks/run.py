@@ -21,7 +21,8 @@ from pathlib import Path
 from . import report
 from .common import REPO, NotAvailable, machine_info, progress
 
-SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet", "services", "parsing", "retime", "gate")
+SECTION_NAMES = ("dynamics", "live", "feasibility", "recording", "fleet", "services", "parsing", "retime", "gate",
+                 "sim")
 OPT_IN = ("libraries",)  # run only when named in --only; kept in bench.json, not rendered
 ALIASES = {"audit": "recording", "memory": "live"}
 
@@ -45,6 +46,8 @@ def _section_runner(name: str):
         from . import retime_bench as mod
     elif name == "gate":
         from . import gate_bench as mod
+    elif name == "sim":
+        from . import sim_bench as mod
     else:
         from . import recording_bench as mod
     return mod.run

@@ -105,3 +105,33 @@ def test_contact_check(tmp_path):
     assert euler["solver"]["integrator"] == "euler" and not contact_failures(euler)
     assert math.isclose(euler["normal_force_n"], fig["normal_force_n"], rel_tol=0.02)
     assert rec["verdict"]["exit_code"] == 0 and rec["failure_labels"] == []
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--timestep", "1e-300"], "--timestep must be in [0.0001, 0.01] s"),
+    (["--timestep", "nan"], "--timestep must be in"),
+    (["--out", "/dev/full"], "File exists"),
+])
+def test_hostile_arguments_exit_2_in_one_line(args, words, tmp_path, capsys):
+    """Issue 37: a timestep that would never end (1e-300 s) and an --out that is a device."""
+    base = ["--out", str(tmp_path / "pc")] if "--out" not in args else []
+    code = dyn_sim_main(["dyn_sim", "--check-physics", *base, *args, "--only", "free_motion"])
+    err = capsys.readouterr().err
+    assert code == 2 and words in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_a_full_disk_exits_2_in_one_line(tmp_path, capsys, monkeypatch):
+    """The evidence cannot be written (ENOSPC, as on a full disk): one line, exit 2, not 1."""
+    import errno
+
+    from dyn_node.sim import physics_report
+
+    def full(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(physics_report, "write_free_motion", full)
+    code = dyn_sim_main(["dyn_sim", "--check-physics", "--out", str(tmp_path / "pc"), "--robot-model",
+                         "planar_2link", "--only", "free_motion"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip().splitlines() == [
+        f"dyn_sim --check-physics: cannot write the evidence in {tmp_path / 'pc'}: No space left on device"]

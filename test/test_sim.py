@@ -234,3 +234,22 @@ def test_locked_joints_may_be_named_and_are_ignored(panda):
     target = READY + 0.05
     act = sim.execute(names, [0.5], [list(target) + [0.04]])
     np.testing.assert_allclose(act.trajectory.positions[0], target)
+
+
+def test_mid_range_start_of_continuous_joints_is_zero_without_a_warning():
+    """Issue 37: Kinova's continuous joints (±inf limits) start at 0, bounded ones mid-range,
+    and no RuntimeWarning (inf − inf) is raised on the way."""
+    import warnings
+
+    from dyn_node.core.robot.model import example_robot_data_dir, model_from_source
+    from dyn_node.sim.simulator import default_initial_positions
+
+    kinova = model_from_source("", str(example_robot_data_dir() / "kinova_description/robots/kinova.urdf"), "")
+    lo, hi = kinova.limits.position_lower, kinova.limits.position_upper
+    assert np.any(~np.isfinite(lo))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        q0 = default_initial_positions(kinova)
+    bounded = np.isfinite(lo) & np.isfinite(hi)
+    np.testing.assert_array_equal(q0[~bounded], 0.0)
+    np.testing.assert_allclose(q0[bounded], 0.5 * (lo[bounded] + hi[bounded]), rtol=0, atol=1e-15)

@@ -7,7 +7,7 @@ import signal
 import numpy as np
 import pytest
 
-from conftest import python_cmd
+from conftest import kv, python_cmd
 
 pytest.importorskip("control_msgs", reason="control_msgs not built into the venv (make)")
 
@@ -154,3 +154,94 @@ def test_controller_state_published(ros_context, spawn):
     assert len(m.output.effort) == 7 and np.abs(m.output.effort).max() > 1.0  # gravity torque
     t = np.array([x.header.stamp.sec + x.header.stamp.nanosec * 1e-9 for x in got])
     assert np.median(np.diff(t)) == pytest.approx(0.02, abs=1e-6)  # 50 Hz of simulation time
+
+
+@pytest.mark.timeout(120)
+def test_a_diverging_simulation_is_an_error_status_and_aborts_the_goal(ros_context, spawn):
+    """Issue 37, forced: xArm7 (example-robot-data) with ``integrator:=rk4`` asked explicitly,
+    which its joint7's damping (2 N·m·s/rad on 1.4e-4 kg·m²) makes diverge at 1 ms once a goal
+    moves it (the saturated torque bounds a huge gain's chatter, so a gain alone does not; the
+    core test drives one unsaturated). The goal ends ABORTED with the fault's line,
+    'dyn_sim: physics' goes ERROR with it (joint, quantity, step), joint_states never carries the
+    diverging values, dyn_sim said at start that rk4 would diverge, and ~/reset clears it."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    from conftest import Collected, Spinner
+    from dyn_node.core.robot.model import example_robot_data_dir
+    from dyn_node.ros.fjt_client import FjtClient, goal
+
+    urdf = example_robot_data_dir() / "xarm_description" / "urdf" / "xarm7.urdf"
+    joints = [f"joint{i}" for i in range(1, 8)]
+    proc = spawn(python_cmd("dyn_node.ros.sim_node", "--ros-args", "-p", f"robot_description_file:={urdf}",
+                            "-p", "integrator:=rk4", "-p", "physics_diagnostics_period:=0.2"))
+    got = Collected(("diag", "js"))
+    node = Node("diverge_probe", context=ros_context)
+    diag = got.collector("diag")
+    node.create_subscription(DiagnosticArray, "/diagnostics",
+                             lambda m: [diag(s) for s in m.status if s.name == "dyn_sim: physics"], 100)
+    node.create_subscription(JointState, "joint_states", got.collector("js"), 1000)
+    spinner = Spinner(ros_context, [node])
+    client = FjtClient(ros_context, ACTION)
+    try:
+        client.wait_for_server(60.0)
+        assert got.wait(lambda: len(got.got["js"]) > 0 and len(got.got["diag"]) > 0, 30)
+        assert got.got["diag"][-1].level == bytes([0])  # holding still: nothing grows yet
+        q0 = list(got.got["js"][-1].position)
+        status, result = client.result(client.send(goal([1.0], [[q + 0.1 for q in q0]], names=joints)))
+        assert status == GoalStatus.STATUS_ABORTED
+        assert result.error_code == FollowJointTrajectory.Result.PATH_TOLERANCE_VIOLATED
+        assert result.error_string.startswith("dyn_sim: physics diverged at step ")
+        assert got.wait(lambda: any(s.level == bytes([2]) for s in got.got["diag"]), 30)
+        err = next(s for s in got.got["diag"] if s.level == bytes([2]))
+        assert result.error_string == f"dyn_sim: {err.message}" and " of joint joint" in err.message
+        assert kv(err)["failure_label"] == "evaluation error"
+        # ~/reset: the robot held at rest where it stopped; the status clears
+        reset = node.create_client(Trigger, "/dyn_sim/reset")
+        assert reset.wait_for_service(timeout_sec=30.0)
+        fut = reset.call_async(Trigger.Request())
+        assert got.wait(fut.done, 30) and fut.result().success
+        assert fut.result().message.startswith("reset (was: physics diverged at step ")
+        n = len(got.got["diag"])
+        assert got.wait(lambda: len(got.got["diag"]) > n + 1, 30)
+        assert got.got["diag"][-1].level == bytes([0]), got.got["diag"][-1].message
+    finally:
+        client.close()
+        spinner.stop()
+        node.destroy_node()
+    assert all(max(abs(v) for v in m.velocity) < 100 and max(abs(q) for q in m.position) < 10
+               for m in got.got["js"])
+    rc, out, errtext = proc.stop(signal.SIGINT)
+    assert rc == 0, errtext
+    assert "kept as asked; expect the physics to diverge" in out + errtext
+
+
+@pytest.mark.timeout(120)
+def test_stamped_goals_are_judged_on_the_simulation_clock(sim):
+    """Issue 37: in real time dyn_sim's stamps are wall-clock start + simulation time, and a
+    goal's stamp is compared on that clock: one stamped 10 s ago with 1 s of points ends in the
+    past and is rejected (JTC's rule); one stamped 0.3 s ahead runs and succeeds."""
+    import time
+
+    from action_msgs.msg import GoalStatus
+    from builtin_interfaces.msg import Time
+    from dyn_node.ros.fjt_client import goal
+
+    client, proc = sim
+
+    def stamped(offset_s: float):
+        g = goal([1.0], [moved(0, 0.05)], names=ARM, goal_tolerance=[(n, 0.01) for n in ARM])
+        ns = time.time_ns() + int(offset_s * 1e9)
+        g.trajectory.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        return g
+
+    assert not client.send(stamped(-10.0)).handle.accepted
+    sent = client.send(stamped(0.3))
+    assert sent.handle.accepted
+    assert client.result(sent)[0] == GoalStatus.STATUS_SUCCEEDED
+    rc, out, err = proc.stop(signal.SIGINT)
+    assert rc == 0 and "trajectory with a non-zero start time ends in the past" in out + err

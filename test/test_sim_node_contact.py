@@ -1,8 +1,9 @@
 """dyn_sim with the press scene, as users run it (a separate process, DDS): ~/contact_truth only
 while the hand touches the table, stamped like joint_states, and the 'dyn_sim: physics' status;
-a bad scene file stops dyn_sim at start with the reason."""
+a bad scene file stops dyn_sim at start with the reason (exit 2, one line)."""
 from __future__ import annotations
 
+import os
 import signal
 
 import numpy as np
@@ -101,5 +102,19 @@ def test_bad_scene_file_stops_at_start(spawn, tmp_path):
     bad.write_text("objects:\n  - {name: t, type: box, size: [0.4, -0.8, 0.4], position: [0.5, 0, 0.2]}\n")
     proc = spawn(sim_cmd(f"scene_file:={bad}"))
     out, err = proc.proc.communicate(timeout=30)  # exits by itself
-    assert proc.proc.returncode == 1
+    assert proc.proc.returncode == 2  # issue 37: a scene file that cannot be used is bad input (2)
     assert "object 't': size must be positive" in out + err
+
+
+@pytest.mark.timeout(60)
+def test_a_fifo_scene_file_stops_at_start_in_one_line(spawn, tmp_path):
+    """A FIFO as scene_file (no writer: reading it used to hang) ends dyn_sim at once: exit 2,
+    one line on stderr, no traceback."""
+    fifo = tmp_path / "scene.fifo"
+    os.mkfifo(fifo)
+    proc = spawn(sim_cmd(f"scene_file:={fifo}"))
+    out, err = proc.proc.communicate(timeout=30)
+    assert proc.proc.returncode == 2
+    assert [ln for ln in err.splitlines() if ln.startswith("dyn_sim: ")] == [
+        f"dyn_sim: state error: scene file {fifo} cannot be read: is a FIFO, not a regular file"]
+    assert "Traceback" not in out + err

@@ -276,3 +276,45 @@ def test_plane_and_sphere_take_the_press(panda, links, obj, size):
     assert truth.active and {c.body2 for c in truth.contacts} == {obj["name"]}
     assert all(c.normal @ [0, 0, -1] > 0.7 and c.force[2] > 0 for c in truth.contacts)
     assert 0 < truth.max_penetration_m < 5e-3 and truth.normal_force_n > 20.0
+
+
+# --- hostile scene files (issue 37): the bounded, strict reader; one line each ------------------
+def _box(**change) -> str:
+    o = {"name": "t", "type": "box", "size": "[0.1, 0.1, 0.1]", "position": "[0.5, 0, 0.2]", **change}
+    return "objects:\n  - " + "\n    ".join(f"{k}: {v}" for k, v in o.items()) + "\n"
+
+
+HOSTILE = {
+    "integer beyond float range": (_box(size="[1" + "0" * 400 + ", 0.1, 0.1]"), "beyond float range"),
+    "invalid UTF-8": (b"objects: []\n# \xff\xfe\n", "not UTF-8"),
+    "deep nesting": ("objects: " + "[" * 200 + "]" * 200 + "\n", "nested more than"),
+    "alias bomb inside size": ("a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]\n" + "".join(
+        f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+        for p, c in zip("abcdefgh", "bcdefghi")) + _box(size="*i"), "aliases expand"),
+    "duplicate keys": (_box() + "    size: [0.2, 0.2, 0.2]\n", "duplicate key"),
+    "overflowing quaternion": (_box(orientation="[1e308, 1e308, 0, 0]"), "norm overflows"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE))
+def test_hostile_scene_files_are_refused_in_one_line(case, links, tmp_path):
+    text, words = HOSTILE[case]
+    path = tmp_path / "scene.yaml"
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(SceneError) as e:
+        load_scene(path, link_names=links)
+    assert words in str(e.value) and "\n" not in str(e.value) and len(str(e.value)) < 300
+
+
+@pytest.mark.parametrize("kind", ["/dev/zero", "fifo"])
+def test_devices_and_fifos_are_refused_without_reading(kind, links, tmp_path):
+    """/dev/zero never ends and a FIFO without a writer would block: neither is a regular file."""
+    import os
+
+    path = Path(kind) if kind.startswith("/") else tmp_path / "scene.fifo"
+    if kind == "fifo":
+        os.mkfifo(path)
+    with pytest.raises(SceneError, match="not a regular file") as e:
+        load_scene(path, link_names=links)
+    assert e.value.code == "unreadable"
+

@@ -26,12 +26,13 @@ from rclpy.signals import SignalHandlerOptions
 
 def spin_until_signalled(make_node: Callable[[], Node], args: list[str] | None, program: str,
                          fatal: tuple[type[BaseException], ...] = (),
-                         describe: Callable[[BaseException], str] = str, fatal_code: int = 2) -> int:
+                         describe: Callable[[BaseException], str] = str,
+                         fatal_code: int | Callable[[BaseException], int] = 2) -> int:
     """Init rclpy, build the node, spin until SIGINT/SIGTERM, then destroy it and shut down.
 
     Exceptions of the ``fatal`` types raised while building or spinning (configuration the
     program cannot run with) print one line ``<program>: <describe(exc)>`` on stderr instead of a
-    traceback and make the return value ``fatal_code``; otherwise 0 is returned.
+    traceback and make the return value ``fatal_code`` (or ``fatal_code(exc)``); otherwise 0.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
@@ -59,7 +60,7 @@ def spin_until_signalled(make_node: Callable[[], Node], args: list[str] | None, 
         pass
     except fatal as exc:
         print(f"{program}: {describe(exc)}", file=sys.stderr, flush=True)
-        code = fatal_code
+        code = fatal_code(exc) if callable(fatal_code) else fatal_code
     finally:
         if node is not None:
             node.destroy_node()

@@ -60,11 +60,18 @@ class SegmentTolerances:
     goal_time: float
 
 
-def default_tolerances(n: int, *, trajectory: float = 0.0, goal: float = 0.0,
-                       stopped_velocity: float = 0.01, goal_time: float = 0.0) -> SegmentTolerances:
-    """The controller's defaults from its ``constraints`` parameters, one value for all joints."""
-    return SegmentTolerances(JointTolerances.uniform(n, trajectory),
-                             JointTolerances.uniform(n, goal, stopped_velocity), float(goal_time))
+def default_tolerances(n: int, *, trajectory: float | Sequence[float] = 0.0,
+                       goal: float | Sequence[float] = 0.0, stopped_velocity: float = 0.01,
+                       goal_time: float = 0.0) -> SegmentTolerances:
+    """The controller's defaults from its ``constraints`` parameters (tolerances.hpp,
+    get_segment_tolerances(params)): per joint the path position tolerance ``trajectory`` and the
+    goal position tolerance ``goal`` (one value or one per joint), every joint's goal velocity
+    tolerance ``stopped_velocity``; nothing on path velocity or acceleration."""
+    zero = np.zeros(n)
+    path = JointTolerances(np.broadcast_to(np.asarray(trajectory, float), (n,)).copy(), zero, zero.copy())
+    end = JointTolerances(np.broadcast_to(np.asarray(goal, float), (n,)).copy(),
+                          np.full(n, float(stopped_velocity)), zero.copy())
+    return SegmentTolerances(path, end, float(goal_time))
 
 
 def _resolve(default: float, value: float) -> float:

@@ -40,6 +40,8 @@ SETTLE_S = 2.0
 FREE_GRID = (("euler", 0.002), ("euler", 0.001), ("euler", 0.0005), ("euler", 0.00025),
              ("rk4", 0.002), ("rk4", 0.001), ("rk4", 0.0005))
 NOMINAL = (SolverSettings().integrator, DEFAULT_TIMESTEP)  # dyn_sim's own defaults
+#: the timesteps dyn_sim takes (its ``timestep`` parameter's range): 1e-300 s would never end
+MIN_TIMESTEP, MAX_TIMESTEP = 1e-4, 0.01
 
 
 def free_motion_run(model: RobotModel, q0: np.ndarray, *, integrator: str, timestep: float,
@@ -180,18 +182,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         a = parser.parse_args(argv)
     except SystemExit as exc:
         return 0 if exc.code == 0 else 2
-    from dyn_node.sim.physics_report import write_contact, write_free_motion
-
     out = Path(a.out)
     try:
-        if not (0 < a.timestep <= 0.01):
-            raise DynNodeError(f"--timestep must be in (0, 0.01] s, got {a.timestep}", code="bad_timestep")
+        if not (MIN_TIMESTEP <= a.timestep <= MAX_TIMESTEP):  # NaN fails too
+            raise DynNodeError(f"--timestep must be in [{MIN_TIMESTEP:g}, {MAX_TIMESTEP:g}] s (dyn_sim's "
+                               f"range), got {a.timestep:g}", code="bad_timestep")
         out.mkdir(parents=True, exist_ok=True)
         model = model_from_source("", "", a.robot_model)
         panda = model if model.name == "panda" else model_from_source("", "", "panda")
     except (DynNodeError, OSError) as exc:
         print(f"dyn_sim --check-physics: {exc}", file=sys.stderr)
         return 2
+    try:
+        passed = _run(a, model, panda, out)
+    except OSError as exc:  # a full disk, a read-only --out: one line, bad input
+        print(f"dyn_sim --check-physics: cannot write the evidence in {out}: {exc.strerror or exc}",
+              file=sys.stderr)
+        return 2
+    return 0 if all(passed) else 1
+
+
+def _run(a: argparse.Namespace, model: RobotModel, panda: RobotModel, out: Path) -> list[bool]:
+    """The checks asked for, each writing its evidence under ``out``: whether each holds."""
+    from dyn_node.sim.physics_report import write_contact, write_free_motion
+
     passed = []
     if a.only in (None, "free_motion"):
         q0 = np.asarray(READY) if model.name == "panda" else default_initial_positions(model)
@@ -212,4 +226,4 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{n['balance_residual_rel']:.2g} {'OK' if ct['passed'] else 'FAIL: ' + '; '.join(ct['failures'])}")
         passed.append(ct["passed"])
     print(f"evidence: {out}/*/evidence.json")
-    return 0 if all(passed) else 1
+    return passed

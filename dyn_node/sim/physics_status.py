@@ -12,7 +12,9 @@ external wrench, xfrc_applied), ``damping`` (qfrc_passive) and ``constraints`` (
 contacts and limits). The energy error is ΔE − Σ work, summed over the period; its ratio to the
 largest of |ΔE|, Σ|work| and the peak kinetic energy is ``energy_error_rel``. A step is
 diverging when MuJoCo flags a bad qpos/qvel/qacc (it then resets the state) or the energy is not
-finite: an ERROR with the failure label ``evaluation error``.
+finite: an ERROR with the failure label ``evaluation error``. So is a fault of the simulator's
+divergence guard (:class:`dyn_node.sim.control.Fault`: the joint, quantity and step; the state
+held at the last good one): it stays ERROR, with the fault's line, until the simulator is reset.
 """
 from __future__ import annotations
 
@@ -50,6 +52,8 @@ class PhysicsPeriod:
     peak_kinetic: float = 0.0
     energy_error: float = 0.0
     non_finite: bool = False
+    #: the simulator's divergence fault (its one line), "" when none
+    fault: str = ""
 
     @property
     def energy_error_rel(self) -> float:
@@ -59,7 +63,7 @@ class PhysicsPeriod:
 
     @property
     def diverging(self) -> bool:
-        return self.non_finite or bool(DIVERGING & set(self.warnings))
+        return self.non_finite or bool(self.fault) or bool(DIVERGING & set(self.warnings))
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,17 @@ class PhysicsMonitor:
         self._warn = np.zeros(len(WARNINGS), dtype=int)
         self._pending: tuple[float, np.ndarray] | None = None  # E_k and step k's work
         self.period = PhysicsPeriod()
+        #: the simulator's divergence fault, until :meth:`clear_fault`
+        self.fault = None
+
+    def diverged(self, fault: object) -> None:
+        """The step just taken diverged and was undone: ERROR from now until a reset."""
+        self.fault = fault
+        self._pending = None
+
+    def clear_fault(self) -> None:
+        self.fault = None
+        self._pending = None
 
     def before(self, d: mujoco.MjData) -> None:
         self._v[:] = d.qvel
@@ -143,7 +158,8 @@ class PhysicsMonitor:
         """The status of the period so far (``d``: the simulation's data), and a new period."""
         p, self.period = self.period, PhysicsPeriod()
         p.warnings = self._warnings(d)
-        p.non_finite = not math.isfinite(p.energy_end)
+        p.non_finite = p.steps > 0 and not math.isfinite(p.energy_end)
+        p.fault = self.fault.text if self.fault is not None else ""
         p.work = dict(zip(SOURCES, (float(w) for w in p.work_sum)))
         if p.diverging:
             self._pending = None  # MuJoCo reset the state: the next budget starts afresh
@@ -165,10 +181,12 @@ def physics_status(p: PhysicsPeriod, *, iterations_limit: int) -> PhysicsStatus:
               "solver_iterations_limit": str(iterations_limit),
               "solver_residual": f"{p.last_residual:.3g}",
               "max_penetration_m": f"{p.max_penetration_m:.6g}",
-              "energy_j": f"{p.energy_end:.6g}", "energy_change_j": f"{p.energy_end - p.energy_start:.6g}",
-              **{f"work_{k}_j": f"{w:.6g}" for k, w in p.work.items()},
-              "energy_error_j": f"{p.energy_error:.6g}", "energy_error_rel": f"{p.energy_error_rel:.3g}",
+              "energy_j": f"{p.energy_end:.9g}", "energy_change_j": f"{p.energy_end - p.energy_start:.9g}",
+              **{f"work_{k}_j": f"{w:.9g}" for k, w in p.work.items()},  # 9 digits: recomputable
+              "energy_error_j": f"{p.energy_error:.9g}", "energy_error_rel": f"{p.energy_error_rel:.3g}",
               "warnings": ", ".join(f"{k} ×{n}" for k, n in sorted(p.warnings.items())) or "none"}
+    if p.fault:
+        return PhysicsStatus(ERROR, p.fault, {**values, "fault": p.fault}, EVALUATION_ERROR)
     if p.diverging:
         what = ", ".join(sorted(DIVERGING & set(p.warnings))) or "non-finite energy"
         return PhysicsStatus(ERROR, f"simulation diverging ({what}): MuJoCo reset the state; lower "

@@ -75,7 +75,7 @@ def solve_ik(sim: Simulator, body: str, position: np.ndarray, rotation: np.ndarr
 
 
 def plan_press(sim: Simulator, *, x_m: float = 0.5, approach_height_m: float = 0.03,
-               press_depth_m: float = 0.01, t_approach: float = 1.5, t_press: float = 2.5) -> PressPlan:
+               press_depth_m: float = 0.005, t_approach: float = 1.5, t_press: float = 2.5) -> PressPlan:
     """The press from READY on ``sim`` (its model must be the Panda)."""
     q0 = np.asarray(READY, dtype=float)
     d = mujoco.MjData(sim.mj)

@@ -26,14 +26,16 @@ from typing import Any, Iterable, Mapping
 
 import mujoco
 import numpy as np
-import yaml
-
 from dyn_node.errors import STATE_ERROR, DynNodeError
+from dyn_node.io.files import FileProblem, read_text
+from dyn_node.io.safe_load import LoadError, load_yaml
 
 OBJECT_TYPES = ("box", "plane", "sphere")
 _OBJECT_KEYS = {"name", "type", "size", "position", "orientation", "friction"}
 _SCENE_KEYS = {"objects", "collide_links"}
 _SIZE_LEN = {"box": 3, "sphere": 1, "plane": 2}
+#: A scene file is a few objects: larger is not a scene (read at most this many bytes).
+MAX_SCENE_BYTES = 1024 * 1024
 INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
                "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
@@ -146,12 +148,20 @@ def _numbers(where: str, key: str, value: Any, n: int | None) -> tuple[float, ..
     try:
         out = tuple(float(v) for v in vals if not isinstance(v, bool))
     except (TypeError, ValueError):
-        raise SceneError(f"{where}: '{key}' must be numbers, got {value!r}", code="bad_value") from None
+        raise SceneError(f"{where}: '{key}' must be numbers, got {_short(value)}", code="bad_value") from None
+    except OverflowError:  # an integer beyond float range
+        raise SceneError(f"{where}: '{key}' has a number beyond float range", code="non_finite") from None
     if len(out) != len(vals) or (n is not None and len(out) != n):
-        raise SceneError(f"{where}: '{key}' needs {n} numbers, got {value!r}", code="bad_value")
+        raise SceneError(f"{where}: '{key}' needs {n} numbers, got {_short(value)}", code="bad_value")
     if not all(math.isfinite(v) for v in out):
         raise SceneError(f"{where}: '{key}' is not finite ({list(out)})", code="non_finite")
     return out
+
+
+def _short(value: Any) -> str:
+    """A value for a one-line message: at most 80 characters."""
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _object(i: int, raw: Any) -> SceneObject:
@@ -178,7 +188,11 @@ def _object(i: int, raw: Any) -> SceneObject:
         raise SceneError(f"{where}: size must be positive, got {list(size)}", code="bad_size")
     pos = _numbers(where, "position", raw["position"], 3)
     quat = np.array(_numbers(where, "orientation", raw.get("orientation", [0, 0, 0, 1]), 4))
-    norm = float(np.linalg.norm(quat))
+    with np.errstate(over="ignore"):
+        norm = float(np.sqrt(np.sum(quat * quat)))
+    if not math.isfinite(norm):
+        raise SceneError(f"{where}: orientation {list(quat)} cannot be normalised (its norm overflows)",
+                         code="bad_orientation")
     if norm < 1e-6:
         raise SceneError(f"{where}: orientation is a zero quaternion", code="bad_orientation")
     fr = _numbers(where, "friction", raw.get("friction", 1.0), None)
@@ -220,12 +234,14 @@ def parse_scene(raw: Any, *, link_names: Iterable[str], source: str = "") -> Sce
 
 
 def load_scene(path: str | Path, *, link_names: Iterable[str]) -> Scene:
-    """Read and validate a scene file; SceneError (code ``unreadable``) when it cannot be read."""
+    """Read and validate a scene file with the project's bounded, strict reader (a regular file
+    of at most :data:`MAX_SCENE_BYTES`, UTF-8, YAML without duplicate keys, deep nesting or alias
+    bombs); SceneError (code ``unreadable``) when it cannot be read."""
     p = Path(path)
     try:
-        raw = yaml.safe_load(p.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise SceneError(f"scene file {p} cannot be read: {exc}", code="unreadable") from exc
+        raw = load_yaml(read_text(p, max_bytes=MAX_SCENE_BYTES))
+    except (FileProblem, LoadError) as exc:
+        raise SceneError(f"scene file {p} cannot be read: {exc}", code="unreadable") from None
     return parse_scene(raw, link_names=link_names, source=str(p))
 
 

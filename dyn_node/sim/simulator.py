@@ -1,4 +1,4 @@
-"""A simulated robot: MuJoCo at a fixed step with a joint-space PD + feedforward controller.
+"""A simulated robot: MuJoCo at a fixed step with a computed-torque joint controller.
 
 The independent "other side" of the demo: it integrates the same URDF with MuJoCo (never
 Pinocchio) and executes trajectories as ros2_control's joint_trajectory_controller does, with
@@ -23,7 +23,9 @@ from dyn_node.sim.mujoco_model import MujocoRobot, mujoco_from_model, mujoco_urd
 from dyn_node.sim.scene import INTEGRATORS, Scene, SolverSettings
 from dyn_node.sim.physics_status import PhysicsMonitor
 from dyn_node.sim.contact_truth import ContactTruth, contact_truth, scene_geom_ids
-from dyn_node.core.check.trajectory import PiecewisePolynomial, Trajectory, interpolate, validate_trajectory
+from dyn_node.core.check.trajectory import Trajectory, validate_trajectory
+from dyn_node.sim.control import DivergenceGuard, Fault, choose_integrator, gain_warning
+from dyn_node.sim.reference import ActiveTrajectory, reference_from_goal
 
 DEFAULT_TIMESTEP = 0.001
 #: Closed-loop natural frequency (rad/s) and damping ratio for the automatic gains.
@@ -33,12 +35,14 @@ DEFAULT_DAMPING_RATIO = 1.0
 
 @dataclass(frozen=True)
 class SimConfig:
-    """Simulator settings. Gains in N·m/rad and N·m·s/rad, model joint order.
+    """Simulator settings, model joint order.
 
-    ``kp``/``kd`` empty: automatic, ``M_ii(q0)·ω²`` and ``2ζ·M_ii(q0)·ω`` from the joint-space
-    inertia at the initial pose (so each joint gets the same closed-loop bandwidth ω).
-    ``initial_positions`` empty: the middle of each joint's range (0 when unlimited), clipped
-    into the limits. ``feedforward`` off leaves a pure PD controller.
+    ``kp``/``kd`` both empty: computed torque, every mode of the loop at bandwidth
+    ``natural_frequency`` ω with ``damping_ratio`` ζ (:mod:`dyn_node.sim.control`). Given
+    (N·m/rad, N·m·s/rad; one alone takes the other as ``M_ii(q0)·ω²`` or ``2ζ·M_ii(q0)·ω``):
+    a joint PD plus the reference's inverse dynamics. ``initial_positions`` empty: the middle of
+    each joint's range (0 when unlimited), clipped into the limits. ``feedforward`` off drops
+    the reference acceleration and h(q, q̇) (computed torque) or the inverse dynamics (PD).
     """
 
     timestep: float = DEFAULT_TIMESTEP
@@ -54,6 +58,9 @@ class SimConfig:
     solver: SolverSettings = SolverSettings()
     #: MuJoCo's mjENBL_ENERGY (data.energy = potential, kinetic); no effect on the dynamics
     energy: bool = False
+    #: solver.integrator is a default, not the user's choice: implicitfast replaces an explicit
+    #: integrator the URDF's damping is too stiff for (dyn_node.sim.control.choose_integrator)
+    integrator_auto: bool = True
 
 
 @dataclass(frozen=True)
@@ -71,47 +78,6 @@ class SimState:
     q_ref: np.ndarray
     v_ref: np.ndarray
     saturated: np.ndarray
-
-
-@dataclass(frozen=True)
-class ActiveTrajectory:
-    """A trajectory being executed; times are simulation seconds.
-
-    ``start_time`` is the trajectory's t = 0 (its stamp or the receipt time), ``received_time``
-    when the simulator took it. ``first_segment`` (or None) spans [received_time, first point].
-    """
-
-    trajectory: Trajectory
-    mode: str
-    start_time: float
-    received_time: float
-    polynomial: PiecewisePolynomial
-    first_segment: PiecewisePolynomial | None
-
-    @property
-    def end_time(self) -> float:
-        return self.start_time + float(self.trajectory.times[-1])
-
-    @property
-    def first_point_time(self) -> float:
-        return self.start_time + float(self.trajectory.times[0])
-
-    def reference(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(q_ref, q̇_ref, q̈_ref) at simulation times t (M,), each M×nv; the last point held."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        q, v, a, _ = self.polynomial.evaluate(t - self.start_time)
-        if self.first_segment is not None:
-            early = t < self.first_point_time
-            if np.any(early):
-                q0, v0, a0, _ = self.first_segment.evaluate(t[early] - self.received_time)
-                q[early], v[early], a[early] = q0, v0, a0
-        late = t >= self.end_time
-        if np.any(late):
-            # Hold the last point at rest, as the controller does once the trajectory has played.
-            q[late] = self.trajectory.positions[-1]
-            v[late] = 0.0
-            a[late] = 0.0
-        return q, v, a
 
 
 # --------------------------------------------------------------------------------------------
@@ -206,12 +172,15 @@ class AppliedWrench:
 def default_initial_positions(model: RobotModel) -> np.ndarray:
     """Middle of each joint's position range (0 where unlimited)."""
     lo, hi = model.limits.position_lower, model.limits.position_upper
-    mid = np.where(np.isfinite(lo) & np.isfinite(hi), 0.5 * (lo + hi), 0.0)
+    both = np.isfinite(lo) & np.isfinite(hi)
+    # only bounded joints are averaged: ±inf + ∓inf (continuous joints) would warn and give NaN
+    mid = np.zeros(len(lo))
+    mid[both] = 0.5 * (lo[both] + hi[both])
     return np.clip(mid, lo, hi)
 
 
 class Simulator:
-    """MuJoCo simulation of ``model`` under a PD + feedforward joint controller.
+    """MuJoCo simulation of ``model`` under computed torque (or a user's PD + feedforward).
 
     Deterministic: the same calls give the same states. Not thread-safe (the ROS adapter steps it
     from one thread and hands trajectories over through :meth:`execute`).
@@ -231,9 +200,6 @@ class Simulator:
                                                     solver=config.solver)
         self.mj = self.robot.model
         self.mj.opt.timestep = config.timestep
-        # the integrator applies with or without a scene (dyn_sim's default RK4 unless asked)
-        self.mj.opt.integrator = int(INTEGRATORS[config.solver.integrator])
-        self._rk4 = config.solver.integrator == "rk4"
         if config.energy:
             self.mj.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
         self.data = mujoco.MjData(self.mj)
@@ -251,7 +217,28 @@ class Simulator:
         if q0.shape != (nv,) or not np.all(np.isfinite(q0)):
             raise ModelError(f"initial_positions needs {nv} finite values, got {list(q0)}",
                              code="bad_initial_positions")
+        # the integrator applies with or without a scene (dyn_sim's default RK4 unless asked),
+        # unless the URDF's damping is too stiff for an explicit one at this step
+        M0 = self._inertia(q0)
+        self._damping = self.mj.dof_damping[self._di].copy()
+        #: the MuJoCo integrator in use, and "" or why it is not the one asked for
+        self.integrator, self.integrator_note = choose_integrator(
+            config.solver.integrator, M0, self._damping, config.timestep, auto=config.integrator_auto)
+        self.mj.opt.integrator = int(INTEGRATORS[self.integrator])
+        self._rk4 = self.integrator == "rk4"
+        # implicit integrators solve (M + dt·D)·q̈ = f: the computed torque wants that matrix
+        self._implicit_d = (config.timestep * self._damping if self.integrator.startswith("implicit")
+                            else np.zeros(nv))
+        #: computed torque (automatic gains) or a user's joint PD
+        self.computed_torque = not (len(config.kp) or len(config.kd))
         self.kp, self.kd = self._gains(q0)
+        #: "" or the one line saying the step cannot integrate the gains (dyn_sim logs it)
+        self.gain_warning = gain_warning(M0, self.kp, self.kd, config.timestep,
+                                         rk4=self._rk4, automatic=self.computed_torque,
+                                         omega=config.natural_frequency)
+        self._scratch = np.zeros(self.mj.nv)
+        #: why the physics stopped (None: running); cleared by :meth:`reset`
+        self.fault: Fault | None = None
         self.controller_enabled = True
         self._open_loop = np.zeros(nv)
         self._steps = 0
@@ -266,22 +253,30 @@ class Simulator:
         self.wrench: AppliedWrench | None = None
         #: per-step physics accounting (energy budget, solver, penetration), when enabled
         self.physics: PhysicsMonitor | None = PhysicsMonitor(self.mj) if config.energy else None
+        self._guard = DivergenceGuard(self.mj, self.data, self._qi, self._di, model.joint_names)
         self.reset(q0)
 
     # --- setup ---------------------------------------------------------------------------------
+    def _inertia(self, q0: np.ndarray) -> np.ndarray:
+        """MuJoCo's joint-space inertia (armature included) at q0, model order."""
+        d = mujoco.MjData(self.mj)
+        d.qpos[self._qi] = q0
+        mujoco.mj_forward(self.mj, d)
+        M = np.zeros((self.mj.nv, self.mj.nv))
+        mujoco.mj_fullM(self.mj, d, M)
+        return M[np.ix_(self._di, self._di)]
+
     def _gains(self, q0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per joint: ω², 2ζω (1/s², 1/s) for computed torque; else the user's N·m/rad gains."""
         nv = self.model.nv
         c = self.config
-        if len(c.kp) and len(c.kd):
+        w = c.natural_frequency
+        if self.computed_torque:
+            kp, kd = np.full(nv, w * w), np.full(nv, 2.0 * c.damping_ratio * w)
+        elif len(c.kp) and len(c.kd):
             kp, kd = np.asarray(c.kp, float), np.asarray(c.kd, float)
         else:
-            d = mujoco.MjData(self.mj)
-            d.qpos[self._qi] = q0
-            mujoco.mj_forward(self.mj, d)
-            M = np.zeros((self.mj.nv, self.mj.nv))
-            mujoco.mj_fullM(self.mj, d, M)
-            mii = np.maximum(np.diag(M)[self._di], 1e-6)
-            w = c.natural_frequency
+            mii = np.maximum(np.diag(self._inertia(q0)), 1e-6)
             kp = np.asarray(c.kp, float) if len(c.kp) else mii * w * w
             kd = np.asarray(c.kd, float) if len(c.kd) else 2.0 * c.damping_ratio * mii * w
         for label, k in (("kp", kp), ("kd", kd)):
@@ -304,6 +299,10 @@ class Simulator:
         self.active = None
         self._hold = q.copy()
         self._ref_cache = None
+        self.fault = None
+        self._guard.remember(self.data)
+        if self.physics is not None:
+            self.physics.clear_fault()
 
     # --- state -----------------------------------------------------------------------------------
     @property
@@ -367,24 +366,7 @@ class Simulator:
             raise TrajectoryError(f"start time is not finite ({start_time})", code="non_finite")
         now = self.time
         start = now if not start_time else float(start_time)
-        mode = traj.jtc_interpolation
-        poly = interpolate(traj, mode)
-        first = None
-        first_abs = start + float(traj.times[0])
-        if first_abs > now + 1e-12:
-            # JTC: from the state at receipt to the first point, same interpolation rule.
-            q_now, v_now = self.q, self.v
-            pos = np.vstack([q_now, traj.positions[0]])
-            vel = acc = None
-            if traj.velocities is not None:
-                vel = np.vstack([v_now, traj.velocities[0]])
-            if traj.accelerations is not None:
-                # The measured state carries no acceleration; start the segment from rest in a.
-                acc = np.vstack([np.zeros_like(q_now), traj.accelerations[0]])
-            seg = Trajectory(times=np.array([0.0, first_abs - now]), positions=pos,
-                             velocities=vel, accelerations=acc)
-            first = interpolate(seg, mode)
-        self.active = ActiveTrajectory(traj, mode, start, now, poly, first)
+        self.active = reference_from_goal(traj, start, now, self.q, self.v)
         self._hold = traj.positions[-1].copy()
         self._ref_cache = None
         return self.active
@@ -411,6 +393,25 @@ class Simulator:
         mujoco.mj_inverse(self._ff_model, d)
         return d.qfrc_inverse[self._di].copy()
 
+    def _computed_torque(self, q: np.ndarray, v: np.ndarray, q_ref: np.ndarray, v_ref: np.ndarray,
+                         a_ref: np.ndarray) -> np.ndarray:
+        """M(q)(q̈_ref + Kp·e + Kd·ė) + h(q, q̇): MuJoCo's inverse dynamics at the measured state
+        of the wanted acceleration (h = bias − passive). Without feedforward: M(q)(Kp·e + Kd·ė)."""
+        a_des = self.kp * (q_ref - q) + self.kd * (v_ref - v)
+        if self.config.feedforward:
+            a_des += a_ref
+            return self.feedforward(q, v, a_des) + self._implicit_d * a_des
+        d = self._ff_data
+        d.qpos[self._qi] = q
+        mujoco.mj_kinematics(self._ff_model, d)
+        mujoco.mj_comPos(self._ff_model, d)
+        mujoco.mj_makeM(self._ff_model, d)
+        self._scratch[:] = 0.0
+        self._scratch[self._di] = a_des
+        out = np.zeros(self.mj.nv)
+        mujoco.mj_mulM(self._ff_model, d, out, self._scratch)
+        return out[self._di] + self._implicit_d * a_des
+
     def contact_truth(self) -> ContactTruth:
         """Robot–scene contacts of the last step (empty without a scene)."""
         return contact_truth(self.mj, self.data, self._scene_geoms)
@@ -436,9 +437,12 @@ class Simulator:
             return self._open_loop.copy(), np.zeros(self.model.nv, dtype=bool)
         q = self.data.qpos[self._qi]
         v = self.data.qvel[self._di]
-        tau = self.kp * (q_ref - q) + self.kd * (v_ref - v)
-        if self.config.feedforward:
-            tau += self.feedforward(q_ref, v_ref, a_ref)
+        if self.computed_torque:
+            tau = self._computed_torque(q, v, q_ref, v_ref, a_ref)
+        else:
+            tau = self.kp * (q_ref - q) + self.kd * (v_ref - v)
+            if self.config.feedforward:
+                tau += self.feedforward(q_ref, v_ref, a_ref)
         if not self.config.saturate:
             return tau, np.zeros(self.model.nv, dtype=bool)
         sat = np.abs(tau) >= self.effort_limit
@@ -509,6 +513,11 @@ class Simulator:
         ts = (self._steps + np.arange(n + 1)) * dt
         Q, V, A = self.reference(ts)
         for k in range(n):
+            if self.fault is not None:
+                # diverged: the last good state is held, nothing integrated, until reset
+                self._steps += 1
+                self._effort, self._saturated = np.zeros(self.model.nv), np.zeros(self.model.nv, dtype=bool)
+                continue
             tau, sat = self.control(Q[k], V[k], A[k])
             self.data.qfrc_applied[self._di] = tau
             if self.wrench is not None and self._steps >= self.wrench.end_step:
@@ -525,9 +534,15 @@ class Simulator:
                 mujoco.mj_step1(self.mj, self.data)
                 self._push()
                 mujoco.mj_step2(self.mj, self.data)
-            if self.physics is not None:
-                self.physics.after(self.data)
             self._steps += 1
+            self.fault = self._guard.check(self.data, self._steps, self.time)
+            if self.fault is not None:
+                self.active = None
+                self._hold = self.q
+                if self.physics is not None:
+                    self.physics.diverged(self.fault)
+            elif self.physics is not None:
+                self.physics.after(self.data)
             self._effort, self._saturated = tau, sat
         self._ref_cache = (self._steps, Q[n], V[n])
         return self.state()

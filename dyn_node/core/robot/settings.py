@@ -139,9 +139,10 @@ class Settings:
         "likely given up (s; DynClient's default check timeout)", 1.0e-3, 3600.0,
         name="services.max_queue_age")
     retime_limit_margin: float = _param(
-        "double", 0.995, "share of each limit the retimer's time-optimal pass (TOPP-RA) may use "
+        "double", 0.9, "share of each limit the retimer's time-optimal pass (TOPP-RA) may use "
         "before the exact check; below 1 leaves room for tracking feedback on a real controller "
-        "(~/retime_trajectory, gate.mode retime)", 0.05, 1.0, name="retime.limit_margin")
+        "(0.9: dyn_sim's controller stays unsaturated on the demo's goals, docs/retime.md; "
+        "~/retime_trajectory, gate.mode retime)", 0.05, 1.0, name="retime.limit_margin")
     # the momentum observer and contact detection (docs/OBSERVER.md): one value applies to every
     # joint, or one per joint in model order (the length is checked against the model)
     observer_gain: tuple[float, ...] = _param(

@@ -9,7 +9,8 @@ serves them (Jazzy), on a node named ``controller_name`` (default ``joint_trajec
   cancel request ends the goal CANCELED and holds the current position. Path tolerance violated
   while the trajectory plays → ABORTED ``PATH_TOLERANCE_VIOLATED``; outside the goal tolerance
   ``goal_time_tolerance`` after the end → ABORTED ``GOAL_TOLERANCE_VIOLATED``; inside it after
-  the end → SUCCEEDED ``SUCCESSFUL`` (rules in :mod:`dyn_node.sim.jtc`). Feedback (desired,
+  the end → SUCCEEDED ``SUCCESSFUL`` (rules in :mod:`dyn_node.sim.jtc`). The physics diverging
+  (the simulator's fault) → ABORTED ``PATH_TOLERANCE_VIOLATED`` with the fault's line. Feedback (desired,
   actual, error) at ``action_monitor_rate`` Hz (default 20, the controller's).
 - ``/<controller_name>/joint_trajectory`` — trajectory_msgs/JointTrajectory, executed as before.
 - ``/<controller_name>/controller_state`` — control_msgs/msg/JointTrajectoryControllerState at
@@ -55,10 +56,31 @@ JTC_PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("constraints.stopped_velocity_tolerance", "double", 0.01,
               "largest |velocity| (rad/s) counted as stopped at the goal", 0.0, 1e6),
     ParamSpec("constraints.trajectory", "double", 0.0,
-              "default path position tolerance of every joint (rad); 0: not checked", 0.0, 1e6),
+              "default path position tolerance of every joint (rad); 0: not checked; "
+              "constraints.<joint>.trajectory wins", 0.0, 1e6),
     ParamSpec("constraints.goal", "double", 0.0,
-              "default goal position tolerance of every joint (rad); 0: not checked", 0.0, 1e6),
+              "default goal position tolerance of every joint (rad); 0: not checked; "
+              "constraints.<joint>.goal wins", 0.0, 1e6),
 )
+
+
+def joint_tolerance_parameters(joints: list[str] | tuple[str, ...]) -> tuple[ParamSpec, ...]:
+    """JTC's per-joint ``constraints.<joint>.trajectory`` and ``.goal`` (its parameter yaml,
+    ``constraints: __map_joints``), declared by dyn_sim once the model's joints are known. Unset
+    (default -1 here, not a tolerance): the ``constraints.trajectory``/``.goal`` value above."""
+    out = []
+    for j in joints:
+        for kind, what in (("trajectory", "path"), ("goal", "goal")):
+            out.append(ParamSpec(f"constraints.{j}.{kind}", "double", -1.0,
+                                 f"{what} position tolerance of {j} (rad), as JTC's; 0: not checked; "
+                                 f"-1: constraints.{kind}", -1.0, 1e6))
+    return tuple(out)
+
+
+def joint_tolerances(params: dict[str, Any], joints: list[str], kind: str) -> list[float]:
+    """Per joint: ``constraints.<joint>.<kind>`` when set (≥ 0), else ``constraints.<kind>``."""
+    return [params[f"constraints.{j}.{kind}"] if params.get(f"constraints.{j}.{kind}", -1.0) >= 0.0
+            else params[f"constraints.{kind}"] for j in joints]
 
 Result = FollowJointTrajectory.Result
 
@@ -102,7 +124,8 @@ class JtcFace:
         self.monitor_period = 1.0 / float(params["action_monitor_rate"])
         self.state_period = 1.0 / float(params["state_publish_rate"])
         self.defaults = jtc.default_tolerances(
-            len(self.joints), trajectory=params["constraints.trajectory"], goal=params["constraints.goal"],
+            len(self.joints), trajectory=joint_tolerances(params, self.joints, "trajectory"),
+            goal=joint_tolerances(params, self.joints, "goal"),
             stopped_velocity=params["constraints.stopped_velocity_tolerance"],
             goal_time=params["constraints.goal_time"])
         self._lock = threading.Lock()
@@ -241,7 +264,14 @@ class JtcFace:
             goal = self._active
         if hold:
             sim.hold()
-        if goal is not None and goal.outcome is None and not goal.preempted:
+        if goal is not None and goal.outcome is None and not goal.preempted and sim.fault is not None:
+            # the physics diverged: the goal cannot be executed (issue 37), said with the cause
+            with self._lock:
+                if self._active is goal:
+                    self._active = None
+            goal.outcome = jtc.Outcome(jtc.PATH_TOLERANCE_VIOLATED, f"dyn_sim: {sim.fault.text}")
+            goal.done.set()
+        elif goal is not None and goal.outcome is None and not goal.preempted:
             act = sim.active if sim.active is not None else goal.act
             goal.feedback = (stamp, st.q_ref, st.v_ref, st.q, st.v)
             out = jtc.monitor(st.t, act.end_time, st.q_ref - st.q, st.v_ref - st.v, goal.tol, self.joints)

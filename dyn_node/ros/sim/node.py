@@ -41,6 +41,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from dyn_node.errors import DynNodeError
@@ -51,7 +52,8 @@ from dyn_node.core.robot.settings import ParamSpec
 from dyn_node.ros.params import KINDS, parameter_descriptor
 from dyn_node.ros.qos import LATCHED_HISTORY
 from dyn_node.ros.sim.physics import SCENE_PARAMETERS, SimPhysics, sim_config_extras
-from dyn_node.ros.sim.action import JTC_PARAMETERS, JtcFace
+from dyn_node.sim.scene import SceneError
+from dyn_node.ros.sim.action import JTC_PARAMETERS, JtcFace, joint_tolerance_parameters
 
 #: Largest backlog (s) a real-time run catches up. When the process was starved of CPU (a loaded
 #: machine), the steps that were due are computed in a burst with their own evenly spaced stamps,
@@ -111,17 +113,11 @@ class SimNode(Node):
     def __init__(self, **kwargs: Any):
         super().__init__("dyn_sim", **kwargs)
         self.p: dict[str, Any] = {}
-        for spec in PARAMETERS:
-            default = spec.default if spec.default is not None else Parameter.Type.DOUBLE_ARRAY
-            self.declare_parameter(spec.name, default, _descriptor(spec))
-            try:
-                value = self.get_parameter(spec.name).value
-            except rclpy.exceptions.ParameterUninitializedException:
-                value = None
-            self.p[spec.name] = value
+        self._declare(PARAMETERS)
         arr = lambda k: tuple(float(x) for x in (self.p[k] or ()))  # noqa: E731
         self.model = model_from_source(self.p["robot_description"], self.p["robot_description_file"],
                                        self.p["robot_model"])
+        self._declare(joint_tolerance_parameters(self.model.joint_names))
         self.sim = Simulator(self.model, SimConfig(
             timestep=self.p["timestep"], kp=arr("kp"), kd=arr("kd"),
             natural_frequency=self.p["natural_frequency"], damping_ratio=self.p["damping_ratio"],
@@ -163,17 +159,42 @@ class SimNode(Node):
         self._last_catch_up_log = -1e9
         self._thread = threading.Thread(target=self._run, name="dyn_sim_loop", daemon=True)
         # the controller's topics and action (/<controller_name>/...), on a node of its own
-        self.jtc = JtcFace(self, self.p, self._on_trajectory, lambda: self.sim.time)
+        # "now" on the stamps' clock (epoch + simulation time): goal stamps are compared with it
+        self.jtc = JtcFace(self, self.p, self._on_trajectory, lambda: self.epoch_ns * 1e-9 + self.sim.time)
+        self._reset_requested = threading.Event()
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self._lag_said = False
+        for note in (self.sim.integrator_note, self.sim.gain_warning):
+            if note:
+                self.get_logger().warning(note)
         self.get_logger().info(
             f"simulating {self.model.name} ({self.model.nv} DoF) with MuJoCo at "
             f"{self.p['timestep'] * 1e3:g} ms, joint_states every {self.steps_per_publish} steps, "
             f"{'real time' if self.real_time else 'as fast as possible with /clock'}")
         self._thread.start()
 
+    def _declare(self, specs: tuple[ParamSpec, ...]) -> None:
+        for spec in specs:
+            default = spec.default if spec.default is not None else Parameter.Type.DOUBLE_ARRAY
+            self.declare_parameter(spec.name, default, _descriptor(spec))
+            try:
+                value = self.get_parameter(spec.name).value
+            except rclpy.exceptions.ParameterUninitializedException:
+                value = None
+            self.p[spec.name] = value
+
     # --- ROS callbacks ---------------------------------------------------------------------------
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         with self._lock:
             self._inbox.append(msg)
+
+    def _on_reset(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        """Clear a physics fault: the robot held at rest where it is (the last good state)."""
+        fault = self.sim.fault
+        self._reset_requested.set()
+        res.success = True
+        res.message = f"reset (was: {fault.text})" if fault is not None else "reset (no fault)"
+        return res
 
     def _on_wrench(self, msg: WrenchStamped) -> None:
         with self._lock:
@@ -205,11 +226,17 @@ class SimNode(Node):
                     throttle_duration_sec=1.0)
 
     def _take_trajectories(self) -> None:
+        if self._reset_requested.is_set():
+            self._reset_requested.clear()
+            self.sim.reset(self.sim.q)
         with self._lock:
             msgs, self._inbox = self._inbox, []
         for msg in msgs:
             stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            # the stamp on the simulation clock (stamps are epoch + simulation time)
             start = None if stamp_ns == 0 else (stamp_ns - self.epoch_ns) * 1e-9
+            if start is not None:
+                self._say_lag()
             pts = msg.points
             try:
                 act = self.sim.execute(
@@ -229,6 +256,17 @@ class SimNode(Node):
                 f"executing trajectory: {act.trajectory.n_points} points, "
                 f"{act.trajectory.duration:.3f} s, {act.mode} interpolation, starts in "
                 f"{max(0.0, act.start_time - self.sim.time):.3f} s")
+
+    def _say_lag(self) -> None:
+        """Once: the simulation clock runs behind the wall clock (CPU starvation), so a goal
+        stamped by the wall clock starts at its stamp on the simulation clock, late in wall time."""
+        lag = (self.get_clock().now().nanoseconds - self.epoch_ns) * 1e-9 - self.sim.time
+        if self.real_time and lag > 0.05 and not self._lag_said:
+            self._lag_said = True
+            self.get_logger().warning(
+                f"the simulation clock is {lag:.3f} s behind the wall clock (the process is starved of "
+                "CPU): stamped goals start at their stamp on the simulation clock, later in wall time "
+                "(said once)")
 
     # --- simulation loop -------------------------------------------------------------------------
     def _stamp(self, steps: int) -> TimeMsg:
@@ -339,14 +377,16 @@ class SimNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Jazzy main(): spin until SIGINT/SIGTERM, then stop the sim thread and shut down cleanly
-    (signal handling in :mod:`dyn_node.ros.main`). A model that cannot be loaded exits with 1.
+    (signal handling in :mod:`dyn_node.ros.main`). A model that cannot be loaded exits with 1, a
+    scene file or solver setting that cannot be used with 2 (bad input), each with one line.
     ``--check-physics`` runs the simulator's physics checks instead (no ROS graph)."""
     argv = list(sys.argv if args is None else args)
     if "--check-physics" in argv:
         from dyn_node.sim.physics_check import main as check_physics
         return check_physics(argv[argv.index("--check-physics") + 1:])
     return spin_until_signalled(SimNode, args, "dyn_sim", fatal=(DynNodeError,),
-                                describe=lambda exc: f"{exc.failure_label}: {exc}", fatal_code=1)
+                                describe=lambda exc: f"{exc.failure_label}: {exc}",
+                                fatal_code=lambda exc: 2 if isinstance(exc, SceneError) else 1)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,9 @@ settings. Publications: ``~/contact_truth`` (dyn_node_interfaces/ContactTruth) w
 joint_states message while some robot–scene contact is active, stamped like it, and a
 ``dyn_sim: physics`` status on ``/diagnostics`` every ``physics_diagnostics_period`` s of
 simulation time (solver iterations and residual, MuJoCo warnings, largest penetration, energy
-budget and its error; a diverging step is an ERROR labelled ``evaluation error``).
+budget and its error; a diverging step is an ERROR labelled ``evaluation error``). When the
+simulator's divergence guard stops the physics (:attr:`Simulator.fault`) the ERROR is published at
+once, with the fault's line (joint, quantity, step), and repeated each period until ``~/reset``.
 """
 from __future__ import annotations
 
@@ -28,7 +30,8 @@ _DEF = SolverSettings()
 SCENE_PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("scene_file", "string", "", "YAML of static objects the robot collides with "
               "(docs/SIMULATOR.md); empty: no scene, contacts off"),
-    ParamSpec("integrator", "string", _DEF.integrator, "MuJoCo integrator: rk4, euler, implicit, implicitfast"),
+    ParamSpec("integrator", "string", "auto", "MuJoCo integrator: auto (rk4, or implicitfast when the URDF's "
+              "damping is too stiff for it at the timestep), rk4, euler, implicit, implicitfast"),
     ParamSpec("solver", "string", _DEF.solver, "MuJoCo constraint solver (with a scene): newton, cg, pgs"),
     ParamSpec("solver_iterations", "integer", _DEF.iterations, "solver iteration limit", 1, 10000),
     ParamSpec("solver_tolerance", "double", _DEF.tolerance, "solver tolerance (MuJoCo's)", 0.0, 1.0),
@@ -45,7 +48,8 @@ SCENE_PARAMETERS: tuple[ParamSpec, ...] = (
 
 def sim_config_extras(p: dict[str, Any], model: RobotModel) -> dict[str, Any]:
     """SimConfig keyword arguments from the parameters: scene (validated), solver, energy on."""
-    solver = SolverSettings(integrator=p["integrator"], solver=p["solver"],
+    auto = p["integrator"] == "auto"
+    solver = SolverSettings(integrator=_DEF.integrator if auto else p["integrator"], solver=p["solver"],
                             iterations=int(p["solver_iterations"]), tolerance=float(p["solver_tolerance"]),
                             noslip_iterations=int(p["solver_noslip_iterations"]),
                             solref=tuple(p["contact_solref"]), solimp=tuple(p["contact_solimp"]))
@@ -53,7 +57,7 @@ def sim_config_extras(p: dict[str, Any], model: RobotModel) -> dict[str, Any]:
     if p["scene_file"]:
         links = [el.get("name") for el in ET.fromstring(model.urdf).findall("link")]
         scene = load_scene(p["scene_file"], link_names=links)
-    return {"scene": scene, "solver": solver, "energy": True}
+    return {"scene": scene, "solver": solver, "energy": True, "integrator_auto": auto}
 
 
 def truth_message(truth: ContactTruth, stamp: TimeMsg, frame_id: str) -> Any:
@@ -106,6 +110,7 @@ class SimPhysics:
         self.diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._period_steps = max(1, int(round(period_s / sim.config.timestep)))
         self._next_report = self._period_steps
+        self._fault_said = None
 
     def on_publish(self) -> None:
         """After each joint_states publication: the truth while in contact, the status when due."""
@@ -115,6 +120,11 @@ class SimPhysics:
             if truth.active:
                 self.truth_pub.publish(truth_message(truth, self._stamp(steps), self.base_frame))
                 self.truth_published += 1
+        fault = self.sim.fault
+        if fault is not None and fault is not self._fault_said:
+            self._fault_said = fault
+            self.node.get_logger().error(f"dyn_sim: {fault.text}")
+            self._next_report = steps  # said now, not at the end of the period
         if self.sim.physics is not None and steps >= self._next_report:
             self._next_report = steps + self._period_steps
             st = self.sim.physics.report(self.sim.data)
