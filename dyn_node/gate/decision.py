@@ -58,6 +58,10 @@ class Decision:
     duration_uniform: float = math.nan
     retime_message: str = ""
     extra: Mapping[str, Any] = field(default_factory=dict)
+    #: what the check judged (the execution model's keys: start time rule and offset, the
+    #: start state's age, the jump, interpolation per segment, velocity steps); {} when the goal
+    #: could not be checked
+    judged: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def forwards(self) -> bool:
@@ -91,6 +95,7 @@ class Decision:
             "duration_out": _num(self.duration_out), "duration_uniform": _num(self.duration_uniform),
             "retime_message": self.retime_message,
             "forwarded": None if tr is None else trajectory_dict(tr, joint_names),
+            "judged": {k: _num(v) for k, v in self.judged.items()},
             **dict(self.extra),
         }
 
@@ -129,10 +134,12 @@ def load_retimer() -> RetimeFn:
 
 def decide_goal(dynamics: Dynamics, settings: Any, options: GateOptions, names: list[str],
                 times: list[float], positions: Any, velocities: Any, accelerations: Any, *,
-                start: feasibility.StartState | None, retimer: RetimeFn | None = None) -> Decision:
+                start: feasibility.StartState | None, retimer: RetimeFn | None = None,
+                timing: feasibility.Timing | None = None) -> Decision:
     """A goal's trajectory as received (its joint order, empty fields as sent): validated as the
     node validates an executed trajectory (at least two points), then :func:`decide` with the
-    check options of ``settings`` (the node's). The gate and the audit's replay both call this."""
+    check options of ``settings`` (the node's) and the goal's ``timing`` (its header stamp and
+    receipt; None: zero stamp). The gate and the audit's replay both call this."""
     try:
         traj = validate_trajectory(dynamics.model.joint_names, names, times, positions, velocities,
                                    accelerations, min_points=2)
@@ -141,7 +148,7 @@ def decide_goal(dynamics: Dynamics, settings: Any, options: GateOptions, names: 
     opts = feasibility.FeasibilityOptions(sample_period=settings.sample_period,
                                           effort_warn_ratio=settings.effort_warn_ratio)
     return decide(dynamics, traj, options, start=start, check_options=opts, retimer=retimer,
-                  limit_margin=settings.retime_limit_margin)
+                  limit_margin=settings.retime_limit_margin, timing=timing)
 
 
 def goal_dict(names: list[str], times: list[float], positions: Any, velocities: Any,
@@ -168,6 +175,16 @@ def start_dict(start: feasibility.StartState | None) -> dict[str, Any] | None:
             "age_s": float(start.age_s)}
 
 
+def timing_dict(timing: feasibility.Timing | None) -> dict[str, float] | None:
+    """A goal's timing for the record (the replay decides from the same)."""
+    return None if timing is None else {"stamp_s": timing.stamp_s, "receipt_s": timing.receipt_s}
+
+
+def timing_from_dict(d: dict[str, Any] | None) -> feasibility.Timing | None:
+    """:func:`timing_dict`'s inverse (None, as in records made before it: zero stamp)."""
+    return None if d is None else feasibility.Timing(float(d["stamp_s"]), float(d["receipt_s"]))
+
+
 def start_from_dict(d: dict[str, Any] | None) -> feasibility.StartState | None:
     if d is None:
         return None
@@ -178,19 +195,22 @@ def start_from_dict(d: dict[str, Any] | None) -> feasibility.StartState | None:
 def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
            start: feasibility.StartState | None,
            check_options: feasibility.FeasibilityOptions = feasibility.FeasibilityOptions(),
-           retimer: RetimeFn | None = None, limit_margin: float = 0.995) -> Decision:
-    """Check ``traj`` (model order, validated) from ``start`` and decide; see the module docstring.
-    ``retimer`` defaults to :func:`load_retimer`'s, loaded only when a goal is to be retimed;
+           retimer: RetimeFn | None = None, limit_margin: float = 0.995,
+           timing: feasibility.Timing | None = None) -> Decision:
+    """Check ``traj`` (model order, validated) as the controller executes it, received at
+    ``timing`` by a robot in ``start``, and decide; see the module docstring. ``retimer``
+    defaults to :func:`load_retimer`'s, loaded only when a goal is to be retimed;
     ``limit_margin``: the retimer's (the node's ``retime.limit_margin``)."""
     t0 = time.perf_counter()
     try:
         result = feasibility.check_trajectory(dynamics, traj, check_options, start=start,
-                                              start_unknown=feasibility.NO_CURRENT_STATE)
+                                              start_unknown=feasibility.NO_CURRENT_STATE,
+                                              timing=timing)
     except TrajectoryError as exc:
         return rejected(exc, time.perf_counter() - t0)
     worst = (result.worst_joint, result.worst_constraint, result.worst_ratio)
     base = dict(verdict=result.message, feasible=result.feasible, time_scale=result.time_scale,
-                worst=worst, duration_in=traj.duration)
+                worst=worst, duration_in=traj.duration, judged=judged_values(result))
     wants_retime = options.mode == "retime" and (options.retime_all or not result.feasible)
     if not wants_retime:
         elapsed = time.perf_counter() - t0
@@ -198,13 +218,24 @@ def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
             return Decision(FORWARDED, reason="" if result.feasible else "infeasible", trajectory=traj,
                             check_time_s=elapsed, duration_out=traj.duration, **base)
         return Decision(REJECTED, reason="infeasible", trajectory=None, check_time_s=elapsed, **base)
-    return _retimed(dynamics, traj, start, check_options, retimer, limit_margin, t0, base, result)
+    return _retimed(dynamics, traj, start, check_options, retimer, limit_margin, t0, base, result,
+                    timing)
+
+
+def judged_values(result: feasibility.FeasibilityResult) -> dict[str, Any]:
+    """The record's ``judged``: the execution model's summary keys and the start segment."""
+    v = result.summary_values()
+    keys = ("interpolation", "start_segment", "start_state_age_s", "start_time", "start_offset_s",
+            "start_jump", "start_jump_joint", "start_velocity_step", "interpolation_segments",
+            "linear_segments", "velocity_steps", "velocity_step_points", "refused_by_controller")
+    return {k: v[k] for k in keys if k in v}
 
 
 def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState | None,
              check_options: feasibility.FeasibilityOptions, retimer: RetimeFn | None,
              limit_margin: float, t0: float, base: dict[str, Any],
-             checked: feasibility.FeasibilityResult) -> Decision:
+             checked: feasibility.FeasibilityResult,
+             timing: feasibility.Timing | None = None) -> Decision:
     def failed(message: str, uniform: float = math.nan) -> Decision:
         # a feasible goal (retime_all) whose retiming failed still goes as it came
         kept = traj if base["feasible"] else None
@@ -226,7 +257,8 @@ def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState
     # (same options, same start) when it has one, else checked here as the controller will run it
     try:
         again = out.check if out.check is not None else feasibility.check_trajectory(
-            dynamics, out.trajectory, check_options, start=start, start_unknown=feasibility.NO_CURRENT_STATE)
+            dynamics, out.trajectory, check_options, start=start, start_unknown=feasibility.NO_CURRENT_STATE,
+            timing=timing)
         ok, why = again.feasible, again.message
     except TrajectoryError as exc:
         ok, why = False, str(exc)

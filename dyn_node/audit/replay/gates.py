@@ -85,10 +85,12 @@ class GateReplay:
 
     def _compare(self, rec: dict, dynamics: Any, settings: Any, check: Recheck, where: dict) -> None:
         # here, not at the top: a bag without gate goals never loads the check's kernels for it
-        from dyn_node.gate.decision import GateOptions, decide_goal, goal_arrays, start_from_dict
+        from dyn_node.gate.decision import GateOptions, decide_goal, goal_arrays, start_from_dict, timing_from_dict
 
+        # the goal's stamp and receipt as the gate recorded them (none in older records: zero stamp)
         d = decide_goal(dynamics, settings, GateOptions(mode=rec["mode"], retime_all=bool(rec.get("retime_all"))),
-                        *goal_arrays(rec["goal"]), start=start_from_dict(rec["start"]))
+                        *goal_arrays(rec["goal"]), start=start_from_dict(rec["start"]),
+                        timing=timing_from_dict(rec.get("timing")))
         mine = d.to_dict(goal_id=rec["goal_id"], mode=rec["mode"], joint_names=list(dynamics.model.joint_names))
         differing = [k for k in ("decision", "reason", "feasible", "verdict", "error_string", "worst_joint",
                                  "worst_constraint", "retime_message") if not _same(rec.get(k), mine.get(k))]
