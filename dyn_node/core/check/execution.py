@@ -63,7 +63,7 @@ class ExecutionOptions:
     parameter of that name (C 300-307)."""
 
     start_tolerance: float = 0.01
-    velocity_tolerance: float = 1e-3
+    velocity_tolerance: float = 0.01
     allow_nonzero_velocity_at_trajectory_end: bool = False
     interpolate_from_desired_state: bool = False
 
