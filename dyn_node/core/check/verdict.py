@@ -162,7 +162,8 @@ def apply_execution(ex: Any, per_joint: dict, violations: list[Violation], scale
     """What the execution model found, into the verdict: a jump beyond ``start_tolerance`` and
     every velocity step beyond ``velocity_tolerance`` are unbounded velocities/accelerations:
     violations wherever a velocity, acceleration, jerk or effort limit applies, and no slowdown
-    fixes them (k = ∞, blocked, with the reason in words). Refusals are warnings."""
+    fixes them (k = ∞, blocked, with the reason in words). What the controller would refuse is
+    a key of the verdict (``refused_by_controller``), judged all the same: the gate refuses."""
     names = list(per_joint)
     heads, reasons, where, kind0 = [], [], "", ""
     jump = ex.jump
@@ -206,8 +207,6 @@ def apply_execution(ex: Any, per_joint: dict, violations: list[Violation], scale
                      "as the controller interpolates them")
         reasons.append("no slowdown removes a velocity step: send velocities (cubic) or "
                        "velocities and accelerations (quintic)")
-    for _code, text in ex.refusals:
-        warnings.append(f"the controller refuses it: {text}")
     if where:
         scale.head = "; ".join(heads)
         scale.k, scale.where, scale.kind = math.inf, where, kind0
