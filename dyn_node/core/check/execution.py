@@ -363,25 +363,28 @@ def _velocity_steps(knots: Trajectory, modes: tuple[str, ...], pp: PiecewisePoly
     if modes == (HOLD,):
         return ()
     K = knots.n_points
+    lin = np.array([m == LINEAR for m in modes])
+    near = np.zeros(K, dtype=bool)
+    near[1:] |= lin                 # a linear segment arrives at knot i
+    near[:-1] |= lin                # or leaves it
+    if not start_segment:
+        near[0] = False             # a jump's velocity, or no state: see Jump
+    idx = np.flatnonzero(near)
+    if not len(idx):
+        return ()
     left = _end_velocity(pp)                                   # velocity arriving at knot i+1
     right = pp.coeffs[:, 1, :]                                 # velocity leaving knot i
     held = traj.velocities[-1] if traj.velocities is not None and has_v[-1] else np.zeros(left.shape[1])
+    arrive = np.vstack([knots.velocities[:1], left])           # knot 0: the robot's velocity
+    leave = np.vstack([right, held[None, :]])                  # the last knot: the hold
+    steps = leave[idx] - arrive[idx]
     point_of = {int(k): i for i, k in enumerate(point_knots) if k >= 0}
     out = []
-    for i in range(K):
-        near_linear = (i > 0 and modes[i - 1] == LINEAR) or (i < K - 1 and modes[i] == LINEAR)
-        if not near_linear:
+    for n, i in enumerate(idx):
+        step = steps[n]
+        if not np.any(np.abs(step) > 1e-12):
             continue
-        if i == 0:
-            if not start_segment:
-                continue                       # a jump's velocity, or no state: see Jump
-            step = right[0] - knots.velocities[0]
-        elif i == K - 1:
-            step = held - left[-1]
-        else:
-            step = right[i] - left[i - 1]
         joints = tuple(int(j) for j in np.flatnonzero(np.abs(step) > options.velocity_tolerance))
-        if np.any(np.abs(step) > 1e-12):
-            out.append(VelocityStep(knot=i, point=point_of.get(i, -1), time_s=float(knots.times[i]),
-                                    step=step, joints=joints))
+        out.append(VelocityStep(knot=int(i), point=point_of.get(int(i), -1),
+                                time_s=float(knots.times[i]), step=step, joints=joints))
     return tuple(out)
