@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import signal
-import time
 
 import numpy as np
 import pytest
@@ -197,7 +196,9 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
     # from READY, where the goal starts (the last test left the robot 0.2 rad away: a jump)
     assert client.result(client.send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
     g = _goal(INFEASIBLE)
-    # on the states' own clock (wall-clock start + simulation time, which lags under load)
+    # on the states' own clock (wall-clock start + simulation time, which lags under load): the
+    # newest state once the probe has taken what arrived while the HOME goal ran
+    probe.steps.until(lambda: False, 0.5)
     t_sent = max(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in probe.js[-50:])
     sent = client.send(g)
     assert sent.handle.accepted  # accepted, then ended at once: the string reaches MoveIt
