@@ -295,6 +295,13 @@ def test_a_goal_stamped_03_s_ago_is_judged_from_03_s_into_it():
     d = out.result.to_dict()
     assert not out.feasible and d["start_offset_s"] == pytest.approx(0.3)
     assert d["start_time"] == START_AT_STAMP
+    # the first point was passed before the start: its torque on the message's own motion
+    # (scipy's cubic there), one row per message point all the same
+    model, dyn = panda()
+    spline = CubicHermiteSpline(times, Pr, Vr)
+    assert out.result.waypoint_effort.shape == (len(times), 7)
+    np.testing.assert_allclose(out.result.waypoint_effort[0],
+                               dyn.rnea(spline(0.0), spline(0.0, 1), spline(0.0, 2)), rtol=0, atol=1e-9)
     assert d["start_jump"] == pytest.approx(np.abs(ref - READY).max(), rel=1e-9)
     assert out.result.message.startswith("infeasible: started 0.3 s into it (past stamp), the "
                                          "trajectory is "), out.result.message

@@ -357,11 +357,13 @@ def _check(dynamics: Dynamics, ex: Execution, options: FeasibilityOptions,
     fixed_start = ex.fixed_start
     motion, tau1 = _motion(dynamics, ex.pp, options, fixed_start, warnings)
     waypoints = np.concatenate((motion.smp.first, motion.smp.last[-1:]))
-    # the message's points (a prepended state is not one; one passed before a past stamp's
-    # start was never executed: NaN)
-    waypoint_effort = np.full((traj.n_points, motion.tau.shape[1]), np.nan)
+    # the message's points (a prepended state is not one); one passed before a past stamp's
+    # start gets its torque as the message has it (it was never executed)
+    waypoint_effort = np.empty((traj.n_points, motion.tau.shape[1]))
     done = ex.point_knots >= 0
     waypoint_effort[done] = motion.tau[waypoints[ex.point_knots[done]]]
+    if not done.all():
+        waypoint_effort[~done] = _passed_point_torques(dynamics, traj, ~done)
     effort_step = _effort_steps(motion, ex, warnings)
     kinds = constraints.build(motion, KINDS)
     warnings += [w for c in kinds for w in c.warnings]
@@ -415,6 +417,14 @@ def _validate(traj: Trajectory, options: FeasibilityOptions, single: bool = Fals
     if not (options.sample_period > 0 and math.isfinite(options.sample_period)):
         raise TrajectoryError("sample_period must be a positive number of seconds",
                               code="bad_options")
+
+
+def _passed_point_torques(dynamics: Dynamics, traj: Trajectory, which: np.ndarray) -> np.ndarray:
+    """τ at the message's points ``which`` on its own interpolation (zero stamp, no state), as
+    on_demand.inverse_dynamics computes a state's torque."""
+    Q, V, A, _ = jtc.execute(traj).pp.evaluate(traj.times[which])
+    tau = task_motion.inverse_dynamics(dynamics, Q, V, A)
+    return tau if tau is not None else dynamics.terms_batch(Q, V, A).full
 
 
 def _start_segment(ex: Execution, start_unknown: str, warnings: list[str]) -> str:
