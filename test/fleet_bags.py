@@ -45,7 +45,10 @@ def nominal_pose(model) -> np.ndarray:
     return mid + 0.1
 
 
-def _trajectory(model, stamp_ns: int, fast: bool):
+def _trajectory(model, stamp_ns: int, fast: bool, robot: tuple | None = None):
+    """Rest at q0 → q0 + 0.3 → q0; ``robot`` (q, q̇): the first point there instead (the robot's
+    state when it arrives: the controller steps to a first point due at once, so one elsewhere
+    would be a jump)."""
     from builtin_interfaces.msg import Duration
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -58,6 +61,8 @@ def _trajectory(model, stamp_ns: int, fast: bool):
         p = JointTrajectoryPoint()
         p.positions = [float(x) for x in q0 + (0.3 if k == 1 else 0.0)]
         p.velocities = [0.0] * model.nv
+        if k == 0 and robot is not None:
+            p.positions, p.velocities = [float(x) for x in robot[0]], [float(x) for x in robot[1]]
         sec, ns = divmod(int(round(t * 1e9)), 1_000_000_000)
         p.time_from_start = Duration(sec=sec, nanosec=ns)
         m.points.append(p)
@@ -96,18 +101,23 @@ def write_bag(parent: Path, spec: BagSpec) -> Path:
     m = JointState()
     m.header.frame_id = "base"
     m.name = list(model.joint_names)
+    def state(i: int) -> tuple:
+        t = i / spec.rate_hz
+        return (q0 + 0.05 * np.sin(2 * np.pi * 0.5 * t + ph), 0.05 * np.pi * np.cos(2 * np.pi * 0.5 * t + ph))
+
     for i in range(n):
         t_ns = t0 + i * dt
         if i in traj_at:
-            rec.write("/joint_trajectory", serialize_message(_trajectory(model, t_ns, traj_at[i])),
+            rec.write("/joint_trajectory", serialize_message(_trajectory(model, t_ns, traj_at[i], state(i))),
                       t_ns + 500)
         if i in ask_at:
             rec.write("/dyn_node/check_trajectory",
-                      serialize_message(_trajectory(model, t_ns + 1, ask_at[i])), t_ns + 700)
+                      serialize_message(_trajectory(model, t_ns + 1, ask_at[i], state(i))), t_ns + 700)
         t = i / spec.rate_hz
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
-        m.position = [float(x) for x in q0 + 0.05 * np.sin(2 * np.pi * 0.5 * t + ph)]
-        m.velocity = [float(x) for x in 0.05 * np.pi * np.cos(2 * np.pi * 0.5 * t + ph)]
+        q, v = state(i)
+        m.position = [float(x) for x in q]
+        m.velocity = [float(x) for x in v]
         effort = [float("nan")] * model.nv
         if spec.spike and spec.spike[0] <= t < spec.spike[1]:
             effort[1] = limit * 1.05 + (t - spec.spike[0])  # peak at the spike's last sample

@@ -75,9 +75,12 @@ def make_bag(path: Path, n: int = 1500, *, metadata: bool = True, outputs: bool 
     pending: list = []
     for i in range(n):
         if i in traj_at:
+            if traj_at[i].points:     # the robot's last state before it: sample i - 1
+                start_at_robot(traj_at[i], i - 1)
             w.write("/joint_trajectory", traj_at[i], T0 + i * MS + 500)
             if outputs:
-                _feasibility_output(w, traj_at[i], T0 + i * MS + 900)
+                # the state: sample i - 1 (sample i is written after it)
+                _feasibility_output(w, traj_at[i], T0 + i * MS + 900, i - 1, T0 + i * MS + 500)
         if drop is not None and i in drop:
             continue
         q, v = q_at(i)
@@ -144,13 +147,26 @@ def trajectory_msg(stamp_ns: int, scale: float = 1.0, nan: bool = False):
     return m
 
 
-def _feasibility_output(w: BagWriter, msg, log_ns: int) -> None:
-    """What the node publishes on ~/feasibility for ``msg`` (computed with the same core)."""
+def start_at_robot(msg, i: int):
+    """``msg`` with its first point (t = 0) where the robot is at sample i, at its velocity: the
+    controller steps to a first point due at once, so one elsewhere would be a jump."""
+    q, v = q_at(i)
+    msg.points[0].positions = [float(x) for x in q]
+    msg.points[0].velocities = [float(x) for x in v]
+    return msg
+
+
+def _feasibility_output(w: BagWriter, msg, log_ns: int, state_i: int | None = None,
+                        receipt: int = 0) -> None:
+    """What the node publishes on ~/feasibility for ``msg`` (computed with the same core), the
+    robot in joint_states sample ``state_i`` (received at T0 + state_i ms), the trajectory
+    received at ``receipt`` (ns)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
     from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
     from dyn_node.errors import TrajectoryError
-    from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory, rejected_statuses
+    from dyn_node.core.check.feasibility import (NO_CURRENT_STATE, FeasibilityOptions, Timing,
+                                                 check_trajectory, current_state, rejected_statuses)
     from dyn_node.core.check.trajectory import validate_trajectory
 
     pts = msg.points
@@ -159,8 +175,14 @@ def _feasibility_output(w: BagWriter, msg, log_ns: int) -> None:
         traj = validate_trajectory(PANDA.joint_names, list(msg.joint_names), times,
                                    [p.positions for p in pts], [p.velocities for p in pts],
                                    [p.accelerations for p in pts])
+        start = timing = None
+        if state_i is not None:
+            q, v = q_at(state_i)
+            start = current_state((T0 + state_i * MS, q, v), receipt, 0.1)
+            timing = Timing(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, receipt * 1e-9)
         statuses = check_trajectory(Dynamics(PANDA, DynamicsOptions(include_friction=True)), traj,
-                                    FeasibilityOptions()).statuses(PANDA.name)
+                                    FeasibilityOptions(), start=start, timing=timing,
+                                    start_unknown=NO_CURRENT_STATE).statuses(PANDA.name)
     except TrajectoryError as exc:
         statuses = rejected_statuses(exc, PANDA.name, len(times), float(times[-1]) if all(
             np.isfinite(times)) else 0.0)
@@ -303,12 +325,15 @@ def test_recheck_of_node_outputs_is_exactly_zero_and_a_perturbation_is_found(tmp
     # the payload margin by its definition: feasible with that much more payload, not beyond it
     _assert_payload_margin(trajs[0][1], t[0]["payload_margin_kg"])
     assert res.exit_code == 1 and "planning error" in rec["failure_labels"]
-    # the recorded motion does not follow the plans: deviating from the first trajectory's stamp
-    # (0.2 s); the second (0.4 s, 50 ms long) replaces it and has ended by the sample at 0.451 s;
-    # the rejected third is never tracked
+    # each plan starts where the robot is (a first point elsewhere would be a jump), so it is
+    # tracked from its stamp (0.2 s), then the recorded motion, which does not follow the plans,
+    # leaves it (0.294 s); the second (0.4 s, 50 ms long) replaces it, is left after 6 ms and has
+    # ended by the sample at 0.451 s; the rejected third is never tracked
     cs = rec["outputs"]["controller_states"]
     assert [(c["state"], c["time_s"]) for c in cs["replayed_transitions"]] == [
-        ("idle", 0.0), ("deviating", pytest.approx(0.2, abs=1e-9)), ("idle", pytest.approx(0.451, abs=1e-9))]
+        ("idle", 0.0), ("tracking", pytest.approx(0.2, abs=1e-9)), ("deviating", pytest.approx(0.294, abs=1e-9)),
+        ("tracking", pytest.approx(0.4, abs=1e-9)), ("deviating", pytest.approx(0.406, abs=1e-9)),
+        ("idle", pytest.approx(0.451, abs=1e-9))]
 
     bag2 = make_bag(tmp_path / "bag2", n=300, outputs=True, perturb=123)
     run_audit(AuditOptions(bag=str(bag2), out=str(tmp_path / "out2"), report=False))
@@ -572,7 +597,7 @@ def record_node_run(ros_context, tmp_path: Path, n: int, *, trajectories_at: Seq
             js_pub.publish(joint_state(names, list(q) + [0.01, 0.01], list(v) + [0.0, 0.0], [],
                                        stamp_ns=T0 + i * 5 * MS))
             if i in trajectories_at:
-                traj_pub.publish(trajectory_msg(T0 + i * 5 * MS))
+                traj_pub.publish(start_at_robot(trajectory_msg(T0 + i * 5 * MS), i))
             spin_until(lambda: False, 0.002)  # ~ 300 Hz, the node keeps up without drops
 
         def done():

@@ -274,3 +274,21 @@ def test_task_limits_give_a_row_per_place_evidence_and_a_retime_that_passes(tmp_
         again.accelerations))
     assert res2.per_frame["panda_hand"]["frame_speed"]["ratio"] == pytest.approx(
         1 / (1 + RETIME_MARGIN), rel=1e-5)
+
+
+def test_a_positions_only_file_is_infeasible_with_velocity_steps_not_unreadable(capsys, tmp_path):
+    """Issue 36: positions only, the controller interpolates linearly (trajectory.cpp 315-333,
+    jazzy ed360c9): the velocity steps at the inner point and at the end. Judged (exit 1, the
+    words say why), never unreadable (exit 2); the same points with their velocities pass."""
+    text = REACH[0].read_text()
+    only = "\n".join(line for line in text.splitlines()
+                     if not line.lstrip().startswith(("velocities:", "accelerations:")))
+    path = tmp_path / "reach_positions_only.yaml"
+    path.write_text(only + "\n")
+    code, out, _ = run(capsys, path)
+    assert code == 1, out
+    assert "INFEASIBLE (ERROR)" in out
+    assert ("positions only: velocity steps at 2 points as the controller interpolates them; no slowdown "
+            "removes a velocity step: send velocities (cubic) or velocities and accelerations (quintic)") in out
+    code, out, _ = run(capsys, REACH[0])
+    assert code == 0 and "FEASIBLE (OK" in out, out

@@ -160,7 +160,9 @@ def limits_for(model, kind: str, peaks: dict[str, np.ndarray], frac: float):
     return {"joint_limits": entries}
 
 
-ROBOT_MODES = {"panda": "quintic", "ur5": "cubic", "planar_2link": "spline"}
+# positions only is no longer among them: the controller interpolates it linearly, velocity
+# steps no slowdown fixes (test_positions_only_is_linear_with_velocity_steps)
+ROBOT_MODES = {"panda": "quintic", "ur5": "cubic", "planar_2link": "cubic"}
 CASES = [(robot, kind) for robot in ROBOT_MODES for kind in LIMIT_KINDS if kind != "position"]
 
 
@@ -206,7 +208,7 @@ def test_time_scale_contract_each_kind_binding(robot, kind):
     assert r.worst_constraint == kind
     assert r.worst_ratio == pytest.approx(got.max())
     # the level from the dense check's ratio and the mode's documented warning (cubic: the
-    # torque steps at waypoints; positions only: the spline assumption; quintic: none)
+    # torque steps at waypoints; quintic: none)
     assert abs(want.max() - 1.0) > 0.05            # far enough from the limit to decide
     assert r.feasible == (want.max() < 1.0)
     warned = ROBOT_MODES[robot] != "quintic"
@@ -279,7 +281,9 @@ def _static_case(kind: str):
     else:
         e["joint1"]["effort_speed_curve"] = [[0.0, g1 - 1.0], [5.0, g1 - 1.0]]
     names = model.joint_names
-    traj = validate_trajectory(names, names, [0.0, 1.0, 2.0], [[0.5, 0.0], [0.0, 0.0], [0.5, 0.0]])
+    # at rest at each point (cubic): positions alone would be linear, with velocity steps
+    traj = validate_trajectory(names, names, [0.0, 1.0, 2.0], [[0.5, 0.0], [0.0, 0.0], [0.5, 0.0]],
+                               [[0.0, 0.0]] * 3)
     return model.with_limits({"joint_limits": e}), traj, g1
 
 
@@ -299,12 +303,14 @@ def test_gravity_alone_exceeding_a_limit_gives_infinite_time_scale(kind):
 def test_position_violation_is_infinite_and_soft_limit_warns():
     model = base_model("planar_2link")
     names = model.joint_names
-    # spline through 0 → 2.95 → 0: inside the hard limit 3.0 but past the soft limit 2.9
-    traj = validate_trajectory(names, names, [0.0, 2.0, 4.0], [[0.0, 0.0], [2.95, 0.0], [0.0, 0.0]])
+    # cubic through 0 → 2.95 → 0, at rest at each point: inside the hard limit 3.0 but past the
+    # soft limit 2.9
+    rest = [[0.0, 0.0]] * 3
+    traj = validate_trajectory(names, names, [0.0, 2.0, 4.0], [[0.0, 0.0], [2.95, 0.0], [0.0, 0.0]], rest)
     r = check_trajectory(Dynamics(model), traj)
     assert r.feasible and r.level == WARN
     assert any("soft-limit" in w for w in r.warnings)
-    far = validate_trajectory(names, names, [0.0, 2.0, 4.0], [[0.0, 0.0], [3.05, 0.0], [0.0, 0.0]])
+    far = validate_trajectory(names, names, [0.0, 2.0, 4.0], [[0.0, 0.0], [3.05, 0.0], [0.0, 0.0]], rest)
     r = check_trajectory(Dynamics(model), far)
     assert not r.feasible and r.time_scale == math.inf and r.time_scale_constraint == "position"
     v = r.violations[0]
@@ -390,10 +396,22 @@ def test_cubic_acceleration_jump_is_reported_as_effort_step():
     assert max(rq.effort_step.values()) < 1e-6 * max(np.abs(rq.waypoint_effort).max(), 1)
 
 
-def test_spline_assumption_warns():
-    r = check_trajectory(Dynamics(base_model("planar_2link")), make_traj("planar_2link", "spline"))
-    assert r.interpolation == "spline" and r.level in (WARN, ERROR)
-    assert any("C² cubic spline" in w for w in r.warnings)
+def test_positions_only_is_linear_with_velocity_steps():
+    """Positions only: joint_trajectory_controller interpolates linearly (trajectory.cpp
+    interpolate_between_points 315-333, jazzy ed360c9), so the velocity steps at every inner
+    point and at the end (the held last point, 240-244): infeasible, and no slowdown helps.
+    (It used to be checked as a C² spline the controller never runs.)"""
+    traj = make_traj("planar_2link", "spline")
+    r = check_trajectory(Dynamics(base_model("planar_2link")), traj)
+    assert r.interpolation == "linear" and not r.feasible and r.level == ERROR
+    n = traj.n_points - 1                 # the inner points and the end (the start is at rest)
+    assert r.message.startswith(f"infeasible: positions only: velocity steps at {n} points as "
+                                "the controller interpolates them"), r.message
+    assert "send velocities (cubic) or velocities and accelerations (quintic)" in r.message
+    assert r.time_scale == math.inf
+    d = r.to_dict()
+    assert d["velocity_steps"] == n and d["interpolation_segments"] == f"linear {n}"
+    assert d["linear_segments"] == ", ".join(map(str, range(n)))
 
 
 @pytest.mark.parametrize("kwargs,code", [
@@ -579,7 +597,7 @@ def test_envelope_time_scale_matches_per_sample_exact_exits(seed):
         curve = [[0.0, eff]] + [[float(p), eff * float(rng.uniform(0.05, 1.0))] for p in pts]
         limits[n] = dict(has_effort_limits=True, max_effort=1e6, effort_speed_curve=curve)
     m = model.with_limits(None).with_limits({"joint_limits": limits})
-    traj = make_traj("panda", ("quintic", "cubic", "spline")[seed % 3])
+    traj = make_traj("panda", ("quintic", "cubic")[seed % 2])
     dyn = Dynamics(m)
     r = check_trajectory(dyn, traj, FeasibilityOptions(sample_period=0.004,
                                                        compute_payload_margin=False))
@@ -695,7 +713,7 @@ def _segment_oracle(model, qm, vm, p0, v0, a0, t0, step=2e-4):
     return {"t": ts, "q": q, "v": v, "a": a, "tau": tau}
 
 
-@pytest.mark.parametrize("mode", ["quintic", "cubic", "spline"])
+@pytest.mark.parametrize("mode", ["quintic", "cubic"])   # positions only: test_execution
 def test_start_segment_is_checked_from_the_current_state(mode):
     """Robot at q = 0 moving at −2.5 rad/s, away from a first point 0.5 s ahead: the segment the
     controller runs to it holds the worst velocity, acceleration and torque, equal to a dense
@@ -734,7 +752,10 @@ def test_start_segment_is_checked_from_the_current_state(mode):
     assert unknown.per_joint["joint1"]["velocity"]["time_s"] >= 0.5
 
 
-def test_first_point_at_zero_has_no_start_segment_and_ignores_the_state():
+def test_first_point_at_zero_has_no_start_segment_the_distance_is_a_jump():
+    """First point at t = 0: no segment from the robot's state (trajectory.cpp sample 147-169,
+    jazzy ed360c9); the controller steps to it. A robot there at rest changes nothing; one away
+    from it or moving is a jump: infeasible, no slowdown helps. (It used to ignore the state.)"""
     from dyn_node.core.check.feasibility import START_NONE, StartState
 
     model = base_model("planar_2link")
@@ -743,10 +764,14 @@ def test_first_point_at_zero_has_no_start_segment_and_ignores_the_state():
                                [[0.0, 0.0]] * 2, [[0.0, 0.0]] * 2)
     dyn = Dynamics(model)
     a = check_trajectory(dyn, traj)
-    b = check_trajectory(dyn, traj, start=StartState(np.zeros(2), np.array([-2.5, 1.0]), 0.01))
-    assert a.start_segment == b.start_segment == START_NONE
-    assert a.level == OK and b.level == OK, (a.message, b.message)
-    assert a.time_scale == b.time_scale and a.message == b.message
+    there = check_trajectory(dyn, traj, start=StartState(np.array([0.5, 0.3]), np.zeros(2), 0.01))
+    assert a.start_segment == there.start_segment == START_NONE
+    assert a.level == OK and there.level == OK, (a.message, there.message)
+    assert a.time_scale == there.time_scale and a.message == there.message
+    away = check_trajectory(dyn, traj, start=StartState(np.zeros(2), np.array([-2.5, 1.0]), 0.01))
+    assert away.start_segment == START_NONE and not away.feasible and away.time_scale == math.inf
+    assert away.message.startswith("infeasible: the first point is 0.5 rad from the robot (joint1): "
+                                   "the controller steps to it at once"), away.message
 
 
 def _start_scenarios():

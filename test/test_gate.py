@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import signal
-import time
 
 import numpy as np
 import pytest
@@ -45,7 +44,9 @@ def move(q0, q1, duration_s: float) -> dict:
 
 FEASIBLE = move(READY, moved(0, 0.2), 1.5)     # 0.2 rad in 1.5 s
 INFEASIBLE = move(READY, moved(0, 0.5), 0.15)  # 0.5 rad in 0.15 s: ~3× joint 1's speed limit
-HOME = move(READY, READY, 1.0)                 # back to READY (the first point jumps there)
+# back to READY from wherever the robot is: its first point 1 s ahead, so the controller runs a
+# segment from the robot's state to it (a first point due at once would be a jump, refused)
+HOME = {**move(READY, READY, 1.0), "times": [t + 1.0 for t in move(READY, READY, 1.0)["times"]]}
 
 
 class Probe:
@@ -197,14 +198,20 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
 
     clients, probe, *_ = stack
     client = clients["reject"]
+    # from READY, where the goal starts (the last test left the robot 0.2 rad away: a jump)
+    assert client.result(client.send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
     g = _goal(INFEASIBLE)
-    t_sent = time.time()
+    # on the states' own clock (wall-clock start + simulation time, which lags under load): the
+    # newest state once the probe has taken what arrived while the HOME goal ran
+    probe.steps.until(lambda: False, 0.5)
+    t_sent = max(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in probe.js[-50:])
     sent = client.send(g)
     assert sent.handle.accepted  # accepted, then ended at once: the string reaches MoveIt
     status, result = client.result(sent)
     assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
-    # the verdict line of the core's check of the same trajectory (first point at t = 0: no
-    # start segment, so the verdict does not depend on the state it was checked from)
+    # the verdict line of the core's check of the same trajectory (first point at t = 0 where
+    # the robot rests, within start_tolerance: no start segment, no jump, so the verdict is the
+    # one without a state)
     model = load_model(builtin="panda")
     times = [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in g.trajectory.points]
     traj = validate_trajectory(model.joint_names, ARM, times, INFEASIBLE["points"],

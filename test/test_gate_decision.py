@@ -224,3 +224,34 @@ def test_retime_plans_from_the_extrapolated_state_and_rechecks_from_a_fresh_one(
     d = decide(dyn, traj, GateOptions(mode="retime"), start=moving, plan=gone)
     assert (d.decision, d.reason) == (REJECTED, "retime_failed")
     assert "re-check: stale_state: no joint_states" in d.error_string
+
+
+def test_a_goal_whose_first_point_is_away_from_the_robot_is_rejected_as_a_jump(slow):
+    """Issue 36: a first point due at once (t = 0) 0.15 rad from the robot: the controller steps
+    there (trajectory.cpp sample 147-169, jazzy ed360c9): rejected, the jump named, and the record
+    says what was judged."""
+    dyn, traj = slow
+    robot = feasibility.StartState(READY + np.array([0, 0.15, 0, 0, 0, 0, 0]), np.zeros(7), 0.004)
+    d = decide(dyn, traj, GateOptions(mode="reject"), start=robot)
+    assert (d.decision, d.reason, d.feasible) == (REJECTED, "infeasible", False)
+    assert d.verdict.startswith("infeasible: the first point is 0.15 rad from the robot (panda_joint2): "
+                                "the controller steps to it at once"), d.verdict
+    rec = d.to_dict(goal_id="g", mode="reject", joint_names=list(dyn.model.joint_names))
+    assert rec["judged"]["start_jump_joint"] == "panda_joint2"
+    assert rec["judged"]["start_jump"] == pytest.approx(0.15)
+    assert rec["judged"]["interpolation_segments"] == "quintic 30"
+    at_rest = decide(dyn, traj, GateOptions(mode="reject"), start=feasibility.StartState(READY, np.zeros(7), 0.004))
+    assert at_rest.decision == FORWARDED
+
+
+def test_a_goal_stamped_in_the_past_is_judged_from_inside_it(slow):
+    """Issue 36: stamped 0.3 s before receipt, the controller starts 0.3 s into it (trajectory.cpp
+    update 101-107, sample 171-206): from a robot resting at its first point that is a jump."""
+    dyn, traj = slow
+    robot = feasibility.StartState(READY.copy(), np.zeros(7), 0.002)
+    timing = feasibility.Timing(stamp_s=500.0, receipt_s=500.3)
+    d = decide(dyn, traj, GateOptions(mode="reject"), start=robot, timing=timing)
+    assert d.decision == REJECTED and d.judged["start_offset_s"] == pytest.approx(0.3)
+    assert d.judged["start_time"] == "at header.stamp"
+    assert d.verdict.startswith("infeasible: started 0.3 s into it (past stamp), the trajectory is "), d.verdict
+    assert decide(dyn, traj, GateOptions(mode="reject"), start=robot).decision == FORWARDED

@@ -347,7 +347,7 @@ def test_yaml_zero_is_a_real_limit_in_the_check_and_the_monitor():
     assert [(v.joint, v.kind) for v in still.violations] == [("joint1", "effort")]  # gravity
     model2 = PLANAR.with_limits("joint_limits:\n  joint2: {max_velocity: 0.0}\n")
     held = _check(model2, validate_trajectory(NAMES, NAMES, [0.0, 1.0], [[0.0, 0.3], [0.5, 0.3]],
-                                              None, None))
+                                              [[0.0, 0.0]] * 2, None))   # cubic: linear would step
     assert held.feasible and held.time_scale <= 1.0, held.message
     assert held.per_joint["joint2"]["velocity"]["ratio"] == 0.0
     # live: the same limits, the same verdicts

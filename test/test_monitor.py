@@ -596,7 +596,8 @@ def test_feasibility_verdict_and_live_status_give_a_prismatic_joint_the_same_uni
     i1, i2 = names.index("j1"), names.index("j2")
     end = np.zeros(6)
     end[i1], end[i2] = 2.0, 0.4  # in 0.5 s: beyond j1's 3 rad/s and j2's 1 m/s
-    traj = validate_trajectory(names, names, [0.0, 0.5], [np.zeros(6), end], min_points=2)
+    # at rest at both ends (cubic: peak 1.5× the mean speed); positions alone would be linear
+    traj = validate_trajectory(names, names, [0.0, 0.5], [np.zeros(6), end], [np.zeros(6)] * 2, min_points=2)
     res = check_trajectory(Dynamics(model), traj)
     units = {(v.joint, v.kind): v.unit for v in res.violations}
     assert units[("j2", "velocity")] == "m/s" and units[("j1", "velocity")] == "rad/s"

@@ -17,7 +17,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import PLANNING_ERROR
-from dyn_node.core.check.feasibility import STATUS_NAME, check_trajectory
+from dyn_node.core.check.feasibility import STATUS_NAME, Timing, check_trajectory
 from dyn_node.core.robot.model import load_model
 from dyn_node.ros.node import DynNode
 from dyn_node.core.robot.status import ERROR, OK, WARN, format_value
@@ -109,6 +109,13 @@ def rest_to_rest(duration: float):
     return ([0.0, duration], [[0.0, 0.3], [2.0, 0.8]], [[0.0, 0.0], [0.0, 0.0]], [[0.0, 0.0], [0.0, 0.0]])
 
 
+def received(msg) -> Timing:
+    """The timing the node judges ``msg`` with: its stamp (these tests' stamps lie decades back,
+    so the controller would refuse the trajectory as ended: judged as if stamped zero, whatever
+    the exact receipt) and a receipt on the node's clock (the wall clock)."""
+    return Timing(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, time.time())
+
+
 def core_result(times, P, V, A):
     traj = validate_trajectory(NAMES, NAMES, times, P, V, A)
     return check_trajectory(Dynamics(MODEL), traj)
@@ -166,11 +173,11 @@ def test_verdict_statuses_match_the_core(harness, duration, feasible):
 
 
 @pytest.mark.timeout(90)
-@pytest.mark.parametrize("mode", ["quintic", "cubic", "spline"])
+@pytest.mark.parametrize("mode", ["quintic", "cubic", "linear"])
 def test_trajectory_effort_is_rnea_at_waypoints_in_input_order(harness, mode):
     t = np.array([0.0, 0.7, 1.5, 2.4])
     P = np.column_stack([0.4 * np.sin(t), 0.2 + 0.5 * np.cos(t)])
-    V = np.column_stack([0.4 * np.cos(t), -0.5 * np.sin(t)]) if mode != "spline" else None
+    V = np.column_stack([0.4 * np.cos(t), -0.5 * np.sin(t)]) if mode != "linear" else None
     A = np.column_stack([-0.4 * np.sin(t), -0.5 * np.cos(t)]) if mode == "quintic" else None
     order = [1, 0]  # the message lists joint2 first
     msg = trajectory([NAMES[i] for i in order], t, P[:, order],
@@ -183,6 +190,11 @@ def test_trajectory_effort_is_rnea_at_waypoints_in_input_order(harness, mode):
     assert len(out.points) == len(t)
     traj = validate_trajectory(NAMES, NAMES, t, P, V, A)
     q, v, a, _ = interpolate(traj).evaluate(t)
+    if mode == "linear":
+        # positions only: the controller's linear segments (trajectory.cpp 315-333): at each
+        # point the slope leaving it (the last: arriving), no acceleration
+        slope = np.diff(P, axis=0) / np.diff(t)[:, None]
+        v, a = np.vstack([slope, slope[-1:]]), np.zeros_like(P)
     dyn = Dynamics(MODEL)
     for i, p in enumerate(out.points):
         want = dyn.rnea(q[i], v[i], a[i])[order]
@@ -241,12 +253,18 @@ def test_malformed_trajectories_rejected_with_reason(harness):
 def test_hundred_thousand_points_checked_while_joint_states_answered(harness):
     n = 100_000
     t = np.linspace(0.0, 100.0, n)
-    P = np.column_stack([0.3 * (1 - np.cos(2 * np.pi * t / 20)), 0.2 * (1 - np.cos(2 * np.pi * t / 25))])
+    # from where the robot is (its joint_states below: [0.1, 0.2] at rest), else a jump
+    P = np.column_stack([0.1 + 0.3 * (1 - np.cos(2 * np.pi * t / 20)),
+                         0.2 + 0.2 * (1 - np.cos(2 * np.pi * t / 25))])
+    # with velocities (cubic): positions alone the controller interpolates linearly
+    V = np.column_stack([0.3 * 2 * np.pi / 20 * np.sin(2 * np.pi * t / 20),
+                         0.2 * 2 * np.pi / 25 * np.sin(2 * np.pi * t / 25)])
     msg = JointTrajectory()
     msg.header.stamp = next_stamp()
     msg.joint_names = NAMES
-    msg.points = [JointTrajectoryPoint(positions=[float(a), float(b)], time_from_start=dur(float(x)))
-                  for x, a, b in zip(t, P[:, 0], P[:, 1])]
+    msg.points = [JointTrajectoryPoint(positions=[float(a), float(b)], velocities=[float(c), float(d)],
+                                       time_from_start=dur(float(x)))
+                  for x, a, b, c, d in zip(t, P[:, 0], P[:, 1], V[:, 0], V[:, 1])]
     harness.traj_pub.publish(msg)
     answered_before_verdict = 0
     stamp = 9000.0
@@ -266,11 +284,13 @@ def test_hundred_thousand_points_checked_while_joint_states_answered(harness):
     values = kv(arr.status[0])
     assert values["n_points"] == str(n)
     assert float(values["compute_time_s"]) > 0
-    # 0.094 rad/s at most, mostly gravity: WARN only for the positions-only assumption
-    assert values["feasible"] == "true"
+    # 0.094 rad/s at most, mostly gravity: WARN only for the sampling bound (1.00001 ms
+    # segments get one step each); positions alone would be linear: velocity steps
+    assert values["feasible"] == "true", arr.status[0].message
     assert float(values["worst_ratio"]) < 0.9
     assert arr.status[0].level == bytes([WARN])
-    assert arr.status[0].message.endswith("(positions only)"), arr.status[0].message
+    assert arr.status[0].message.endswith("to bound memory)"), arr.status[0].message
+    assert values["interpolation"] == "cubic" and values["velocity_steps"] == "0"
     print(f"answered {answered_before_verdict} joint_states during the check; compute_time_s {values['compute_time_s']}")
     assert answered_before_verdict >= 3, answered_before_verdict
 
@@ -336,7 +356,7 @@ def test_start_segment_checked_from_the_last_joint_states(harness):
     age = float(values["start_state_age_s"])
     assert 0.0 <= age <= 60.0
     traj = validate_trajectory(NAMES, NAMES, START_TIMES, START_P, START_ZERO, START_ZERO)
-    want = check_trajectory(Dynamics(MODEL), traj,
+    want = check_trajectory(Dynamics(MODEL), traj, timing=received(msg),
                             start=StartState(np.array(qm), np.array(vm), age_s=age))
     assert not want.feasible and want.time_scale_start_segment
     assert arr.status[0].level == bytes([ERROR])
@@ -471,7 +491,8 @@ def test_task_place_statuses_reach_feasibility_with_closed_form_peaks(task_harne
         assert arr.status[3].level in (bytes([OK]), bytes([WARN]))
     # the node publishes exactly the core's statuses for the same model and trajectory
     model = load_model(builtin="planar_2link", limits_yaml=TASK_LIMITS)
-    want = check_trajectory(Dynamics(model), validate_trajectory(NAMES, NAMES, times, P, Z, Z))
+    want = check_trajectory(Dynamics(model), validate_trajectory(NAMES, NAMES, times, P, Z, Z),
+                            timing=received(msg))
     for st, ref in zip(arr.status, want.statuses(model.name)):
         assert st.name == ref.name and st.message == ref.message
         got = kv(st)

@@ -290,7 +290,13 @@ def test_input_check_given_or_made_without_the_payload_margin(ur5_result) -> Non
     full = check_trajectory(dyn, traj)
     assert math.isnan(res.input_check.payload_margin_kg) and math.isfinite(full.payload_margin_kg)
     assert res.input_check.time_scale == full.time_scale
-    assert res.duration_uniform == pytest.approx(traj.duration * full.time_scale, rel=1e-12)
+    # positions only, as the controller runs them (linear): velocity steps no slowdown removes;
+    # the uniform stretch is the retimer's path's, the C² spline through the points
+    assert full.time_scale == math.inf and full.to_dict()["velocity_steps"] == 3
+    from dyn_node.core.check.trajectory import clamped_spline_velocities
+    path = check_trajectory(dyn, Trajectory(times=traj.times, positions=traj.positions,
+                                            velocities=clamped_spline_velocities(traj.times, traj.positions)))
+    assert res.duration_uniform == pytest.approx(traj.duration * path.time_scale, rel=1e-12)
     again = retime(dyn, traj, input_check=full)
     assert again.input_check is full
     assert again.duration_out == res.duration_out and again.lower_bound == res.lower_bound

@@ -63,7 +63,9 @@ def bag(module_ros_context, tmp_path_factory) -> Path:
         z = np.zeros((len(aggressive.times), 7))
         shake = trajectory_message(NAMES, aggressive.times, aggressive.positions, z, z)
         assert not call("check_trajectory", CheckTrajectory.Request(trajectory=shake)).feasible
-        late = trajectory_message(NAMES, [t + 1.0 for t in comfortable.times], comfortable.positions)
+        # at rest at its points (quintic), as the demo's: positions alone would be linear
+        zc = np.zeros((len(comfortable.times), 7))
+        late = trajectory_message(NAMES, [t + 1.0 for t in comfortable.times], comfortable.positions, zc, zc)
         assert call("check_trajectory", CheckTrajectory.Request(trajectory=late, from_current_state=True)).accepted
         bad = trajectory_message(NAMES, comfortable.times, comfortable.positions)
         bad.points[1].positions[0] = math.nan

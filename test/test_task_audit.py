@@ -250,12 +250,13 @@ def _transfer(stamp_ns: int, seg: float):
     return m
 
 
-def _verdict(model, msg, drop: str = ""):
-    """The node's ~/feasibility array for ``msg`` (same core), without the ``drop`` status."""
+def _verdict(model, msg, drop: str = "", receipt_ns: int = 0):
+    """The node's ~/feasibility array for ``msg`` (same core), without the ``drop`` status,
+    judged as received at ``receipt_ns`` (its stamp 500 ns before: the execution starts there)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
     from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
-    from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+    from dyn_node.core.check.feasibility import FeasibilityOptions, Timing, check_trajectory
     from dyn_node.core.check.trajectory import validate_trajectory
 
     pts = msg.points
@@ -263,8 +264,9 @@ def _verdict(model, msg, drop: str = ""):
                                [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in pts],
                                [p.positions for p in pts], [p.velocities for p in pts],
                                [p.accelerations for p in pts])
+    timing = Timing(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, receipt_ns * 1e-9)
     res = check_trajectory(Dynamics(model, DynamicsOptions(include_friction=True)), traj,
-                           FeasibilityOptions())
+                           FeasibilityOptions(), timing=timing)
     arr = DiagnosticArray()
     arr.header.stamp = msg.header.stamp
     for s in res.statuses(model.name):
@@ -288,7 +290,7 @@ def _task_bag(path: Path, limits: Path, *, drop: str = "") -> tuple[Path, list]:
     for i, seg in enumerate((1.0, 2.7)):
         msg = _transfer(T0 + i * 1000 * MS, seg)
         w.write("/joint_trajectory", msg, T0 + i * 1000 * MS + 500)
-        arr, res = _verdict(model, msg, drop if i == 0 else "")
+        arr, res = _verdict(model, msg, drop if i == 0 else "", T0 + i * 1000 * MS + 500)
         w.write("/dyn_node/feasibility", arr, T0 + i * 1000 * MS + 900)
         results.append(res)
     w.close()

@@ -48,14 +48,17 @@ def panda(yaml: dict, payload: Payload = PAYLOAD):
 
 
 def traj(T: float = 1.5, n: int = 7) -> feasibility.Trajectory:
-    """A rest-to-rest move (positions only: a spline through the waypoints)."""
+    """A rest-to-rest move, positions and velocities (cubic, as the controller runs it;
+    positions alone would be linear, with velocity steps)."""
     t = np.linspace(0.0, T, n)
     P = HOME + np.outer((1 - np.cos(np.pi * t / T)) / 2, STEP)
-    return feasibility.Trajectory(times=t, positions=P)
+    V = np.outer(np.pi / (2 * T) * np.sin(np.pi * t / T), STEP)
+    return feasibility.Trajectory(times=t, positions=P, velocities=V)
 
 
 def stretch(tr, k: float):
-    return feasibility.Trajectory(times=tr.times * k, positions=tr.positions)
+    return feasibility.Trajectory(times=tr.times * k, positions=tr.positions,
+                                  velocities=tr.velocities / k)
 
 
 def motion(model, tr):
@@ -367,13 +370,13 @@ def test_a_moving_start_segment_keeps_the_contract_with_a_task_kind():
     model = panda(limits(frame={"max_linear_speed": 0.25}, wrench=WRENCH))
     dyn = Dynamics(model)
     tr = traj()
-    late = feasibility.Trajectory(times=tr.times + 0.5, positions=tr.positions)
+    late = feasibility.Trajectory(times=tr.times + 0.5, positions=tr.positions, velocities=tr.velocities)
     st = feasibility.StartState(positions=HOME - 0.05, velocities=np.full(7, 0.1), age_s=0.0)
     r = check_trajectory(dyn, late, start=st)
     k = r.time_scale
     assert r.time_scale_constraint == "frame_speed" and 1.0 < k < 5.0
 
     def at(f):
-        return check_trajectory(dyn, feasibility.Trajectory(times=late.times * k * f,
-                                                            positions=late.positions), start=st)
+        return check_trajectory(dyn, feasibility.Trajectory(times=late.times * k * f, positions=late.positions,
+                                                            velocities=late.velocities / (k * f)), start=st)
     assert at(1.001).feasible and not at(0.99).feasible

@@ -47,8 +47,12 @@ def sample_curves(traj: Any, result: Any, dynamics: Any, *, points: int = PLOT_P
     from dyn_node.core.check import on_demand
     from dyn_node.core.check.trajectory import interpolate
 
-    pp = interpolate(traj, result.interpolation or None)
-    t = np.union1d(np.linspace(float(traj.times[0]), float(traj.times[-1]), points), traj.times)
+    ex = getattr(result, "execution", None)
+    if ex is not None:      # what the check judged: the motion as the controller executes it
+        pp, knots = ex.pp, ex.knots.times
+    else:
+        pp, knots = interpolate(traj, result.interpolation or None), traj.times
+    t = np.union1d(np.linspace(float(knots[0]), float(knots[-1]), points), knots)
     q, v, a, j = pp.evaluate(t)
     tau = on_demand.inverse_dynamics(dynamics, q, v, a)
     return Curves(t, {"position": q, "velocity": v, "acceleration": a, "jerk": j, "torque": tau})

@@ -51,6 +51,12 @@ class GateOptions:
             raise SettingsError("gate.max_state_age must be > 0 and gate.start_tolerance >= 0")
 
     @property
+    def execution(self) -> feasibility.ExecutionOptions:
+        """The execution model's options: a first point farther than ``start_tolerance`` from the
+        measured state is a jump the verdict refuses (MoveIt's allowed_start_tolerance)."""
+        return feasibility.ExecutionOptions(start_tolerance=self.start_tolerance)
+
+    @property
     def fails_closed(self) -> bool:
         """reject and retime refuse what they cannot check from a fresh state; check forwards it."""
         return self.mode != "check"
@@ -79,6 +85,10 @@ class Decision:
     #: the check of what is forwarded (the goal's, or the retimed answer's re-check): the node
     #: publishes it on ~/feasibility like any executed trajectory's; not part of the record
     result: Any = field(default=None, compare=False, repr=False)
+    #: what the check judged (the execution model's keys: start time rule and offset, the
+    #: start state's age, the jump, interpolation per segment, velocity steps); {} when the goal
+    #: could not be checked
+    judged: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def forwards(self) -> bool:
@@ -119,6 +129,7 @@ class Decision:
             "duration_out": _num(self.duration_out), "duration_uniform": _num(self.duration_uniform),
             "retime_message": self.retime_message,
             "forwarded": None if tr is None else trajectory_dict(tr, joint_names),
+            "judged": {k: _num(v) for k, v in self.judged.items()},
             **dict(self.extra),
         }
 
@@ -175,11 +186,13 @@ def stale_state(problem: str, max_age: float) -> Decision:
 def decide_goal(dynamics: Dynamics, settings: Any, options: GateOptions, names: list[str],
                 times: list[float], positions: Any, velocities: Any, accelerations: Any, *,
                 start: feasibility.StartState | None, retimer: RetimeFn | None = None,
-                plan: "RetimePlan | None" = None) -> Decision:
+                plan: "RetimePlan | None" = None,
+                timing: feasibility.Timing | None = None) -> Decision:
     """A goal's trajectory as received (its joint order, empty fields as sent): validated as the
     node validates an executed trajectory (at least two points), refused in reject and retime
     without a fresh ``start`` (:func:`state_problem`), then :func:`decide` with the check options
-    of ``settings`` (the node's). The gate and the audit's replay both call this; ``plan``: see
+    of ``settings`` (the node's) and the goal's ``timing`` (its header stamp and receipt; None:
+    zero stamp). The gate and the audit's replay both call this; ``plan``: see
     :class:`RetimePlan`."""
     try:
         traj = validate_trajectory(dynamics.model.joint_names, names, times, positions, velocities,
@@ -190,7 +203,8 @@ def decide_goal(dynamics: Dynamics, settings: Any, options: GateOptions, names: 
     if problem and options.fails_closed:
         return stale_state(problem, options.max_state_age)
     d = decide(dynamics, traj, options, start=start, check_options=options_for(settings), retimer=retimer,
-               limit_margin=settings.retime_limit_margin, plan=plan)
+               limit_margin=settings.retime_limit_margin, plan=plan,
+               timing=timing)
     if problem and d.forwards:  # check mode: forwarded, but said to be unjudged from the state
         return dataclasses.replace(d, reason=STALE_STATE)
     return d
@@ -243,6 +257,16 @@ def start_dict(start: feasibility.StartState | None) -> dict[str, Any] | None:
             "age_s": float(start.age_s)}
 
 
+def timing_dict(timing: feasibility.Timing | None) -> dict[str, float] | None:
+    """A goal's timing for the record (the replay decides from the same)."""
+    return None if timing is None else {"stamp_s": timing.stamp_s, "receipt_s": timing.receipt_s}
+
+
+def timing_from_dict(d: dict[str, Any] | None) -> feasibility.Timing | None:
+    """:func:`timing_dict`'s inverse (None, as in records made before it: zero stamp)."""
+    return None if d is None else feasibility.Timing(float(d["stamp_s"]), float(d["receipt_s"]))
+
+
 def start_from_dict(d: dict[str, Any] | None) -> feasibility.StartState | None:
     if d is None:
         return None
@@ -254,20 +278,23 @@ def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
            start: feasibility.StartState | None,
            check_options: feasibility.FeasibilityOptions = feasibility.FeasibilityOptions(),
            retimer: RetimeFn | None = None, limit_margin: float = 0.995,
-           plan: RetimePlan | None = None) -> Decision:
-    """Check ``traj`` (model order, validated) from ``start`` and decide; see the module docstring.
-    ``retimer`` defaults to :func:`load_retimer`'s, loaded only when a goal is to be retimed;
+           plan: RetimePlan | None = None,
+           timing: feasibility.Timing | None = None) -> Decision:
+    """Check ``traj`` (model order, validated) as the controller executes it, received at
+    ``timing`` by a robot in ``start``, and decide; see the module docstring. ``retimer``
+    defaults to :func:`load_retimer`'s, loaded only when a goal is to be retimed;
     ``limit_margin``: the retimer's (the node's ``retime.limit_margin``); ``plan``: how a retiming
     follows the robot (:class:`RetimePlan`; None: planned and re-checked from ``start``)."""
     t0 = time.perf_counter()
     try:
         result = feasibility.check_trajectory(dynamics, traj, check_options, start=start,
-                                              start_unknown=feasibility.NO_CURRENT_STATE)
+                                              start_unknown=feasibility.NO_CURRENT_STATE,
+                                              timing=timing, execution=options.execution)
     except TrajectoryError as exc:
         return rejected(exc, time.perf_counter() - t0)
     worst = (result.worst_joint, result.worst_constraint, result.worst_ratio)
     base = dict(verdict=result.message, feasible=result.feasible, time_scale=result.time_scale,
-                worst=worst, duration_in=traj.duration)
+                worst=worst, duration_in=traj.duration, judged=judged_values(result))
     wants_retime = options.mode == "retime" and (options.retime_all or not result.feasible)
     if not wants_retime:
         elapsed = time.perf_counter() - t0
@@ -276,6 +303,15 @@ def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
                             check_time_s=elapsed, duration_out=traj.duration, result=result, **base)
         return Decision(REJECTED, reason="infeasible", trajectory=None, check_time_s=elapsed, **base)
     return _retimed(dynamics, traj, start, check_options, retimer, limit_margin, t0, base, result, plan)
+
+
+def judged_values(result: feasibility.FeasibilityResult) -> dict[str, Any]:
+    """The record's ``judged``: the execution model's summary keys and the start segment."""
+    v = result.summary_values()
+    keys = ("interpolation", "start_segment", "start_state_age_s", "start_time", "start_offset_s",
+            "start_jump", "start_jump_joint", "start_velocity_step", "interpolation_segments",
+            "linear_segments", "velocity_steps", "velocity_step_points", "refused_by_controller")
+    return {k: v[k] for k in keys if k in v}
 
 
 def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState | None,

@@ -23,7 +23,7 @@ from dyn_node.core.check.feasibility import (FeasibilityOptions, FeasibilityResu
                                              check_trajectory)
 from dyn_node.core.check.constraints import Violation
 from dyn_node.core.check.kinds import KIND_CLASS
-from dyn_node.core.check.trajectory import Trajectory, from_current_state
+from dyn_node.core.check.trajectory import Trajectory, clamped_spline_velocities, from_current_state
 from dyn_node.errors import TrajectoryError
 from dyn_node.retime import candidates, timing, topp
 from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
@@ -129,11 +129,14 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
         traj = from_current_state(traj, start.positions, start.velocities)
     path = build_path(traj)
     nominal = path.nominal
-    first = _input_check(dynamics, nominal, feasibility, start,
-                         input_check if nominal is given else None)
+    checked = _input_check(dynamics, nominal, feasibility, start,
+                           input_check if nominal is given else None)
+    # the velocity steps of linearly interpolated positions block every slowdown of the input
+    # as sent, not of the retimer's smooth path through its points: that path's time scale
+    first = _path_check(dynamics, nominal, feasibility, start, checked)
     k = first.time_scale
     uniform_T = nominal.duration * k if 0 < k < math.inf else math.nan
-    base = dict(duration_in=duration_in, duration_uniform=uniform_T, input_check=first,
+    base = dict(duration_in=duration_in, duration_uniform=uniform_T, input_check=checked,
                 source=None if path.untimed else nominal)
     # a moving start: the optimal search may brake where the stretch cannot (the robot's q̇0
     # does not scale), so only its failure makes the check's "no slowdown helps" final
@@ -194,6 +197,22 @@ def _won(found: dict | None, uniform: dict | None, uniform_T: float) -> str:
     if a <= b:
         return f"optimal search {100 * (1 - a / b):.1f} % shorter than the stretch"
     return f"the stretch {100 * (1 - b / a):.1f} % shorter than the optimal search"
+
+
+def _path_check(dynamics: Dynamics, nominal: Trajectory, options: FeasibilityOptions,
+                start: StartState | None, first: FeasibilityResult) -> FeasibilityResult:
+    """``first`` (the input as the controller executes it), or, when only the velocity steps of
+    positions-only points block it, the check of the path the retimer follows (the C² spline
+    through them: :func:`~dyn_node.core.check.trajectory.clamped_spline_velocities`)."""
+    ex = first.execution
+    jump = ex is not None and ex.jump is not None and (ex.jump.exceeds_position or ex.jump.exceeds_velocity)
+    if (ex is None or jump or not ex.violating_steps() or nominal.velocities is not None
+            or nominal.n_points < 2):
+        return first
+    smooth = Trajectory(times=nominal.times, positions=nominal.positions,
+                        velocities=clamped_spline_velocities(nominal.times, nominal.positions))
+    res = check_trajectory(dynamics, smooth, replace(options, compute_payload_margin=False), start=start)
+    return replace(res, payload_margin_kg=math.nan)
 
 
 def _none(first: FeasibilityResult, base: dict, lower: float = math.nan,

@@ -107,16 +107,19 @@ class GateReplay:
 
     def _compare(self, rec: dict, dynamics: Any, settings: Any, check: Recheck, where: dict) -> None:
         # here, not at the top: a bag without gate goals never loads the check's kernels for it
-        from dyn_node.gate.decision import GateOptions, RetimePlan, decide_goal, goal_arrays, start_from_dict
+        from dyn_node.gate.decision import (GateOptions, RetimePlan, decide_goal, goal_arrays, start_from_dict,
+                                            timing_from_dict)
 
         options = GateOptions(mode=rec["mode"], retime_all=bool(rec.get("retime_all")),
-                              max_state_age=float(rec.get("max_state_age", math.inf)))
+                              max_state_age=float(rec.get("max_state_age", math.inf)),
+                              start_tolerance=float(rec.get("start_tolerance", 0.01)))
         plan = None
         if "retime_lead_s" in rec:  # retime mode followed the robot: replayed from the states it used
             again = start_from_dict(rec.get("rechecked_from"))
             plan = RetimePlan(float(rec["retime_lead_s"]), lambda: again, options.max_state_age)
+        # the goal's stamp and receipt as the gate recorded them (none in older records: zero stamp)
         d = decide_goal(dynamics, settings, options, *goal_arrays(rec["goal"]), start=start_from_dict(rec["start"]),
-                        plan=plan)
+                        plan=plan, timing=timing_from_dict(rec.get("timing")))
         mine = d.to_dict(goal_id=rec["goal_id"], mode=rec["mode"], joint_names=list(dynamics.model.joint_names))
         if rec["decision"] == "not_forwarded":  # the check's decision is what is replayed
             rec = {**rec, "decision": rec["checked_decision"], "reason": rec.get("checked_reason"),

@@ -362,7 +362,8 @@ class Replay:
                 self.sink.expect_efforts(key, res.waypoint_effort)
 
     def _trajectory(self, m: BagMessage, index: int):
-        from dyn_node.core.check.feasibility import NO_CURRENT_STATE, FeasibilityOptions, check_trajectory, current_state
+        from dyn_node.core.check.feasibility import (NO_CURRENT_STATE, FeasibilityOptions, Timing, check_trajectory,
+                                                     current_state)
         from dyn_node.core.check.trajectory import validate_trajectory
 
         entry: dict[str, Any] = {"index": index, "topic": m.topic, "time_s": 0.0, "t_ns": m.log_time_ns,
@@ -373,6 +374,7 @@ class Replay:
             msg = self.decoder.decode(m.channel, m.data)
             st = msg.header.stamp
             entry["stamp_ns"] = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+            stamp_s = st.sec + st.nanosec * 1e-9        # as the node reads it (convert.stamp_to_s)
             entry["frame_id"] = msg.header.frame_id
             pts = msg.points
             n_points = len(pts)
@@ -401,7 +403,9 @@ class Replay:
             res = check_trajectory(self.traj_dynamics, traj,
                                    FeasibilityOptions(sample_period=self.settings.sample_period,
                                                       effort_warn_ratio=self.settings.effort_warn_ratio),
-                                   start=start, start_unknown=NO_CURRENT_STATE)
+                                   start=start, start_unknown=NO_CURRENT_STATE,
+                                   # the node's receipt time is the log time it recorded with
+                                   timing=Timing(stamp_s, m.log_time_ns * 1e-9))
         except TrajectoryError as exc:  # e.g. torques that overflow: the node publishes "rejected"
             entry.update(level="ERROR", message=f"rejected: {exc}", error_code=exc.code,
                          failure_label=PLANNING_ERROR, n_points=n_points,

@@ -18,8 +18,8 @@ import numpy as np
 
 from dyn_node.core.check import constraints, exact_peaks, task_motion
 from dyn_node.core.compiled import kernels
-from dyn_node.core.check.constraints import (Blocked, Constraint, Motion, PayloadTerms, Samples,
-                                             Violation, _fmt, _Job, json_scalar, percent_text, with_unit)
+from dyn_node.core.check.constraints import (Constraint, Motion, PayloadTerms, Samples,
+                                             Violation, _fmt, _Job, json_scalar, with_unit)
 from dyn_node.core.check.kinds import KIND_CLASS, KINDS
 # reached here by the tests of the helpers they name
 from dyn_node.core.check.constraints import _take, rms_time_scale as _rms_time_scale  # noqa: F401
@@ -27,11 +27,15 @@ from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.errors import PLANNING_ERROR, TrajectoryError
 from dyn_node.core.robot.limits import LIMIT_KINDS
 from dyn_node.core.robot.model import Payload
-from dyn_node.core.check.start_segment import REACH as START_REACH, StartSegment
+from dyn_node.core.check.start_segment import StartSegment
+from dyn_node.core.check import execution as jtc
+from dyn_node.core.check.execution import Execution, ExecutionOptions, Timing  # noqa: F401
+from dyn_node.core.check.verdict import (Scale as _Scale, apply_execution, describe_violation as _describe_violation,
+                                         execution_values, kind_text as _kind_text, verdict as _verdict)
 from dyn_node.core.check.start_segment import (NO_CURRENT_STATE, START_CHECKED, START_NONE,  # noqa: F401
                                                StartState, current_state)
 from dyn_node.core.robot.status import ERROR, NAME_PREFIX, OK, WARN, Status
-from dyn_node.core.check.trajectory import Trajectory, from_current_state, interpolate, segment_steps
+from dyn_node.core.check.trajectory import PiecewisePolynomial, Trajectory, interpolate, segment_steps
 from dyn_node.core.robot.units import joint_units
 
 STATUS_NAME = NAME_PREFIX + "trajectory feasibility"
@@ -39,7 +43,6 @@ STATUS_NAME = NAME_PREFIX + "trajectory feasibility"
 #: ``effort_warn_ratio``.
 EFFORT_KINDS = tuple(k for k in LIMIT_KINDS if any(c.kind == k and c.payload_dependent
                                                    for c in KINDS))
-_KIND_LABEL = {c.kind: c.label for c in KINDS if c.label}
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,9 @@ class FeasibilityResult:
     start_segment: str = "none (first point at t = 0)"
     start_state_age_s: float = math.nan
     time_scale_start_segment: bool = False
+    #: what was judged: the trajectory as the controller executes it
+    #: (:class:`~dyn_node.core.check.execution.Execution`; None only for results made by hand)
+    execution: Any = field(default=None, repr=False, compare=False)
 
     @property
     def binding_joint(self) -> str:
@@ -130,6 +136,8 @@ class FeasibilityResult:
             "warnings": "; ".join(self.warnings),
             "start_segment": self.start_segment, "start_state_age_s": self.start_state_age_s,
             "time_scale_start_segment": self.time_scale_start_segment,
+            **(execution_values(self.execution, list(self.per_joint))
+               if self.execution is not None else {}),
         }
 
     def statuses(self, hardware_id: str = "") -> list[Status]:
@@ -199,7 +207,17 @@ class FeasibilityResult:
             "effort_step": {j: json_scalar(v) for j, v in self.effort_step.items()},
             "waypoint_effort": [[json_scalar(float(x)) for x in row] for row in self.waypoint_effort],
             "warnings": list(self.warnings),
+            "start_state": _start_state_dict(self.execution),
         }
+
+
+def _start_state_dict(ex: Any) -> dict[str, Any] | None:
+    """The robot's state the execution started from (model order), None without one."""
+    st = None if ex is None else ex.start
+    if st is None:
+        return None
+    return {"positions": [float(x) for x in st.positions],
+            "velocities": [float(x) for x in st.velocities], "age_s": json_scalar(float(st.age_s))}
 
 
 def rejected_statuses(error: TrajectoryError, hardware_id: str = "", n_points: int = 0,
@@ -217,23 +235,6 @@ def rejected_statuses(error: TrajectoryError, hardware_id: str = "", n_points: i
 
 # ----------------------------------------------------------------------------------------------
 # helpers
-
-def _kind_text(kind: str) -> str:
-    return _KIND_LABEL.get(kind, kind)
-
-
-def _describe_violation(v: Violation) -> str:
-    if v.kind == "position":
-        return (f"{_fmt(v.peak_value)} {v.unit} beyond limit {_fmt(v.limit)} {v.unit} "
-                f"at t = {v.peak_time_s:.2f} s")
-    return percent_text(v)
-
-
-def _fmt_factor(f: float) -> str:
-    if not math.isfinite(f):
-        return "∞"
-    return f"{f:.4f}" if abs(f - 1) < 0.01 else f"{f:.3g}" if f >= 100 else f"{f:.2f}"
-
 
 def _colmax(X: np.ndarray) -> np.ndarray:
     """X.max(axis=0), the same numbers, faster for M×m arrays with few columns: max along axis
@@ -312,20 +313,24 @@ def _batch_threads(dynamics: Dynamics, threads: int | None) -> int:
 def check_trajectory(dynamics: Dynamics, traj: Trajectory,
                      options: FeasibilityOptions = FeasibilityOptions(), *,
                      start: StartState | None = None,
-                     start_unknown: str = "no current state given") -> FeasibilityResult:
-    """Check ``traj`` (model order) against every limit of ``dynamics.model``; see
-    docs/FEASIBILITY.md.
+                     start_unknown: str = "no current state given",
+                     timing: Timing | None = None,
+                     execution: ExecutionOptions | None = None) -> FeasibilityResult:
+    """Check ``traj`` (model order) as joint_trajectory_controller executes it
+    (:func:`dyn_node.core.check.execution.execute`: received at ``timing``, None = zero stamp,
+    by a robot in ``start``, with the ``execution`` options) against every limit of
+    ``dynamics.model``; see docs/FEASIBILITY.md and docs/limits.md.
 
-    When the first point's time is > 0 the controller first moves from the robot's state to it:
-    with ``start`` that segment is checked too (:func:`~dyn_node.core.check.trajectory.from_current_state`);
-    without, the verdict is at least WARN and says why (``start_unknown``).
-
-    Raises only :class:`TrajectoryError` (so a caller can always publish a rejected status):
-    a numerical failure deep inside (overflow, a Pinocchio error) becomes one with code
-    ``evaluation_failed``.
+    Without ``start`` the first point is the start; when it lies ahead the verdict is at least
+    WARN and says why (``start_unknown``). A jump or a velocity step is an infeasible verdict,
+    never an error. Raises only :class:`TrajectoryError` (so a caller can always publish a
+    rejected status): a numerical failure deep inside (overflow, a Pinocchio error) becomes one
+    with code ``evaluation_failed``.
     """
     try:
-        return _check(dynamics, traj, options, start, start_unknown)
+        _validate(traj, options, single=start is not None)
+        ex = jtc.execute(traj, start, timing, execution or ExecutionOptions())
+        return _check(dynamics, ex, options, start_unknown)
     except TrajectoryError:
         raise
     except (ArithmeticError, ValueError, RuntimeError, MemoryError) as exc:
@@ -338,37 +343,29 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
 _HUGE = 1e100
 
 
-@dataclass
-class _Scale:
-    """The time scale: k, where and which kind sets it, the factor per kind, and why no
-    slowdown helps (when none does)."""
-
-    k: float
-    where: str
-    kind: str
-    by_kind: dict[str, float]
-    blocked: Blocked | None
-    start_binds: bool = False
-
-
-def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
-           start: StartState | None = None,
+def _check(dynamics: Dynamics, ex: Execution, options: FeasibilityOptions,
            start_unknown: str = "no current state given",
            search_start: bool = True) -> FeasibilityResult:
-    """The check: sample, build the constraints that apply, collect their peaks, violations,
-    time-scale factors and payload intervals, then the verdict."""
+    """The check of an execution: sample, build the constraints that apply, collect their
+    peaks, violations, time-scale factors and payload intervals, add what the execution model
+    found (jump, velocity steps), then the verdict."""
     t_start = time.perf_counter()
-    _validate(traj, options)
+    traj = ex.trajectory
     warnings: list[str] = []
-    work, start_segment, start_age = _with_start(traj, start, start_unknown, warnings)
+    start_segment = _start_segment(ex, start_unknown, warnings)
     # with a start velocity the start segment does not stretch like the rest (q̇0 stays): its
     # share of the time scale is searched (StartSegment), the laws cover the samples after it
-    fixed_start = work is not traj and bool(np.any(start.velocities != 0.0))
-    motion, tau1 = _motion(dynamics, work, options, fixed_start, warnings)
+    fixed_start = ex.fixed_start
+    motion, tau1 = _motion(dynamics, ex.pp, options, fixed_start, warnings)
     waypoints = np.concatenate((motion.smp.first, motion.smp.last[-1:]))
-    # the prepended current state is not one of the message's points
-    waypoint_effort = motion.tau[waypoints[1:] if work is not traj else waypoints].copy()
-    effort_step = _effort_steps(motion, work, warnings)
+    # the message's points (a prepended state is not one); one passed before a past stamp's
+    # start gets its torque as the message has it (it was never executed)
+    waypoint_effort = np.empty((traj.n_points, motion.tau.shape[1]))
+    done = ex.point_knots >= 0
+    waypoint_effort[done] = motion.tau[waypoints[ex.point_knots[done]]]
+    if not done.all():
+        waypoint_effort[~done] = _passed_point_torques(dynamics, traj, ~done)
+    effort_step = _effort_steps(motion, ex, warnings)
     kinds = constraints.build(motion, KINDS)
     warnings += [w for c in kinds for w in c.warnings]
     # the payload margin beside the rest when parallel
@@ -377,9 +374,10 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
         background=motion.parallel)
     per_joint, per_frame, violations = _report(kinds, motion)
     scale = _time_scale(kinds, fixed_start)
+    apply_execution(ex, per_joint, violations, scale, warnings, motion.units)
     if fixed_start and search_start and scale.blocked is None and math.isfinite(scale.k):
-        search = StartSegment(_check, dynamics, traj, work, start, start_unknown, options,
-                              motion.smp.period, whole=any(c.reaches_back for c in kinds))
+        search = StartSegment(_check, dynamics, ex, options, motion.smp.period,
+                              whole=any(c.reaches_back for c in kinds))
         _search_start(scale, search, feasible=not violations)
     _exact(scale, not violations, warnings)
     _refuse_nan(per_joint, per_frame, scale)
@@ -390,13 +388,13 @@ def _check(dynamics: Dynamics, traj: Trajectory, options: FeasibilityOptions,
         **verdict, time_scale=float(scale.k), time_scale_joint=scale.where,
         time_scale_constraint=scale.kind, time_scale_by_kind=scale.by_kind,
         payload_margin_kg=float(margin), n_points=traj.n_points, n_samples=len(motion.smp.t),
-        duration_s=traj.duration, interpolation=traj.natural_interpolation,
+        duration_s=traj.duration, interpolation=ex.interpolation,
         violations=tuple(violations), per_joint=per_joint, effort_step=effort_step,
         waypoint_effort=waypoint_effort, compute_time_s=time.perf_counter() - t_start,
         warnings=tuple(warnings), effort_warn_ratio=options.effort_warn_ratio,
-        start_segment=start_segment, start_state_age_s=start_age,
+        start_segment=start_segment, start_state_age_s=ex.start_age_s,
         time_scale_start_segment=scale.start_binds, per_frame=per_frame,
-        task_curves=_task_curves(kinds, motion.smp.t))
+        task_curves=_task_curves(kinds, motion.smp.t), execution=ex)
 
 
 def _refuse_nan(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
@@ -412,8 +410,9 @@ def _refuse_nan(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
         raise TrajectoryError(f"time scale of {scale.where} {scale.kind} is NaN", code="evaluation_failed")
 
 
-def _validate(traj: Trajectory, options: FeasibilityOptions) -> None:
-    if traj.n_points < 2:
+def _validate(traj: Trajectory, options: FeasibilityOptions, single: bool = False) -> None:
+    """``single``: one point is motion too (from the robot's state to it, then held)."""
+    if traj.n_points < (1 if single else 2):
         raise TrajectoryError(f"trajectory has {traj.n_points} point(s); at least 2 are needed "
                               "to check motion", code="too_few_points")
     if not (options.sample_period > 0 and math.isfinite(options.sample_period)):
@@ -421,31 +420,38 @@ def _validate(traj: Trajectory, options: FeasibilityOptions) -> None:
                               code="bad_options")
 
 
-def _with_start(traj: Trajectory, start: StartState | None, start_unknown: str,
-                warnings: list[str]) -> tuple[Trajectory, str, float]:
-    """The trajectory as executed (the segment from the robot's state to a first point ahead,
-    t0 > 0, prepended when that state is known), ``start_segment`` and the state's age."""
-    if traj.natural_interpolation == "spline":
-        warnings.append("positions only: assumed a C² cubic spline through the waypoints with zero "
-                        "velocity at both ends (the controller would interpolate linearly, which "
-                        "needs unbounded acceleration at every waypoint)")
-    if traj.times[0] > 0 and start is None:
+def _passed_point_torques(dynamics: Dynamics, traj: Trajectory, which: np.ndarray) -> np.ndarray:
+    """τ at the message's points ``which`` on its own interpolation (zero stamp, no state), as
+    on_demand.inverse_dynamics computes a state's torque."""
+    Q, V, A, _ = jtc.execute(traj).pp.evaluate(traj.times[which])
+    tau = task_motion.inverse_dynamics(dynamics, Q, V, A)
+    return tau if tau is not None else dynamics.terms_batch(Q, V, A).full
+
+
+def _start_segment(ex: Execution, start_unknown: str, warnings: list[str]) -> str:
+    """``start_segment``: checked (from the robot's state), not checked (no state, the first
+    point ahead: warned), or none (the first point due at once, or a past stamp)."""
+    if ex.start_segment:
+        return START_CHECKED
+    t0 = float(ex.knots.times[0])
+    if t0 > 0:
         warnings.insert(0, f"start segment not checked ({start_unknown}): the controller moves "
-                           f"from the robot's state to the first point in {traj.times[0]:.3g} s")
-        return traj, f"not_checked ({start_unknown})", math.nan
-    if traj.times[0] > 0:
-        return (from_current_state(traj, start.positions, start.velocities), START_CHECKED,
-                float(start.age_s))
-    return traj, START_NONE, math.nan
+                           f"from the robot's state to the first point in {t0:.3g} s")
+        return f"not_checked ({start_unknown})"
+    if ex.offset_s > 0 and ex.point_knots[0] < 0:
+        return f"none (started {ex.offset_s:.3g} s into the trajectory: past stamp)"
+    return START_NONE
 
 
-def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
+def _motion(dynamics: Dynamics, work: PiecewisePolynomial | Trajectory, options: FeasibilityOptions,
             fixed_start: bool, warnings: list[str]) -> tuple[Motion, np.ndarray | None]:
-    """The sampled motion and its torque terms, and τ1 (the torque per kg of payload) when the
-    margin is wanted and a limit depends on payload: the batched RNEA passes, done together."""
+    """The sampled motion of ``work`` (the executed polynomials; a Trajectory, for the
+    constraint kinds' tests, by its natural interpolation) and its torque terms, and τ1 (the
+    torque per kg of payload) when the margin is wanted and a limit depends on payload: the
+    batched RNEA passes, done together."""
     model = dynamics.model
     nv = model.nv
-    pp = interpolate(work, work.natural_interpolation)
+    pp = work if isinstance(work, PiecewisePolynomial) else interpolate(work, work.natural_interpolation)
     least = exact_peaks.min_steps(pp)
     smp = _sample(pp.breaks, options.sample_period, options.max_samples, least)
     warnings += exact_peaks.sampling_warnings(smp, least, options.sample_period)
@@ -490,23 +496,24 @@ def _motion(dynamics: Dynamics, work: Trajectory, options: FeasibilityOptions,
                   parallel=parallel, units=joint_units(model), pieces=pp), tau1
 
 
-def _effort_steps(motion: Motion, work: Trajectory, warnings: list[str]) -> dict[str, float]:
-    """Per joint, the largest step of the commanded torque where a waypoint joins segments
-    whose accelerations differ: an unbounded rate at any k, so it is reported, not checked (a
-    warning for cubic interpolation, only C¹; a spline from a start state too)."""
-    if len(work.times) <= 2:
+def _effort_steps(motion: Motion, ex: Execution, warnings: list[str]) -> dict[str, float]:
+    """Per joint, the largest step of the commanded torque where a knot joins segments whose
+    accelerations differ: an unbounded rate at any k, so it is reported, not checked (a warning
+    when a cubic segment is among them, only C¹)."""
+    times = ex.knots.times
+    if len(times) <= 2:
         return {}
     tau, smp, names = motion.tau, motion.smp, motion.names
     steps = np.abs(tau[smp.first[1:]] - tau[smp.last[:-1]])  # (N-2)×nv
     peak = _colmax(steps)
     effort_step = {names[j]: float(peak[j]) for j in range(len(names))}
     scale = np.maximum(kernels.abs_peak(tau)[1], 1e-9)
-    if work.natural_interpolation == "cubic" and np.any(peak > 1e-6 * scale):
+    if jtc.CUBIC in ex.modes and np.any(peak > 1e-6 * scale):
         j = int(np.argmax(peak / scale))
         w_ = int(np.argmax(steps[:, j])) + 1
         warnings.append(f"cubic interpolation: acceleration jumps at waypoints make the torque "
                         f"step by up to {_fmt(peak[j])} {motion.units['effort'][j]} ({names[j]} "
-                        f"at t = {work.times[w_]:.2f} s); effort rate is checked within segments")
+                        f"at t = {times[w_]:.2f} s); effort rate is checked within segments")
     return effort_step
 
 
@@ -597,83 +604,6 @@ def _exact(scale: _Scale, feasible: bool, warnings: list[str]) -> None:
             scale.k = float(np.nextafter(1.0, 2.0))
         else:
             warnings.append(f"time scale {k:.6g} disagrees with the direct check (rounding)")
-
-
-def _verdict(per_joint: Mapping[str, Mapping[str, Mapping[str, Any]]],
-             per_frame: Mapping[str, Mapping[str, Mapping[str, Any]]],
-             violations: list[Violation], warnings: list[str], scale: _Scale,
-             options: FeasibilityOptions, units: Mapping[str, list[str]],
-             start_segment: str) -> dict[str, Any]:
-    """The level, label, message and worst joint (or place) and kind."""
-    worst_joint, worst_kind, worst_ratio = "", "", 0.0
-    for jn, kinds in (*per_joint.items(), *per_frame.items()):
-        for kind, e in kinds.items():
-            if kind != "position" and e["ratio"] is not None and e["ratio"] > worst_ratio:
-                worst_joint, worst_kind, worst_ratio = jn, kind, e["ratio"]
-    if violations:
-        level, label = ERROR, PLANNING_ERROR
-        message = _infeasible_message(violations, warnings, scale, start_segment)
-    else:
-        warn = worst_ratio > options.effort_warn_ratio or bool(warnings)
-        level = WARN if warn else OK
-        what = f"{worst_joint} {_kind_text(worst_kind)}"
-        if worst_kind in per_frame.get(worst_joint, {}):
-            e = per_frame[worst_joint][worst_kind]
-            u = e["unit"]
-            # "grasp slip" at the place "grasp": named once
-            if _kind_text(worst_kind).startswith(worst_joint):
-                what = _kind_text(worst_kind)
-        elif worst_kind:
-            e = per_joint[worst_joint][worst_kind]
-            u = units[worst_kind][list(per_joint).index(worst_joint)]
-        if worst_kind:
-            head = (f"feasible: worst {what} {worst_ratio * 100:.0f}% of "
-                    f"{with_unit(e['limit'], u)} at t = {e['time_s']:.2f} s")
-        else:
-            head = "feasible: no limits apply"
-        k = scale.k
-        tail = (f"; could run {_fmt_factor(1 / k)}× faster" if 1e-6 < k < 1 else  # k ≤ 1e-6: a hold
-                "; holds still: no speed-dependent limit binds" if k <= 1e-6 else "; no margin left")
-        if scale.start_binds:
-            tail += " (the segment from the current state binds)"
-        message = head + tail
-        if level == WARN and warnings and (worst_ratio <= options.effort_warn_ratio
-                                           or start_segment.startswith("not_checked")):
-            message += f" ({warnings[0].split(':')[0]})"
-        label = PLANNING_ERROR if level != OK else ""
-    return dict(feasible=not violations, level=level, message=message, failure_label=label,
-                worst_joint=worst_joint, worst_constraint=worst_kind,
-                worst_ratio=float(worst_ratio),
-                first_violation_time_s=float(min((v.first_time_s for v in violations),
-                                                 default=math.nan)))
-
-
-def _infeasible_message(violations: list[Violation], warnings: list[str], scale: _Scale,
-                        start_segment: str) -> str:
-    pos = [v for v in violations if v.kind == "position"]
-    v0 = pos[0] if pos else max(violations, key=lambda v: abs(v.peak_value) / v.limit
-                                 if v.limit > 0 else math.inf)
-    head = f"infeasible: {KIND_CLASS[v0.kind].describe(v0)}"
-    blocked = scale.blocked
-    if pos and blocked is not None and blocked.timing_free:
-        tail = "; position limits do not depend on timing, no slowdown helps"
-    elif blocked is not None and blocked.reason:
-        tail = "; " + blocked.reason
-    elif scale.start_binds and not math.isfinite(scale.k):
-        tail = (f"; no slowdown up to {START_REACH:g}× makes the segment from the current "
-                "state feasible")
-    else:
-        tail = f"; run {_fmt_factor(scale.k)}× slower"
-        if scale.kind:
-            tail += f": {_kind_text(scale.kind)} of {scale.where} binds"
-        if scale.start_binds:
-            tail += " (the segment from the current state binds)"
-    message = head + tail
-    if len(violations) > 1:
-        message += f" ({len(violations)} violations)"
-    if start_segment.startswith("not_checked"):
-        message += f"; {warnings[0].split(':')[0]}"
-    return message
 
 
 def _payload_torque(dynamics: Dynamics, Q, V, A, tau0, threads: int | None = None) -> np.ndarray:

@@ -57,11 +57,15 @@ def options_for(settings: Settings) -> feasibility.FeasibilityOptions:
 def check(dynamics: Dynamics, settings: Settings, names: Sequence[str], times: Sequence[float],
           positions: Any, velocities: Any = None, accelerations: Any = None, *,
           start: feasibility.StartState | None = None,
-          start_unknown: str = "no current state given", efforts: Any = None) -> CheckOutcome:
+          start_unknown: str = "no current state given", efforts: Any = None,
+          timing: feasibility.Timing | None = None,
+          execution: feasibility.ExecutionOptions | None = None) -> CheckOutcome:
     """Validate and check one trajectory by the node's rules (ros2_control's validation; a single
     point is valid but cannot be checked) and return what the node would publish. ``start`` /
-    ``start_unknown``: as for :func:`feasibility.check_trajectory`; ``efforts``: the points'
-    effort lists, only validated (each empty or one per joint, as the controller requires)."""
+    ``start_unknown``, ``timing`` (header stamp and receipt; None: zero stamp) and
+    ``execution``: as for :func:`feasibility.check_trajectory` (the execution model);
+    ``efforts``: the points' effort lists, only validated (each empty or one per joint, as the
+    controller requires)."""
     model = dynamics.model
     hid = model.name
     duration = float(times[-1]) if len(times) and all(map(math.isfinite, times)) else 0.0
@@ -69,7 +73,8 @@ def check(dynamics: Dynamics, settings: Settings, names: Sequence[str], times: S
         traj = validated(model.joint_names, names, times, positions, velocities, accelerations,
                          efforts=efforts)
         result = feasibility.check_trajectory(dynamics, traj, options_for(settings), start=start,
-                                              start_unknown=start_unknown)
+                                              start_unknown=start_unknown, timing=timing,
+                                              execution=execution)
     except TrajectoryError as exc:
         return CheckOutcome(feasibility.rejected_statuses(exc, hid, len(times), duration), error=exc)
     return CheckOutcome(result.statuses(hid), result=result, trajectory=traj)

@@ -1,9 +1,9 @@
 """The segment from a moving robot's state to a first point ahead: its share of the time scale.
 
 Its start velocity is the robot's and does not scale with k, so no per-sample law covers it: the
-segment is re-interpolated and checked directly at each trial k (walk, then bisection). The
-check itself is passed in (``check``: :func:`dyn_node.core.check.feasibility._check`), so this module does
-not depend on it.
+segment (the execution model's, :meth:`dyn_node.core.check.execution.Execution.first_segment`)
+is checked directly at each trial k (walk, then bisection). The check itself is passed in
+(``check``: :func:`dyn_node.core.check.feasibility._check`), so this module does not depend on it.
 """
 from __future__ import annotations
 
@@ -32,6 +32,9 @@ class StartState:
     positions: np.ndarray
     velocities: np.ndarray
     age_s: float
+    #: the controller's last commanded accelerations, when the state is its desired state
+    #: (``interpolate_from_desired_state``); None for a measured state
+    accelerations: np.ndarray | None = None
 
 
 def current_state(last: tuple[int, np.ndarray, np.ndarray] | None, now_ns: int,
@@ -57,41 +60,26 @@ WALK, RTOL, FLOOR, REACH = 2.0, 1e-6, 1e-6, 1e3
 
 @dataclass(frozen=True)
 class StartSegment:
-    """``traj`` as received; ``work`` with the robot's state prepended (:class:`StartState`
-    ``start``); ``options`` the check's, ``period`` the main check's (possibly raised) sample
-    period; ``whole``: a kind reaches back across samples (RMS), so each trial checks the whole
-    stretched trajectory rather than the segment alone."""
+    """``execution`` (:class:`dyn_node.core.check.execution.Execution`) begins with a segment
+    from the robot's moving state; ``options`` the check's, ``period`` the main check's
+    (possibly raised) sample period; ``whole``: a kind reaches back across samples (RMS), so
+    each trial checks the whole stretched execution rather than the segment alone."""
 
     check: Callable[..., Any]
     dynamics: Any
-    traj: Trajectory
-    work: Trajectory
-    start: Any
-    start_unknown: str
+    execution: Any
     options: Any
     period: float
     whole: bool
 
     def trial(self, k: float) -> Any:
-        """The verdict at k (the trajectory k times slower, the start state unchanged)."""
+        """The verdict at k (the trajectory k times slower, the robot's state unchanged)."""
         if self.whole:
             plain = replace(self.options, compute_payload_margin=False)
-            return self.check(self.dynamics, stretched(self.traj, k), plain, self.start,
-                              self.start_unknown, search_start=False)
-        return self.check(self.dynamics, self.segment_at(k),
+            return self.check(self.dynamics, self.execution.stretched(k), plain, search_start=False)
+        return self.check(self.dynamics, self.execution.first_segment(k),
                           replace(self.options, sample_period=self.period * k,
                                   compute_payload_margin=False))
-
-    def segment_at(self, k: float) -> Trajectory:
-        """The start segment alone with the trajectory stretched by k: from the measured q, q̇
-        (q̇ does not scale: it is the robot's) and q̈ = 0 to the first point, whose velocity and
-        acceleration scale as 1/k and 1/k², in k·t0 s (sampled at the period × k)."""
-        work = self.work
-        t0 = float(work.times[1])
-        v, a = work.velocities, work.accelerations
-        return Trajectory(times=np.array([0.0, k * t0]), positions=work.positions[:2],
-                          velocities=np.vstack([v[0], v[1] / k]),
-                          accelerations=None if a is None else np.vstack([a[0], a[1] / (k * k)]))
 
     def time_scale(self, k_rest: float, feasible: bool) -> tuple[float, str, str] | None:
         """The time scale when the segment's share exceeds ``k_rest`` (the rest's, from the
@@ -166,7 +154,8 @@ def stretched(traj: Trajectory, k: float) -> Trajectory:
     """``traj`` run k times slower: times × k, velocities ÷ k, accelerations ÷ k²."""
     return Trajectory(times=traj.times * k, positions=traj.positions,
                       velocities=None if traj.velocities is None else traj.velocities / k,
-                      accelerations=None if traj.accelerations is None else traj.accelerations / (k * k))
+                      accelerations=None if traj.accelerations is None else traj.accelerations / (k * k),
+                      fields=traj.fields)
 
 
 def _worst_violation(r: Any) -> tuple[str, str]:

@@ -2,11 +2,9 @@
 
 ros2_control's joint_trajectory_controller interpolates each segment with a quintic polynomial
 when waypoints carry positions, velocities and accelerations, a cubic when they carry positions
-and velocities, and linearly when they carry positions only. Linear interpolation demands an
-unbounded acceleration at every waypoint, so for a dynamic check of a positions-only trajectory
-dyn_node assumes a C² cubic spline through the waypoints with zero velocity at both ends
-(``"spline"``); the controller-status reference and the simulator use ``"linear"`` as the
-controller would.
+and velocities, and linearly when they carry positions only; the feasibility check judges
+exactly that (:mod:`dyn_node.core.check.execution`). ``"spline"`` (a C² cubic spline through
+positions-only waypoints, zero velocity at both ends) is the retimer's path geometry only.
 
 Times are seconds from the trajectory's start (time_from_start); arrays are in model joint order.
 """
@@ -33,6 +31,11 @@ class Trajectory:
     positions: np.ndarray
     velocities: np.ndarray | None = None
     accelerations: np.ndarray | None = None
+    #: N×2 bool, per point whether its velocities and its accelerations were given (a message may
+    #: leave them empty at some points; those rows of the arrays are then 0); None: as the
+    #: arrays say, for every point. joint_trajectory_controller picks each segment's
+    #: interpolation from the fields at its two ends (:mod:`dyn_node.core.check.execution`).
+    fields: np.ndarray | None = None
 
     @property
     def n_points(self) -> int:
@@ -52,10 +55,19 @@ class Trajectory:
             return "cubic"
         return "linear"
 
+    def point_fields(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per point, whether it carries velocities and whether it carries accelerations."""
+        if self.fields is not None:
+            return self.fields[:, 0].copy(), self.fields[:, 1].copy()
+        n = self.n_points
+        return np.full(n, self.velocities is not None), np.full(n, self.accelerations is not None)
+
     @property
     def natural_interpolation(self) -> Interpolation:
-        """:attr:`jtc_interpolation`, except positions-only → the C² spline (linear segments would
-        demand unbounded accelerations at the waypoints)."""
+        """:attr:`jtc_interpolation`, except positions-only → the C² spline: the retimer's path
+        through untimed or positions-only waypoints. Not what the controller executes (it
+        interpolates positions linearly): the check judges that
+        (:mod:`dyn_node.core.check.execution`)."""
         mode = self.jtc_interpolation
         return "spline" if mode == "linear" else mode
 
@@ -129,19 +141,28 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
                                   "controller refuses an effort neither empty nor one per joint)",
                                   code="length_mismatch")
 
+    given: dict[str, np.ndarray] = {}
+
     def matrix(rows: Sequence[Sequence[float]] | None, field: str, required: bool) -> np.ndarray | None:
         if rows is None:
             if required:
                 raise TrajectoryError(f"trajectory has no {field}", code="length_mismatch")
             return None
+        if not required and not len(rows):
+            return None
+        if len(rows) != n_pts:
+            raise TrajectoryError(f"{len(rows)} {field} rows for {n_pts} times", code="length_mismatch")
         lengths = {len(r) for r in rows}
         if not required and lengths == {0}:
             return None
+        # each point's field empty or one per joint, as the controller validates it
+        # (joint_trajectory_controller.cpp validate_trajectory_point_field, allow_empty)
         for i, r in enumerate(rows):
-            if len(r) != nj:
+            if len(r) != nj and (required or len(r)):
                 raise TrajectoryError(f"point {i}: {len(r)} {field} for {nj} joints",
                                       code="length_mismatch")
-        m = np.asarray(rows, dtype=float).reshape(n_pts, nj)
+        given[field] = np.array([len(r) > 0 for r in rows])
+        m = np.asarray([r if len(r) else [0.0] * nj for r in rows], dtype=float).reshape(n_pts, nj)
         if not np.all(np.isfinite(m)):
             i, j = np.argwhere(~np.isfinite(m))[0]
             raise TrajectoryError(f"point {i}: {field} of {names[j]} is {m[i, j]}", code="non_finite")
@@ -162,7 +183,17 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
     a = matrix(accelerations, "accelerations", False) if accelerations is not None else None
     if a is not None and v is None:
         raise TrajectoryError("accelerations given without velocities", code="length_mismatch")
-    return Trajectory(times=t, positions=p, velocities=v, accelerations=a)
+    gv = given.get("velocities", np.full(n_pts, v is not None))
+    ga = given.get("accelerations", np.full(n_pts, a is not None))
+    if np.any(ga & ~gv):
+        # no branch of the controller's spline interpolates it (trajectory.cpp
+        # interpolate_between_points, lines 315-406 at jazzy ed360c9)
+        i = int(np.flatnonzero(ga & ~gv)[0])
+        raise TrajectoryError(f"point {i}: accelerations given without velocities",
+                              code="length_mismatch")
+    mixed = (v is not None and not gv.all()) or (a is not None and not ga.all())
+    return Trajectory(times=t, positions=p, velocities=v, accelerations=a,
+                      fields=np.column_stack([gv, ga]) if mixed else None)
 
 
 @dataclass(frozen=True)

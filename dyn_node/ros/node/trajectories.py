@@ -130,9 +130,12 @@ class TrajectoryWorker:
         else:
             options = on_demand.options_for(settings)
             try:
+                # judged as the controller executes it: from its header stamp, received now,
+                # by the robot in the last joint_states state
                 result = feasibility.check_trajectory(self._worker_dynamics(core), traj, options,
                                                       start=start_state,
-                                                      start_unknown=feasibility.NO_CURRENT_STATE)
+                                                      start_unknown=feasibility.NO_CURRENT_STATE,
+                                                      timing=feasibility.Timing(stamp_s, receipt_s))
             except TrajectoryError as exc:  # e.g. motion so large the torques overflow
                 self._publish_verdict(self._pub_feasibility, verdict_array(
                     feasibility.rejected_statuses(exc, hid, len(times), duration), stamp, frame_id,
