@@ -179,7 +179,7 @@ def _parse_mapping(text: str, fmt: str, path: str) -> TrajectoryFile:
         if not isinstance(pt, dict):
             fail(where, "must be a mapping (positions, velocities, accelerations, time_from_start)",
                  "points", i)
-        if not _POINT_KEYS.issuperset(pt):   # (a set operation only when some key is unknown)
+        if not _POINT_KEYS.issuperset(pt):   # (the f-string only when some key is unknown)
             unknown.check(pt, _POINT_KEYS, f"{where}.", ("points", i))
         d = pt.get("time_from_start")
         if isinstance(d, dict) and not _TIME_KEYS.issuperset(d):
@@ -220,6 +220,9 @@ class _Unknown:
         self.first_at: tuple[str | int, ...] = ()
 
     def check(self, mapping: dict, known: frozenset[str], prefix: str, at: tuple[str | int, ...]) -> None:
+        if known.issuperset(mapping):
+            return
+        # only now: the suggestion's module brings numpy, which reading a file needs not
         from dyn_node.core.robot.task_limits import did_you_mean
 
         for key in mapping:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
 from typing import Any
 
 import yaml
@@ -30,9 +31,16 @@ ALIAS_GROWTH = 10
 ALIAS_SLACK = 10_000
 #: Nesting depth of a document at most (a limits file needs 5, a trajectory 4).
 MAX_DEPTH = 64
-#: Digits an integer may be written with: int64 needs 19, and no field of ours holds more;
-#: Python refuses to convert beyond 4,300 (a traceback, not an answer).
-MAX_INT_DIGITS = 64
+#: Digits an integer may be written with: Python's own default conversion limit, beyond which
+#: ``int()`` raises (a traceback, not an answer). Smaller ones are read; every field then refuses
+#: what it cannot hold (a number beyond float's 309 digits is "too large", a time out of range).
+MAX_INT_DIGITS = 4300
+
+
+def _max_digits() -> int:
+    """:data:`MAX_INT_DIGITS`, or the interpreter's limit when set lower (0: none)."""
+    limit = sys.get_int_max_str_digits()
+    return min(MAX_INT_DIGITS, limit) if limit else MAX_INT_DIGITS
 
 
 
@@ -64,13 +72,13 @@ class _HugeInt(LoadError):
 
 
 def _too_large(digits: int) -> str:
-    return f"too large for a number (an integer of {digits} digits; at most {MAX_INT_DIGITS})"
+    return f"too large for a number (an integer of {digits} digits; at most {_max_digits()})"
 
 
 def _int(value: str, base: int) -> int:
-    if len(value) > MAX_INT_DIGITS:   # (a sign or a 0x / 0o prefix is not a digit)
+    if len(value) > 640:   # Python's smallest limit; a sign or a 0x / 0o prefix is not a digit
         digits = len(value.lstrip("+-").removeprefix("0x").removeprefix("0o"))
-        if digits > MAX_INT_DIGITS:
+        if digits > _max_digits():
             raise _HugeInt(_too_large(digits))
     return int(value, base)
 
@@ -265,26 +273,21 @@ def _huge_at(value: Any, where: str = "") -> tuple[str, _Huge] | None:
 def load_json(text: str) -> Any:
     """The JSON value of ``text``; raises :class:`LoadError` (with the line where json says).
     An integer of more than :data:`MAX_INT_DIGITS` digits is refused, naming its field."""
-    huge: list[bool] = []
-
-    def parse_int(digits: str) -> Any:
-        if len(digits) > MAX_INT_DIGITS and len(digits.lstrip("-")) > MAX_INT_DIGITS:
-            huge.append(True)
-            return _Huge(digits)
-        return int(digits)
-
     try:
-        value = json.loads(text, object_pairs_hook=_unique_pairs, parse_int=parse_int)
+        return json.loads(text, object_pairs_hook=_unique_pairs)
     except json.JSONDecodeError as exc:
         raise LoadError(exc.msg, exc.lineno) from None
     except RecursionError:
         raise LoadError("nested too deeply") from None
-    if huge:
-        found = _huge_at(value)
-        if found is not None:
-            digits = len(found[1].lstrip("-"))
-            raise LoadError(_too_large(digits), None, found[0])
-    return value
+    except ValueError as exc:   # int()'s digit limit: read again, only now, to name the field
+        if "digits" not in str(exc):
+            raise
+    limit = _max_digits()
+    found = _huge_at(json.loads(text, object_pairs_hook=_unique_pairs, parse_int=lambda d: (
+        _Huge(d) if len(d.lstrip("-")) > limit else int(d))))
+    if found is None:   # pragma: no cover - json raised for the limit, so some integer is over it
+        raise LoadError(_too_large(limit + 1))
+    raise LoadError(_too_large(len(found[1].lstrip("-"))), None, found[0])
 
 
 def yaml_line(text: str, *path: str | int) -> int | None:
