@@ -41,9 +41,9 @@ def subjects(model, Q: np.ndarray, V: np.ndarray,
 def measure(rounds: int = 15) -> dict:
     """Interleaved rounds of the loop and the subjects on feasibility_bench's samples: median
     time (ms) of each and median per-round ratio to the loop."""
-    from .feasibility_bench import _setup
+    from .feasibility_subject import setup
 
-    F, dyn, traj, options, loop, (Q, V, A) = _setup()
+    F, dyn, traj, options, loop, (Q, V, A) = setup()
     subj = {"loop": loop, **subjects(dyn.model, Q, V, A)}
     times: dict[str, list[float]] = {k: [] for k in subj}
     for fn in subj.values():

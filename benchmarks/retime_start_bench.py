@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from .retime_bench import panel, robot
+from .retime_panel import panel, robot
 
 
 def cases(dyn, n_paths: int, seed: int) -> list:

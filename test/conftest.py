@@ -2,6 +2,8 @@
 
 Every ROS test runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and its own ROS_DOMAIN_ID, so
 concurrent test runs on one machine never hear each other. Set DYN_TEST_DOMAIN to pin the domain.
+``DYN_TEST_SHUFFLE=<seed>`` runs the modules, and each module's tests, in an order drawn from the
+seed (no test may depend on another's state: this is how that is checked).
 """
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ import contextlib
 import errno
 import math
 import os
+import random
 import signal as _signal
 import subprocess
 import sys
@@ -20,6 +23,32 @@ from typing import Any, Callable, Iterable, Iterator
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def shuffled(items: list, seed: str) -> list:
+    """``items`` (pytest items, by ``nodeid``) in an order drawn from ``seed``: modules shuffled,
+    and the tests inside each; a module's tests stay together, so its module-scoped fixtures
+    (nodes, bags) are still set up once."""
+    rng = random.Random(seed)
+    modules: dict[str, list] = {}
+    for item in items:
+        modules.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
+    order = list(modules)
+    rng.shuffle(order)
+    for tests in modules.values():
+        rng.shuffle(tests)
+    return [item for m in order for item in modules[m]]
+
+
+def pytest_collection_modifyitems(config: Any, items: list) -> None:
+    seed = os.environ.get("DYN_TEST_SHUFFLE")
+    if seed:
+        items[:] = shuffled(items, seed)
+
+
+def pytest_report_header(config: Any) -> str | None:
+    seed = os.environ.get("DYN_TEST_SHUFFLE")
+    return f"dyn_node: tests shuffled with DYN_TEST_SHUFFLE={seed}" if seed else None
 
 
 def _pick_domain() -> int:

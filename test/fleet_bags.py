@@ -155,3 +155,32 @@ def damage_chunk(bag: Path, which: int = 1) -> Path:
 def copy_bag(src: Path, dst: Path) -> Path:
     shutil.copytree(src, dst)
     return dst
+
+
+def write_split_bag(parent: Path, name: str, seconds: float = 6.0, split_s: float = 1.0,
+                    rate_hz: float = 500.0) -> Path:
+    """``seconds`` of in-limit Panda joint_states recorded in files of ``split_s`` each (log time)."""
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+
+    from dyn_node.bag.recorder import Recorder, RecorderConfig, TopicInfo
+
+    model = _model("panda")
+    rec = Recorder(RecorderConfig(directory=str(parent), prefix=name, fsync=False, chunk_size=64 * 1024,
+                                  max_bag_duration_s=split_s, queue_size=1_000_000, queue_bytes=1 << 30),
+                   robot_description=model.urdf, parameters_yaml=PARAMS.format(robot="panda"),
+                   clock_ns=lambda: T0)
+    rec.add_topic(TopicInfo("/joint_states", "sensor_msgs/msg/JointState"))
+    m = JointState()
+    m.name, m.effort = list(model.joint_names), [float("nan")] * model.nv
+    q0, dt = nominal_pose(model), int(round(1e9 / rate_hz))
+    for i in range(int(round(seconds * rate_hz))):
+        t_ns = T0 + i * dt
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
+        m.position = [float(x) for x in q0 + 0.01 * np.sin(i / rate_hz)]
+        m.velocity = [0.01 * float(np.cos(i / rate_hz))] * model.nv
+        rec.write("/joint_states", serialize_message(m), t_ns)
+    stats = rec.close(timeout=60.0)
+    final = parent / name
+    Path(stats.path).rename(final)
+    return final

@@ -590,3 +590,32 @@ def test_a_directory_without_metadata_yaml_never_reads_dyn_bag_recover_outputs(t
     only.mkdir()
     shutil.copy(d / "u.recovered.mcap", only / "u.recovered.mcap")
     assert len(list(BagReader(only).messages())) == 30
+
+
+def test_a_deleted_split_file_is_a_partial_audit_naming_the_gap(tmp_path):
+    """A 6-file bag with ``_1.mcap`` deleted (metadata.yaml still lists it) once audited exit 0
+    "all feasible": the missing file is damage, its time range named from metadata.yaml."""
+    from mcap.reader import make_reader
+
+    from dyn_node.audit.bag_audit import AuditOptions, run_audit
+    from fleet_bags import write_split_bag
+
+    bag = write_split_bag(tmp_path, "split")
+    files = sorted(bag.glob("*.mcap"), key=lambda f: int(f.stem.rsplit("_", 1)[1]))
+    assert len(files) == 6
+    # the deleted file's own span and count, read by the official reader before it goes
+    with open(files[1], "rb") as fh:
+        st = make_reader(fh).get_summary().statistics
+    with open(files[0], "rb") as fh:
+        first = make_reader(fh).get_summary().statistics.message_start_time
+    files[1].unlink()
+    res = run_audit(AuditOptions(bag=str(bag), out=str(tmp_path / "audit"), robot_model="panda", report=False))
+    rec = res.record
+    assert res.exit_code == 3 and rec["verdict"]["partial"] is True
+    ranges = rec["input_quality"]["unreadable_ranges"]
+    assert len(ranges) == 1
+    gap = ranges[0]
+    assert gap["reason"] == f"{files[1].name}: listed in metadata.yaml but missing, {st.message_count} messages"
+    assert gap["start_s"] == pytest.approx((st.message_start_time - first) * 1e-9, abs=1e-9)
+    assert gap["end_s"] == pytest.approx((st.message_end_time - first) * 1e-9, abs=1e-9)
+    assert 0.9 < gap["end_s"] - gap["start_s"] < 1.0 and st.message_count >= 450

@@ -369,3 +369,23 @@ def test_injected_enospc_mid_file_leaves_no_half_output(bag, tmp_path, capsys, m
         assert main([str(target)]) == 4
         assert "no space left on the device" in capsys.readouterr().err
         assert _listing(tmp_path) == before
+
+
+def test_a_deleted_split_file_is_data_lost(tmp_path, capsys):
+    """dyn-bag-recover on a bag whose metadata.yaml lists a file that is gone: exit 3, the file
+    named as lost (it once said "nothing lost")."""
+    from fleet_bags import write_split_bag
+
+    bag = write_split_bag(tmp_path, "split", seconds=3.0)
+    gone = sorted(bag.glob("*_1.mcap"))
+    assert len(gone) == 1
+    gone[0].unlink()
+    code = main([str(bag), "-o", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert code == 3
+    assert f"  lost: {gone[0].name}: listed in metadata.yaml but missing, " in out
+    assert out.rstrip().endswith("some data was lost")
+    # the same bag whole: nothing lost
+    whole = write_split_bag(tmp_path, "whole", seconds=3.0)
+    assert main([str(whole), "-o", str(tmp_path / "out2")]) == 0
+    assert capsys.readouterr().out.rstrip().endswith("nothing lost")

@@ -9,7 +9,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from conftest import js, python_cmd, t_msg
+from conftest import Collected, js, python_cmd, t_msg
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -70,3 +70,21 @@ def test_echo_without_publisher_says_so(spawn):
     rc, out, err = cp.proc.wait(timeout=50), *cp.proc.communicate()
     assert rc == 1 and out == ""
     assert err.strip() == "echo: no publisher on /echo_test/nobody within 1 s"
+
+
+@pytest.mark.timeout(60)
+def test_echo_stopped_by_sigterm_exits_quietly(ros_context, spawn):
+    """``timeout 2 python -m dyn_node.ros.echo /x`` once ended in a traceback (rclpy's SIGTERM
+    handler shuts the context down under the spin)."""
+    import signal
+
+    from rclpy.node import Node
+
+    cp = spawn(python_cmd("dyn_node.ros.echo", "/echo_test/sigterm"))
+    node = Node("echo_sigterm_test", context=ros_context)
+    try:   # its node in the graph: rclpy (and its signal handler) is up, it waits for a publisher
+        assert Collected().wait(lambda: "dyn_node_echo" in node.get_node_names(), 30.0)
+    finally:
+        node.destroy_node()
+    rc = cp.stop(signal.SIGTERM, timeout=30.0)
+    assert rc == (0, "", ""), rc[2]

@@ -541,3 +541,27 @@ def test_clean_shutdown_cancels_what_was_forwarded(module_ros_context, spawn):
     finally:
         probe.close()
         client.close()
+
+
+def test_the_reference_verdict_for_the_infeasible_goal_is_the_closed_form():
+    """The gate's decisions are compared with the core's check of the same goal: that reference
+    against what we did not write. The goal is one rest-to-rest quintic (11 knots carrying its
+    positions, velocities and accelerations, so the controller's quintic pieces are the quintic
+    itself): its peak speed 15/8·Δq/T = 6.25 rad/s at the middle knot, velocity binds, so
+    time_scale = 6.25 / panda_joint1's 2.175 rad/s."""
+    from dyn_node.core.check import feasibility
+    from dyn_node.core.check.trajectory import validate_trajectory
+    from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.core.robot.settings import Settings
+
+    model = load_model(builtin="panda")
+    traj = validate_trajectory(model.joint_names, ARM, INFEASIBLE["times"], INFEASIBLE["points"],
+                               INFEASIBLE["velocities"], INFEASIBLE["accelerations"])
+    node = Settings()
+    verdict = feasibility.check_trajectory(
+        Dynamics(model, DynamicsOptions(include_friction=node.include_friction)), traj,
+        feasibility.FeasibilityOptions(sample_period=node.sample_period, effort_warn_ratio=node.effort_warn_ratio))
+    assert model.limits.velocity[0] == 2.175  # example-robot-data's panda_joint1
+    assert verdict.time_scale == pytest.approx(15 / 8 * 0.5 / 0.15 / 2.175, rel=1e-12)
+    assert verdict.message.endswith("velocity of panda_joint1 binds")

@@ -251,6 +251,14 @@ def test_no_import_circle_between_dyn_node_modules():
     assert circles(graph) == []
 
 
+def test_no_import_circle_between_benchmark_modules():
+    graph = import_graph(REPO, "benchmarks")
+    # the subjects both halves of a pair share are modules of their own, imported by each
+    assert "benchmarks.feasibility_subject" in graph["benchmarks.frames_bench"]
+    assert "benchmarks.retime_panel" in graph["benchmarks.retime_start_bench"]
+    assert circles(graph) == []
+
+
 def test_no_folder_of_dyn_node_over_20_modules():
     assert crowded_folders(REPO, "dyn_node") == {}
 

@@ -212,14 +212,13 @@ def test_suspicious_limits_warn(two_link):
     m = two_link.with_limits(
         "joint_limits:\n"
         "  joint1: {min_position: 1.0, max_position: -1.0, max_velocity: 0.0, max_effort: 100000.0}\n"
-        "  joint2: {max_acceleration: -5.0, soft_lower_limit: 1.0, soft_upper_limit: 0.5}\n")
+        "  joint2: {soft_lower_limit: 1.0, soft_upper_limit: 0.5}\n")
     w = "\n".join(m.warnings)
     assert "joint1: lower position limit 1 > upper -1" in w
     assert "joint1: velocity limit 0 is not positive" in w
     assert "joint1: effort limit 100000" in w and "gravity load" in w
-    assert "joint2: acceleration limit -5 is not positive" in w
     assert "joint2: soft lower limit 1 > soft upper 0.5" in w
-    assert len(m.warnings) == 5
+    assert len(m.warnings) == 4   # a negative limit is an error (test_negative_or_infinite_limit_is_an_error)
     assert two_link.warnings == ()
     # A realistic limit (40 N·m vs a ≈ 10 N·m gravity load) is not flagged.
     assert not any("gravity load" in x for x in two_link.with_limits(
@@ -295,3 +294,30 @@ def test_moveit_scaling_factors_and_node_parameters_beside_joint_limits_are_acce
     nested = load_limits_yaml("dyn_node:\n  ros__parameters:\n    robot_model: panda\n"
                               "    joint_limits: {j: {max_velocity: 1.0}}\n")
     assert bare == nested == {"j": {"max_velocity": 1.0}}
+
+
+LIMIT_KEYS = ("max_velocity", "max_acceleration", "max_deceleration", "max_jerk", "max_effort",
+              "max_effort_rate", "max_rms_effort", "max_power")
+
+
+@pytest.mark.parametrize("key", LIMIT_KEYS)
+@pytest.mark.parametrize("value", ["-.inf", ".inf", "-1.0", "-1e-300", ".nan"])
+def test_negative_or_infinite_limit_is_an_error(key, value):
+    """``max_velocity: -.inf`` once read as "no limit": each limit key refuses a negative or
+    non-finite value, naming joint and key (0 stays a real limit, warned about)."""
+    with pytest.raises(ModelError) as e:
+        load_limits_yaml(f"joint_limits:\n  joint2:\n    {key}: {value}\n")
+    assert f"joint_limits.joint2.{key} must be " in str(e.value)
+    assert e.value.code in ("limits_bad_value", "limits_wrong_type")
+    assert load_limits_yaml(f"joint_limits:\n  joint2:\n    {key}: 0.0\n") == {"joint2": {key: 0.0}}
+    assert load_limits_yaml(f"joint_limits:\n  joint2:\n    {key}: 2\n") == {"joint2": {key: 2.0}}
+
+
+def test_every_bad_limit_is_named_once(two_link):
+    with pytest.raises(ModelError) as e:
+        two_link.with_limits("joint_limits:\n  joint1: {max_velocity: -.inf}\n"
+                             "  joint2: {max_power: .inf, max_acceleration: -5.0}\n")
+    assert str(e.value).count("must be a finite number ≥ 0") == 3
+    assert ("joint_limits.joint1.max_velocity must be a finite number ≥ 0, got -inf (for no limit "
+            "remove the key or set has_velocity_limits: false)") in str(e.value)
+    assert "joint_limits.joint2.max_power must be a finite number ≥ 0, got inf (for no limit remove the key)" in str(e.value)

@@ -19,7 +19,8 @@ from typing import Any, Sequence
 from dyn_node.audit.accounting import CHECK, RequestTally
 from dyn_node.errors import CheckError, DynNodeError, PLANNING_ERROR, STATE_ERROR, TrajectoryFileError
 from dyn_node.audit.exit_codes import EXIT_UNUSABLE, MEANINGS, exit_code
-from dyn_node.audit.trajectory_files import TrajectoryFile, format_trajectory, parse_trajectory, read_trajectory
+from dyn_node.audit.trajectory_files import (MAX_POINTS, MAX_TRAJECTORY_BYTES, TrajectoryFile,
+                                             format_trajectory, parse_trajectory, read_trajectory)
 from dyn_node.core.robot.limits_file import MAX_LIMITS_BYTES
 from dyn_node.io.files import FileProblem, read_text
 from dyn_node.io.text import escape
@@ -117,10 +118,11 @@ def make_checker(*, robot_model: str = "", robot_description: str = "", limits: 
     return Checker(model, settings, dyn, source, overrides)
 
 
-def check_file(checker: Checker, path: str) -> FileVerdict:
+def check_file(checker: Checker, path: str, *, max_bytes: int = MAX_TRAJECTORY_BYTES,
+               max_points: int = MAX_POINTS) -> FileVerdict:
     t0 = time.perf_counter()
     try:
-        tf = read_trajectory(path)
+        tf = read_trajectory(path, max_bytes=max_bytes, max_points=max_points)
     except TrajectoryFileError as exc:
         return FileVerdict(path, None, error=exc)
     outcome = checker.check(tf)
@@ -353,7 +355,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--retime-method", default="optimal", choices=("optimal", "uniform"),
                    help="optimal (default): the fastest timing along the same path that passes the "
                         "check (docs/retime.md); uniform: stretch by time_scale")
+    p.add_argument("--max-file-mb", type=_positive(float), default=MAX_TRAJECTORY_BYTES / 1e6, metavar="MB",
+                   help="refuse a trajectory file larger than this, unread (default: %(default)g MB)")
+    p.add_argument("--max-points", type=_positive(int), default=MAX_POINTS, metavar="N",
+                   help="refuse a trajectory of more points, before parsing it (default: %(default)d)")
     return p
+
+
+def _positive(kind: type) -> Any:
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not 0 < value < float("inf"):
+            raise argparse.ArgumentTypeError(f"must be a finite number > 0: {text!r}")
+        return value
+    return parse
 
 
 def run(args: argparse.Namespace, out: Any = None) -> int:
@@ -367,7 +385,7 @@ def run(args: argparse.Namespace, out: Any = None) -> int:
     dests = retime_destinations(args.trajectories, args.retime) if args.retime else []
     verdicts, written = [], []
     for i, path in enumerate(args.trajectories):
-        v = check_file(checker, path)
+        v = check_file(checker, path, max_bytes=int(args.max_file_mb * 1e6), max_points=args.max_points)
         verdicts.append(v)
         # an unreadable file's line is an error message: stderr, like every other error
         print(escape(verdict_line(v), LINE_CHARS), file=out if v.readable else sys.stderr, flush=True)

@@ -63,24 +63,49 @@ def file_format(path: str | Path) -> str:
     return fmt
 
 
-def read_trajectory(path: str | Path) -> TrajectoryFile:
-    """Read one trajectory file (format from its extension); raises :class:`TrajectoryFileError`."""
+#: Largest trajectory file read (bytes; ``dyn-check --max-file-mb``) and most points (``--max-points``):
+#: a file beyond either is refused before it is parsed (parsing 1e5 points takes about a second).
+MAX_TRAJECTORY_BYTES = 16_000_000
+MAX_POINTS = 100_000
+
+
+def read_trajectory(path: str | Path, *, max_bytes: int = MAX_TRAJECTORY_BYTES,
+                    max_points: int = MAX_POINTS) -> TrajectoryFile:
+    """Read one trajectory file (format from its extension); raises :class:`TrajectoryFileError`,
+    also for a file of more than ``max_bytes`` bytes or ``max_points`` points."""
     fmt = file_format(path)
     try:
-        text = read_text(path)
+        text = read_text(path, max_bytes=max_bytes)
     except FileProblem as exc:
-        raise TrajectoryFileError(path, None, "", str(exc)) from None
-    return parse_trajectory(text, fmt, str(path))
+        hint = " (dyn-check --max-file-mb raises it)" if "at most" in str(exc) else ""
+        raise TrajectoryFileError(path, None, "", f"{exc}{hint}") from None
+    return parse_trajectory(text, fmt, str(path), max_points=max_points)
 
 
-def parse_trajectory(text: str, fmt: str, path: str = "<text>") -> TrajectoryFile:
+def _too_many(path: str, counted: str, max_points: int) -> TrajectoryFileError:
+    return TrajectoryFileError(path, None, "points", f"{counted}, more than the {max_points} points "
+                               "read at most (dyn-check --max-points raises it)")
+
+
+def parse_trajectory(text: str, fmt: str, path: str = "<text>", *,
+                     max_points: int | None = None) -> TrajectoryFile:
     text = text.removeprefix("\ufeff")    # a byte-order mark is not part of the first field
-    try:
+    if max_points is not None:
+        # counted before parsing: every point has a time_from_start (a CSV row a line); an
+        # overcount (the word in a comment) only refuses a file already near the cap
         if fmt == "csv":
-            return _parse_csv(text, path)
-        return _parse_mapping(text, fmt, path)
+            n, unit = text.count("\n") - 1, "rows after the header"
+        else:
+            n, unit = text.count("time_from_start"), "time_from_start entries"
+        if n > max_points:
+            raise _too_many(path, f"{n} {unit}", max_points)
+    try:
+        tf = _parse_csv(text, path) if fmt == "csv" else _parse_mapping(text, fmt, path)
     except RecursionError:
         raise TrajectoryFileError(path, None, "", "nested too deeply") from None
+    if max_points is not None and len(tf.times) > max_points:   # YAML aliases repeat points
+        raise _too_many(path, f"{len(tf.times)} points", max_points)
+    return tf
 
 
 #: Range of builtin_interfaces' int32 ``sec`` (of Time and Duration) and the times it can hold.
@@ -92,6 +117,8 @@ def _load(text: str, fmt: str, path: str) -> Any:
     try:
         return load_json(text) if fmt == "json" else load_yaml(text)
     except LoadError as exc:
+        if exc.field:   # a value the loader refuses (e.g. an integer of 5,000 digits)
+            raise TrajectoryFileError(path, exc.line, escape(exc.field), exc.problem) from None
         raise TrajectoryFileError(path, exc.line, "",
                                   f"not valid {fmt.upper()}: {exc.problem}") from None
 
@@ -138,6 +165,12 @@ def _parse_mapping(text: str, fmt: str, path: str) -> TrajectoryFile:
         fail("points", "missing")
     if not isinstance(points, list):
         fail("points", "must be a list of points", "points")
+    unknown = _Unknown()
+    unknown.check(doc, _TOP_KEYS, "", ())
+    if isinstance(doc.get("header"), dict):
+        unknown.check(doc["header"], _HEADER_KEYS, "header.", ("header",))
+        if isinstance(doc["header"].get("stamp"), dict):
+            unknown.check(doc["header"]["stamp"], _TIME_KEYS, "header.stamp.", ("header", "stamp"))
     stamp, frame_id = _header(doc.get("header"), lambda f, p, *at: fail(f"header.{f}", p, "header", *at))
     times: list[float] = []
     rows: dict[str, list[list[float]]] = {"positions": [], "velocities": [], "accelerations": []}
@@ -146,6 +179,11 @@ def _parse_mapping(text: str, fmt: str, path: str) -> TrajectoryFile:
         if not isinstance(pt, dict):
             fail(where, "must be a mapping (positions, velocities, accelerations, time_from_start)",
                  "points", i)
+        if not _POINT_KEYS.issuperset(pt):   # (the f-string only when some key is unknown)
+            unknown.check(pt, _POINT_KEYS, f"{where}.", ("points", i))
+        d = pt.get("time_from_start")
+        if isinstance(d, dict) and not _TIME_KEYS.issuperset(d):
+            unknown.check(d, _TIME_KEYS, f"{where}.time_from_start.", ("points", i, "time_from_start"))
         for key in rows:
             seq = pt.get(key, [])
             if key == "positions" and key not in pt:
@@ -158,9 +196,48 @@ def _parse_mapping(text: str, fmt: str, path: str) -> TrajectoryFile:
         times.append(_duration(pt.get("time_from_start"),
                                lambda f, p: fail(f"{where}.time_from_start{f}", p, "points", i,
                                                  "time_from_start")))
+    if unknown.found:
+        fail(*unknown.problem())
     vel = rows["velocities"] if any(rows["velocities"]) else None
     acc = rows["accelerations"] if any(rows["accelerations"]) else None
     return TrajectoryFile(path, fmt, list(names), times, rows["positions"], vel, acc, stamp, frame_id)
+
+
+_TOP_KEYS = frozenset({"header", "joint_names", "points"})
+_HEADER_KEYS = frozenset({"stamp", "frame_id"})
+_POINT_KEYS = frozenset({"positions", "velocities", "accelerations", "effort", "time_from_start"})
+_TIME_KEYS = frozenset({"sec", "nanosec"})
+#: Unknown keys named in the error at most (the rest counted).
+UNKNOWN_SHOWN = 10
+
+
+class _Unknown:
+    """Unknown keys of a trajectory file, all collected, so one error names every one (a key
+    dropped silently changes the trajectory: a ``nanosecs`` typo turns 1.9 s into 1 s)."""
+
+    def __init__(self) -> None:
+        self.found: list[tuple[str, str]] = []     # (field, hint)
+        self.first_at: tuple[str | int, ...] = ()
+
+    def check(self, mapping: dict, known: frozenset[str], prefix: str, at: tuple[str | int, ...]) -> None:
+        if known.issuperset(mapping):
+            return
+        # only now: the suggestion's module brings numpy, which reading a file needs not
+        from dyn_node.core.robot.task_limits import did_you_mean
+
+        for key in mapping:
+            if key not in known:
+                if not self.found:
+                    self.first_at = (*at, key) if isinstance(key, str) else at
+                self.found.append((f"{prefix}{escape(str(key), 80)}", did_you_mean(str(key), known)))
+
+    def problem(self) -> tuple[str, str, *tuple[str | int, ...]]:
+        """(field, problem, path of the first) for ``fail``: one key named as the field."""
+        if len(self.found) == 1:
+            return self.found[0][0], f"unknown key{self.found[0][1]}", *self.first_at
+        listed = "; ".join(f"{f}{h}" for f, h in self.found[:UNKNOWN_SHOWN])
+        more = f"; … and {len(self.found) - UNKNOWN_SHOWN} more" if len(self.found) > UNKNOWN_SHOWN else ""
+        return "", f"{len(self.found)} unknown keys: {listed}{more}", *self.first_at
 
 
 def _effort(pt: dict, n_joints: int, fail: Any) -> None:

@@ -12,7 +12,7 @@ from typing import Any, Mapping, Sequence
 import yaml
 
 from dyn_node.errors import RecordingError
-from dyn_node.bag.msgdefs import type_description_hash
+from dyn_node.bag.msgdefs import is_service_type, type_description_hash
 from dyn_node.core.robot.limits_file import limits_sha256
 
 ROSBAG2_VERSION = 9
@@ -69,6 +69,13 @@ class FileInfo:
     topic_counts: Mapping[str, int] = field(default_factory=dict)
 
 
+def _listed_hash(type_name: str) -> str:
+    """The hash metadata.yaml lists: "" for service types, rosbag2's "cannot be determined".
+    rosbags 0.11 registers ``pkg/srv/X_Event`` as ``pkg/srv/msg/X_Event`` and then fails every
+    open on its hash check (KeyError); rosbag2 accepts "" (the MCAP channel keeps the hash)."""
+    return "" if is_service_type(type_name) else type_description_hash(type_name)
+
+
 def bag_metadata(topics: Sequence[TopicInfo], files: Sequence[FileInfo],
                  extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The metadata.yaml document (rosbag2 Jazzy, version 9) for these files.
@@ -91,7 +98,7 @@ def bag_metadata(topics: Sequence[TopicInfo], files: Sequence[FileInfo],
         "topics_with_message_count": [
             {"topic_metadata": {"name": t.name, "type": t.type, "serialization_format": "cdr",
                                 "offered_qos_profiles": [dict(p) for p in t.offered_qos_profiles],
-                                "type_description_hash": type_description_hash(t.type)},
+                                "type_description_hash": _listed_hash(t.type)},
              "message_count": counts.get(t.name, 0)}
             for t in topics],
         "compression_format": "",

@@ -132,6 +132,12 @@ def message_definition(type_name: str) -> str:
     return "\n".join(parts) + "\n"
 
 
+def is_service_type(type_name: str) -> bool:
+    """True for ``pkg/srv/<Service>_Request|_Response|_Event`` (rosbags 0.11 misnames these)."""
+    parts = type_name.strip().split("/")
+    return len(parts) == 3 and parts[1] == "srv"
+
+
 @functools.lru_cache(maxsize=None)
 def type_description_hash(type_name: str) -> str:
     """RIHS01 type hash from the installed ``<Type>.json`` (rosidl), or "" if unavailable."""

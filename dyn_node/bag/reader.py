@@ -18,7 +18,7 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, NamedTuple, Sequence
+from typing import Any, Iterator, NamedTuple, Sequence
 
 import yaml
 
@@ -93,13 +93,7 @@ def bag_files(path: str | Path) -> tuple[list[Path], dict | None]:
         raise BagError(f"bag {p} does not exist", code="bag_missing")
     if p.is_file():
         return [p], None
-    info = None
-    meta = p / "metadata.yaml"
-    if meta.is_file():
-        try:
-            info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information")
-        except yaml.YAMLError:
-            info = None
+    info = _bag_info(p)
     files: list[Path] = []
     if info and info.get("relative_file_paths"):
         files = [p / f for f in info["relative_file_paths"] if (p / f).is_file()]
@@ -112,6 +106,59 @@ def bag_files(path: str | Path) -> tuple[list[Path], dict | None]:
     if not files:
         raise BagError(f"{p} holds no .mcap file", code="bag_empty")
     return files, info
+
+
+def _bag_info(bag_dir: Path) -> dict | None:
+    """The ``rosbag2_bagfile_information`` of a bag directory's metadata.yaml, or None."""
+    meta = bag_dir / "metadata.yaml"
+    if not meta.is_file():
+        return None
+    try:
+        info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information")
+    except (yaml.YAMLError, OSError, AttributeError):
+        return None
+    return info if isinstance(info, dict) else None
+
+
+def _file_span(entry: Any) -> tuple[int | None, int | None, int | None]:
+    """(start, end, messages) of one metadata.yaml ``files`` entry (None where not given)."""
+    try:
+        start = int(entry["starting_time"]["nanoseconds_since_epoch"]) or None
+        end = None if start is None else start + int(entry["duration"]["nanoseconds"])
+    except (TypeError, KeyError, ValueError):
+        start = end = None
+    try:
+        count = int(entry["message_count"])
+    except (TypeError, KeyError, ValueError):
+        count = None
+    return start, end, count
+
+
+def missing_files(bag_dir: str | Path, info: dict | None = None) -> list[UnreadableRange]:
+    """The files metadata.yaml lists that are not in the bag directory: damage (a deleted split
+    file once audited "all feasible"). Each range is the file's span from its ``files`` entry,
+    else from its neighbours' (the end of the one before, the start of the one after)."""
+    p = Path(bag_dir)
+    info = _bag_info(p) if info is None and p.is_dir() else info
+    names = (info or {}).get("relative_file_paths") or []
+    if not isinstance(names, list):
+        return []
+    entries = {Path(str(e.get("path", ""))).name: e for e in (info or {}).get("files") or []
+               if isinstance(e, dict)}
+    spans = [_file_span(entries.get(Path(str(n)).name)) for n in names]
+    out = []
+    for i, name in enumerate(names):
+        name = Path(str(name)).name
+        if (p / name).is_file():
+            continue
+        start, end, count = spans[i]
+        if start is None and i > 0:
+            start = spans[i - 1][1]
+        if end is None and i + 1 < len(spans):
+            end = spans[i + 1][0]
+        held = f", {count} messages" if count is not None else ""
+        out.append(UnreadableRange(start, end, f"{name}: listed in metadata.yaml but missing{held}", name))
+    return out
 
 
 # dyn-bag-recover marks every file it writes: the Header's library field starts with
@@ -245,6 +292,7 @@ class BagReader:
 
     # --- streaming ---------------------------------------------------------------------------
     def messages(self) -> Iterator[BagMessage]:
+        self.unreadable.extend(missing_files(self.path, self.info) if self.path.is_dir() else [])
         for f in self.files:
             fr = _FileReader(f, self.topics, self.stats)
             yield from fr.messages()

@@ -26,7 +26,7 @@ from dyn_node.bag.metadata import (METADATA_RECORD, FileInfo, TopicInfo, bag_met
 from dyn_node.bag.cdr import cdr_string, cdr_string_value, header_stamp_ns
 from dyn_node.errors import RecordingError
 from dyn_node.bag.writer import COMPRESSIONS, PROFILE, CountingFile, McapFile
-from dyn_node.bag.msgdefs import message_definition, type_description_hash
+from dyn_node.bag.msgdefs import is_service_type, message_definition, type_description_hash
 
 __all__ = [  # the recorder, and what its callers pass it or read from it
     "COMPRESSIONS", "HEADER_STAMP", "METADATA_RECORD", "Recorder", "RecorderConfig",
@@ -171,6 +171,7 @@ class Recorder:
         self._stream: CountingFile | None = None
         self._channels: dict[str, int] = {}
         self._channel_topics: dict[int, str] = {}
+        self._channelled: set[str] = set()  # topics given a channel in some file
         self._schemas: dict[str, int] = {}
         self._file_index = -1
         self._file_start = 0
@@ -458,7 +459,7 @@ class Recorder:
             # registers /robot_description as reliable + transient local.
             if topic.name not in self._topics:
                 self._topics[topic.name] = topic
-                if self._mcap is not None:
+                if self._mcap is not None and not is_service_type(topic.type):
                     self._channel(topic)
         elif kind == _DESC:
             if item[2] != self._file_written_desc:
@@ -486,6 +487,7 @@ class Recorder:
         cid = self._mcap.add_channel(info.name, MESSAGE_ENCODING, sid, meta)
         self._channels[info.name] = cid
         self._channel_topics[cid] = info.name
+        self._channelled.add(info.name)
         return cid
 
     def _open_file(self, log_ns: int | None = None) -> None:
@@ -503,7 +505,10 @@ class Recorder:
         self._file_start = self._file_end = 0
         self._file_first_ns = None
         for info in list(self._topics.values()):
-            self._channel(info)
+            # a service's event channel is made by its first event: readers that cannot read
+            # srv types (rosbags, mcap_ros2) then open every bag without calls
+            if not is_service_type(info.type) or info.name in self._channelled:
+                self._channel(info)
         # The copy of a split file takes the log time of the message that caused the split, so
         # it lies inside the file's time range.
         self._write_description(self._clock_ns() if log_ns is None else log_ns)
@@ -663,7 +668,8 @@ class Recorder:
                      "description_copies": self._description_copies, "topics": counts}
         if self._mcap is not None:
             files.append(self._file_info())
-        topics = [t for t in self._topics.values()]
+        topics = [t for t in self._topics.values()
+                  if not is_service_type(t.type) or t.name in self._channelled]
         write_metadata_yaml(self.path, bag_metadata(topics, files, extra),
                             fsync=self.config.fsync)
 

@@ -24,9 +24,8 @@ from mcap.records import Attachment, Channel, Chunk, Metadata, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from dyn_node import __version__
-from dyn_node.bag.reader import _decompress as decompress  # one decompressor for the reader and here
-from dyn_node.bag.reader import (OWN_LIBRARY, OWN_SUFFIX, damaged_message_indexes, index_damage_note,
-                         is_own_output)
+from dyn_node.bag.reader import (OWN_LIBRARY, OWN_SUFFIX, damaged_message_indexes, index_damage_note,  # and
+                                 is_own_output, missing_files, _decompress as decompress)  # the reader's decompressor
 from dyn_node.errors import RecoverError
 from dyn_node.bag.metadata import FileInfo, TopicInfo, bag_metadata, write_metadata_yaml
 
@@ -571,6 +570,8 @@ def recover_dir(src: Path, dst: Path) -> DirRecovery:
     except NoSpaceError:
         _remove_outputs(results, dst, created)
         raise
+    results += [Recovery(str(src / m.file), "", lost=True, problems=[m.reason])  # listed, deleted: lost
+                for m in missing_files(src)]
     topics: dict[str, TopicInfo] = {}
     infos = []
     for r in results:

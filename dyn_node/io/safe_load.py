@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
 from typing import Any
 
 import yaml
@@ -30,15 +31,27 @@ ALIAS_GROWTH = 10
 ALIAS_SLACK = 10_000
 #: Nesting depth of a document at most (a limits file needs 5, a trajectory 4).
 MAX_DEPTH = 64
+#: Digits an integer may be written with: Python's own default conversion limit, beyond which
+#: ``int()`` raises (a traceback, not an answer). Smaller ones are read; every field then refuses
+#: what it cannot hold (a number beyond float's 309 digits is "too large", a time out of range).
+MAX_INT_DIGITS = 4300
+
+
+def _max_digits() -> int:
+    """:data:`MAX_INT_DIGITS`, or the interpreter's limit when set lower (0: none)."""
+    limit = sys.get_int_max_str_digits()
+    return min(MAX_INT_DIGITS, limit) if limit else MAX_INT_DIGITS
 
 
 
 class LoadError(ValueError):
-    """The text is not acceptable YAML/JSON: ``problem`` and its 1-based ``line`` (or None)."""
+    """The text is not acceptable YAML/JSON: ``problem`` and its 1-based ``line`` (or None);
+    ``field`` the value's path (``points[3].time_from_start.sec``) when the problem is a value."""
 
-    def __init__(self, problem: str, line: int | None = None):
-        super().__init__(f"line {line}: {problem}" if line else problem)
-        self.problem, self.line = problem, line
+    def __init__(self, problem: str, line: int | None = None, field: str = ""):
+        at = f"{field}: {problem}" if field else problem
+        super().__init__(f"line {line}: {at}" if line else at)
+        self.problem, self.line, self.field = problem, line, field
 
 
 _INT_RX = re.compile(r"[-+]?[0-9]+\Z|0o[0-7]+\Z|0x[0-9a-fA-F]+\Z")
@@ -52,8 +65,26 @@ for _w in ("true", "True", "TRUE", "yes", "Yes", "YES", "on", "On", "ON"):
     _SPECIAL[_w] = True
 for _w in ("false", "False", "FALSE", "no", "No", "NO", "off", "Off", "OFF"):
     _SPECIAL[_w] = False
+
+
+class _HugeInt(LoadError):
+    """An integer written with more than :data:`MAX_INT_DIGITS` digits (where is added later)."""
+
+
+def _too_large(digits: int) -> str:
+    return f"too large for a number (an integer of {digits} digits; at most {_max_digits()})"
+
+
+def _int(value: str, base: int) -> int:
+    if len(value) > 640:   # Python's smallest limit; a sign or a 0x / 0o prefix is not a digit
+        digits = len(value.lstrip("+-").removeprefix("0x").removeprefix("0o"))
+        if digits > _max_digits():
+            raise _HugeInt(_too_large(digits))
+    return int(value, base)
+
+
 _TAGGED = {"tag:yaml.org,2002:str": str, "tag:yaml.org,2002:float": float,
-           "tag:yaml.org,2002:int": lambda v: int(v, 0) if v[:2] in ("0o", "0x") else int(v, 10),
+           "tag:yaml.org,2002:int": lambda v: _int(v, 0) if v[:2] in ("0o", "0x") else _int(v, 10),
            "tag:yaml.org,2002:bool": lambda v: {"true": True, "false": False}[v.lower()],
            "tag:yaml.org,2002:null": lambda v: None}
 
@@ -68,9 +99,9 @@ def _plain(value: str) -> Any:
     if known is not _MISS:
         return known
     if _FLOAT_RX.match(value):
-        return float(value) if ("." in value or "e" in value or "E" in value) else int(value, 10)
+        return float(value) if ("." in value or "e" in value or "E" in value) else _int(value, 10)
     if _INT_RX.match(value):
-        return int(value, 0) if value[:2] in ("0o", "0x") else int(value, 10)
+        return _int(value, 0) if value[:2] in ("0o", "0x") else _int(value, 10)
     return value
 
 
@@ -82,6 +113,8 @@ def _scalar(ev: Any) -> Any:
         raise LoadError(f"tag {shown(ev.tag)} is not supported", ev.start_mark.line + 1)
     try:
         return convert(ev.value)
+    except _HugeInt:
+        raise
     except (ValueError, KeyError):
         raise LoadError(f"{shown(ev.value)} is not a {ev.tag.rsplit(':', 1)[-1]}",
                         ev.start_mark.line + 1) from None
@@ -126,6 +159,18 @@ class _Builder:
                 container[top[2]] = value
             top[2] = _NO_KEY
 
+    def where(self) -> str:
+        """The field the next value goes to, e.g. ``points[3].time_from_start.sec``."""
+        out = ""
+        for container, _, key, *_ in self.stack:
+            if isinstance(container, list):
+                out += f"[{len(container)}]"
+            elif key is _NO_KEY:
+                return f"{out or 'the document'}'s keys"
+            else:
+                out += f".{key}" if out else str(key)
+        return out or "the document"
+
     def open(self, container: Any, ev: Any) -> None:
         if len(self.stack) >= MAX_DEPTH:
             raise LoadError(f"nested more than {MAX_DEPTH} levels deep", ev.start_mark.line + 1)
@@ -162,7 +207,10 @@ def load_yaml(text: str) -> Any:
             kind = type(ev)
             if kind is yaml.ScalarEvent:
                 b.written += 1
-                value = _plain(ev.value) if ev.tag is None and ev.implicit[0] else _scalar(ev)
+                try:
+                    value = _plain(ev.value) if ev.tag is None and ev.implicit[0] else _scalar(ev)
+                except _HugeInt as exc:
+                    raise LoadError(exc.problem, ev.start_mark.line + 1, b.where()) from None
                 if ev.anchor is not None:
                     b.anchors[ev.anchor] = (value, 1)
                 top = b.stack[-1] if b.stack else None
@@ -204,14 +252,42 @@ def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
+class _Huge(str):
+    """A JSON integer of too many digits, kept as its text until it is found and named."""
+
+
+def _huge_at(value: Any, where: str = "") -> tuple[str, _Huge] | None:
+    """(path, text) of the first :class:`_Huge` in a parsed JSON value, else None."""
+    stack = [(where, value)]
+    while stack:
+        at, v = stack.pop()
+        if isinstance(v, _Huge):
+            return at or "the document", v
+        if isinstance(v, dict):
+            stack.extend((f"{at}.{k}" if at else str(k), x) for k, x in reversed(v.items()))
+        elif isinstance(v, list):
+            stack.extend((f"{at}[{i}]", x) for i, x in reversed(list(enumerate(v))))
+    return None
+
+
 def load_json(text: str) -> Any:
-    """The JSON value of ``text``; raises :class:`LoadError` (with the line where json says)."""
+    """The JSON value of ``text``; raises :class:`LoadError` (with the line where json says).
+    An integer of more than :data:`MAX_INT_DIGITS` digits is refused, naming its field."""
     try:
         return json.loads(text, object_pairs_hook=_unique_pairs)
     except json.JSONDecodeError as exc:
         raise LoadError(exc.msg, exc.lineno) from None
     except RecursionError:
         raise LoadError("nested too deeply") from None
+    except ValueError as exc:   # int()'s digit limit: read again, only now, to name the field
+        if "digits" not in str(exc):
+            raise
+    limit = _max_digits()
+    found = _huge_at(json.loads(text, object_pairs_hook=_unique_pairs, parse_int=lambda d: (
+        _Huge(d) if len(d.lstrip("-")) > limit else int(d))))
+    if found is None:   # pragma: no cover - json raised for the limit, so some integer is over it
+        raise LoadError(_too_large(limit + 1))
+    raise LoadError(_too_large(len(found[1].lstrip("-"))), None, found[0])
 
 
 def yaml_line(text: str, *path: str | int) -> int | None:

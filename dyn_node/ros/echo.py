@@ -2,11 +2,12 @@
 documents (``---`` between them), like ``ros2 topic echo``, for a set-up with only the venv (no
 ``ros2`` command). The type is taken from the graph; a latched topic (every publisher transient
 local, e.g. ``/dyn_node/feasibility``) is read latched, a best-effort one best effort.
-Exit 0 after N messages (or Ctrl-C), 1 when no publisher appeared within ``--timeout``."""
+Exit 0 after N messages (or Ctrl-C, or SIGTERM: quietly), 1 when no publisher appeared within ``--timeout``."""
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 import time
 from typing import Any, Sequence
@@ -64,32 +65,48 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="give up after this many seconds without a publisher (0: wait)")
     args = ap.parse_args(argv)
     import rclpy
-    rclpy.init()
-    node = rclpy.create_node("dyn_node_echo")
+    from rclpy.signals import SignalHandlerOptions
+
+    # SIGTERM (``timeout``) stops it as Ctrl-C does, wherever it lands (rclpy's own handler
+    # shut the context down under whatever call was running: a traceback)
+    signal.signal(signal.SIGTERM, _interrupt)
+    node = None
     try:
-        topic = node.resolve_topic_name(args.topic)
-        found = _find(node, topic, args.timeout)
-        if found is None:
-            print(f"echo: no publisher on {topic} within {args.timeout:g} s", file=sys.stderr)
-            return 1
-        type_name, pubs = found
-        seen = [0]
-
-        def on_message(msg: Any) -> None:
-            sys.stdout.write(yaml.safe_dump(to_plain(msg), sort_keys=False) + "---\n")
-            sys.stdout.flush()
-            seen[0] += 1
-
-        node.create_subscription(_message_class(type_name), topic, on_message, _qos(pubs))
-        while rclpy.ok() and not (args.count and seen[0] >= args.count):
-            rclpy.spin_once(node, timeout_sec=0.5)
-        return 0
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        node = rclpy.create_node("dyn_node_echo")
+        return _echo(node, args)
     except KeyboardInterrupt:
         return 0
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
 
+
+def _interrupt(_signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _echo(node: Any, args: argparse.Namespace) -> int:
+    import rclpy
+
+    topic = node.resolve_topic_name(args.topic)
+    found = _find(node, topic, args.timeout)
+    if found is None:
+        print(f"echo: no publisher on {topic} within {args.timeout:g} s", file=sys.stderr)
+        return 1
+    type_name, pubs = found
+    seen = [0]
+
+    def on_message(msg: Any) -> None:
+        sys.stdout.write(yaml.safe_dump(to_plain(msg), sort_keys=False) + "---\n")
+        sys.stdout.flush()
+        seen[0] += 1
+
+    node.create_subscription(_message_class(type_name), topic, on_message, _qos(pubs))
+    while rclpy.ok() and not (args.count and seen[0] >= args.count):
+        rclpy.spin_once(node, timeout_sec=0.5)
+    return 0
 
 if __name__ == "__main__":
     sys.exit(main())

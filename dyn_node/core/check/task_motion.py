@@ -11,7 +11,7 @@ from __future__ import annotations
 import threading
 import weakref
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Callable, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -20,9 +20,6 @@ from dyn_node.core.check.frames import BaseWrench, FrameBatch, FrameKinematics, 
 from dyn_node.core.robot.model import RobotModel
 from dyn_node.core.robot.task_limits import TaskLimits
 from dyn_node.errors import ModelError
-
-if TYPE_CHECKING:
-    from dyn_node.core.check.constraints import Motion
 
 FRAME_ROLE = "frame:"
 

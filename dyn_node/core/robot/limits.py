@@ -203,6 +203,8 @@ def read_limits_source(source: "str | Path | Mapping[str, Any] | LimitsText") ->
     try:
         return load_yaml(text), where
     except LoadError as exc:
+        if exc.field:   # a value refused while read (an integer of 5,000 digits)
+            raise ModelError(f"{where}: {exc}", code="limits_bad_value") from None
         raise ModelError(f"{where}: not valid YAML: {exc}", code="limits_bad_yaml") from None
 
 
@@ -268,6 +270,10 @@ def raise_all(problems: Sequence[ModelError], where: str) -> None:
 #: and ≥ 0 and finite (``armature``: a negative rotor inertia makes M(q) indefinite).
 _POSITIVE_KEYS = frozenset({"rms_window"})
 _NON_NEGATIVE_KEYS = frozenset({"armature"})
+#: The limits proper: a finite number ≥ 0 (0 is a real limit, warned about). A negative or
+#: infinite one is refused: ``-.inf`` used to read as "no limit" (only has_*: false says that).
+_LIMIT_KEYS = frozenset({"max_velocity", "max_acceleration", "max_deceleration", "max_jerk",
+                         "max_effort", "max_effort_rate", "max_rms_effort", "max_power"})
 
 
 def _coerce(joint: str, key: str, value: Any) -> Any:
@@ -294,6 +300,11 @@ def _coerce(joint: str, key: str, value: Any) -> Any:
         if key in _NON_NEGATIVE_KEYS and not (0 <= x < math.inf):
             raise ModelError(f"joint_limits.{joint}.{key} must be a finite number ≥ 0, got "
                              f"{shown(value)}", code="limits_bad_value")
+        if key in _LIMIT_KEYS and not (0 <= x < math.inf):
+            kind = key.removeprefix("max_")
+            off = f" or set has_{kind}_limits: false" if kind in _FLAGGED_KINDS else ""
+            raise ModelError(f"joint_limits.{joint}.{key} must be a finite number ≥ 0, got "
+                             f"{shown(value)} (for no limit remove the key{off})", code="limits_bad_value")
         return x
     # effort_speed_curve: [[speed, effort], ...] with ascending speeds
     try:
