@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from action_msgs.msg import GoalStatus
+from builtin_interfaces.msg import Time
 from control_msgs.action import FollowJointTrajectory
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
@@ -42,15 +43,16 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from dyn_node.core.check.execution import Timing
 from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
 from dyn_node.core.robot.settings import ParamSpec
 from dyn_node.core.robot.status import ERROR, NAME_PREFIX, OK, WARN, Status
 from dyn_node.errors import STATE_ERROR, TrajectoryError
 from dyn_node.gate import outcomes as out
 from dyn_node.gate.decision import (FORWARDED, NOT_FORWARDED, REJECTED, RETIMED, Decision, GateOptions, RetimePlan,
-                                    decide_goal, goal_dict, rejected, start_dict)
+                                    decide_goal, goal_dict, rejected, start_dict, timing_dict)
 from dyn_node.ros.actions import Waits, end_canceled
-from dyn_node.ros.convert import goal_trajectory_message, trajectory_arrays
+from dyn_node.ros.convert import goal_trajectory_message, stamp_to_s, trajectory_arrays
 from dyn_node.ros.params import KINDS, parameter_descriptor
 
 STATUS_NAME = NAME_PREFIX + "gate"
@@ -85,6 +87,7 @@ class _Goal:
 
     goal_id: str
     goal: Any
+    receipt_s: float = 0.0  # the node's clock when the goal arrived (the execution model's receipt)
     t0: float = field(default_factory=time.monotonic)
     decision: Decision | None = None
     down_goal: Any = None
@@ -137,6 +140,7 @@ class Gate:
         self.last_decision: Decision | None = None
         self._closing = False
         self.logger = node.get_logger()
+        self._clock = node.get_clock()  # the clock goal stamps and joint_states receipts are on
         self.pub = node.create_publisher(String, "~/gate_decisions", DECISIONS_QOS)
         self.server_name = node.resolve_topic_name("~/follow_joint_trajectory")
         self.io = Node("_dyn_node_gate", context=node.context, namespace=node.get_namespace(),
@@ -174,18 +178,20 @@ class Gate:
                 return
             g, fut = job
             try:
-                answer = self._check(g.goal)
+                answer = self._check(g)
             except Exception as exc:  # a failing check still answers the client
                 self.logger.error(f"gate: check failed:\n{traceback.format_exc()}")
                 answer = rejected(TrajectoryError(f"check failed: {exc!r}", code="evaluation_failed")), [], {}
             fut.set_result(answer)
 
-    def _check(self, goal: Any) -> tuple[Decision, list[str], dict]:
+    def _check(self, g: _Goal) -> tuple[Decision, list[str], dict]:
         """The decision, the model's joint names, and what the record needs of the decision's
-        inputs (the goal's arrays and the start state, made JSON-ready by :meth:`_record`)."""
+        inputs (the goal's arrays, its stamp and receipt, and the start state, made JSON-ready by
+        :meth:`_record`)."""
         core, start = self._state()
-        arrays = trajectory_arrays(goal.trajectory)
-        inputs: dict[str, Any] = {"arrays": arrays, "start": start}
+        arrays = trajectory_arrays(g.goal.trajectory)
+        timing = Timing(stamp_s=stamp_to_s(g.goal.trajectory.header.stamp), receipt_s=g.receipt_s)
+        inputs: dict[str, Any] = {"arrays": arrays, "start": start, "timing": timing}
         if core is None:
             return rejected(TrajectoryError("no robot model yet", code="no_model")), [], inputs
         model, settings = core.model, core.settings
@@ -195,14 +201,15 @@ class Gate:
         if self.options.mode == "retime":
             plan = RetimePlan(self._retime_s, lambda: self._state()[1], self.options.max_state_age)
             inputs["plan"] = plan
-        d = decide_goal(self._dyn, settings, self.options, *arrays, start=start, plan=plan)
+        d = decide_goal(self._dyn, settings, self.options, *arrays, start=start, plan=plan, timing=timing)
         if plan is not None and d.decision == RETIMED:  # the next plan leads by what this one took
             self._retime_s = 0.7 * self._retime_s + 0.3 * d.check_time_s
         return d, list(model.joint_names), inputs
 
     # --- the goal callback: decide, forward, answer ---------------------------------------------
     async def _on_goal(self, goal: Any) -> GoalResponse:
-        g = _Goal(goal_id=uuid.uuid4().hex, goal=goal)  # the gate's id: rclpy shows no goal id here
+        # the gate's id: rclpy shows no goal id here
+        g = _Goal(goal_id=uuid.uuid4().hex, goal=goal, receipt_s=self._clock.now().nanoseconds * 1e-9)
         with self._lock:
             self._active += 1
         try:
@@ -234,6 +241,8 @@ class Gate:
             for f in g.down_goal.get_fields_and_field_types():
                 setattr(g.down_goal, f, getattr(g.goal, f))
             g.down_goal.trajectory = goal_trajectory_message(g.goal.trajectory, decision.trajectory, names)
+            # the answer starts at the robot's state now: the controller starts it on receipt
+            g.down_goal.trajectory.header.stamp = Time()
         return await self._forward(g, names)
 
     def _refuse_unchecked(self, g: _Goal, event: str, text: str) -> GoalResponse:
@@ -456,7 +465,8 @@ class Gate:
         rec = d.to_dict(goal_id=g.goal_id, mode=self.options.mode, joint_names=names)
         if inputs:
             rec.update(goal=goal_dict(*inputs["arrays"]), start=start_dict(inputs["start"]),
-                       retime_all=self.options.retime_all, max_state_age=self.options.max_state_age)
+                       timing=timing_dict(inputs["timing"]), retime_all=self.options.retime_all,
+                       max_state_age=self.options.max_state_age, start_tolerance=self.options.start_tolerance)
             plan = inputs.get("plan")
             if plan is not None:
                 rec.update(retime_lead_s=plan.lead_s, planned_from=start_dict(plan.planned_from),
@@ -544,7 +554,7 @@ def _executed(node: Any, decision: Decision, goal: Any, names: list[str]) -> Non
     """A goal the controller accepted: its verdict on ~/feasibility (request ``execute``) and the
     controller tracker following it, as for a trajectory on the joint_trajectory topic."""
     from dyn_node.core.check.on_demand import REQUEST_EXECUTE
-    from dyn_node.ros.convert import stamp_to_s, verdict_array
+    from dyn_node.ros.convert import verdict_array
 
     core = node._core
     if core is None or decision.trajectory is None or list(core.model.joint_names) != names:
