@@ -27,6 +27,10 @@ SLACK = 1e-6
 #: the share of the effort-rate limit the screen flags from (its samples are a fifth of a
 #: segment apart; measured: a 250-waypoint stretch 0.9 % over between them)
 RATE_SHARE = 0.995
+#: stretches tried past the pads when the margin asks for more (each sized by the last one's ratio)
+MARGIN_TRIES = 4
+#: how far over the margin a stretch may reach, relative (velocity at 1/1.005 is 0.995 × 1.00002)
+MARGIN_RTOL = 1e-4
 #: the unit field of the screen's violations (they are ratios, found between points)
 BETWEEN = "between points"
 #: the stretch's factors over the check's time scale, tried in turn (docs/retime.md: every
@@ -114,8 +118,10 @@ def describe(found: list[Violation]) -> str:
 
 def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
             options: FeasibilityOptions, start, period: float, moving_start: bool,
-            dense, tolerance: float) -> dict | None:
-    """The input stretched by the check's time scale × :data:`STRETCH_PADS`: resampled as
+            dense, tolerance: float, margin: float = 1.0) -> dict | None:
+    """The input stretched by the check's time scale × :data:`STRETCH_PADS`, further when its
+    worst ratio is over :func:`stretch_share` (``margin``: the retimer's limit margin, which a
+    stretched answer keeps like the optimal one, so a controller keeps its feedback room), resampled as
     quintic points on the path (s = t/k; positions, velocities, accelerations), else, when the
     path's acceleration jumps at a knot (cubic points) so that no quintic follows it, the
     input's own points stretched (their interpolation is the one the check's k is of); each
@@ -127,10 +133,15 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
     # a cubic's q̈ jumps at its knots: averaged first (a quintic that follows the path does not)
     hows = ([] if moving_start else ["averaged", "path"] if cubic else ["path"])
     hows += ["own"] if traj.velocities is not None else []
-    tries = [(pad, how) for how in hows for pad in STRETCH_PADS]
+    share = stretch_share(margin)
+    tries = [(pad, how) for how in hows for pad in (*STRETCH_PADS, *[None] * MARGIN_TRIES)]
     needs: dict[str, float] = {}
     for pad, how in tries:
-        if needs.get(how, 0.0) > pad:
+        if pad is None:  # past the pads: as far as the last try said the margin needs
+            if how not in needs or needs[how] <= STRETCH_PADS[-1]:
+                continue
+            pad = needs[how]
+        elif needs.get(how, 0.0) > pad:
             continue         # the smaller pad's candidate needs more than this pad gives
         kk = k * pad
         if how == "own":
@@ -149,10 +160,21 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
             res, over = judge(dynamics, out, options, start)
         except TrajectoryError:
             continue
-        if res.feasible and not over:
+        if res.feasible and not over and res.worst_ratio <= share:
             return dict(trajectory=out, check=res, method="uniform", deviation=dev)
-        needs[how] = pad * (res.time_scale if not res.feasible else 1.0 + SLACK)
+        # over the share: velocity's ratio falls as 1/k, every other kind's at least as fast
+        # once its static part is below the share (a few tries cover the rest)
+        grow = res.time_scale if not res.feasible else \
+            1.0 + SLACK if over else res.worst_ratio / share * (1.0 + 1e-6)
+        needs[how] = pad * max(grow, 1.0 + SLACK)
     return None
+
+
+def stretch_share(margin: float) -> float:
+    """The largest ratio to a limit a stretched answer may reach: ``margin`` to 1e-4 relative
+    (:data:`MARGIN_RTOL`, so dyn-check's 0.995 is kept by the last pad, 1.005 × k, as the
+    optimal answer keeps its margin to TOPP-RA's grid)."""
+    return min(1.0, float(margin) * (1.0 + MARGIN_RTOL))
 
 
 def knot_window(dynamics: Dynamics, q: np.ndarray, v: np.ndarray, a_lo: np.ndarray,

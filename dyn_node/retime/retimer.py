@@ -164,7 +164,7 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
         uniform = candidates.stretch(dynamics, path, traj, k, feasibility, start, point_period,
                                      moving_start,
                                      lambda *a: _dense(*a[:4], path_tolerance),
-                                     path_tolerance)
+                                     path_tolerance, margin=limit_margin)
     pick = min((c for c in (found, uniform) if c is not None),
                key=lambda c: c["trajectory"].duration, default=None)
     why = f" (optimal search: {'; '.join(notes)})" if notes and found is None else ""
