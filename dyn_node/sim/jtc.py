@@ -1,10 +1,10 @@
 """joint_trajectory_controller's goal rules (ros2_controllers, Jazzy), pure: what dyn_sim's
 FollowJointTrajectory server decides, without rclpy.
 
-- Goal validation beyond :func:`dyn_node.core.check.trajectory.validate_trajectory` (which already
-  applies the controller's joint, length and time rules): a non-zero velocity at the last point is
-  rejected (``allow_nonzero_velocity_at_trajectory_end`` false), and so is a trajectory whose
-  stamped end lies in the past.
+- Goal validation: :func:`dyn_node.core.check.trajectory.validate_trajectory` (the controller's
+  joint, length and time rules) and the execution model's refusals
+  (:func:`dyn_node.core.check.execution.refusals`: a non-zero last velocity, a stamped end in the
+  past), which the check judges by too.
 - Tolerances: the controller's defaults (``constraints.*`` parameters) overridden per joint by the
   goal's (a positive value replaces the default, -1 erases it, 0 keeps it; any other negative
   value, or a joint the controller does not have, makes the controller use its defaults).
@@ -21,7 +21,6 @@ from typing import Sequence
 
 import numpy as np
 
-from dyn_node.errors import TrajectoryError
 
 #: FollowJointTrajectory.Result error codes (control_msgs 5.x)
 SUCCESSFUL, INVALID_GOAL, INVALID_JOINTS, OLD_HEADER_TIMESTAMP = 0, -1, -2, -3
@@ -107,18 +106,6 @@ def goal_tolerances(defaults: SegmentTolerances, joints: Sequence[str],
                                  _resolve(defaults.goal_time, goal_time)), ""
     except ValueError as exc:
         return defaults, f"{exc}: using the default tolerances"
-
-
-def check_goal_trajectory(names: Sequence[str], last_velocities: Sequence[float],
-                          end_stamp_s: float | None, now_s: float) -> None:
-    """The controller's goal checks not covered by validate_trajectory; raises TrajectoryError."""
-    for name, v in zip(names, last_velocities):
-        if abs(v) > _FLOAT_EPS:
-            raise TrajectoryError(f"velocity of the last point of joint {name} is not zero: {v:.15f}",
-                                  code="nonzero_end_velocity")
-    if end_stamp_s is not None and end_stamp_s < now_s:
-        raise TrajectoryError(f"trajectory with a non-zero start time ends in the past "
-                              f"({end_stamp_s:.3f} s < now {now_s:.3f} s)", code="bad_times")
 
 
 def _within(err_p: np.ndarray, err_v: np.ndarray, tol: JointTolerances) -> np.ndarray:

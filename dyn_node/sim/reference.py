@@ -1,7 +1,9 @@
-"""The reference dyn_sim's controller tracks: a trajectory as joint_trajectory_controller plays it
-(start at the stamp or on receipt, a first segment from the state at receipt, JTC's interpolation
-rule, the last point held). :func:`reference_from_goal` is the one place that builds it from a
-goal, so it can follow the core's execution model (dyn_node/core/check) as one swap.
+"""The reference dyn_sim's controller tracks: a trajectory as joint_trajectory_controller plays it,
+taken from the core's execution model (:func:`dyn_node.core.check.execution.execute`: start at the
+stamp or on receipt, a past stamp inside the trajectory, the segment from the state at receipt,
+each segment's interpolation from the fields at its ends, the last point held), so that what
+dyn_sim executes is what dyn_node's check judged. :func:`reference_from_goal` is the one place
+that builds it from a goal.
 """
 from __future__ import annotations
 
@@ -9,7 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dyn_node.core.check.trajectory import PiecewisePolynomial, Trajectory, interpolate
+from dyn_node.core.check.execution import Execution, Timing, execute
+from dyn_node.core.check.start_segment import StartState
+from dyn_node.core.check.trajectory import Trajectory
 
 
 @dataclass(frozen=True)
@@ -17,15 +21,14 @@ class ActiveTrajectory:
     """A trajectory being executed; times are simulation seconds.
 
     ``start_time`` is the trajectory's t = 0 (its stamp or the receipt time), ``received_time``
-    when the simulator took it. ``first_segment`` (or None) spans [received_time, first point].
+    when the simulator took it, which is the execution model's t = 0 (``execution``).
     """
 
     trajectory: Trajectory
     mode: str
     start_time: float
     received_time: float
-    polynomial: PiecewisePolynomial
-    first_segment: PiecewisePolynomial | None
+    execution: Execution
 
     @property
     def end_time(self) -> float:
@@ -36,41 +39,21 @@ class ActiveTrajectory:
         return self.start_time + float(self.trajectory.times[0])
 
     def reference(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(q_ref, q̇_ref, q̈_ref) at simulation times t (M,), each M×nv; the last point held."""
+        """(q_ref, q̇_ref, q̈_ref) at simulation times t (M,), each M×nv; the last point held at
+        rest (the polynomial's evaluation holds its end with zero derivatives)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        q, v, a, _ = self.polynomial.evaluate(t - self.start_time)
-        if self.first_segment is not None:
-            early = t < self.first_point_time
-            if np.any(early):
-                q0, v0, a0, _ = self.first_segment.evaluate(t[early] - self.received_time)
-                q[early], v[early], a[early] = q0, v0, a0
-        late = t >= self.end_time
-        if np.any(late):
-            # Hold the last point at rest, as the controller does once the trajectory has played.
-            q[late] = self.trajectory.positions[-1]
-            v[late] = 0.0
-            a[late] = 0.0
+        q, v, a, _ = self.execution.pp.evaluate(t - self.received_time)
         return q, v, a
 
 
 def reference_from_goal(traj: Trajectory, start: float, now: float, q_now: np.ndarray,
                         v_now: np.ndarray) -> ActiveTrajectory:
-    """What the controller plays for ``traj`` (model order) starting at ``start`` (simulation s),
-    received at ``now`` with the robot at (``q_now``, ``v_now``)."""
-    mode = traj.jtc_interpolation
-    poly = interpolate(traj, mode)
-    first = None
-    first_abs = start + float(traj.times[0])
-    if first_abs > now + 1e-12:
-        # JTC: from the state at receipt to the first point, same interpolation rule.
-        pos = np.vstack([q_now, traj.positions[0]])
-        vel = acc = None
-        if traj.velocities is not None:
-            vel = np.vstack([v_now, traj.velocities[0]])
-        if traj.accelerations is not None:
-            # The measured state carries no acceleration; start the segment from rest in a.
-            acc = np.vstack([np.zeros_like(q_now), traj.accelerations[0]])
-        seg = Trajectory(times=np.array([0.0, first_abs - now]), positions=pos,
-                         velocities=vel, accelerations=acc)
-        first = interpolate(seg, mode)
-    return ActiveTrajectory(traj, mode, start, now, poly, first)
+    """What the controller plays for ``traj`` (model order) starting at ``start`` (simulation s:
+    its stamp, or ``now`` for a zero stamp), received at ``now`` with the robot at (``q_now``,
+    ``v_now``)."""
+    state = StartState(positions=np.asarray(q_now, dtype=float), velocities=np.asarray(v_now, dtype=float),
+                       age_s=0.0)
+    # a zero stamp starts on receipt; a stamp equal to the receipt is the same start
+    timing = Timing(stamp_s=0.0 if start == now else float(start), receipt_s=float(now))
+    ex = execute(traj, state, timing)
+    return ActiveTrajectory(traj, ex.interpolation, start, now, ex)

@@ -250,12 +250,23 @@ def _refusals(traj: Trajectory, timing: Timing | None, options: ExecutionOptions
                         f"{j}: {last[j]:.6g}) and allow_nonzero_velocity_at_trajectory_end is false"))
     if timing is not None and timing.stamp_s != 0.0 and timing.stamp_s + traj.duration < timing.receipt_s:
         # C 1734-1750: a stamped trajectory whose end is already past
-        out.append(("ends_in_past", f"stamped {timing.receipt_s - timing.stamp_s:.3f} s before "
-                    f"receipt, it ended {timing.receipt_s - timing.stamp_s - traj.duration:.3f} s ago"))
+        out.append(("ends_in_past", f"trajectory with a non-zero start time ends in the past: stamped "
+                    f"{timing.receipt_s - timing.stamp_s:.3f} s before receipt, it ended "
+                    f"{timing.receipt_s - timing.stamp_s - traj.duration:.3f} s ago"))
     if not modes_ok:
         out.append(("accelerations_without_velocities", "a segment has accelerations but not "
                     "velocities at both ends: no branch of the controller's interpolation takes it"))
     return out
+
+
+def refusals(traj: Trajectory, timing: Timing | None = None,
+             options: ExecutionOptions = ExecutionOptions()) -> list[tuple[str, str]]:
+    """What the controller refuses of ``traj`` received at ``timing``: (code, text) each, in the
+    order JTC checks them (dyn_sim's action server refuses the goal on the first)."""
+    has_v, has_a = traj.point_fields()
+    modes_ok = all(segment_mode(has_v[i], has_a[i], has_v[i + 1], has_a[i + 1]) is not None
+                   for i in range(traj.n_points - 1))
+    return _refusals(traj, timing, options, modes_ok)
 
 
 def execute(traj: Trajectory, start: StartState | None = None, timing: Timing | None = None,

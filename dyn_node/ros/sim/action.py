@@ -38,9 +38,11 @@ from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from dyn_node.core.robot.settings import ParamSpec
+from dyn_node.core.check.execution import Timing, refusals
 from dyn_node.core.check.trajectory import validate_trajectory
-from dyn_node.errors import DynNodeError
+from dyn_node.errors import DynNodeError, TrajectoryError
 from dyn_node.ros.actions import end_canceled
+from dyn_node.ros.convert import stamp_to_s
 from dyn_node.sim import jtc
 
 #: dyn_sim parameters of the controller face (declared with the others, read at start-up)
@@ -166,9 +168,11 @@ class JtcFace:
         traj = validate_trajectory(self.joints, list(tr.joint_names), times, [list(p.positions) for p in pts],
                                    [list(p.velocities) for p in pts], [list(p.accelerations) for p in pts],
                                    min_points=1, ignored_joints=tuple(self.model.locked_joints))
-        stamp_s = tr.header.stamp.sec + tr.header.stamp.nanosec * 1e-9
-        end = None if stamp_s == 0.0 else stamp_s + float(traj.times[-1])
-        jtc.check_goal_trajectory(list(tr.joint_names), list(pts[-1].velocities), end, self._now_s())
+        # the controller's refusals from the one execution model (the check judges the same)
+        refused = refusals(traj, Timing(stamp_s=stamp_to_s(tr.header.stamp), receipt_s=self._now_s()))
+        if refused:
+            code, text = refused[0]
+            raise TrajectoryError(text, code=code)
 
     def _on_goal(self, goal: Any) -> GoalResponse:
         try:
