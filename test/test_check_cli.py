@@ -119,6 +119,16 @@ def test_no_model_exits_2_with_one_line(capsys):
     assert code == 2 and err.startswith("dyn-check: error: no robot model") and err.count("\n") == 1
 
 
+def test_a_params_file_with_a_huge_integer_exits_2_with_one_line(capsys, tmp_path):
+    """Issue 40: a 4,301-digit integer in --params-file was a traceback (exit 0 after it)."""
+    params = tmp_path / "params.yaml"
+    params.write_text("dyn_node:\n  ros__parameters:\n    sample_period: " + "9" * 4301 + "\n")
+    code = main([str(REACH[0]), "--robot-model", "panda", "--params-file", str(params)])
+    _, err = capsys.readouterr()
+    assert code == 2 and err.count("\n") == 1, err
+    assert str(params) in err and "4301 digits" in err, err
+
+
 def _edit_csv(tmp_path: Path, name: str, row: int, col: int, value: str) -> Path:
     lines = REACH[2].read_text().splitlines()
     cells = lines[row].split(",")

@@ -23,6 +23,7 @@ from dyn_node.audit.trajectory_files import (MAX_POINTS, MAX_TRAJECTORY_BYTES, T
                                              format_trajectory, parse_trajectory, read_trajectory)
 from dyn_node.core.robot.limits_file import MAX_LIMITS_BYTES
 from dyn_node.io.files import FileProblem, read_text
+from dyn_node.io.safe_load import LoadError
 from dyn_node.io.text import escape
 
 #: Characters of one printed line at most (values inside are capped already; this bounds the
@@ -84,7 +85,7 @@ def make_checker(*, robot_model: str = "", robot_description: str = "", limits: 
     if params_file:
         try:
             params = parameters_from_yaml(read_text(params_file, max_bytes=MAX_LIMITS_BYTES))
-        except FileProblem as exc:
+        except (FileProblem, LoadError) as exc:
             raise CheckError(f"{params_file}: {exc}", code="no_params") from None
         values.update({k: v for k, v in params.items() if k in SPECS})
         overrides["params_file"] = params_file

@@ -7,11 +7,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from dyn_node.audit.evidence import jsonable, task_limits_section
 from dyn_node.audit.options import AuditError, AuditOptions
 from dyn_node.bag.metadata import LIMITS_SHA256_KEY, LIMITS_YAML_KEY
+from dyn_node.io.safe_load import load_yaml
 from dyn_node.bag.reader import BagMessage, BagReader, MessageDecoder
 from dyn_node.errors import DynNodeError
 
@@ -30,8 +29,9 @@ def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
 
 def parameters_from_yaml(text: str) -> dict[str, Any]:
     """Node parameters from a --params-file YAML (``{node: {ros__parameters: {...}}}``) or a flat
-    mapping; nested keys are joined with '.'."""
-    doc = yaml.safe_load(text) if text else None
+    mapping; nested keys are joined with '.'. Read by the project's bounded, strict loader: a
+    malformed file (a 4,301-digit integer, duplicate keys) raises its LoadError, one line."""
+    doc = load_yaml(text) if text else None
     if not isinstance(doc, dict):
         return {}
     for v in doc.values():
