@@ -50,11 +50,11 @@ class GateOptions:
         if not (self.max_state_age > 0 and self.start_tolerance >= 0):
             raise SettingsError("gate.max_state_age must be > 0 and gate.start_tolerance >= 0")
 
-    @property
-    def execution(self) -> feasibility.ExecutionOptions:
-        """The execution model's options: a first point farther than ``start_tolerance`` from the
-        measured state is a jump the verdict refuses (MoveIt's allowed_start_tolerance)."""
-        return feasibility.ExecutionOptions(start_tolerance=self.start_tolerance)
+    def execution(self, base: feasibility.ExecutionOptions) -> feasibility.ExecutionOptions:
+        """The execution model's options (the node's, ``base``) with the gate's start tolerance:
+        a first point farther than it from the measured state is a jump the verdict refuses
+        (MoveIt's allowed_start_tolerance)."""
+        return dataclasses.replace(base, start_tolerance=self.start_tolerance)
 
     @property
     def fails_closed(self) -> bool:
@@ -289,7 +289,7 @@ def decide(dynamics: Dynamics, traj: Trajectory, options: GateOptions, *,
     try:
         result = feasibility.check_trajectory(dynamics, traj, check_options, start=start,
                                               start_unknown=feasibility.NO_CURRENT_STATE,
-                                              timing=timing, execution=options.execution)
+                                              timing=timing, execution=options.execution(check_options.execution))
     except TrajectoryError as exc:
         return rejected(exc, time.perf_counter() - t0)
     worst = (result.worst_joint, result.worst_constraint, result.worst_ratio)

@@ -55,13 +55,15 @@ class FeasibilityOptions:
     with two or more and a task section configured, one of them runs the frame pass instead).
     Every state is computed by the same sequential RNEA whatever the count, so the result does
     not depend on it; more threads only help when cores are free (a live node's joint_states
-    path needs one)."""
+    path needs one). ``execution``: the execution model's options (start tolerance, the
+    controller's allow_nonzero_velocity_at_trajectory_end)."""
 
     sample_period: float = 0.001
     effort_warn_ratio: float = 0.9
     compute_payload_margin: bool = True
     max_samples: int = 250_000
     threads: int | None = None
+    execution: ExecutionOptions = field(default_factory=ExecutionOptions)
 
 
 @dataclass(frozen=True)
@@ -318,7 +320,7 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
                      execution: ExecutionOptions | None = None) -> FeasibilityResult:
     """Check ``traj`` (model order) as joint_trajectory_controller executes it
     (:func:`dyn_node.core.check.execution.execute`: received at ``timing``, None = zero stamp,
-    by a robot in ``start``, with the ``execution`` options) against every limit of
+    by a robot in ``start``, with the ``execution`` options, else ``options.execution``) against every limit of
     ``dynamics.model``; see docs/FEASIBILITY.md and docs/limits.md.
 
     Without ``start`` the first point is the start; when it lies ahead the verdict is at least
@@ -329,7 +331,7 @@ def check_trajectory(dynamics: Dynamics, traj: Trajectory,
     """
     try:
         _validate(traj, options, single=start is not None)
-        ex = jtc.execute(traj, start, timing, execution or ExecutionOptions())
+        ex = jtc.execute(traj, start, timing, execution or options.execution)
         return _check(dynamics, ex, options, start_unknown)
     except TrajectoryError:
         raise

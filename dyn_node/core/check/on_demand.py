@@ -50,8 +50,10 @@ class CheckOutcome:
 
 def options_for(settings: Settings) -> feasibility.FeasibilityOptions:
     """The feasibility options the node derives from its settings."""
-    return feasibility.FeasibilityOptions(sample_period=settings.sample_period,
-                                          effort_warn_ratio=settings.effort_warn_ratio)
+    return feasibility.FeasibilityOptions(
+        sample_period=settings.sample_period, effort_warn_ratio=settings.effort_warn_ratio,
+        execution=feasibility.ExecutionOptions(
+            allow_nonzero_velocity_at_trajectory_end=settings.allow_nonzero_velocity_at_trajectory_end))
 
 
 def check(dynamics: Dynamics, settings: Settings, names: Sequence[str], times: Sequence[float],

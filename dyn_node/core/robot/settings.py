@@ -138,6 +138,10 @@ class Settings:
         "answered 'accepted: false, reason: expired' without being computed: its caller has most "
         "likely given up (s; DynClient's default check timeout)", 1.0e-3, 3600.0,
         name="services.max_queue_age")
+    allow_nonzero_velocity_at_trajectory_end: bool = _param(
+        "bool", False, "mirrors joint_trajectory_controller's parameter of that name: a trajectory "
+        "whose last point has a non-zero velocity is refused by the controller (false), so the "
+        "check refuses it too; set it as your controller has it")
     retime_limit_margin: float = _param(
         "double", 0.9, "share of each limit the retimer's time-optimal pass (TOPP-RA) may use "
         "before the exact check; below 1 leaves room for tracking feedback on a real controller "
