@@ -242,6 +242,48 @@ def test_gentle_goal_and_one_starting_ahead_are_forwarded(paths):
 
 
 @pytest.mark.timeout(90)
+def test_reject_forwards_no_start_jump_past_stamp_or_positions_only(paths):
+    """Judged as the controller would execute them (the execution model, with the goal's stamp and
+    its receipt): a first point due at once 0.15 rad from the robot, a goal stamped 0.4 s ago (the
+    controller starts inside it, away from the robot) and positions-only points (linear segments,
+    velocity steps) are refused in reject mode; the controller never hears of them."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+    from rclpy.clock import Clock
+    from rclpy.duration import Duration
+
+    clients, obs, _ = paths
+    fast = move(READY, moved(0, 0.3), 1.5)
+    cases = {
+        "jump": (move(moved(1, 0.15), moved(1, 0.25), 1.5), None, "the first point is 0.15 rad from the robot"),
+        "past": (fast, 0.4, "started "),
+        "positions": ({"times": fast["times"], "points": fast["points"]}, None, "positions only: velocity steps"),
+    }
+    tags = []
+    for name, (spec, ago, words) in cases.items():
+        g, tag = tagged("ok", spec)
+        tags.append(tag)
+        if ago is not None:
+            g.trajectory.header.stamp = (Clock().now() - Duration(seconds=ago)).to_msg()
+        sent = clients["dbl"].send(g)
+        assert sent.handle.accepted, name
+        status, result = clients["dbl"].result(sent)
+        assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL), name
+        rec = obs.decision(tag)
+        assert (rec["decision"], rec["reason"], rec["feasible"], rec["forwarded"]) == ("rejected", "infeasible", False,
+                                                                                       None), name
+        assert words in rec["verdict"], (name, rec["verdict"])
+        if ago is not None:  # judged from inside: the offset is the receipt's lag behind the stamp
+            assert ago <= rec["judged"]["start_offset_s"] < ago + 0.5, rec["judged"]
+            assert rec["timing"]["receipt_s"] - rec["timing"]["stamp_s"] == pytest.approx(rec["judged"]["start_offset_s"])
+    # the same fast goal with a zero stamp starts at the robot's state: forwarded
+    g, tag = tagged("ok", fast)
+    assert clients["dbl"].result(clients["dbl"].send(g))[0] == GoalStatus.STATUS_SUCCEEDED
+    assert obs.of(tag, 3) == ["received", "accepted", "succeeded"]
+    assert [obs.of(t) for t in tags] == [[], [], []]
+
+
+@pytest.mark.timeout(90)
 def test_deaf_and_stale_gate_forwards_nothing(paths):
     """No joint_states at all, then one that has gone stale: refused, stale_state, state error;
     the controller never hears of the goals."""
