@@ -138,11 +138,16 @@ def _truth(pp: PiecewisePolynomial, per_piece_min: int = 400, rate_hz: float = 1
 
 
 def _check_pieces(monkeypatch, model, pp: PiecewisePolynomial) -> F.FeasibilityResult:
-    """The check of exactly these pieces: their knots as the waypoints (the pieces stand in for
-    the interpolation, which is not what is tested here)."""
+    """The check of exactly these pieces: their knots as the waypoints, the pieces standing in for
+    the execution model's polynomials (the interpolation is not what is tested here, nor are the
+    velocity steps between random pieces: test_execution.py)."""
+    import dataclasses
+
+    from dyn_node.core.check.execution import execute
+
     traj = validate_trajectory(NAMES, NAMES, pp.breaks, np.zeros((len(pp.breaks), NV)))
-    monkeypatch.setattr(F, "interpolate", lambda *_a, **_k: pp)
-    return F.check_trajectory(Dynamics(model), traj, F.FeasibilityOptions(compute_payload_margin=False))
+    ex = dataclasses.replace(execute(traj), pp=pp, velocity_steps=())
+    return F._check(Dynamics(model), ex, F.FeasibilityOptions(compute_payload_margin=False))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -24,7 +24,7 @@ PYTHON_DEPS = {
     "pinocchio": ("pinocchio", None), "example_robot_data": ("example-robot-data", None),
     "mcap": (None, "mcap"), "mcap_ros2": (None, "mcap-ros2-support"), "mujoco": (None, "mujoco"),
     "ray": (None, "ray"), "pyarrow": (None, "pyarrow"), "zstandard": (None, "zstandard"),
-    "lz4": (None, "lz4"), "toppra": (None, "toppra"),
+    "lz4": (None, "lz4"), "toppra": (None, "toppra"), "rosbags": (None, "rosbags"),
 }
 # Used in the README's own commands rather than imported by dyn_node (the DuckDB one-liner)
 README_TOOLS = {"duckdb"}
