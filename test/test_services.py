@@ -448,13 +448,16 @@ def test_retime_service(rig):
     peaks = independent_peaks(out)
     assert peaks["fields"] >= 2, "the retimed points carry velocities (the controller's cubic)"
     assert peaks["velocity"] <= 1.0 + 1e-9 and peaks["effort"] <= 1.0 + 1e-9, peaks
-    assert peaks["position_excess"] <= 1e-9 and max(peaks["velocity"], peaks["effort"]) > 0.9, peaks
+    # close to a limit: the node's margin of it (TOPP-RA holds the margin on its grid)
+    assert peaks["position_excess"] <= 1e-9, peaks
+    assert max(peaks["velocity"], peaks["effort"]) > 0.97 * SETTINGS.retime_limit_margin, peaks
     # and the node's numbers are the core's for the same request
     pts = msg.points
     traj = on_demand.validated(NAMES, NAMES, [_seconds(p.time_from_start) for p in pts],
                                [list(p.positions) for p in pts], [list(p.velocities) for p in pts],
                                [list(p.accelerations) for p in pts])
-    want = retime(DYN, traj, start=None, feasibility=on_demand.options_for(SETTINGS))
+    want = retime(DYN, traj, start=None, feasibility=on_demand.options_for(SETTINGS),
+                  limit_margin=SETTINGS.retime_limit_margin)
     assert (got.duration_in, got.duration_out, got.duration_uniform, got.lower_bound) == (
         want.duration_in, want.duration_out, want.duration_uniform, want.lower_bound)
     assert got.message == want.message
