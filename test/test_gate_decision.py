@@ -255,3 +255,25 @@ def test_a_goal_stamped_in_the_past_is_judged_from_inside_it(slow):
     assert d.judged["start_time"] == "at header.stamp"
     assert d.verdict.startswith("infeasible: started 0.3 s into it (past stamp), the trajectory is "), d.verdict
     assert decide(dyn, traj, GateOptions(mode="reject"), start=robot).decision == FORWARDED
+
+
+def test_retime_mode_plans_a_junction_from_the_state_for_a_start_jump(slow):
+    """Issue 38: a first point due at once 0.15 rad from the robot is refused in reject, and in
+    retime answered by a plan that starts at the measured state (the junction) and passes the
+    controller's own check from it (verified by SciPy's quintic through the answer's points)."""
+    from scipy.interpolate import BPoly
+
+    dyn, traj = slow
+    robot = feasibility.StartState(READY + np.array([0, 0.15, 0, 0, 0, 0, 0]), np.zeros(7), 0.004)
+    assert decide(dyn, traj, GateOptions(mode="reject"), start=robot).decision == REJECTED
+    d = decide(dyn, traj, GateOptions(mode="retime"), start=robot)
+    assert d.decision == RETIMED, d.error_string
+    out = d.trajectory
+    np.testing.assert_allclose(out.positions[0], robot.positions, atol=1e-9)   # starts at the robot
+    np.testing.assert_allclose(out.positions[-1], traj.positions[-1], atol=1e-9)  # ends where asked
+    again = feasibility.check_trajectory(dyn, out, start=robot)
+    assert again.feasible and (again.summary_values().get("start_jump") or 0.0) < 0.01
+    curve = BPoly.from_derivatives(out.times, np.stack([out.positions, out.velocities, out.accelerations], axis=1))
+    t = np.linspace(out.times[0], out.times[-1], 20001)
+    speed = np.abs(curve.derivative()(t)) / dyn.model.limits.velocity
+    assert speed.max() <= 1.0 + 1e-6

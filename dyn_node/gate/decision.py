@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -314,6 +314,25 @@ def judged_values(result: feasibility.FeasibilityResult) -> dict[str, Any]:
     return {k: v[k] for k in keys if k in v}
 
 
+def junction_lead(dynamics: Dynamics, checked: feasibility.FeasibilityResult,
+                  start: feasibility.StartState | None) -> float:
+    """s by which retime mode delays a goal whose first point, due at once, is a jump from the
+    measured state (beyond the start tolerance), so that the controller's start segment from that
+    state to it (the execution model's) becomes the junction the retimer times; 0 without a jump.
+    The lead only shapes that segment's path (twice the time at each joint's velocity and
+    acceleration limits to cover the step); the retimer sets its timing."""
+    ex = checked.execution
+    jump = None if ex is None else ex.jump
+    if start is None or jump is None or not (jump.exceeds_position or jump.exceeds_velocity):
+        return 0.0
+    lim = dynamics.model.limits
+    with np.errstate(divide="ignore", invalid="ignore"):
+        by_v = np.abs(jump.position) / lim.velocity
+        by_a = np.abs(jump.velocity) / lim.acceleration
+    need = [x for x in (*by_v, *by_a) if math.isfinite(x)]
+    return max(0.1, 2.0 * max(need, default=0.0))
+
+
 def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState | None,
              check_options: feasibility.FeasibilityOptions, retimer: RetimeFn | None,
              limit_margin: float, t0: float, base: dict[str, Any],
@@ -329,12 +348,15 @@ def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState
     planned = start
     if plan is not None:  # from where the robot will be when the answer goes out
         planned = plan.planned_from = extrapolate(start, plan.lead_s)
+    junction = junction_lead(dynamics, checked, start)
+    if junction > 0:  # a start jump: the plan begins with a junction from the measured state
+        traj = replace(traj, times=traj.times + junction)
     try:
         fn = retimer or load_retimer()
         # the goal's check just made (from the measured state): the retimer checks its input
-        # again only when it plans from an extrapolated one
+        # again only when it plans from an extrapolated one or a junction
         out = fn(dynamics, traj, start=planned, feasibility=check_options, limit_margin=limit_margin,
-                 input_check=checked if planned is start else None)
+                 input_check=checked if planned is start and not junction else None)
     except TrajectoryError as exc:
         return failed(str(exc))
     uniform = float(out.duration_uniform)

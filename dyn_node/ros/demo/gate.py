@@ -118,6 +118,16 @@ def _goal(q1: list[float], duration: float) -> Any:
     return goal(**quintic(list(READY), q1, duration), names=ARM)
 
 
+def _home() -> Any:
+    """Back to READY from wherever the robot is: its first point 1 s ahead, so the controller runs
+    a segment from the robot's state to it (a first point due at once away from the robot would
+    be a jump, which the gate refuses)."""
+    from dyn_node.ros.fjt_client import goal, quintic
+
+    q = quintic(list(READY), list(READY), 1.0)
+    return goal(**{**q, "times": [t + 1.0 for t in q["times"]]}, names=ARM)
+
+
 def _scene_goals(clients: dict[str, Any], watch: _Watch, limits: np.ndarray, say) -> list[tuple[bool, str]]:
     from action_msgs.msg import GoalStatus
     from control_msgs.action import FollowJointTrajectory
@@ -129,7 +139,7 @@ def _scene_goals(clients: dict[str, Any], watch: _Watch, limits: np.ndarray, say
     ok = (status, res.error_code) == (GoalStatus.STATUS_SUCCEEDED, R.SUCCESSFUL)
     checks.append((ok, f"gate: feasible goal forwarded → {res.error_string!r} (error_code {res.error_code})"))
     say(("PASS " if ok else "FAIL ") + checks[-1][1])
-    back = c.result(c.send(_goal(list(READY), 1.0)))[0] == GoalStatus.STATUS_SUCCEEDED
+    back = c.result(c.send(_home()))[0] == GoalStatus.STATUS_SUCCEEDED
     t_sent = time.time()
     status, res = c.result(c.send(_goal(_moved(0.5), 0.15)))
     _wait(lambda: len(watch.since(t_sent)) > 500, 20.0)
