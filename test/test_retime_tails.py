@@ -67,6 +67,41 @@ def test_screen_between_points_finds_a_reversal_the_points_hide(dyn) -> None:
     assert verify(dyn, tr)["acceleration"] > 100
 
 
+def test_an_overshoot_between_points_is_told_from_one_at_them() -> None:
+    """One joint (2 rad/s²), points at 0, 2, 3 ms of a law whose q̈ holds 1.99 and then ramps
+    down at 1000 rad/s³ from 1 ms (a smoothed switch): the quintic through them peaks at
+    2.0317 rad/s² at t = 1/3 ms (SciPy), which the exact check finds there; the retimer takes
+    it for the quintic's rounding (finer points cure it), but not the same law scaled 1.1×
+    (11.7 % over) nor a constant 2.02 rad/s² (over at the points themselves)."""
+    from scipy.interpolate import BPoly
+    from test_retime import one_joint
+    from dyn_node.retime.candidates import between
+
+    def points(scale: float, jerk: float) -> Trajectory:
+        t = np.array([0.0, 0.002, 0.003])
+        r = np.maximum(t - 0.001, 0.0)
+        a0 = 1.99 * scale
+        q, v, a = a0 * t**2 / 2 - jerk * r**3 / 6, a0 * t - jerk * r**2 / 2, a0 - jerk * r
+        return Trajectory(times=t, positions=q[:, None], velocities=v[:, None],
+                          accelerations=a[:, None])
+
+    one = one_joint(a=2.0)
+    out = points(1.0, 1000.0)
+    pp = BPoly.from_derivatives(out.times, np.stack([out.positions, out.velocities,
+                                                     out.accelerations], axis=1))
+    t = np.linspace(0.0, 0.003, 300_001)
+    acc = pp(t, 2)[:, 0]
+    res = check_trajectory(one, out)
+    [v] = res.violations
+    assert v.kind == "acceleration"
+    assert v.peak_value == pytest.approx(acc.max(), rel=1e-9)
+    assert v.peak_time_s == pytest.approx(t[np.argmax(acc)], abs=1e-7)
+    assert between(one, out, list(res.violations))
+    for bad in (points(1.1, 1100.0), points(2.02 / 1.99, 0.0)):
+        found = list(check_trajectory(one, bad).violations)
+        assert found and not between(one, bad, found)
+
+
 def test_waypoint_path_never_slower_than_the_stretch(tmp_path, capsys, dyn) -> None:
     """`dyn-check plan.yaml --retime out.yaml`: 5 Panda waypoints passed at speed (Catmull-Rom
     velocities, cubic points), 1.2 s a segment, libfranka's acceleration and jerk, effort at

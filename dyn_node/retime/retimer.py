@@ -321,7 +321,7 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
                                                                    start=sr.start)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
                         w=sr.w + sr.w2, deviation=dev)
-        if res.feasible and _finer(sr, over):
+        if (res.feasible or candidates.between(sr.dynamics, out, over)) and _finer(sr, over):
             continue
         if not _adjust(sr, over, lw, x):
             return None
