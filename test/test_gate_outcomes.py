@@ -21,6 +21,9 @@ pytest.importorskip("control_msgs", reason="control_msgs not built into the venv
 
 DOUBLE = "/dbl/controller/follow_joint_trajectory"
 TIMEOUT = 1.0  # the gate's gate.timeout here
+# the in-process gate's: closing lasts this long (the double ignores its cancel), long enough for a
+# goal sent after close() began to arrive while it closes, on a loaded machine too
+CLOSING_S = 5.0
 GENTLE = move(READY, moved(0, 0.1), 1.5)
 JOINTS9 = ARM + ["panda_finger_joint1", "panda_finger_joint2"]
 
@@ -406,7 +409,7 @@ def test_shutdown_cancels_the_running_goal_and_refuses_new_ones(paths, module_ro
     records: list[dict] = []
     state = lambda: (core, StartState(np.array(READY), np.zeros(7), 0.0))  # noqa: E731
     params = {"gate.controller_action": DOUBLE, "gate.mode": "reject", "gate.retime_all": False,
-              "gate.timeout": TIMEOUT, "gate.max_state_age": 0.1, "gate.start_tolerance": 0.01, "gate.max_pending": 5}
+              "gate.timeout": CLOSING_S, "gate.max_state_age": 0.1, "gate.start_tolerance": 0.01, "gate.max_pending": 5}
     gate = Gate(node, params, state, lambda _pub, msg: records.append(json.loads(msg.data)))
     client = FjtClient(module_ros_context, "/inproc/gate_inproc/follow_joint_trajectory", "client_inproc")
     closer = threading.Thread(target=gate.close)
@@ -428,7 +431,7 @@ def test_shutdown_cancels_the_running_goal_and_refuses_new_ones(paths, module_ro
         got = wait_future(result_of_running, 30.0, "the running goal's result")
         status, result = got.status, got.result
         assert (status, result.error_string) == (GoalStatus.STATUS_ABORTED,
-                                                 out.unconfirmed_text(DOUBLE, TIMEOUT, "cancelled_on_shutdown"))
+                                                 out.unconfirmed_text(DOUBLE, CLOSING_S, "cancelled_on_shutdown"))
         closer.join(10.0)
         assert not closer.is_alive()
         assert obs.of(tag, 4) == ["received", "accepted", "cancel_requested", "cancel_refused"]
