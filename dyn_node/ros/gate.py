@@ -102,6 +102,10 @@ class _Goal:
     names: list = field(default_factory=list)  # the model's joint names (the forwarded trajectory's)
 
 
+#: executor turns close() runs after the spin thread stopped (pending result responses)
+_DRAIN_TURNS = 20
+
+
 def declare_gate_parameters(node: Node) -> dict[str, Any]:
     out_ = {}
     for p in GATE_PARAMETERS:
@@ -533,6 +537,11 @@ class Gate:
             pass  # a daemon thread: it ends with the process
         self._stop.set()
         self._thread.join(timeout=5.0)
+        if not self._thread.is_alive():
+            # results just set are sent by tasks the executor runs on its next turns: run them
+            # here, so no client waits for a result its goal already has
+            for _ in range(_DRAIN_TURNS):
+                self.executor.spin_once(timeout_sec=0.01)
         self.server.destroy()
         self.client.destroy()
         self.executor.shutdown(timeout_sec=2.0)
