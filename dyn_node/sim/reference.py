@@ -40,9 +40,14 @@ class ActiveTrajectory:
 
     def reference(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q_ref, q̇_ref, q̈_ref) at simulation times t (M,), each M×nv; the last point held at
-        rest (the polynomial's evaluation holds its end with zero derivatives)."""
+        rest, exactly (the polynomial's value at its end may differ from it by rounding)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         q, v, a, _ = self.execution.pp.evaluate(t - self.received_time)
+        late = t >= self.end_time
+        if np.any(late):
+            q[late] = self.trajectory.positions[-1]
+            v[late] = 0.0
+            a[late] = 0.0
         return q, v, a
 
 
