@@ -137,7 +137,7 @@ def _truth(pp: PiecewisePolynomial, per_piece_min: int = 400, rate_hz: float = 1
     return t, q, v, a, jk, tau, rate
 
 
-def _check_pieces(monkeypatch, model, pp: PiecewisePolynomial) -> F.FeasibilityResult:
+def _check_pieces(model, pp: PiecewisePolynomial) -> F.FeasibilityResult:
     """The check of exactly these pieces: their knots as the waypoints, the pieces standing in for
     the execution model's polynomials (the interpolation is not what is tested here, nor are the
     velocity steps between random pieces: test_execution.py)."""
@@ -151,14 +151,14 @@ def _check_pieces(monkeypatch, model, pp: PiecewisePolynomial) -> F.FeasibilityR
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_property_check_peak_at_least_the_dense_truth(monkeypatch, seed):
+def test_property_check_peak_at_least_the_dense_truth(seed):
     """Random pieces (mixed degrees, lengths 0.1–30 ms): every kinematic kind's peak is scipy's
     exact extremum (1e-9), every torque kind's at least the dense truth − 0.1 %."""
     rng = np.random.default_rng(seed)
     pp = random_pieces(rng, 24)
     curve = [[0.0, 200.0], [10.0, 100.0]]
     model = franka_model(max_power=1e4, effort_speed_curve=curve)
-    r = _check_pieces(monkeypatch, model, pp)
+    r = _check_pieces(model, pp)
     t, q, v, a, jk, tau, rate = _truth(pp)
     lim = model.limits
     for j, name in enumerate(NAMES):

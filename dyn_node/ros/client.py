@@ -26,6 +26,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from dyn_node.core.robot.limits import LIMIT_KINDS
 from dyn_node.core.robot.status import ERROR, NAME_PREFIX
+from dyn_node.ros.convert import s_to_duration
 
 STATUS_NAME = NAME_PREFIX + "trajectory feasibility"  # feasibility.STATUS_NAME, without its imports
 
@@ -186,8 +187,7 @@ def trajectory_message(joint_names: Sequence[str], times: Sequence[float], posit
     """A JointTrajectory from times (s from the start) and N×k arrays in ``joint_names`` order."""
     msg = states_message(joint_names, positions, velocities, accelerations)
     for pt, t in zip(msg.points, times):
-        ns = int(round(float(t) * 1e9))
-        pt.time_from_start.sec, pt.time_from_start.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
+        pt.time_from_start = s_to_duration(float(t))  # the one rounding rule
     return msg
 
 
