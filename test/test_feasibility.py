@@ -337,6 +337,33 @@ def test_limit_exactly_reached_is_feasible():
     assert not check_trajectory(Dynamics(tighter), traj).feasible
 
 
+def test_a_waypoint_exactly_on_a_position_limit_is_on_it():
+    """Issue 39: a rest-to-rest quintic ending exactly at panda_joint7's upper limit evaluates a few
+    1e-15 rad past it in floating point; within POSITION_RTOL of the limit's size it is on it.
+    A millionth of a radian past stays a violation, as does twice the tolerance."""
+    from dyn_node.core.check.joint_constraints import POSITION_RTOL
+    from dyn_node.retime import retime
+    model = base_model("panda")
+    names = model.joint_names
+    hi = float(model.limits.position_upper[6])
+    start = [0.0, -0.3, 0.0, -2.0, 0.0, 1.6, 2.4864888888888883]
+
+    def move(end: float):
+        return validate_trajectory(names, names, [0.0, 2.0], [start, start[:6] + [end]],
+                                   [[0.0] * 7] * 2, [[0.0] * 7] * 2)
+
+    r = check_trajectory(Dynamics(model), move(hi))
+    assert r.feasible, r.message
+    peak = r.per_joint["panda_joint7"]["position"]["value"]
+    assert hi < peak < hi + 1e-12   # the polynomial really ends past the limit, by rounding
+    answer = retime(Dynamics(model), move(hi))
+    assert answer.feasible and answer.blocked == "", answer.message
+    for past in (1e-6, 2.0 * POSITION_RTOL * max(1.0, hi)):
+        r = check_trajectory(Dynamics(model), move(hi + past))
+        assert not r.feasible and r.time_scale_constraint == "position", (past, r.message)
+        assert r.violations[0].limit == hi
+
+
 def test_waypoint_effort_is_rnea_at_waypoints_and_statuses():
     model = base_model("panda")
     dyn = Dynamics(model)

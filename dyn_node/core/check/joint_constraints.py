@@ -18,6 +18,7 @@ from dyn_node.core.check.constraints import (Band, Blocked, Constraint, JointCon
 from dyn_node.core.compiled import kernels
 from dyn_node.core.compiled import peak_kernels as pk
 from dyn_node.core.compiled import scan_kernels as sk
+from dyn_node.core.robot.limits import JointLimits
 
 
 class _PowerLaw(JointConstraint):
@@ -303,6 +304,20 @@ class RmsEffort(JointConstraint):
         return kernels.quadratic_band(win[m:], win[:m], self._win - (R * R * Wn)[:, None])
 
 
+#: A position within this fraction of its limit's magnitude (at least 1e-9 rad or m) is on it:
+#: a quintic ending exactly at a limit evaluates ~1e-15 past it (issue 39).
+POSITION_RTOL = 1e-9
+
+
+def _position_bounds(lim: JointLimits, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The hard bounds the check enforces: each limit widened by POSITION_RTOL of its size."""
+    lo, hi = lim.position_lower[cols], lim.position_upper[cols]
+    with np.errstate(invalid="ignore"):
+        tol_lo = POSITION_RTOL * np.maximum(1.0, np.abs(np.nan_to_num(lo, posinf=0.0, neginf=0.0)))
+        tol_hi = POSITION_RTOL * np.maximum(1.0, np.abs(np.nan_to_num(hi, posinf=0.0, neginf=0.0)))
+    return lo - tol_lo, hi + tol_hi
+
+
 class Position(Constraint):
     """Hard limits (violations; no timing helps) and soft limits (warnings). The ratio is the
     distance from the range's middle over its half-width, for joints limited on both sides."""
@@ -331,7 +346,7 @@ class Position(Constraint):
         self.warnings = self._soft(motion, rng)
         self._peaks, self._violations = self._hard(motion, rng)
         self._blocked = None
-        lo, hi = lim.position_lower[cols], lim.position_upper[cols]
+        lo, hi = _position_bounds(lim, cols)
         if np.any((rng.late_max > hi) | (rng.late_min < lo)):   # beyond after the start segment
             v0 = max(self._violations, key=lambda v: abs(v.peak_value - v.limit))
             self._blocked = Blocked(v0.joint, timing_free=True)
@@ -361,9 +376,10 @@ class Position(Constraint):
         lo, hi = lim.position_lower[cols], lim.position_upper[cols]
         ranged = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-        over = np.maximum(rng.q_max - hi, lo - rng.q_min)
+        lo_t, hi_t = _position_bounds(lim, cols)
+        over = np.maximum(rng.q_max - hi_t, lo_t - rng.q_min)
         bad = np.flatnonzero(over > 0)
-        first, outside = exact_peaks.position_excess(motion, cols[bad], lo[bad], hi[bad])
+        first, outside = exact_peaks.position_excess(motion, cols[bad], lo_t[bad], hi_t[bad])
         peaks, violations = [], []
         for c, where in enumerate(self.where):
             up = rng.q_max[c] - hi[c] >= lo[c] - rng.q_min[c]
