@@ -325,14 +325,16 @@ def test_recheck_of_node_outputs_is_exactly_zero_and_a_perturbation_is_found(tmp
     # the payload margin by its definition: feasible with that much more payload, not beyond it
     _assert_payload_margin(trajs[0][1], t[0]["payload_margin_kg"])
     assert res.exit_code == 1 and "planning error" in rec["failure_labels"]
-    # each plan starts where the robot is (a first point elsewhere would be a jump), so it is
-    # tracked from its stamp (0.2 s), then the recorded motion, which does not follow the plans,
-    # leaves it (0.294 s); the second (0.4 s, 50 ms long) replaces it, is left after 6 ms and has
-    # ended by the sample at 0.451 s; the rejected third is never tracked
+    # each plan starts where the robot is (a first point elsewhere would be a jump) and runs from
+    # its receipt (stamp + 500 ns, the execution model's start), so it is tracked from the next
+    # sample (0.201 s), then the recorded motion, which does not follow the plans, leaves it
+    # (0.294 s); the sample stamped 0.4 s is still the first plan's (the second arrives 500 ns
+    # later), the second (50 ms long) is tracked from 0.401 s, left after 5 ms and has ended by
+    # the sample at 0.451 s; the rejected third is never tracked
     cs = rec["outputs"]["controller_states"]
     assert [(c["state"], c["time_s"]) for c in cs["replayed_transitions"]] == [
-        ("idle", 0.0), ("tracking", pytest.approx(0.2, abs=1e-9)), ("deviating", pytest.approx(0.294, abs=1e-9)),
-        ("tracking", pytest.approx(0.4, abs=1e-9)), ("deviating", pytest.approx(0.406, abs=1e-9)),
+        ("idle", 0.0), ("tracking", pytest.approx(0.201, abs=1e-9)), ("deviating", pytest.approx(0.294, abs=1e-9)),
+        ("tracking", pytest.approx(0.401, abs=1e-9)), ("deviating", pytest.approx(0.406, abs=1e-9)),
         ("idle", pytest.approx(0.451, abs=1e-9))]
 
     bag2 = make_bag(tmp_path / "bag2", n=300, outputs=True, perturb=123)

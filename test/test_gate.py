@@ -67,6 +67,10 @@ class Probe:
         self.node.create_subscription(String, f"{ns}/{gate}/gate_decisions", self._on_record,
                                       QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 50)
+        from diagnostic_msgs.msg import DiagnosticStatus
+
+        self.ctrl: list = []  # the gate node's ~/controller_status: it tracks what it forwarded
+        self.node.create_subscription(DiagnosticStatus, f"{ns}/{gate}/controller_status", self.ctrl.append, 100)
         self.node.create_subscription(JointState, f"{ns}/joint_states", self.js.append, 1000)
         from control_msgs.msg import JointTrajectoryControllerState
 
@@ -178,9 +182,13 @@ def test_feasible_goal_forwarded_with_feedback_and_result(stack):
 
     clients, probe, *_ = stack
     client = clients["reject"]
+    n_ctrl = len(probe.ctrl)
     sent = client.send(_goal(FEASIBLE))
     assert sent.handle.accepted
     status, result = client.result(sent)
+    # ~/controller_status follows the forwarded goal as it follows a topic trajectory
+    probe.until(lambda: any(kv(m)["state"] == "tracking" for m in probe.ctrl[n_ctrl:]), 10.0,
+                "~/controller_status to track the forwarded goal")
     assert (status, result.error_code, result.error_string) == (
         GoalStatus.STATUS_SUCCEEDED, FollowJointTrajectory.Result.SUCCESSFUL, "Goal successfully reached!")
     # dyn_sim's 20 Hz feedback relayed: its joint order, desired − actual = error

@@ -15,6 +15,7 @@ from dyn_node.core.live.monitor import Monitor
 from dyn_node.core.robot.settings import Settings
 from dyn_node.core.robot.status import ERROR, OK, STALE, WARN
 from dyn_node.core.live.tracker import ControllerTracker
+from dyn_node.core.check.execution import Timing
 from dyn_node.core.check.trajectory import validate_trajectory
 
 PANDA = load_model(builtin="panda")
@@ -281,7 +282,7 @@ def test_controller_tracker_states():
     r = mon.process(NAMES, Q0, [], [], 1.0, 1.0)
     assert tr.update(r, 1.0) and tr.state == "idle"
     q1 = Q0 + 0.2
-    tr.set_trajectory(_tracker_traj([0.0, 1.0], [Q0, q1]), start_s=2.0)
+    tr.follow(_tracker_traj([0.0, 1.0], [Q0, q1]), timing=Timing(0.0, 2.0))
     # linear reference at t = 2.25: Q0 + 0.25·0.2
     np.testing.assert_allclose(tr.reference(2.25), Q0 + 0.05, rtol=0, atol=1e-15)
     r = mon.process(NAMES, Q0 + 0.05 + 0.01, [], [], 2.25, 2.25)
@@ -312,9 +313,10 @@ def test_tracker_reference_quintic_matches_interpolation():
     P = Q0 + rng.normal(0, 0.1, (4, 7))
     V = rng.normal(0, 0.1, (4, 7))
     A = rng.normal(0, 0.1, (4, 7))
+    V[-1] = A[-1] = 0.0   # the controller refuses a non-zero end velocity by default
     traj = validate_trajectory(NAMES, NAMES, [0.0, 0.4, 1.0, 1.5], P, V, A)
     tr = ControllerTracker(PANDA, Settings())
-    tr.set_trajectory(traj, 10.0)
+    tr.follow(traj, timing=Timing(0.0, 10.0))
     expected = interpolate(traj, "quintic").evaluate(np.array([0.7]))[0][0]
     np.testing.assert_allclose(tr.reference(10.7), expected, rtol=0, atol=1e-12)
     np.testing.assert_allclose(tr.reference(10.4), P[1], rtol=0, atol=1e-12)
@@ -427,7 +429,7 @@ def test_process_batch_equals_process_message_by_message(seed):
                                        [np.zeros(nv), q_mid, np.zeros(nv)], min_points=1)
             start = 1.0 + 0.02 * float(rng.integers(0, 4))
             for tr in (tr_one, tr_many):
-                tr.set_trajectory(traj, start_s=start)
+                tr.follow(traj, timing=Timing(0.0, start))
         for k in range(int(rng.integers(0, 3))):  # a common history before the batch
             for mon, tr in ((one, tr_one), (many, tr_many)):
                 r = mon.process(msg_names, P[0], [] if V is None else V[0], [], 0.5 + 1e-3 * k, 0.5)
@@ -542,8 +544,8 @@ def test_live_statuses_use_each_joints_own_units():
     assert lim.values["j1_position_rad"] == 3.5
     # controller status: j2 0.1 m off a held reference
     tr = ControllerTracker(model, s)
-    tr.set_trajectory(validate_trajectory(names, names, [0.0, 10.0], [np.zeros(6), np.zeros(6)],
-                                          min_points=1), start_s=0.0)
+    tr.follow(validate_trajectory(names, names, [0.0, 10.0], [np.zeros(6), np.zeros(6)],
+                                  min_points=1), timing=Timing(0.0, 0.0))
     off = np.zeros(6)
     off[i2] = 0.1
     tr.update(mon.process(names, off, np.zeros(6), [], 3.0, 3.0), 3.0)

@@ -568,11 +568,14 @@ def _executed(node: Any, decision: Decision, goal: Any, names: list[str]) -> Non
     core = node._core
     if core is None or decision.trajectory is None or list(core.model.joint_names) != names:
         return
+    from dyn_node.core.check.on_demand import options_for
+
     header = goal.trajectory.header
-    stamp_s = stamp_to_s(header.stamp)
-    start = stamp_s if stamp_s != 0.0 else node.get_clock().now().nanoseconds * 1e-9
+    _core, state = node.execution_state()
+    now = node.get_clock().now().nanoseconds * 1e-9
     with node._io_lock:
-        core.tracker.set_trajectory(decision.trajectory, start)
+        core.tracker.follow(decision.trajectory, timing=Timing(stamp_to_s(header.stamp), now),
+                            start=state, options=options_for(core.settings).execution)
     if decision.result is not None:
         node._publish_verdict(node._pub_feasibility, verdict_array(decision.result.statuses(core.model.name),
                                                                    header.stamp, header.frame_id, REQUEST_EXECUTE))

@@ -341,9 +341,9 @@ class Replay:
 
     # trajectories and requests -------------------------------------------------------------
     def _trajectory_request(self, role: str, m: BagMessage) -> None:
-        entry, ok_traj, res = self._trajectory(m, self.trajectories.total)
+        execute = request_of_role(role) == EXECUTE
+        entry, res = self._trajectory(m, self.trajectories.total, track=execute)
         entry["request"] = request_of_role(role)
-        execute = entry["request"] == EXECUTE
         self.tally.add(entry["request"], answered_yes=entry["feasible"])
         # a check-only request is a question: its "no" is listed, not a violation of the run
         if entry.get("failure_label") and execute:
@@ -351,9 +351,6 @@ class Replay:
         if not entry["feasible"] and execute:
             self.trajectories_bad += 1
         self.trajectories.add(entry)
-        if ok_traj is not None and execute:
-            start = entry["stamp_ns"] * 1e-9 if entry["stamp_ns"] else m.log_time_ns * 1e-9
-            self.tracker.set_trajectory(ok_traj, start)
         if self.sink is not None:
             # answers are matched by the whole header the node echoes (stamp and frame_id)
             key = (entry["stamp_ns"], entry.get("frame_id", ""))
@@ -361,9 +358,11 @@ class Replay:
             if res is not None:
                 self.sink.expect_efforts(key, res.waypoint_effort)
 
-    def _trajectory(self, m: BagMessage, index: int):
-        from dyn_node.core.check.feasibility import (NO_CURRENT_STATE, FeasibilityOptions, Timing, check_trajectory,
-                                                     current_state)
+    def _trajectory(self, m: BagMessage, index: int, *, track: bool):
+        """The node's verdict on a trajectory message, recomputed; ``track``: hand it to the
+        controller tracker first, as the node does with one it executes."""
+        from dyn_node.core.check.feasibility import NO_CURRENT_STATE, Timing, check_trajectory, current_state
+        from dyn_node.core.check.on_demand import options_for
         from dyn_node.core.check.trajectory import validate_trajectory
 
         entry: dict[str, Any] = {"index": index, "topic": m.topic, "time_s": 0.0, "t_ns": m.log_time_ns,
@@ -385,33 +384,34 @@ class Replay:
                     [p.velocities for p in pts], [p.accelerations for p in pts])
             # the effort lists only validated (joint_trajectory_controller's rule), as the node does
             traj = validate_trajectory(*args, min_points=1, efforts=[p.effort for p in pts])
+            last, start = self.last_state, None
+            if last is not None and last[0].joint_names == self.model.joint_names:
+                start = current_state(last[1:], m.log_time_ns, self.settings.stale_timeout)
+            # the node's receipt time is the log time it recorded with
+            timing = Timing(stamp_s, m.log_time_ns * 1e-9)
+            if track:
+                self.tracker.follow(traj, timing=timing, start=start,
+                                    options=options_for(self.settings).execution)
             if traj.n_points < 2:
                 validate_trajectory(*args, min_points=2)
         except TrajectoryError as exc:
             dur = float(times[-1]) if times and all(map(math.isfinite, times)) else 0.0
             entry.update(level="ERROR", message=f"rejected: {exc}", error_code=exc.code,
                          failure_label=PLANNING_ERROR, n_points=n_points, duration_s=dur)
-            return entry, traj, None
+            return entry, None
         except Exception as exc:  # noqa: BLE001 - undecodable bytes are a finding, not a crash
             entry.update(level="ERROR", message=f"undecodable trajectory message: {exc}",
                          error_code="undecodable", failure_label=STATE_ERROR)
-            return entry, None, None
-        last, start = self.last_state, None
-        if last is not None and last[0].joint_names == self.model.joint_names:
-            start = current_state(last[1:], m.log_time_ns, self.settings.stale_timeout)
+            return entry, None
         try:
-            res = check_trajectory(self.traj_dynamics, traj,
-                                   FeasibilityOptions(sample_period=self.settings.sample_period,
-                                                      effort_warn_ratio=self.settings.effort_warn_ratio),
-                                   start=start, start_unknown=NO_CURRENT_STATE,
-                                   # the node's receipt time is the log time it recorded with
-                                   timing=Timing(stamp_s, m.log_time_ns * 1e-9))
+            res = check_trajectory(self.traj_dynamics, traj, options_for(self.settings),
+                                   start=start, start_unknown=NO_CURRENT_STATE, timing=timing)
         except TrajectoryError as exc:  # e.g. torques that overflow: the node publishes "rejected"
             entry.update(level="ERROR", message=f"rejected: {exc}", error_code=exc.code,
                          failure_label=PLANNING_ERROR, n_points=n_points,
                          duration_s=float(times[-1]))
-            return entry, traj, None
-        return _verdict_entry(entry, res), traj, res
+            return entry, None
+        return _verdict_entry(entry, res), res
 
     def _states_request(self, m: BagMessage) -> None:
         """Recompute the node's answer to an ~/inverse_dynamics_request (torques, or the rejected

@@ -12,7 +12,9 @@ from dyn_node.core.robot.model import RobotModel
 from dyn_node.core.live.monitor_results import BatchResult, SampleResult
 from dyn_node.core.robot.settings import Settings
 from dyn_node.core.robot.status import ERROR, NAME_PREFIX, OK, STALE, WARN, Status
-from dyn_node.core.check.trajectory import PiecewisePolynomial, Trajectory, interpolate
+from dyn_node.core.check.execution import Execution, ExecutionOptions, Timing, execute
+from dyn_node.core.check.start_segment import StartState
+from dyn_node.core.check.trajectory import Trajectory
 from dyn_node.core.robot.units import joint_units, unit_key
 
 CONTROLLER = NAME_PREFIX + "controller"
@@ -27,9 +29,10 @@ class ControllerTracker:
     within stale_timeout), ``collision`` and ``contact`` (the contact monitor's open episode, fed
     by :meth:`note_contact`), ``saturated`` (worst measured |effort| / limit ≥ 1), ``deviating``
     (a trajectory is active and some |q − reference| > tracking_tolerance), ``tracking`` (active
-    and within tolerance), ``idle``. A trajectory is active from its start time (header stamp, or
-    receipt for a zero stamp) plus its first time_from_start until its last point; the reference is
-    interpolated as joint_trajectory_controller does (quintic with accelerations, cubic with
+    and within tolerance), ``idle``. A trajectory is active while the controller executes it, as
+    the execution model has it (core/check/execution.py: from receipt, or from a past stamp's
+    offset, through the segment from the robot's state to the first point, to the last point),
+    and the reference is that execution's polynomial (quintic with accelerations, cubic with
     velocities, linear with positions only).
     """
 
@@ -39,8 +42,9 @@ class ControllerTracker:
         self._units = joint_units(model)["position"]  # tracking errors: rad, or m if prismatic
         self.state = "stale"
         self.since_s: float | None = None
-        # (polynomial | None, hold position, start, active from, active until, breaks as floats)
-        self._plan: tuple[PiecewisePolynomial | None, np.ndarray, float, float, float, list] | None = None
+        # (polynomial, last position, time origin, active from, active until, breaks as floats,
+        # the plan it replaced or None)
+        self._plan: tuple | None = None
         self._nan = np.full(model.nv, np.nan)
         self._nan.setflags(write=False)  # shared "no error known" value; never written
         self._error = self._nan
@@ -52,32 +56,29 @@ class ControllerTracker:
         self._stamp: float | None = None  # the last accepted sample's stamp (s)
         self._episode = None  # the open ContactEpisode behind contact / collision
 
-    def set_trajectory(self, traj: Trajectory, start_s: float) -> None:
-        """Track ``traj`` (model order) starting at ``start_s`` (s). Safe to call from another
+    def follow(self, traj: Trajectory, *, timing: Timing, start: StartState | None = None,
+               options: ExecutionOptions = ExecutionOptions()) -> Execution:
+        """Track ``traj`` (model order) as the controller executes it (the execution model:
+        received at ``timing`` by a robot in ``start``, so a start segment, a past stamp's cut and
+        a held single point are followed too). A trajectory the controller refuses leaves the
+        plan it runs in place. Returns the execution."""
+        ex = execute(traj, start, timing, options)
+        if not ex.refusals:
+            self.track(ex, timing.receipt_s)
+        return ex
+
+    def track(self, ex: Execution, receipt_s: float) -> None:
+        """Track an execution whose times count from ``receipt_s`` (s). Safe to call from another
         thread: the new plan replaces the old one in a single assignment."""
-        poly = interpolate(traj, traj.jtc_interpolation) if traj.n_points > 1 else None
-        self._plan = (poly, traj.positions[-1], start_s, start_s + float(traj.times[0]),
-                      start_s + float(traj.times[-1]), poly.breaks.tolist() if poly is not None else [])
+        poly, old = ex.pp, self._plan
+        # samples stamped before its start (received after it) were still under the old plan
+        prev = old[:6] + (None,) if old is not None else None
+        self._plan = (poly, ex.knots.positions[-1], receipt_s, receipt_s + float(poly.breaks[0]),
+                      receipt_s + float(poly.breaks[-1]), poly.breaks.tolist(), prev)
 
     def reference(self, t: float) -> np.ndarray | None:
         """Reference position at time t (s), or None when no trajectory is active then."""
-        plan = self._plan
-        if plan is None:
-            return None
-        poly, hold, start, t0, t1, br = plan
-        if t < t0 or t > t1:
-            return None
-        if poly is None:
-            return hold
-        tau = t - start
-        # bisect on the breaks as Python floats is np.searchsorted(side="right") without its overhead
-        seg = min(max(bisect_right(br, tau) - 1, 0), len(poly.coeffs) - 1)
-        s = min(max(tau - br[seg], 0.0), br[seg + 1] - br[seg])
-        c = poly.coeffs[seg]
-        acc = c[-1]  # Horner; the first product makes a new array, c is never written
-        for k in range(c.shape[0] - 2, -1, -1):
-            acc = acc * s + c[k]
-        return acc if c.shape[0] > 1 else acc.copy()
+        return _reference(self._plan, t)
 
     def note_contact(self, state: str, episode=None) -> None:
         """The contact monitor's state after the sample about to be fed to :meth:`update`
@@ -115,12 +116,14 @@ class ControllerTracker:
         if plan is not None:
             T = batch.stamp_s
             active = (T >= plan[3]) & (T <= plan[4])  # where reference() is not None
+            if plan[6] is not None:
+                active |= (T < plan[3]) & (T >= plan[6][3]) & (T <= plan[6][4])
             tol = self.settings.tracking_tolerance
             rows = np.flatnonzero(active & ~sat)
             if active[-1] and sat[-1]:
                 rows = np.append(rows, n - 1)
             for k in rows.tolist():
-                error = batch.q[k] - self.reference(float(T[k]))
+                error = batch.q[k] - _reference(plan, float(T[k]))
                 if k == n - 1:
                     last_error = error
                 if not sat[k]:
@@ -207,4 +210,25 @@ class ControllerTracker:
         return Status(CONTROLLER, level, msg, hardware_id, vals)
 
 
+def _reference(plan: tuple | None, t: float) -> np.ndarray | None:
+    """The plan's position at t, the previous plan's before the plan starts, else None."""
+    if plan is None:
+        return None
+    poly, _last, start, t0, t1, br, prev = plan
+    if t < t0:
+        return _reference(prev, t)
+    if t > t1:
+        return None
+    tau = t - start
+    # bisect on the breaks as Python floats is np.searchsorted(side="right") without its overhead
+    seg = min(max(bisect_right(br, tau) - 1, 0), len(poly.coeffs) - 1)
+    s = min(max(tau - br[seg], 0.0), br[seg + 1] - br[seg])
+    c = poly.coeffs[seg]
+    acc = c[-1]  # Horner; the first product makes a new array, c is never written
+    for k in range(c.shape[0] - 2, -1, -1):
+        acc = acc * s + c[k]
+    return acc if c.shape[0] > 1 else acc.copy()
+
+
 __all__ = ["ControllerTracker", "CONTROLLER", "CONTROLLER_STATES"]
+

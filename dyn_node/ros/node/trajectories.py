@@ -108,7 +108,6 @@ class TrajectoryWorker:
             E = [p.effort for p in msg.points]
             stamp, frame_id = msg.header.stamp, msg.header.frame_id
         stamp_s = stamp_to_s(stamp)
-        start = stamp_s if stamp_s != 0.0 else receipt_s
         error: TrajectoryError | None = None
         traj = None
         try:
@@ -118,7 +117,9 @@ class TrajectoryWorker:
             if (request == on_demand.REQUEST_EXECUTE and current is not None
                     and current.model.joint_names == model.joint_names):
                 with self._io_lock:
-                    current.tracker.set_trajectory(traj, start)
+                    current.tracker.follow(traj, timing=feasibility.Timing(stamp_s, receipt_s),
+                                           start=start_state,
+                                           options=on_demand.options_for(settings).execution)
             if traj.n_points < 2:
                 validate_trajectory(model.joint_names, names, times, P, V, A, min_points=2)
         except TrajectoryError as exc:
