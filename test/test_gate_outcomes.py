@@ -446,3 +446,48 @@ def test_shutdown_cancels_the_running_goal_and_refuses_new_ones(paths, module_ro
         if not closer.is_alive() and not closer.ident:
             gate.close()
         node.destroy_node()
+
+
+@pytest.mark.timeout(90)
+def test_idle_gate_decides_in_the_goal_callback_and_a_long_goal_on_the_check_thread(paths, module_ros_context):
+    """A gate in this process in front of the double: a goal reaching an idle gate is checked on
+    the gate's executor thread, in its goal callback (no crossing to the check thread and back);
+    one of more than INLINE_MAX_POINTS points is checked on the check thread. Both forwarded."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from action_msgs.msg import GoalStatus
+    from rclpy.node import Node
+
+    from dyn_node.core.check.feasibility import StartState
+    from dyn_node.core.robot.model import load_model
+    from dyn_node.core.robot.settings import Settings
+    from dyn_node.ros.fjt_client import FjtClient, goal, quintic
+    from dyn_node.ros.gate import INLINE_MAX_POINTS, Gate
+
+    node = Node("gate_inline", namespace="/inline", context=module_ros_context)
+    core = SimpleNamespace(model=load_model(builtin="panda"), settings=Settings())
+    threads: list[str] = []
+
+    def state():
+        threads.append(threading.current_thread().name)
+        return core, StartState(np.array(READY), np.zeros(7), 0.0)
+
+    records: list[dict] = []
+    params = {"gate.controller_action": DOUBLE, "gate.mode": "reject", "gate.retime_all": False,
+              "gate.timeout": 10.0, "gate.max_state_age": 0.1, "gate.start_tolerance": 0.01, "gate.max_pending": 5}
+    gate = Gate(node, params, state, lambda _pub, msg: records.append(json.loads(msg.data)))
+    client = FjtClient(module_ros_context, "/inline/gate_inline/follow_joint_trajectory", "client_inline")
+    try:
+        client.wait_for_server(30.0)
+        short, _ = tagged("ok")
+        long_goal = goal(**quintic(READY, moved(0, 0.1), 3.0, INLINE_MAX_POINTS + 1), names=ARM,
+                         goal_tolerance=[(f"double:ok:{uuid.uuid4().hex[:10]}", 0.0)])
+        for g in (short, long_goal):
+            assert client.result(client.send(g))[0] == GoalStatus.STATUS_SUCCEEDED
+        assert threads == ["dyn_node gate", "dyn_node gate check"]
+        assert [r["decision"] for r in records if r["event"] == "decision"] == ["forwarded", "forwarded"]
+    finally:
+        client.close()
+        gate.close()
+        node.destroy_node()

@@ -72,6 +72,27 @@ def one_sided(pp, t, h=1e-7):
     return pp.evaluate(np.array([t - h])), pp.evaluate(np.array([t + h]))
 
 
+def test_array_rows_validate_as_the_same_rows_as_lists():
+    """N×k arrays (a message's rows, convert.trajectory_arrays) take a path without a loop over the
+    rows: the same trajectory as the rows given as lists, and the same errors."""
+    rng = np.random.default_rng(3)
+    names = ["c", "a", "b"]
+    p, v, a = (rng.normal(size=(4, 3)) for _ in range(3))
+    times = [0.0, 0.5, 1.0, 1.5]
+    fast = validate_trajectory(J, names, times, p, v, a)
+    slow = validate_trajectory(J, names, times, p.tolist(), v.tolist(), a.tolist())
+    for f in ("times", "positions", "velocities", "accelerations"):
+        np.testing.assert_array_equal(getattr(fast, f), getattr(slow, f))
+    assert fast.positions[0].tolist() == [p[0, 1], p[0, 2], p[0, 0]]  # model order a, b, c
+    assert fast.fields is None and slow.fields is None
+    bad = p.copy()
+    bad[2, 1] = np.nan
+    for rows in (bad, bad.tolist()):
+        expect("non_finite", "point 2: positions of a is nan", names=names, times=times, positions=rows)
+    for rows in (np.zeros((4, 2)), np.zeros((4, 2)).tolist()):
+        expect("length_mismatch", "point 0: 2 positions for 3 joints", names=names, times=times, positions=rows)
+
+
 @pytest.mark.parametrize("mode,order", [("quintic", 2), ("cubic", 1), ("spline", 2), ("linear", 0)])
 def test_interpolation_hits_waypoints_and_is_continuous(mode, order):
     traj = random_traj(seed=3)

@@ -173,7 +173,7 @@ def _rows(seqs: list) -> np.ndarray | list:
         return seqs
     if k == 0:
         return np.zeros((len(seqs), 0))
-    return np.frombuffer(b"".join([bytes(memoryview(r).cast("B")) if isinstance(r, array.array)
+    return np.frombuffer(b"".join([r.tobytes() if isinstance(r, array.array)
                                    else np.asarray(r, dtype=float).tobytes() for r in seqs]),
                          dtype=float).reshape(len(seqs), k)
 

@@ -19,7 +19,9 @@ Each goal's decision and its end are published (and recorded) on ``~/gate_decisi
 (:mod:`dyn_node.gate.outcomes`); ``dyn_node: gate`` in /diagnostics counts them. The action
 server and the downstream client live on a helper node spun by one thread of their own; every
 goal is a coroutine on it (goal callback, execution, following: rclpy futures, no thread per goal,
-no polling), and the checks run on one worker thread behind a bounded queue (``gate.max_pending``).
+no polling). A goal is decided in its goal callback when the gate is idle and its check bounded
+(:meth:`Gate._inline`); otherwise its check runs on one worker thread behind a bounded queue
+(``gate.max_pending``).
 """
 from __future__ import annotations
 
@@ -102,6 +104,10 @@ class _Goal:
     names: list = field(default_factory=list)  # the model's joint names (the forwarded trajectory's)
 
 
+#: the most points a goal decided in its goal callback may have (the check takes ~25 µs a point
+#: on the Panda: the executor is held for at most ~15 ms); longer goals go to the check thread
+INLINE_MAX_POINTS = 500
+
 #: executor turns close() runs after the spin thread stopped (pending result responses)
 _DRAIN_TURNS = 20
 
@@ -130,9 +136,11 @@ class Gate:
         self.timeout = float(params["gate.timeout"])
         self._state, self._publish, self._executed = state, publish, executed
         self._lock = threading.Lock()
-        self._dyn: Dynamics | None = None  # the check worker's
+        self._dyn: Dynamics | None = None  # the checks' (one at a time: inline only while none is queued)
         self._retime_s = 0.2  # the retimer's expected run time (s), learnt from its runs
         self._jobs: queue.Queue = queue.Queue(maxsize=int(params["gate.max_pending"]))
+        self._pending = 0  # goals queued for or in the check thread
+        self._inline_free_at = 0.0  # monotonic s from which a goal may be decided in its callback
         self._goals: dict[int, _Goal] = {}  # id(goal request) → goal, until its execution starts
         self._running: dict[int, _Goal] = {}  # accepted downstream, until the client's goal ends
         self._handles: dict[int, _Goal] = {}  # id(server goal handle) → goal, while it executes
@@ -181,12 +189,28 @@ class Gate:
             if job is None:
                 return
             g, fut = job
-            try:
-                answer = self._check(g)
-            except Exception as exc:  # a failing check still answers the client
-                self.logger.error(f"gate: check failed:\n{traceback.format_exc()}")
-                answer = rejected(TrajectoryError(f"check failed: {exc!r}", code="evaluation_failed")), [], {}
+            answer = self._decide(g)
+            with self._lock:
+                self._pending -= 1
             fut.set_result(answer)
+
+    def _decide(self, g: _Goal) -> tuple[Decision, list[str], dict]:
+        try:
+            return self._check(g)
+        except Exception as exc:  # a failing check still answers the client
+            self.logger.error(f"gate: check failed:\n{traceback.format_exc()}")
+            return rejected(TrajectoryError(f"check failed: {exc!r}", code="evaluation_failed")), [], {}
+
+    def _inline(self, g: _Goal) -> bool:
+        """Whether to decide in the goal callback: a crossing to the check thread and back costs
+        the goal its scheduling (GIL, executor wake-up), up to ~5 ms each way on a busy machine.
+        Only a bounded check (reject or check mode, at most INLINE_MAX_POINTS points) with no
+        check queued or running, and while inline checks took at most half of the executor's
+        time: under a flood goals go through the bounded queue (gate_busy when it is full)."""
+        if self.options.mode == "retime" or len(g.goal.trajectory.points) > INLINE_MAX_POINTS:
+            return False
+        with self._lock:
+            return self._pending == 0 and time.monotonic() >= self._inline_free_at
 
     def _check(self, g: _Goal) -> tuple[Decision, list[str], dict]:
         """The decision, the model's joint names, and what the record needs of the decision's
@@ -226,13 +250,24 @@ class Gate:
     async def _answer(self, g: _Goal) -> GoalResponse:
         if self._closing:
             return self._refuse_unchecked(g, out.REFUSED_CLOSING, out.closing_text())
-        fut = self.waits.future()
-        try:
-            self._jobs.put_nowait((g, fut))
-        except queue.Full:
-            return self._refuse_unchecked(g, out.GATE_BUSY, out.busy_text(self._jobs.qsize()))
-        await fut
-        decision, names, inputs = fut.result()
+        if self._inline(g):
+            t = time.monotonic()
+            decision, names, inputs = self._decide(g)
+            self._inline_free_at = 2 * time.monotonic() - t  # as long again before the next one
+        else:
+            fut = self.waits.future()
+            with self._lock:
+                try:
+                    self._jobs.put_nowait((g, fut))
+                except queue.Full:
+                    waiting = self._jobs.qsize()
+                else:
+                    waiting = None
+                    self._pending += 1
+            if waiting is not None:
+                return self._refuse_unchecked(g, out.GATE_BUSY, out.busy_text(waiting))
+            await fut
+            decision, names, inputs = fut.result()
         g.decision = decision
         g.record = lambda *a: self._record(g, names, inputs, *a)
         if not decision.forwards:

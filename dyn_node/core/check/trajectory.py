@@ -110,6 +110,22 @@ def _missing_and_close(unknown: Sequence[str], missing: Sequence[str], what: str
             + (f" (did you mean {', '.join(hints)}?)" if hints else ""))
 
 
+def _rows_matrix(rows: Sequence[Sequence[float]], field: str, required: bool, nj: int, n_pts: int,
+                 given: dict[str, np.ndarray]) -> np.ndarray | None:
+    """Rows of any lengths (validate_trajectory's general case): None when an optional field is
+    empty at every point; else the N×nj matrix (an empty point's row zeros, ``given[field]`` says
+    which points had it). Each point's field empty or one per joint, as the controller validates
+    it (joint_trajectory_controller.cpp validate_trajectory_point_field, allow_empty)."""
+    lengths = {len(r) for r in rows}
+    if not required and lengths == {0}:
+        return None
+    for i, r in enumerate(rows):
+        if len(r) != nj and (required or len(r)):
+            raise TrajectoryError(f"point {i}: {len(r)} {field} for {nj} joints", code="length_mismatch")
+    given[field] = np.array([len(r) > 0 for r in rows])
+    return np.asarray([r if len(r) else [0.0] * nj for r in rows], dtype=float).reshape(n_pts, nj)
+
+
 def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
                         times: Sequence[float], positions: Sequence[Sequence[float]],
                         velocities: Sequence[Sequence[float]] | None = None,
@@ -152,17 +168,15 @@ def validate_trajectory(model_joints: Sequence[str], names: Sequence[str],
             return None
         if len(rows) != n_pts:
             raise TrajectoryError(f"{len(rows)} {field} rows for {n_pts} times", code="length_mismatch")
-        lengths = {len(r) for r in rows}
-        if not required and lengths == {0}:
-            return None
-        # each point's field empty or one per joint, as the controller validates it
-        # (joint_trajectory_controller.cpp validate_trajectory_point_field, allow_empty)
-        for i, r in enumerate(rows):
-            if len(r) != nj and (required or len(r)):
-                raise TrajectoryError(f"point {i}: {len(r)} {field} for {nj} joints",
-                                      code="length_mismatch")
-        given[field] = np.array([len(r) > 0 for r in rows])
-        m = np.asarray([r if len(r) else [0.0] * nj for r in rows], dtype=float).reshape(n_pts, nj)
+        if isinstance(rows, np.ndarray) and rows.ndim == 2 and rows.shape[1] == nj > 0:
+            # one N×nj array (a message's rows, convert.trajectory_arrays): every point full, the
+            # same checks without a Python loop over the rows (~1 ms of a 100-point gate goal)
+            given[field] = np.ones(n_pts, dtype=bool)
+            m = np.asarray(rows, dtype=float)
+        else:
+            m = _rows_matrix(rows, field, required, nj, n_pts, given)
+            if m is None:
+                return None
         if not np.all(np.isfinite(m)):
             i, j = np.argwhere(~np.isfinite(m))[0]
             raise TrajectoryError(f"point {i}: {field} of {names[j]} is {m[i, j]}", code="non_finite")
