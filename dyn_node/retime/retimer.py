@@ -25,7 +25,7 @@ from dyn_node.core.check.constraints import Violation
 from dyn_node.core.check.kinds import KIND_CLASS
 from dyn_node.core.check.trajectory import Trajectory, clamped_spline_velocities, from_current_state
 from dyn_node.errors import TrajectoryError
-from dyn_node.retime import candidates, timing, topp
+from dyn_node.retime import candidates, knots, timing, topp
 from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
                                   validate_input)
 from dyn_node.retime.result import RetimeResult
@@ -95,6 +95,8 @@ class _Search:
     #: the second smoothing window (timing.smoothed): two output periods, kept when only
     #: :func:`_finer` halves the period (a narrower one would steepen the corners it rounds)
     w2: float = 0.0
+    #: a cubic path's knots (knots.find), None elsewhere
+    knots: knots.Knots | None = None
 
     def __post_init__(self) -> None:
         self.w2 = self.w2 or 2 * self.period
@@ -274,6 +276,11 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     if sr.sd0 > 0:
         # the window's lead runs at ṡ₀: no wider than where ṡ₀ is still controllable
         sr.w = min(sr.w, _LEAD_SHARE * _lead_room(sr, memo["reach"]))
+    # a cubic path's knots: ṡ² capped in closed form where their ramps would stray from the
+    # path, before the first round rather than after one fails (knots.py)
+    sr.knots = knots.find(sr.dynamics, sr.path, sr.sd0 > 0)
+    if sr.knots is not None:
+        knots.precap(sr.knots, sr.grid, x0, sr.cap, sr.tolerance, sr.period, sr.w, sr.w2)
     # later rounds skip the payload margin (it does not decide feasibility); the answer gets
     # the full check with the caller's options
     plain = replace(sr.options, compute_payload_margin=False)
@@ -305,9 +312,11 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, sr.w2, pts)
         if out is None:
             return None
-        out, dev = _knots_averaged(sr, x, out, dev)
-        if out is None:        # ṡ² capped at the knots: the next round solves again
-            continue
+        if sr.knots is not None:
+            out, dev = knots.averaged(sr.dynamics, sr.knots, sr.grid, x, sr.cap, lw, sr.w,
+                                      sr.w2, out, dev, sr.period, sr.tolerance)
+            if out is None:    # ṡ² capped at the knots: the next round solves again
+                continue
         # the first rounds, which usually pass, check in full at once (a second check of the
         # answer costs more than the payload margin of a round that fails)
         opts = sr.options if rnd <= _FULL_ROUNDS else plain
@@ -326,44 +335,6 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         if not _adjust(sr, over, lw, x):
             return None
     return None
-
-
-def _knots_averaged(sr: _Search, x: np.ndarray, out: Trajectory, dev: float
-                    ) -> tuple[Trajectory | None, float]:
-    """On a path whose q'' jumps at its knots (cubic points: C¹ only) the output's q̈ jumps
-    there by Δq''·ṡ², which no smoothing of the law spreads: the output averaged in joint space
-    over the window that ramps those jumps within the jerk and effort-rate limits
-    (candidates.averaged); unchanged elsewhere. (None, dev) when that strays beyond the path
-    tolerance: ṡ² is then capped at the knots for the next round."""
-    p = sr.path
-    base = p.base if isinstance(p, ArcPath) else p
-    if (sr.sd0 > 0 or base.untimed or base.nominal.natural_interpolation != "cubic"
-            or len(base.pp.breaks) < 3):
-        return out, dev
-    sk = base.pp.breaks[1:-1]
-    eps = 1e-9 * max(1.0, float(base.pp.breaks[-1]))
-    q, d1, d2 = base.derivatives(sk)
-    jump = d2 - base.derivatives(sk - eps)[2]
-    at = sk
-    if isinstance(p, ArcPath):
-        # by arc length only the part of q'' across the path jumps: (q'' − t(t·q''))/|q'|²
-        n = np.linalg.norm(d1, axis=1, keepdims=True)
-        d1 = d1 / n
-        jump = (jump - d1 * np.sum(d1 * jump, axis=1, keepdims=True)) / n**2
-        at = p.arc_of(sk)
-    xk = np.interp(at, sr.grid, x)
-    W = candidates.knot_window(sr.dynamics, q, d1 * np.sqrt(np.maximum(xk, 0.0))[:, None],
-                               np.zeros_like(jump), jump * xk[:, None], sr.period)
-    avg, more = candidates.averaged(sr.dynamics, out, sr.period, sr.tolerance - dev, W)
-    if avg is not None:
-        return avg, dev + more
-    # beyond the path tolerance: the window's deviation goes as the jumps cubed (W ∝ Δq̈,
-    # deviation ∝ Δq̈·W²), and the jumps as ṡ²: ṡ² capped around the knots to fit
-    factor = 0.9 * max((sr.tolerance - dev) / more, 0.0) ** (1 / 3)
-    for i in np.searchsorted(sr.grid, at):
-        lo, hi = max(0, i - _CAP_CELLS), min(len(x), i + _CAP_CELLS + 1)
-        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
-    return None, dev
 
 
 def _finer(sr: _Search, over: Sequence[Violation]) -> bool:
