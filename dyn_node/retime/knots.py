@@ -29,6 +29,9 @@ from dyn_node.retime.path import ArcPath
 #: the share of the path tolerance a knot's own ramp may take when ṡ² is capped before the
 #: first round (the global window is the largest knot's, and the points add their own)
 PRECAP_SHARE = 0.5
+#: the share of the jerk and effort-rate limits a knot's ramp may take (the law's own rate
+#: of τ along the path adds to it there)
+RAMP_SHARE = 0.75
 #: the least half-width (grid cells) of a knot's cap
 CAP_CELLS = 8
 
@@ -70,13 +73,13 @@ def find(dynamics, path, moving: bool) -> Knots | None:
     per_x = np.zeros(len(sk))
     with np.errstate(divide="ignore", invalid="ignore"):
         if np.any(np.isfinite(lim.jerk)):
-            r = np.where(np.isfinite(lim.jerk), np.abs(jump) / (0.9 * lim.jerk), 0.0)
+            r = np.where(np.isfinite(lim.jerk), np.abs(jump) / (RAMP_SHARE * lim.jerk), 0.0)
             per_x = np.maximum(per_x, np.nanmax(r, axis=1))
         if np.any(np.isfinite(lim.effort_rate)):
             # the jump of τ is M·Δq̈ exactly (the velocity terms are continuous)
             z = np.zeros_like(q)
             dtau = np.abs(dynamics.rnea_batch(q, z, jump) - dynamics.rnea_batch(q, z, z))
-            r = np.where(np.isfinite(lim.effort_rate), dtau / (0.9 * lim.effort_rate), 0.0)
+            r = np.where(np.isfinite(lim.effort_rate), dtau / (RAMP_SHARE * lim.effort_rate), 0.0)
             per_x = np.maximum(per_x, np.nanmax(r, axis=1))
     return Knots(at, q, d1, jump, per_x, np.max(np.abs(jump), axis=1))
 
