@@ -56,6 +56,9 @@ _HALVINGS = 3
 #: the share of the limits a moving start that needs all its braking is retried at: the
 #: limits themselves, less the rounding of the check's own sums
 _FULL = 1 - 1e-9
+#: a limit margin this close to 1 is the rows' rounding room (dyn-check's 0.995), not a
+#: controller's headroom: a path it leaves no timing is retried at the limits themselves
+_ROUNDING = 0.99
 
 
 @dataclass
@@ -363,14 +366,18 @@ def _solved(sr: _Search, memo: dict) -> np.ndarray | None:
         # TOPP-RA's forward pass backs a start it cannot hold off (its tolerance): the
         # robot's ṡ₀ is not the law's to change
         memo["x"] = x if x is None or x[0] >= sr.sd0**2 * (1 - 1e-12) else None
-        if memo["x"] is None and sr.sd0 > 0 and not np.isfinite(sr.cap).any():
+        if memo["x"] is None and not np.isfinite(sr.cap).any():
             _refuse(sr)
     return memo["x"]
 
 
 def _refuse(sr: _Search) -> None:
-    """TOPP-RA has no timing from the moving robot's ṡ₀ under the rows alone."""
-    if not sr.refused:
+    """TOPP-RA has no timing from the moving robot's ṡ₀ (or from rest) under the rows alone."""
+    if not sr.refused and sr.sd0 == 0:
+        sr.refused = True
+        sr.notes.append(f"the limits × {sr.margin:.9g} leave no timing (a static load takes "
+                        "more than their share somewhere on the path)")
+    elif not sr.refused:
         sr.refused = True
         sr.notes.append(f"the robot's ṡ0 = {sr.sd0:.6g} (its velocity along the path) is "
                         "outside TOPP-RA's controllable set at the start: no braking within "
@@ -500,9 +507,12 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
     for i, (p, grid, terms) in enumerate(parts):
         first = start if i == 0 else None
         sd0 = _start_speed(p, None if first is None else first.velocities)
-        # a robot that needs every bit of its braking: the limits themselves (the exact
-        # check still decides) when their share leaves its ṡ₀ no timing
-        for share in (margin, _FULL) if sd0 > 0 and margin < _FULL else (margin,):
+        # a robot that needs every bit of its braking, or a path where a static load takes
+        # more than the rows' rounding share (dyn-check's 0.995; a controller's margin is
+        # kept): the limits themselves (the exact check still decides) when their share
+        # leaves no timing
+        retry = margin < _FULL and (sd0 > 0 or margin >= _ROUNDING)
+        for share in (margin, _FULL) if retry else (margin,):
             rows = topp.joint_rows(dynamics, p, grid, scale=share, terms=terms)
             spent = sum(f["trajectory"].duration for f in found)
             sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
