@@ -36,6 +36,8 @@ _RAMP_KINDS = ("jerk", "effort_rate")
 _FINER = 2
 #: the least half-width (grid cells) of a local cap
 _CAP_CELLS = 8
+#: a long cubic path is searched in pieces of this many segments (:func:`_long_cuts`)
+_PIECE_KNOTS = 10
 #: rounds checked with the caller's options in full (payload margin too)
 _FULL_ROUNDS = 2
 #: the first window over the one that spreads every jump of τ (timing.switch_window) for the
@@ -471,7 +473,8 @@ def _search_paths(dynamics: Dynamics, path: Path, grid_points: int) -> list[tupl
     """The pieces between the path's stops (:func:`pieces`; the whole path when it has none),
     each by arc length when it starts or ends at rest (q' = 0: singular in s), with its grid
     and its :func:`topp.joint_terms` there."""
-    parts = pieces(path) if stops(path).size else [path]
+    cut = _long_cuts(path)
+    parts = pieces(path, cut) if stops(path).size or cut.size else [path]
     out = []
     for part in parts:
         p = ArcPath(part) if _singular_end(part) else part
@@ -479,6 +482,18 @@ def _search_paths(dynamics: Dynamics, path: Path, grid_points: int) -> list[tupl
         grid = np.linspace(p.pp.breaks[0], p.pp.breaks[-1], n + 1)
         out.append((p, grid, topp.joint_terms(dynamics, p, grid)))
     return out
+
+
+def _long_cuts(path: Path) -> np.ndarray:
+    """Knots where a long cubic path is cut, the search stopping there: every
+    :data:`_PIECE_KNOTS`-th inner knot when it has more than that. Its joint-space average
+    (knots.py) has one window for the whole output, the widest any knot needs, and the law's
+    smoothing one for its largest switch; on 250 waypoints the knots' caps under them slowed
+    the whole law past the stretch (202 s against T* 72 s). A piece keeps its own."""
+    n = len(path.pp.breaks) - 2
+    if path.untimed or path.nominal.natural_interpolation != "cubic" or n <= 2 * _PIECE_KNOTS:
+        return np.zeros(0, dtype=int)
+    return np.arange(_PIECE_KNOTS, n + 1 - _PIECE_KNOTS // 2, _PIECE_KNOTS)
 
 
 def _lower_bound(dynamics: Dynamics, path: Path, grid_points: int, sd0: float = 0.0
