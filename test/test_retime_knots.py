@@ -163,3 +163,22 @@ def test_250_waypoints_answered_by_the_search(dyn) -> None:
     assert res.lower_bound <= res.duration_out <= 1.5 * res.lower_bound
     assert passes(verify(dyn, res.trajectory))
     assert _off_path(tr, res.trajectory) <= 1e-4 + 1.5e-5
+
+
+@pytest.mark.skipif(os.environ.get("DYN_RELIABILITY_FULL") != "1",
+                    reason="long run (~1 min with the verification): DYN_RELIABILITY_FULL=1")
+def test_250_waypoints_stretch_widens_its_window(dyn, monkeypatch) -> None:
+    """The same path's stretch (the answer when the search fails, here made to fail): its
+    averaging window at 90 % of the limits left the effort rate 1.09× between points at
+    1.001 × k and 1.11× at the points at 1.005 × k, and every stretch failed. Widened by the
+    worst ratio it passes at the first pad, verified independently."""
+    from dyn_node.retime import retimer
+
+    monkeypatch.setattr(retimer, "_by_pieces", lambda *a, **k: None)
+    tr = waypoint_path(dyn, np.random.default_rng(300), 250, spread=0.4, step=0.3)
+    res = retime(dyn, tr)
+    k = res.input_check.time_scale
+    assert res.feasible and res.method == "uniform", res.message
+    assert res.duration_out <= 1.005 * k * tr.duration
+    assert passes(verify(dyn, res.trajectory))
+    assert _off_path(tr, res.trajectory) <= 1e-4 + 1.5e-5
