@@ -31,6 +31,8 @@ RATE_SHARE = 0.995
 MARGIN_TRIES = 4
 #: how far over the margin a stretch may reach, relative (velocity at 1/1.005 is 0.995 × 1.00002)
 MARGIN_RTOL = 1e-4
+#: widenings of a stretched cubic's averaging window at most (:func:`_averaged_judged`)
+WIDEN_TRIES = 2
 #: the unit field of the screen's violations (they are ratios, found between points)
 BETWEEN = "between points"
 #: the stretch's factors over the check's time scale, tried in turn (docs/retime.md: every
@@ -173,19 +175,22 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
         if how == "own":
             out, dev = stretched(traj, kk), 0.0
         elif how == "averaged":
-            out, dev = averaged(dynamics, stretched(traj, kk), period, tolerance)
-            if out is None:
+            got = _averaged_judged(dynamics, stretched(traj, kk), period, tolerance, options,
+                                   start)
+            if got is None:
                 continue
+            out, dev, res, over = got
         else:
             grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], 2)
             lw = timing.law(grid, np.full(2, 1.0 / kk**2))
             out, dev = dense(path, lw, 0.0, period)
             if out is None:
                 continue
-        try:
-            res, over = judge(dynamics, out, options, start)
-        except TrajectoryError:
-            continue
+        if how != "averaged":
+            try:
+                res, over = judge(dynamics, out, options, start)
+            except TrajectoryError:
+                continue
         if res.feasible and not over and res.worst_ratio <= share:
             return dict(trajectory=out, check=res, method="uniform", deviation=dev)
         # over the share: velocity's ratio falls as 1/k, every other kind's at least as fast
@@ -194,6 +199,29 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
             1.0 + SLACK if over else res.worst_ratio / share * (1.0 + 1e-6)
         needs[how] = pad * max(grow, 1.0 + SLACK)
     return None
+
+
+def _averaged_judged(dynamics: Dynamics, traj: Trajectory, period: float, tolerance: float,
+                     options: FeasibilityOptions, start) -> tuple | None:
+    """The stretched cubic averaged (:func:`averaged`) and judged, its window widened (at most
+    :data:`WIDEN_TRIES` times, by the worst ratio) while only jerk or effort rate is over:
+    the knots' ramps at 90 % of those limits leave nothing for the motion's own rate of τ
+    beside them (issue 39's 250-waypoint path: 1.09–1.11× at 1.001 and 1.005 × k).
+    (out, deviation, check, over) or None."""
+    widen = 1.0
+    for _ in range(WIDEN_TRIES + 1):
+        out, dev = averaged(dynamics, traj, period, tolerance, widen=widen)
+        if out is None:
+            return None
+        try:
+            res, over = judge(dynamics, out, options, start)
+        except TrajectoryError:
+            return None
+        found = over if res.feasible else list(res.violations)
+        if not found or any(v.kind not in ("jerk", "effort_rate") for v in found):
+            break
+        widen *= min(1.5, max(abs(v.peak_value) / v.limit for v in found)) * 1.05
+    return out, dev, res, over
 
 
 def stretch_share(margin: float) -> float:
@@ -223,21 +251,22 @@ def knot_window(dynamics: Dynamics, q: np.ndarray, v: np.ndarray, a_lo: np.ndarr
 
 
 def averaged(dynamics: Dynamics, traj: Trajectory, period: float, tolerance: float,
-             W: float | None = None) -> tuple[Trajectory | None, float]:
+             W: float | None = None, widen: float = 1.0) -> tuple[Trajectory | None, float]:
     """``traj`` (cubic points, already stretched) averaged over a moving window W in joint space,
     as quintic points every ≤ ``period``: q̄(t) = (1/W)∫_{t−W}^{t} q, held at its ends, so the
     motion starts and ends at rest and lasts W longer. Its velocity and acceleration are
     averages of the input's (within the same limits), and each jump of q̈ at a knot (the cubic
     is C¹ only: no quintic follows it) becomes a ramp of length W, W sized so that the jumps
     stay within 90 % of the jerk and effort-rate limits. (None, dev) when q̄ strays more than
-    ``tolerance`` from the input's curve (measured at the window's centre)."""
+    ``tolerance`` from the input's curve (measured at the window's centre). ``widen``: W × this
+    (the knots' own window when W is not given)."""
     pp = interpolate(traj, traj.jtc_interpolation)
     b, c = pp.breaks, pp.coeffs
     if W is None:
         knots = b[1:-1]
         a_lo = pp.evaluate(np.maximum(knots - 1e-12 * (1 + abs(b[-1])), b[0]), orders=3)[2]
         q, v, a_hi = pp.evaluate(knots, orders=3)
-        W = knot_window(dynamics, q, v, a_lo, a_hi, period)
+        W = knot_window(dynamics, q, v, a_lo, a_hi, period) * widen
     # the antiderivative F of q, piece by piece (local coefficients c_k/(k+1), constants summed)
     deg = c.shape[1]
     C = np.zeros((c.shape[0], deg + 1, c.shape[2]))

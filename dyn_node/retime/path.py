@@ -101,10 +101,11 @@ def stops(path: Path) -> np.ndarray:
     return np.flatnonzero(knot[1:-1] <= NEAR_STOP * near) + 1
 
 
-def pieces(path: Path) -> list[Path]:
-    """The path cut at its :func:`stops`: each piece the same polynomials between two of them
-    (a path of its own, from rest to rest)."""
-    cuts = [0, *stops(path).tolist(), len(path.pp.breaks) - 1]
+def pieces(path: Path, also: np.ndarray | None = None) -> list[Path]:
+    """The path cut at its :func:`stops` (and at the knots ``also``): each piece the same
+    polynomials between two of them (a path of its own, from rest to rest)."""
+    inner = set(stops(path).tolist()) | set(() if also is None else np.asarray(also).tolist())
+    cuts = [0, *sorted(inner), len(path.pp.breaks) - 1]
     nom = path.nominal
     out = []
     for a, b in zip(cuts[:-1], cuts[1:]):

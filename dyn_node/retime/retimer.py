@@ -25,7 +25,7 @@ from dyn_node.core.check.constraints import Violation
 from dyn_node.core.check.kinds import KIND_CLASS
 from dyn_node.core.check.trajectory import Trajectory, clamped_spline_velocities, from_current_state
 from dyn_node.errors import TrajectoryError
-from dyn_node.retime import candidates, timing, topp
+from dyn_node.retime import candidates, knots, timing, topp
 from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
                                   validate_input)
 from dyn_node.retime.result import RetimeResult
@@ -36,6 +36,10 @@ _RAMP_KINDS = ("jerk", "effort_rate")
 _FINER = 2
 #: the least half-width (grid cells) of a local cap
 _CAP_CELLS = 8
+#: a long cubic path is searched in pieces of this many segments (:func:`_long_cuts`;
+#: measured on the 250-waypoint path: 3 → 92.2 s, 5 → 93.5 s, 10 → 106 s, 20 → 161 s, one
+#: piece → cut at the stretch's 202 s)
+_PIECE_KNOTS = 5
 #: rounds checked with the caller's options in full (payload margin too)
 _FULL_ROUNDS = 2
 #: the first window over the one that spreads every jump of τ (timing.switch_window) for the
@@ -56,6 +60,9 @@ _HALVINGS = 3
 #: the share of the limits a moving start that needs all its braking is retried at: the
 #: limits themselves, less the rounding of the check's own sums
 _FULL = 1 - 1e-9
+#: a limit margin this close to 1 is the rows' rounding room (dyn-check's 0.995), not a
+#: controller's headroom: a path it leaves no timing is retried at the limits themselves
+_ROUNDING = 0.99
 
 
 @dataclass
@@ -95,6 +102,8 @@ class _Search:
     #: the second smoothing window (timing.smoothed): two output periods, kept when only
     #: :func:`_finer` halves the period (a narrower one would steepen the corners it rounds)
     w2: float = 0.0
+    #: a cubic path's knots (knots.find), None elsewhere
+    knots: knots.Knots | None = None
 
     def __post_init__(self) -> None:
         self.w2 = self.w2 or 2 * self.period
@@ -274,6 +283,11 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
     if sr.sd0 > 0:
         # the window's lead runs at ṡ₀: no wider than where ṡ₀ is still controllable
         sr.w = min(sr.w, _LEAD_SHARE * _lead_room(sr, memo["reach"]))
+    # a cubic path's knots: ṡ² capped in closed form where their ramps would stray from the
+    # path, before the first round rather than after one fails (knots.py)
+    sr.knots = knots.find(sr.dynamics, sr.path, sr.sd0 > 0)
+    if sr.knots is not None:
+        knots.precap(sr.knots, sr.grid, x0, sr.cap, sr.tolerance, sr.period, sr.w, sr.w2)
     # later rounds skip the payload margin (it does not decide feasibility); the answer gets
     # the full check with the caller's options
     plain = replace(sr.options, compute_payload_margin=False)
@@ -305,9 +319,11 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         out, dev = _dense(sr.path, lw, sr.w, sr.period, sr.tolerance, sr.w2, pts)
         if out is None:
             return None
-        out, dev = _knots_averaged(sr, x, out, dev)
-        if out is None:        # ṡ² capped at the knots: the next round solves again
-            continue
+        if sr.knots is not None:
+            out, dev = knots.averaged(sr.dynamics, sr.knots, sr.grid, x, sr.cap, lw, sr.w,
+                                      sr.w2, out, dev, sr.period, sr.tolerance)
+            if out is None:    # ṡ² capped at the knots: the next round solves again
+                continue
         # the first rounds, which usually pass, check in full at once (a second check of the
         # answer costs more than the payload margin of a round that fails)
         opts = sr.options if rnd <= _FULL_ROUNDS else plain
@@ -326,44 +342,6 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         if not _adjust(sr, over, lw, x):
             return None
     return None
-
-
-def _knots_averaged(sr: _Search, x: np.ndarray, out: Trajectory, dev: float
-                    ) -> tuple[Trajectory | None, float]:
-    """On a path whose q'' jumps at its knots (cubic points: C¹ only) the output's q̈ jumps
-    there by Δq''·ṡ², which no smoothing of the law spreads: the output averaged in joint space
-    over the window that ramps those jumps within the jerk and effort-rate limits
-    (candidates.averaged); unchanged elsewhere. (None, dev) when that strays beyond the path
-    tolerance: ṡ² is then capped at the knots for the next round."""
-    p = sr.path
-    base = p.base if isinstance(p, ArcPath) else p
-    if (sr.sd0 > 0 or base.untimed or base.nominal.natural_interpolation != "cubic"
-            or len(base.pp.breaks) < 3):
-        return out, dev
-    sk = base.pp.breaks[1:-1]
-    eps = 1e-9 * max(1.0, float(base.pp.breaks[-1]))
-    q, d1, d2 = base.derivatives(sk)
-    jump = d2 - base.derivatives(sk - eps)[2]
-    at = sk
-    if isinstance(p, ArcPath):
-        # by arc length only the part of q'' across the path jumps: (q'' − t(t·q''))/|q'|²
-        n = np.linalg.norm(d1, axis=1, keepdims=True)
-        d1 = d1 / n
-        jump = (jump - d1 * np.sum(d1 * jump, axis=1, keepdims=True)) / n**2
-        at = p.arc_of(sk)
-    xk = np.interp(at, sr.grid, x)
-    W = candidates.knot_window(sr.dynamics, q, d1 * np.sqrt(np.maximum(xk, 0.0))[:, None],
-                               np.zeros_like(jump), jump * xk[:, None], sr.period)
-    avg, more = candidates.averaged(sr.dynamics, out, sr.period, sr.tolerance - dev, W)
-    if avg is not None:
-        return avg, dev + more
-    # beyond the path tolerance: the window's deviation goes as the jumps cubed (W ∝ Δq̈,
-    # deviation ∝ Δq̈·W²), and the jumps as ṡ²: ṡ² capped around the knots to fit
-    factor = 0.9 * max((sr.tolerance - dev) / more, 0.0) ** (1 / 3)
-    for i in np.searchsorted(sr.grid, at):
-        lo, hi = max(0, i - _CAP_CELLS), min(len(x), i + _CAP_CELLS + 1)
-        sr.cap[lo:hi] = np.minimum(sr.cap[lo:hi], x[lo:hi] * factor)
-    return None, dev
 
 
 def _finer(sr: _Search, over: Sequence[Violation]) -> bool:
@@ -392,14 +370,18 @@ def _solved(sr: _Search, memo: dict) -> np.ndarray | None:
         # TOPP-RA's forward pass backs a start it cannot hold off (its tolerance): the
         # robot's ṡ₀ is not the law's to change
         memo["x"] = x if x is None or x[0] >= sr.sd0**2 * (1 - 1e-12) else None
-        if memo["x"] is None and sr.sd0 > 0 and not np.isfinite(sr.cap).any():
+        if memo["x"] is None and not np.isfinite(sr.cap).any():
             _refuse(sr)
     return memo["x"]
 
 
 def _refuse(sr: _Search) -> None:
-    """TOPP-RA has no timing from the moving robot's ṡ₀ under the rows alone."""
-    if not sr.refused:
+    """TOPP-RA has no timing from the moving robot's ṡ₀ (or from rest) under the rows alone."""
+    if not sr.refused and sr.sd0 == 0:
+        sr.refused = True
+        sr.notes.append(f"the limits × {sr.margin:.9g} leave no timing (a static load takes "
+                        "more than their share somewhere on the path)")
+    elif not sr.refused:
         sr.refused = True
         sr.notes.append(f"the robot's ṡ0 = {sr.sd0:.6g} (its velocity along the path) is "
                         "outside TOPP-RA's controllable set at the start: no braking within "
@@ -493,7 +475,8 @@ def _search_paths(dynamics: Dynamics, path: Path, grid_points: int) -> list[tupl
     """The pieces between the path's stops (:func:`pieces`; the whole path when it has none),
     each by arc length when it starts or ends at rest (q' = 0: singular in s), with its grid
     and its :func:`topp.joint_terms` there."""
-    parts = pieces(path) if stops(path).size else [path]
+    cut = _long_cuts(path)
+    parts = pieces(path, cut) if stops(path).size or cut.size else [path]
     out = []
     for part in parts:
         p = ArcPath(part) if _singular_end(part) else part
@@ -501,6 +484,18 @@ def _search_paths(dynamics: Dynamics, path: Path, grid_points: int) -> list[tupl
         grid = np.linspace(p.pp.breaks[0], p.pp.breaks[-1], n + 1)
         out.append((p, grid, topp.joint_terms(dynamics, p, grid)))
     return out
+
+
+def _long_cuts(path: Path) -> np.ndarray:
+    """Knots where a long cubic path is cut, the search stopping there: every
+    :data:`_PIECE_KNOTS`-th inner knot when it has more than that. Its joint-space average
+    (knots.py) has one window for the whole output, the widest any knot needs, and the law's
+    smoothing one for its largest switch; on 250 waypoints the knots' caps under them slowed
+    the whole law past the stretch (202 s against T* 70 s). A piece keeps its own (93.5 s)."""
+    n = len(path.pp.breaks) - 2
+    if path.untimed or path.nominal.natural_interpolation != "cubic" or n <= 2 * _PIECE_KNOTS:
+        return np.zeros(0, dtype=int)
+    return np.arange(_PIECE_KNOTS, n + 1 - _PIECE_KNOTS // 2, _PIECE_KNOTS)
 
 
 def _lower_bound(dynamics: Dynamics, path: Path, grid_points: int, sd0: float = 0.0
@@ -529,9 +524,12 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
     for i, (p, grid, terms) in enumerate(parts):
         first = start if i == 0 else None
         sd0 = _start_speed(p, None if first is None else first.velocities)
-        # a robot that needs every bit of its braking: the limits themselves (the exact
-        # check still decides) when their share leaves its ṡ₀ no timing
-        for share in (margin, _FULL) if sd0 > 0 and margin < _FULL else (margin,):
+        # a robot that needs every bit of its braking, or a path where a static load takes
+        # more than the rows' rounding share (dyn-check's 0.995; a controller's margin is
+        # kept): the limits themselves (the exact check still decides) when their share
+        # leaves no timing
+        retry = margin < _FULL and (sd0 > 0 or margin >= _ROUNDING)
+        for share in (margin, _FULL) if retry else (margin,):
             rows = topp.joint_rows(dynamics, p, grid, scale=share, terms=terms)
             spent = sum(f["trajectory"].duration for f in found)
             sr = _Search(dynamics, p, grid, options, tolerance, period, rows,
