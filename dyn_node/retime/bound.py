@@ -128,7 +128,7 @@ class ByArc:
     """A :class:`Path` by its arc length ℓ (2-norm of q'), evaluated at the path's own s: a
     grid in s keeps the knots exact (:func:`_knots`), the stages' widths in ℓ come from
     :meth:`widths`. (q, q_ℓ, q_ℓℓ) as :class:`ArcPath` has them (q_ℓ = q'/|q'|, q_ℓℓ = (q'' −
-    q_ℓ(q_ℓ·q''))/|q'|², nudged 1e-9 of the length inside the ends where q' = 0)."""
+    q_ℓ(q_ℓ·q''))/|q'|², nudged 1e-6 of the length inside the ends where q' = 0)."""
 
     #: Gauss–Legendre nodes and weights on [−1, 1] (5 points: exact to degree 9)
     _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(5)
@@ -138,7 +138,9 @@ class ByArc:
 
     def derivatives(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         s0, s1 = self.pp.breaks[0], self.pp.breaks[-1]
-        eps = 1e-9 * (s1 - s0)
+        # where q' = 0 (q' ∝ σ or σ² there) its direction is its limit: far enough inside
+        # that rounding cannot flip q' (at 1e-9 of the length a quintic's q' ~ 1e-18 did)
+        eps = 1e-6 * (s1 - s0)
         q, d1, d2 = self.base.derivatives(np.clip(np.asarray(s, dtype=float), s0 + eps, s1 - eps))
         n = np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-300)
         t = d1 / n

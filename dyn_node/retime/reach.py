@@ -180,9 +180,9 @@ def _span(al, be, ce, k, lo, hi):   # pragma: no cover (compiled)
 
 @njit(**_JIT)
 def _outward(lo, hi):   # pragma: no cover (compiled)
-    """An interval widened by rounding's worth (1e-9 relative): the bound's sets contain the
+    """An interval widened by rounding's worth (1e-10 relative): the bound's sets contain the
     exact ones."""
-    return max(0.0, lo - 1e-9 * abs(lo) - 1e-12), hi + 1e-9 * abs(hi) + 1e-12
+    return max(0.0, lo - 1e-10 * abs(lo) - 1e-12), hi + 1e-10 * abs(hi) + 1e-12
 
 
 @njit(**_JIT)
