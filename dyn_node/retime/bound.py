@@ -44,9 +44,9 @@ ROUNDS = 2
 #: a stage is halved where a row's slack exceeds this share of its scale (|limit| + |c|) ...
 TOLERANCE = 0.05
 #: ... at most this many times, and at most as many stages in all as the grid had
-LEVELS = 6
+LEVELS = 3
 #: the stages a loose stage is cut into
-SPLIT = 2
+SPLIT = 4
 
 
 def for_retime(dynamics: Dynamics, path, parts: list[tuple], grid_points: int,
@@ -54,26 +54,33 @@ def for_retime(dynamics: Dynamics, path, parts: list[tuple], grid_points: int,
     """T* and its stages for the retimer (``parts``: its search's pieces, each (path, grid,
     terms); ``start_speed(p)``: ṡ₀ on p): on the search's own path and grid when it is one
     piece (by arc length, :class:`ByArc` at the same points, when it starts or ends at rest),
-    else on the whole path by s (T* may pass its stops moving)."""
+    else on the whole path by arc length (T* may pass its stops moving)."""
     if len(parts) == 1:
         p, grid, terms = parts[0]
         if isinstance(p, ArcPath):
-            s = np.maximum.accumulate(p._s_of(grid))
-            s[0], s[-1] = p.base.pp.breaks[0], p.base.pp.breaks[-1]
-            out = certified(dynamics, ByArc(p.base), np.unique(s), sd_start=start_speed(p))
+            out = certified(dynamics, ByArc(p.base), _s_grid(p, grid), sd_start=start_speed(p))
         else:
             out = certified(dynamics, p, grid, terms=terms, sd_start=start_speed(p))
         if math.isfinite(out[0]):
             return out
-    grid = np.linspace(path.pp.breaks[0], path.pp.breaks[-1], grid_points + 1)
-    return certified(dynamics, path, grid, sd_start=start_speed(path))
+    # by arc length too, on the whole path's arc-length grid
+    arc = ArcPath(path)
+    grid = np.linspace(0.0, arc.length, grid_points + 1)
+    return certified(dynamics, ByArc(path), _s_grid(arc, grid), sd_start=start_speed(arc))
+
+
+def _s_grid(arc: ArcPath, grid: np.ndarray) -> np.ndarray:
+    """The base path's s at an arc-length grid (increasing, ends exact)."""
+    s = np.maximum.accumulate(arc._s_of(grid))
+    s[0], s[-1] = arc.base.pp.breaks[0], arc.base.pp.breaks[-1]
+    return np.unique(s)
 
 
 def certified(dynamics: Dynamics, path, grid: np.ndarray, *, terms: topp.Terms | None = None,
               sd_start: float = 0.0, free_ends: bool = True) -> tuple[float, int]:
     """(T*, the number of stages it holds for) on ``path`` (any object with ``derivatives``:
     :class:`Path` or :class:`ArcPath`) from ``grid`` (``terms``: :func:`topp.joint_terms` there
-    when already computed), its stages halved where the relaxation is loose (:data:`LEVELS`);
+    when already computed), its stages cut where the relaxation is loose (:data:`LEVELS`);
     ``sd_start``: ṡ at the start; ``free_ends``: ṡ free at an end where q' = 0 (the robot is at
     rest there at any ṡ). T* is NaN when the relaxed rows admit no motion (then none does)."""
     grid = np.asarray(grid, dtype=float)
@@ -94,27 +101,32 @@ def certified(dynamics: Dynamics, path, grid: np.ndarray, *, terms: topp.Terms |
     budget = len(grid) - 1
     for level in range(LEVELS + 1):
         d = path.widths(grid) if hasattr(path, "widths") else np.diff(grid)
-        out = _solve(rows, last, mid, d, ends, sd_start, free_ends)
+        final = level == LEVELS or budget <= 0
+        out = _solve(rows, last, mid, d, ends, sd_start, free_ends, 1 if not final else ROUNDS)
         if out is None:
             return math.nan, len(d)
         xbar, up, down, X, loose = out
         bad = np.flatnonzero(loose > TOLERANCE)
-        if level == LEVELS or bad.size == 0 or budget <= 0:
-            break
         # the budget goes where the slack costs most time: looseness × the stage's time
         cost = np.minimum(loose, 1.0) * stage_times(xbar, up, down, X, d)
         bad = np.sort(bad[np.argsort(cost[bad])[::-1][:budget // (SPLIT - 1)]])
+        if final or bad.size == 0:
+            if not final and ROUNDS > 1:
+                # no stage left to cut: this grid is the last, with all the rounds
+                xbar, up, down, X, loose = _solve(rows, last, mid, d, ends, sd_start,
+                                                  free_ends, ROUNDS)
+            break
         budget -= bad.size * (SPLIT - 1)
         grid, rows, last, mid = _split(dynamics, path, grid, rows, last, mid, bad)
     return float(np.sum(stage_times(xbar, up, down, X, d))), len(d)
 
 
-def _solve(rows, last, mid, d, ends, sd_start, free_ends) -> tuple | None:
+def _solve(rows, last, mid, d, ends, sd_start, free_ends, rounds: int) -> tuple | None:
     """x̄ and the stages' U⁺, U⁻, X and looseness (largest slack ÷ the row's scale)."""
     xmax = np.where(np.isfinite(rows.xmax) & (rows.xmax < 1e300), rows.xmax, np.inf)
     st = stages(rows, last, mid)
     X = st["X"]
-    for _ in range(ROUNDS):
+    for _ in range(rounds):
         al, be, ga, up, down, loose = relaxed_rows(st, d, X)
         xbar = _upper(al, be, ga, xmax, d, ends, sd_start, free_ends)
         if xbar is None:
@@ -128,21 +140,33 @@ class ByArc:
     """A :class:`Path` by its arc length ℓ (2-norm of q'), evaluated at the path's own s: a
     grid in s keeps the knots exact (:func:`_knots`), the stages' widths in ℓ come from
     :meth:`widths`. (q, q_ℓ, q_ℓℓ) as :class:`ArcPath` has them (q_ℓ = q'/|q'|, q_ℓℓ = (q'' −
-    q_ℓ(q_ℓ·q''))/|q'|², nudged 1e-6 of the length inside the ends where q' = 0)."""
+    q_ℓ(q_ℓ·q''))/|q'|²; where q' = 0 the limits from the side asked for)."""
 
-    #: Gauss–Legendre nodes and weights on [−1, 1] (5 points: exact to degree 9)
-    _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(5)
+    #: Gauss–Legendre nodes and weights on [−1, 1] (3 points: exact to degree 5)
+    _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(3)
 
     def __init__(self, base):
         self.base, self.pp = base, base.pp
+        self._speed = float(np.max(np.linalg.norm(
+            base.derivatives(np.linspace(base.pp.breaks[0], base.pp.breaks[-1], 101))[1], axis=1)))
 
     def derivatives(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        s0, s1 = self.pp.breaks[0], self.pp.breaks[-1]
-        # where q' = 0 (q' ∝ σ or σ² there) its direction is its limit: far enough inside
-        # that rounding cannot flip q' (at 1e-9 of the length a quintic's q' ~ 1e-18 did)
-        eps = 1e-6 * (s1 - s0)
-        q, d1, d2 = self.base.derivatives(np.clip(np.asarray(s, dtype=float), s0 + eps, s1 - eps))
-        n = np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-300)
+        s = np.asarray(s, dtype=float)
+        q, d1, d2 = self.base.derivatives(s)
+        n = np.linalg.norm(d1, axis=1)
+        # where q' = 0 (an end or a stop, q' ∝ σ or σ² there) its direction is its limit from
+        # the side asked for (a point just below a knot: its left): far enough inside that
+        # rounding cannot flip q' (at 1e-9 of the length a quintic's q' ~ 1e-18 did)
+        flat = n <= 1e-9 * self._speed
+        if np.any(flat):
+            br = self.pp.breaks
+            near = br[np.clip(np.searchsorted(br, s[flat]), 0, len(br) - 1)]
+            eps = 1e-6 * (br[-1] - br[0])
+            at = np.clip(np.where(s[flat] < near, s[flat] - eps, s[flat] + eps),
+                         br[0] + eps, br[-1] - eps)
+            _, d1[flat], d2[flat] = self.base.derivatives(at)
+            n[flat] = np.linalg.norm(d1[flat], axis=1)
+        n = np.maximum(n, 1e-300)[:, None]
         t = d1 / n
         return q, t, (d2 - t * np.sum(t * d2, axis=1, keepdims=True)) / n**2
 
@@ -151,7 +175,8 @@ class ByArc:
         |q'| is smooth on every stage: the rule's error is far below the bound's slack)."""
         h = np.diff(grid)[:, None] / 2
         s = (grid[:-1, None] + h) + h * self._NODES[None, :]
-        speed = np.linalg.norm(self.base.derivatives(s.ravel())[1], axis=1).reshape(s.shape)
+        speed = np.linalg.norm(self.base.pp.evaluate(s.ravel(), orders=2)[1],
+                               axis=1).reshape(s.shape)
         return (h[:, 0] * (speed @ self._WEIGHTS))
 
 
