@@ -99,10 +99,13 @@ def certified(dynamics: Dynamics, path, grid: np.ndarray, *, terms: topp.Terms |
     mid = topp.joint_rows(dynamics, path, 0.5 * (grid[1:] + grid[:-1]), lower_bound=True)
     ends = np.max(np.abs(path.derivatives(grid[[0, -1]])[1]), axis=1)
     budget = len(grid) - 1
+    st = stages(_take(rows, np.arange(len(grid) - 1)), last, mid)
+    st["d"] = _widths(path, grid)
     for level in range(LEVELS + 1):
-        d = path.widths(grid) if hasattr(path, "widths") else np.diff(grid)
+        d = st["d"]
         final = level == LEVELS or budget <= 0
-        out = _solve(rows, last, mid, d, ends, sd_start, free_ends, 1 if not final else ROUNDS)
+        xmax = np.where(np.isfinite(rows.xmax) & (rows.xmax < 1e300), rows.xmax, np.inf)
+        out = _solve(st, xmax, d, ends, sd_start, free_ends, 1 if not final else ROUNDS)
         if out is None:
             return math.nan, len(d)
         xbar, up, down, X, loose = out
@@ -113,18 +116,17 @@ def certified(dynamics: Dynamics, path, grid: np.ndarray, *, terms: topp.Terms |
         if final or bad.size == 0:
             if not final and ROUNDS > 1:
                 # no stage left to cut: this grid is the last, with all the rounds
-                xbar, up, down, X, loose = _solve(rows, last, mid, d, ends, sd_start,
-                                                  free_ends, ROUNDS)
+                xbar, up, down, X, loose = _solve(st, xmax, d, ends, sd_start, free_ends,
+                                                  ROUNDS)
             break
         budget -= bad.size * (SPLIT - 1)
-        grid, rows, last, mid = _split(dynamics, path, grid, rows, last, mid, bad)
+        grid, rows, st = _split(dynamics, path, grid, rows, last, mid, st, bad)
+        last, mid = st.pop("last"), st.pop("mid")
     return float(np.sum(stage_times(xbar, up, down, X, d))), len(d)
 
 
-def _solve(rows, last, mid, d, ends, sd_start, free_ends, rounds: int) -> tuple | None:
+def _solve(st, xmax, d, ends, sd_start, free_ends, rounds: int) -> tuple | None:
     """x̄ and the stages' U⁺, U⁻, X and looseness (largest slack ÷ the row's scale)."""
-    xmax = np.where(np.isfinite(rows.xmax) & (rows.xmax < 1e300), rows.xmax, np.inf)
-    st = stages(rows, last, mid)
     X = st["X"]
     for _ in range(rounds):
         al, be, ga, up, down, loose = relaxed_rows(st, d, X)
@@ -198,10 +200,11 @@ def _cat(parts: list[topp.Rows], order: np.ndarray) -> topp.Rows:
     return topp.Rows(cat("a"), cat("b"), cat("c"), parts[0].g, cat("xmax"))
 
 
-def _split(dynamics, path, grid, rows, last, mid, bad):
-    """The grid with stages ``bad`` cut into :data:`SPLIT` equal stages; its rows, the rows at
-    every stage's end (``last``: from the left at a knot) and at its midpoint (one pass of the
-    path's terms at the new points)."""
+def _split(dynamics, path, grid, rows, last, mid, st, bad):
+    """The grid with stages ``bad`` cut into :data:`SPLIT` equal stages, its rows, and the
+    stages' :func:`stages` (plus ``last``, ``mid``: the rows at each stage's end, from the left
+    at a knot, and midpoint), computed for the new stages only (one pass of the path's terms
+    at the new points)."""
     f = np.arange(1, 2 * SPLIT) / (2 * SPLIT)           # the new points and midpoints
     new = grid[bad, None] + np.diff(grid)[bad, None] * f[None, :]
     fresh = topp.joint_rows(dynamics, path, new.ravel(), lower_bound=True)
@@ -210,15 +213,41 @@ def _split(dynamics, path, grid, rows, last, mid, bad):
     g2 = np.concatenate([grid, new[:, 1::2].ravel()])
     order = np.argsort(g2, kind="stable")
     keep = np.setdiff1d(np.arange(len(grid) - 1), bad)
-    # the stages' ends in order of their starts: a kept stage's own, a cut stage's piece j
-    # ends at its new point j + 1, its last piece at the cut stage's end
     piece = np.concatenate([grid[bad, None], new[:, 1::2]], axis=1)      # starts, B × SPLIT
-    starts = np.concatenate([grid[keep], piece[:, :-1].ravel(), piece[:, -1]])
-    last2 = _cat([_take(last, keep), _take(fresh, pts.ravel()), _take(last, bad)],
-                 np.argsort(starts, kind="stable"))
-    smid = np.concatenate([0.5 * (grid[keep] + grid[keep + 1]), new[:, ::2].ravel()])
-    return (g2[order], _cat([rows, _take(fresh, pts.ravel())], order), last2,
-            _cat([_take(mid, keep), _take(fresh, mids)], np.argsort(smid, kind="stable")))
+    B, inner = len(bad), np.arange(len(bad))[:, None] * (SPLIT - 1) + np.arange(SPLIT - 1)
+    # the new stages, piece j of cut stage r in row-major (r, j) order: piece j starts at the
+    # cut stage's start (j = 0) or its new point j, ends at its new point j + 1 or its end
+    col = np.arange(B)[:, None]
+    first = _cat([_take(rows, bad), _take(fresh, pts.ravel())],
+                  np.concatenate([col, B + inner], axis=1).ravel())
+    end = _cat([_take(fresh, pts.ravel()), _take(last, bad)],
+               np.concatenate([inner, B * (SPLIT - 1) + col], axis=1).ravel())
+    sub = stages(first, end, _take(fresh, mids))
+    sub["d"] = _widths(path, np.column_stack([piece, grid[bad + 1]]))
+    sub.update(last=end, mid=_take(fresh, mids))
+    kept = {k: v[keep] for k, v in st.items()}
+    kept.update(last=_take(last, keep), mid=_take(mid, keep))
+    by_start = np.argsort(np.concatenate([grid[keep], piece.ravel()]), kind="stable")
+    out = {k: _splice(kept[k], sub[k], by_start) for k in sub}
+    return g2[order], _cat([rows, _take(fresh, pts.ravel())], order), out
+
+
+def _widths(path, grid: np.ndarray) -> np.ndarray:
+    """The stages' widths in the path's parameter: of a grid (N+1,), or of rows of grids
+    (B × (k+1): their stages row by row)."""
+    if grid.ndim == 2:
+        # one pass over the rows laid end to end, the steps between rows dropped
+        w = _widths(path, grid.ravel())
+        k = grid.shape[1]
+        return np.delete(w, np.arange(k - 1, w.size, k))
+    return path.widths(grid) if hasattr(path, "widths") else np.diff(grid)
+
+
+def _splice(a, b, order):
+    """Two stages' worth of arrays or rows (:class:`topp.Rows`) joined in ``order``."""
+    if isinstance(a, topp.Rows):
+        return _cat([a, b], order)
+    return np.concatenate([a, b])[order]
 
 
 def _upper(al, be, ga, xmax, d, ends, sd_start, free_ends) -> np.ndarray | None:
@@ -254,17 +283,17 @@ def _times(v: np.ndarray, bound: np.ndarray) -> np.ndarray:
         return np.where(v == 0.0, 0.0, v * bound)
 
 
-def stages(rows: topp.Rows, last: topp.Rows, mid: topp.Rows) -> dict:
-    """What the relaxation needs of each stage that no round changes: the rows at its
-    midpoint (c − limit), their variations V, and the ceiling X (module docstring)."""
+def stages(first: topp.Rows, last: topp.Rows, mid: topp.Rows) -> dict:
+    """What the relaxation needs of each stage that no round changes, from the rows at its
+    start, end and midpoint: the midpoint's rows (c − limit), their variations V, and the
+    ceiling X (module docstring)."""
     am, bm, cm = mid.a, mid.b, mid.c - mid.g
-    Va = variation(rows.a[:-1], am, last.a)
-    Vb = variation(rows.b[:-1], bm, last.b)
-    Vc = variation(rows.c[:-1] - rows.g, cm, last.c - last.g)
+    Va = variation(first.a, am, last.a)
+    Vb = variation(first.b, bm, last.b)
+    Vc = variation(first.c - first.g, cm, last.c - last.g)
     # the path's speed per unit ṡ over the limits, 1/√xmax, bounded below on the stage
     with np.errstate(divide="ignore"):
-        w0, wm, w1 = (1.0 / np.sqrt(np.maximum(r.xmax, 1e-300)) for r in (rows, mid, last))
-    w0 = w0[:-1]
+        w0, wm, w1 = (1.0 / np.sqrt(np.maximum(r.xmax, 1e-300)) for r in (first, mid, last))
     wlo = np.minimum(np.minimum(w0, wm), w1) - variation(w0, wm, w1)
     with np.errstate(divide="ignore"):
         X = np.where(wlo > 0, 1.0 / np.maximum(wlo, 1e-300) ** 2, np.inf)
