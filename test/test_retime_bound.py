@@ -113,9 +113,9 @@ def test_long_path_bound_below_toppra_and_the_stretch(long_case) -> None:
     assert grid_optimum > fine
     assert lower <= fine
     assert lower <= stretch
-    # the certified bound on this path is loose (a sharp corner every four steps): stated in
-    # docs/retime.md, and measured here so that a change shows
-    assert 0.5 * fine <= lower
+    # the loosest path measured (a sharp corner at every knot, 16 stages per piece): 0.878 of
+    # the reference (docs/retime.md, Known limits)
+    assert 0.85 * fine <= lower
 
 
 def test_one_joint_bang_bang_closed_form() -> None:

@@ -11,23 +11,33 @@ etc. about the stage's midpoint m:
 
 with V_r the largest |r(s) − r_m| over the stage, X the largest x there, u in [−U⁻, U⁺]
 there (U = max of both), and |mean of x − (x_i + x_{i+1})/2| ≤ Δ(U⁺ + U⁻)/4 (x' = 2u lies
-in [−2U⁻, 2U⁺]: the tent bound). U⁺ (U⁻) is the least over rows with a > 0 (a < 0) on the
-whole stage of (max(0, −c) + max(0, −b)·X)/|a|, X from the first-order rows (x ≤ xmax:
-1/√xmax, the path's speed per unit ṡ over the limits, bounded below on the stage). Where U or
-X is unbounded (q' → 0 at a stop: there ṡ is free anyway) the stage's rows are dropped.
+in [−2U⁻, 2U⁺]: the tent bound). X is the least of the first-order rows' bound (x ≤ xmax:
+1/√xmax, the path's speed per unit ṡ over the limits, bounded below on the stage) and the
+stage's *ceiling*: the largest x some u allows with every row at its most permissive over the
+stage (a·u ≥ (a_m ∓ V_a)·u, b ≥ b_m − V_b, c ≥ c_m − V_c: :func:`reach.stage_ceiling`, which
+needs no U), and from the second round on the peak of the tent below. U⁺ (U⁻) is the least,
+over rows whose a keeps its sign > 0 (< 0) on the stage, of (max(0, −c) + max(0, −b)·X)/|a|.
+Where U or a V is unbounded (q' → 0 at a stop by s) the stage's rows are dropped.
 
-*How V is bounded*: the rows at the grid points and at the stage midpoints (one more pass of
-the path's terms), V_r = max(|r_i − r_m|, |r_{i+1} − r_m|) + |r_i − 2r_m + r_{i+1}|: exact for
-a row linear or cubic-monotone in s, ≥ 3× the excursion of a quadratic, and a jump (q'' at a
-knot of a C¹ path) counts in full; what it assumes is that no row swings within half a stage
-by more than its second difference shows (rows are smooth functions of the path's
-polynomials, sampled at 2N + 1 points). The same rule bounds 1/√xmax and |a| from below.
+*How V is bounded*: from the rows at the stage's ends and midpoint, V_r = max(|r_i − r_m|,
+|r_{i+1} − r_m|) + |r_i − 2r_m + r_{i+1}|: exact for a row linear or monotone cubic in s,
+3× the excursion of a quadratic; what it assumes is that no row swings inside half a stage by
+more than its second difference shows (the rows are smooth functions of the path's
+polynomials). A knot of the path (q'' jumps on a C¹ path) is a grid point, with the rows there
+from each side (the stage ending there gets the left limit): no stage holds a jump. The same
+rule bounds 1/√xmax and |a| from below.
 
-Then the relaxed problem's controllable sets (backward) and reachable sets (forward,
+The relaxed problem's controllable sets (backward) and reachable sets (forward,
 :func:`reach.relaxed_backward`, :func:`reach.relaxed_forward`: exact projections, no TOPP-RA
-variable bounds, widened by 1e-9 for rounding) hold every true x(s_i): x̄_i, the reachable
+variable bounds, widened by 1e-10 for rounding) hold every true x(s_i): x̄_i, the reachable
 set's upper end, bounds x(s_i) from above. Between grid points x(s) ≤ min(x̄_i + 2U⁺σ,
 x̄_{i+1} + 2U⁻(Δ − σ), X), and T* = Σ ∫ ds/√(that), in closed form (:func:`stage_times`).
+
+The slack is first order in Δ: stages whose slack exceeds 5 % of a row's scale are cut in
+four, the costliest first (looseness × the stage's time), at most three times and up to as
+many new stages as the grid had. A path that starts or ends at rest is taken by its arc length
+(:class:`ByArc`: at the base path's s, so its knots stay exact), where ṡ = 0 at rest and the
+rows stay bounded; in s, q' → 0 there makes U and X unbounded and the bound loose.
 """
 from __future__ import annotations
 
@@ -41,12 +51,14 @@ from dyn_node.retime.path import ArcPath
 
 #: rounds of the relaxation: each bounds the stages' largest x (X) by the last round's x̄
 ROUNDS = 2
-#: a stage is halved where a row's slack exceeds this share of its scale (|limit| + |c|) ...
+#: a stage is cut where a row's slack exceeds this share of its scale (|limit| + |c|) ...
 TOLERANCE = 0.05
 #: ... at most this many times, and at most as many stages in all as the grid had
 LEVELS = 3
 #: the stages a loose stage is cut into
 SPLIT = 4
+#: the least stages per polynomial piece of the path (before any is cut)
+PER_SEGMENT = 16
 
 
 def for_retime(dynamics: Dynamics, path, parts: list[tuple], grid_points: int,
@@ -54,9 +66,15 @@ def for_retime(dynamics: Dynamics, path, parts: list[tuple], grid_points: int,
     """T* and its stages for the retimer (``parts``: its search's pieces, each (path, grid,
     terms); ``start_speed(p)``: ṡ₀ on p): on the search's own path and grid when it is one
     piece (by arc length, :class:`ByArc` at the same points, when it starts or ends at rest),
-    else on the whole path by arc length (T* may pass its stops moving)."""
+    else on the whole path by arc length (T* may pass its stops moving); with at least
+    :data:`PER_SEGMENT` stages per piece of the path."""
+    # at least PER_SEGMENT stages per polynomial piece: the slack is first order in a stage's
+    # width against the path's bends, and a waypoint path bends at every knot
+    n = max(grid_points, PER_SEGMENT * (len(path.pp.breaks) - 1))
     if len(parts) == 1:
         p, grid, terms = parts[0]
+        if n > grid_points:
+            grid, terms = np.linspace(p.pp.breaks[0], p.pp.breaks[-1], n + 1), None
         if isinstance(p, ArcPath):
             out = certified(dynamics, ByArc(p.base), _s_grid(p, grid), sd_start=start_speed(p))
         else:
@@ -65,7 +83,7 @@ def for_retime(dynamics: Dynamics, path, parts: list[tuple], grid_points: int,
             return out
     # by arc length too, on the whole path's arc-length grid
     arc = ArcPath(path)
-    grid = np.linspace(0.0, arc.length, grid_points + 1)
+    grid = np.linspace(0.0, arc.length, n + 1)
     return certified(dynamics, ByArc(path), _s_grid(arc, grid), sd_start=start_speed(arc))
 
 
