@@ -138,8 +138,8 @@ def certified(dynamics: Dynamics, path, grid: np.ndarray, *, terms: topp.Terms |
                                                   ROUNDS)
             break
         budget -= bad.size * (SPLIT - 1)
-        grid, rows, st = _split(dynamics, path, grid, rows, last, mid, st, bad)
-        last, mid = st.pop("last"), st.pop("mid")
+        grid, rows, st = _split(dynamics, path, grid, rows, last, st, bad)
+        last = st.pop("last")
     return float(np.sum(stage_times(xbar, up, down, X, d))), len(d)
 
 
@@ -218,11 +218,11 @@ def _cat(parts: list[topp.Rows], order: np.ndarray) -> topp.Rows:
     return topp.Rows(cat("a"), cat("b"), cat("c"), parts[0].g, cat("xmax"))
 
 
-def _split(dynamics, path, grid, rows, last, mid, st, bad):
+def _split(dynamics, path, grid, rows, last, st, bad):
     """The grid with stages ``bad`` cut into :data:`SPLIT` equal stages, its rows, and the
-    stages' :func:`stages` (plus ``last``, ``mid``: the rows at each stage's end, from the left
-    at a knot, and midpoint), computed for the new stages only (one pass of the path's terms
-    at the new points)."""
+    stages' :func:`stages` (plus ``last``: the rows at each stage's end, from the left at a
+    knot), computed for the new stages only (one pass of the path's terms at the new points
+    and midpoints)."""
     f = np.arange(1, 2 * SPLIT) / (2 * SPLIT)           # the new points and midpoints
     new = grid[bad, None] + np.diff(grid)[bad, None] * f[None, :]
     fresh = topp.joint_rows(dynamics, path, new.ravel(), lower_bound=True)
@@ -242,9 +242,9 @@ def _split(dynamics, path, grid, rows, last, mid, st, bad):
                np.concatenate([inner, B * (SPLIT - 1) + col], axis=1).ravel())
     sub = stages(first, end, _take(fresh, mids))
     sub["d"] = _widths(path, np.column_stack([piece, grid[bad + 1]]))
-    sub.update(last=end, mid=_take(fresh, mids))
+    sub["last"] = end
     kept = {k: v[keep] for k, v in st.items()}
-    kept.update(last=_take(last, keep), mid=_take(mid, keep))
+    kept["last"] = _take(last, keep)
     by_start = np.argsort(np.concatenate([grid[keep], piece.ravel()]), kind="stable")
     out = {k: _splice(kept[k], sub[k], by_start) for k in sub}
     return g2[order], _cat([rows, _take(fresh, pts.ravel())], order), out
