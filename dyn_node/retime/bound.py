@@ -345,7 +345,7 @@ def relaxed_rows(st: dict, d: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, ..
              + _times(np.abs(bm), dd * (up + down)[:, None] / 4) + st["Vc"])
     keep = np.isfinite(slack)
     with np.errstate(invalid="ignore"):
-        share = slack * st["scale"]
+        share = np.where(slack == 0.0, 0.0, slack * st["scale"])
     loose = np.max(np.where(np.isnan(share), np.inf, share), axis=1, initial=0.0)
     al = np.where(keep, am + dd * bm, 0.0)
     be = np.where(keep, bm, 0.0)
