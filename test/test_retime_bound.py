@@ -73,13 +73,13 @@ def panda_case():
 
 def test_panda_bound_below_toppra_at_20000_steps(panda_case) -> None:
     """T* ≤ TOPP-RA's optimum at 20,000 steps (which approaches the true optimum from either
-    side), ≤ TOPP-RA's own 1000-step optimum, ≤ the answer, and not looser than 5 % of it."""
+    side), ≤ TOPP-RA's own 1000-step optimum, ≤ the answer, and within 2 % of it (0.995)."""
     dyn, tr, spline, res = panda_case
     fine = _toppra_duration(dyn, spline)
     assert res.feasible and res.bound_steps >= 1000
     assert res.lower_bound <= fine
     assert res.lower_bound <= res.grid_optimum <= res.duration_out
-    assert res.lower_bound >= 0.95 * fine
+    assert res.lower_bound >= 0.98 * fine
     assert f"T* {res.lower_bound:.4g} s (certified, {res.bound_steps} steps)" in res.message
 
 
@@ -147,11 +147,12 @@ def test_one_joint_bound_holds_on_a_coarse_grid() -> None:
 
 
 def test_panel_looseness() -> None:
-    """On the retime bench's Panda panel (its first three paths) T* is within 5 % of TOPP-RA's
-    1000-step optimum and below every answer."""
+    """On the retime bench's Panda panel (its first three paths) T* is within 2 % of TOPP-RA's
+    1000-step optimum (measured 0.993–0.997; 0.987–0.997 on the first ten) and below every
+    answer."""
     dyn = robot("panda")
     for tr in panel(dyn, 3, 1):
         res = retime(dyn, tr)
         assert res.feasible
-        assert 0.95 * res.grid_optimum <= res.lower_bound <= res.grid_optimum
+        assert 0.98 * res.grid_optimum <= res.lower_bound <= res.grid_optimum
         assert res.lower_bound <= res.duration_out
