@@ -67,10 +67,11 @@ def for_retime(dynamics: Dynamics, path, parts: list[tuple], grid_points: int,
     terms); ``start_speed(p)``: ṡ₀ on p): on the search's own path and grid when it is one
     piece (by arc length, :class:`ByArc` at the same points, when it starts or ends at rest),
     else on the whole path by arc length (T* may pass its stops moving); with at least
-    :data:`PER_SEGMENT` stages per piece of the path."""
+    :data:`PER_SEGMENT` stages per piece of the path (up to 8 × ``grid_points``)."""
     # at least PER_SEGMENT stages per polynomial piece: the slack is first order in a stage's
-    # width against the path's bends, and a waypoint path bends at every knot
-    n = max(grid_points, PER_SEGMENT * (len(path.pp.breaks) - 1))
+    # width against the path's bends, and a waypoint path bends at every knot (up to 8× the
+    # grid: the cost grows with the stages)
+    n = max(grid_points, min(PER_SEGMENT * (len(path.pp.breaks) - 1), 8 * grid_points))
     if len(parts) == 1:
         p, grid, terms = parts[0]
         if n > grid_points:
@@ -323,25 +324,25 @@ def stages(first: topp.Rows, last: topp.Rows, mid: topp.Rows) -> dict:
         (am - Va, 0.0), (am + Va, 0.0), (bm - Vb, 0.0), (cm - Vc, -1.0))), X)
     with np.errstate(invalid="ignore", divide="ignore"):
         scale = 1.0 / (np.abs(mid.g) + np.abs(mid.c))
-    return dict(am=am, bm=bm, cm=cm, Va=Va, Vb=Vb, Vc=Vc, X=X, scale=scale,
-                alo=np.abs(am) - Va, rise=np.maximum(0.0, -bm + Vb),
-                room=np.maximum(0.0, -cm + Vc))
+    return dict(am=am, bm=bm, cm=cm, Va=Va, Vb=Vb, Vc=Vc, X=X, scale=scale)
 
 
 def relaxed_rows(st: dict, d: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, ...]:
     """The stages' relaxed rows α·ū + β·x_i + γ ≤ 0 (N×m each; a dropped row is 0·ū + 0·x − 1)
     for the stages' largest x ``X`` (:func:`stages`), U⁺, U⁻ and each stage's looseness (its
     largest slack ÷ the row's |limit| + |c|)."""
-    am, bm, alo = st["am"], st["bm"], st["alo"]
+    am, bm, Va, Vb = st["am"], st["bm"], st["Va"], st["Vb"]
+    alo = np.abs(am) - Va
     # u's range on the stage from every row whose a keeps its sign there
     with np.errstate(invalid="ignore", divide="ignore"):
-        num = st["room"] + _times(st["rise"], X[:, None])
+        num = (np.maximum(0.0, st["Vc"] - st["cm"])
+               + _times(np.maximum(0.0, Vb - bm), X[:, None]))
         lim = np.where(alo > 0, num / np.where(alo > 0, alo, 1.0), np.inf)
     lim = np.where(np.isnan(lim), np.inf, lim)
     up = np.min(np.where(am > 0, lim, np.inf), axis=1, initial=np.inf)
     down = np.min(np.where(am < 0, lim, np.inf), axis=1, initial=np.inf)
     U, dd = np.maximum(up, down)[:, None], d[:, None]
-    slack = (_times(st["Va"], U) + _times(st["Vb"], X[:, None])
+    slack = (_times(Va, U) + _times(Vb, X[:, None])
              + _times(np.abs(bm), dd * (up + down)[:, None] / 4) + st["Vc"])
     keep = np.isfinite(slack)
     with np.errstate(invalid="ignore"):
