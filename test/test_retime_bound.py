@@ -156,3 +156,51 @@ def test_panel_looseness() -> None:
         assert res.feasible
         assert 0.98 * res.grid_optimum <= res.lower_bound <= res.grid_optimum
         assert res.lower_bound <= res.duration_out
+
+
+def test_relaxed_passes_are_linear_programs() -> None:
+    """The compiled passes (reach.relaxed_backward, relaxed_forward) against SciPy's linprog on
+    random stages: each controllable set is [min x, max x] over the stage's polygon in (ū, x)
+    (its rows, 0 ≤ x ≤ xmax, x + 2Δū in the next set), each reachable set [min, max] of
+    x + 2Δū over the polygon with x in the previous reachable set; ours contain them, widened
+    by at most the 1e-10 relative (plus 1e-12) they are widened by for rounding."""
+    from scipy.optimize import linprog
+
+    from dyn_node.retime import reach
+
+    rng = np.random.default_rng(7)
+    n, m = 6, 5
+    # random rows, plus |ū| ≤ 4 so that every polygon is bounded
+    al = np.column_stack([rng.normal(size=(n, m)), np.ones(n), -np.ones(n)])
+    be = np.column_stack([rng.normal(size=(n, m)), np.zeros((n, 2))])
+    ga = np.column_stack([-1.0 - rng.random((n, m)), np.full((n, 2), -4.0)])
+    xmax = 0.5 + rng.random(n + 1)
+    d = 0.05 + 0.1 * rng.random(n)
+    K = np.zeros((n + 1, 2))
+    K[n] = [0.1, 0.4]
+    assert reach.relaxed_backward(al, be, ga, xmax, d, K) == -1
+    # the rows bind: some set is narrower than [0, xmax]
+    assert np.any(K[:n, 1] < xmax[:n] - 1e-3) and np.any(K[:n, 0] > 1e-3)
+
+    def extremes(c, A, b, bounds):
+        lo = linprog(c, A_ub=A, b_ub=b, bounds=bounds, method="highs")
+        hi = linprog(-np.asarray(c), A_ub=A, b_ub=b, bounds=bounds, method="highs")
+        assert lo.status == 0 and hi.status == 0
+        return lo.fun, -hi.fun
+
+    def close(ours, lo, hi):
+        assert ours[0] <= lo + 1e-12 and ours[1] >= hi - 1e-12
+        assert ours[0] >= lo - 2e-10 * abs(lo) - 2e-12 and ours[1] <= hi + 2e-10 * abs(hi) + 2e-12
+
+    for i in range(n):
+        # (ū, x): rows, x + 2Δū within K[i + 1]
+        A = np.vstack([np.column_stack([al[i], be[i]]), [2 * d[i], 1.0], [-2 * d[i], -1.0]])
+        b = np.concatenate([-ga[i], [K[i + 1, 1], -K[i + 1, 0]]])
+        close(K[i], *extremes([0.0, 1.0], A, b, [(None, None), (0.0, xmax[i])]))
+    R = np.full((n + 1, 2), np.nan)
+    R[0] = K[0]
+    assert reach.relaxed_forward(al, be, ga, K, d, R) == -1
+    for i in range(n):
+        A = np.vstack([np.column_stack([al[i], be[i]]), [2 * d[i], 1.0], [-2 * d[i], -1.0]])
+        b = np.concatenate([-ga[i], [K[i + 1, 1], -K[i + 1, 0]]])
+        close(R[i + 1], *extremes([2 * d[i], 1.0], A, b, [(None, None), (R[i, 0], R[i, 1])]))
