@@ -170,14 +170,14 @@ def test_relaxed_passes_are_linear_programs() -> None:
 
     rng = np.random.default_rng(7)
     n, m = 6, 5
-    # random rows, plus |ū| ≤ 4 so that every polygon is bounded
+    # random rows, plus |ū| ≤ 1 so that every polygon is bounded
     al = np.column_stack([rng.normal(size=(n, m)), np.ones(n), -np.ones(n)])
     be = np.column_stack([rng.normal(size=(n, m)), np.zeros((n, 2))])
-    ga = np.column_stack([-1.0 - rng.random((n, m)), np.full((n, 2), -4.0)])
+    ga = np.column_stack([-1.0 - rng.random((n, m)), np.full((n, 2), -1.0)])
     xmax = 0.5 + rng.random(n + 1)
     d = 0.05 + 0.1 * rng.random(n)
     K = np.zeros((n + 1, 2))
-    K[n] = [0.1, 0.4]
+    K[n] = [0.3, 0.5]
     assert reach.relaxed_backward(al, be, ga, xmax, d, K) == -1
     # the rows bind: some set is narrower than [0, xmax]
     assert np.any(K[:n, 1] < xmax[:n] - 1e-3) and np.any(K[:n, 0] > 1e-3)
