@@ -75,7 +75,12 @@ def _figures(res: Any) -> str:
 
     gap = "n/a" if not math.isfinite(res.gap) else f"{res.gap:.3f}"
     return (f"{res.method}: {s(res.duration_in)} → {s(res.duration_out)}, uniform "
-            f"{s(res.duration_uniform)}, T* {s(res.lower_bound)}, gap {gap}")
+            f"{s(res.duration_uniform)}, T* {s(res.lower_bound)}{_steps(res)}, gap {gap}")
+
+
+def _steps(res: Any) -> str:
+    """The grid T* is certified against (dyn_node/retime/bound.py), when there is one."""
+    return f" (certified, {res.bound_steps} steps)" if res.bound_steps else ""
 
 
 def _model_trajectory(checker: Any, v: Any):

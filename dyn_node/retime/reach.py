@@ -144,3 +144,117 @@ def forward(A, B, C, deltas, K, x0):   # pragma: no cover (compiled)
         xs[i + 1] = min(K[i + 1, 1], max(K[i + 1, 0], xn))
         i += 1
     return xs
+
+
+# --- the certified lower bound's passes (dyn_node/retime/bound.py): each stage's relaxed rows
+# α·ū + β·x_i + γ ≤ 0 hold for the true samples x_i = x(s_i) and the stage's mean ū, u free
+
+@njit(**_JIT)
+def _span(al, be, ce, k, lo, hi):   # pragma: no cover (compiled)
+    """[lo, hi] ∩ the projection onto x of {(u, x): al·u + be·x + ce ≤ 0 (first k rows)}, u
+    unbounded (no VAR_MAX: a bound must not cut what the true motion may do); lo > hi: empty."""
+    for p in range(k):
+        if al[p] == 0.0:
+            if be[p] > 0.0:
+                hi = min(hi, -ce[p] / be[p])
+            elif be[p] < 0.0:
+                lo = max(lo, -ce[p] / be[p])
+            elif ce[p] > 0.0:
+                return 1.0, 0.0
+    for p in range(k):
+        if al[p] <= 0.0:
+            continue
+        for q in range(k):
+            if al[q] >= 0.0:
+                continue
+            kx = al[p] * be[q] - al[q] * be[p]
+            r = al[q] * ce[p] - al[p] * ce[q]
+            if kx > 0.0:
+                hi = min(hi, r / kx)
+            elif kx < 0.0:
+                lo = max(lo, r / kx)
+            elif r < 0.0:
+                return 1.0, 0.0
+    return lo, hi
+
+
+@njit(**_JIT)
+def _outward(lo, hi):   # pragma: no cover (compiled)
+    """An interval widened by rounding's worth (1e-10 relative): the bound's sets contain the
+    exact ones."""
+    return max(0.0, lo - 1e-10 * abs(lo) - 1e-12), hi + 1e-10 * abs(hi) + 1e-12
+
+
+@njit(**_JIT)
+def _rows(Al, Be, Ga, i, extra_a, extra_b, lo, hi, al, be, ce):   # pragma: no cover
+    """Stage i's rows into al, be, ce, then x + extra_a·u within [lo, hi] (skipped where
+    infinite); the number of rows."""
+    m = Al.shape[1]
+    for j in range(m):
+        al[j], be[j], ce[j] = Al[i, j] + extra_b * Be[i, j], Be[i, j], Ga[i, j]
+    k = m
+    if hi < np.inf:
+        al[k], be[k], ce[k] = extra_a, 1.0, -hi
+        k += 1
+    if lo > -np.inf:
+        al[k], be[k], ce[k] = -extra_a, -1.0, lo
+        k += 1
+    return k
+
+
+@njit([_i8(_M, _M, _M, _V, _V, types.Array(_f8, 2, "C"))], **_JIT)
+def relaxed_backward(Al, Be, Ga, xmax, deltas, K):   # pragma: no cover (compiled)
+    """The controllable sets K[N-1], …, K[0] (K[N] given) of the relaxed stages: x_i in
+    [0, xmax_i] and x_i + 2Δū in K[i+1]. Returns the stage found empty (K at and below it
+    NaN), or −1."""
+    n = deltas.shape[0]
+    m = Al.shape[1]
+    al, be, ce = np.empty(m + 2), np.empty(m + 2), np.empty(m + 2)
+    for i in range(n - 1, -1, -1):
+        d = deltas[i]
+        k = _rows(Al, Be, Ga, i, 2.0 * d, 0.0, K[i + 1, 0], K[i + 1, 1], al, be, ce)
+        lo, hi = _span(al, be, ce, k, 0.0, xmax[i])
+        if not (lo <= hi):
+            K[: i + 1, :] = np.nan
+            return i
+        K[i, 0], K[i, 1] = _outward(lo, hi)
+    return -1
+
+
+@njit([_i8(_M, _M, _M, _M, _V, types.Array(_f8, 2, "C"))], **_JIT)
+def relaxed_forward(Al, Be, Ga, K, deltas, R):   # pragma: no cover (compiled)
+    """The reachable sets R[1..N] from R[0] within the controllable sets: at stage i the next
+    y = x_i + 2Δū with x_i = y − 2Δū in R[i], so each row becomes (α − 2Δβ)·ū + β·y + γ ≤ 0.
+    Returns the stage whose next set is empty (R NaN beyond it), or −1."""
+    n = deltas.shape[0]
+    m = Al.shape[1]
+    al, be, ce = np.empty(m + 2), np.empty(m + 2), np.empty(m + 2)
+    for i in range(n):
+        d = deltas[i]
+        k = _rows(Al, Be, Ga, i, -2.0 * d, -2.0 * d, R[i, 0], R[i, 1], al, be, ce)
+        lo, hi = _span(al, be, ce, k, K[i + 1, 0], K[i + 1, 1])
+        if not (lo <= hi):
+            R[i + 1:, :] = np.nan
+            return i
+        R[i + 1, 0], R[i + 1, 1] = _outward(lo, hi)
+    return -1
+
+
+@njit([types.void(_M, _M, _M, _M, types.Array(_f8, 1, "C"))], **_JIT)
+def stage_ceiling(Alo, Ahi, B, C, X):   # pragma: no cover (compiled)
+    """X[i] lowered to the largest x that some u allows on stage i's rows taken at their most
+    permissive over the stage: a·u ≥ Alo·u for u ≥ 0, ≥ Ahi·u for u ≤ 0 (a in [Alo, Ahi]),
+    b·x ≥ B·x, c ≥ C; 0 where no (u, x ≥ 0) meets them (no motion does)."""
+    n, m = Alo.shape
+    al, be, ce = np.empty(m + 1), np.empty(m + 1), np.empty(m + 1)
+    for i in range(n):
+        best = -1.0
+        for side in (1.0, -1.0):
+            for j in range(m):
+                al[j] = Alo[i, j] if side > 0 else Ahi[i, j]
+                be[j], ce[j] = B[i, j], C[i, j]
+            al[m], be[m], ce[m] = -side, 0.0, 0.0
+            lo, hi = _span(al, be, ce, m + 1, 0.0, X[i])
+            if lo <= hi:
+                best = max(best, hi)
+        X[i] = max(best, 0.0)

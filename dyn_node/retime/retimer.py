@@ -25,7 +25,7 @@ from dyn_node.core.check.constraints import Violation
 from dyn_node.core.check.kinds import KIND_CLASS
 from dyn_node.core.check.trajectory import Trajectory, clamped_spline_velocities, from_current_state
 from dyn_node.errors import TrajectoryError
-from dyn_node.retime import candidates, knots, timing, topp
+from dyn_node.retime import bound, candidates, knots, timing, topp
 from dyn_node.retime.path import (ArcPath, Path, build_path, is_still, is_untimed, pieces, stops,
                                   validate_input)
 from dyn_node.retime.result import RetimeResult
@@ -157,7 +157,10 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     search = (build_path(from_current_state(traj, start.positions, v0)) if moving_start
               else path)
     parts = _search_paths(dynamics, search, grid_points)
-    lower = _bound(dynamics, search, parts, grid_points, v0)
+    # T* certified against its grid (bound.py); TOPP-RA's optimum on the grid alongside
+    base["grid_optimum"] = _bound(dynamics, search, parts, grid_points, v0)
+    lower, base["bound_steps"] = bound.for_retime(dynamics, search, parts, grid_points,
+                                                  lambda p: _start_speed(p, v0))
     notes: list[str] = []
     # the stretch lasts k·T_in × (1.001 … 1.005) (candidates.STRETCH_PADS): the search is cut
     # as soon as it cannot beat that, and the stretch is built only when the search lost to it
@@ -186,7 +189,8 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     out = pick["trajectory"]
     frm = " from the moving start state" if moving_start else ""
     msg = (f"retimed ({pick['method']}{frm}): {duration_in:.4g} s → {out.duration:.4g} s, "
-           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s; {_won(found, uniform, uniform_T)}{why}; "
+           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s (certified, {base['bound_steps']} steps); "
+           f"{_won(found, uniform, uniform_T)}{why}; "
            f"re-check: {pick['check'].message}")
     return RetimeResult(True, out, duration_out=out.duration, lower_bound=lower, message=msg,
                         check=pick["check"], method=pick["method"],
