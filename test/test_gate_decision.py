@@ -173,6 +173,7 @@ def test_retimed_answer_is_forwarded_only_when_its_check_passes(fast):
     # the retimer's passing check is taken as it is: forwarded, and it passes when checked again
     d = decide(dyn, traj, GateOptions(mode="retime"), start=None, retimer=retime)
     assert d.decision == RETIMED and feasibility.check_trajectory(dyn, d.trajectory).feasible
+    assert "T* not certified" in d.retime_message   # the gate does not wait for the bound
 
 
 def _args(traj, names):

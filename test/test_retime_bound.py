@@ -83,6 +83,17 @@ def test_panda_bound_below_toppra_at_20000_steps(panda_case) -> None:
     assert f"T* {res.lower_bound:.4g} s (certified, {res.bound_steps} steps)" in res.message
 
 
+def test_without_certify_the_answer_is_the_same_and_t_star_is_nan(panda_case) -> None:
+    """``certify=False`` (the gate's retime mode) skips only the bound: the same answer, the
+    same grid optimum, no T* claimed."""
+    dyn, tr, _spline, res = panda_case
+    quick = retime(dyn, tr, certify=False)
+    assert np.isnan(quick.lower_bound) and quick.bound_steps == 0
+    assert quick.grid_optimum == res.grid_optimum and quick.duration_out == res.duration_out
+    np.testing.assert_array_equal(quick.trajectory.positions, res.trajectory.positions)
+    assert f"T* not certified (grid optimum {res.grid_optimum:.4g} s)" in quick.message
+
+
 @pytest.fixture(scope="module")
 def long_case():
     """Issue 39's 250-waypoint path (benchmarks/retime_panels.py's hard panel, seed 300):

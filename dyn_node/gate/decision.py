@@ -356,7 +356,8 @@ def _retimed(dynamics: Dynamics, traj: Trajectory, start: feasibility.StartState
         # the goal's check just made (from the measured state): the retimer checks its input
         # again only when it plans from an extrapolated one or a junction
         out = fn(dynamics, traj, start=planned, feasibility=check_options, limit_margin=limit_margin,
-                 input_check=checked if planned is start and not junction else None)
+                 input_check=checked if planned is start and not junction else None,
+                 certify=False)   # the robot moves on while it computes; nobody reads T* here
     except TrajectoryError as exc:
         return failed(str(exc))
     uniform = float(out.duration_uniform)

@@ -113,7 +113,7 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
            feasibility: FeasibilityOptions = FeasibilityOptions(), path_tolerance: float = 1e-4,
            grid_points: int = 1000, point_period: float = 0.004, max_rounds: int = 30,
            limit_margin: float = 0.995, uniform_fallback: bool = True,
-           input_check: FeasibilityResult | None = None) -> RetimeResult:
+           input_check: FeasibilityResult | None = None, certify: bool = True) -> RetimeResult:
     """The fastest trajectory along ``traj``'s path (model order) that passes
     :func:`~dyn_node.core.check.feasibility.check_trajectory` with ``feasibility``; see the module
     docstring and docs/retime.md. ``start``: the robot's state when the first point lies ahead
@@ -124,7 +124,9 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     velocities, while the optimal search ends at rest and starts at rest or at the moving
     robot's state) and answer the shorter.
     ``input_check``: the caller's ``check_trajectory(dynamics, traj, feasibility, start=start)``
-    when it has it (dyn-check, the gate): used instead of checking the input again."""
+    when it has it (dyn-check, the gate): used instead of checking the input again.
+    ``certify=False`` skips the certified T* (``lower_bound`` NaN; ``grid_optimum`` is kept):
+    the gate, which forwards the answer and waits for no bound, saves its ~40 ms."""
     validate_input(traj)
     if not (path_tolerance > 0 and grid_points >= 10 and point_period > 0 and max_rounds >= 1
             and 0 < limit_margin <= 1):
@@ -159,8 +161,9 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     parts = _search_paths(dynamics, search, grid_points)
     # T* certified against its grid (bound.py); TOPP-RA's optimum on the grid alongside
     base["grid_optimum"] = _bound(dynamics, search, parts, grid_points, v0)
-    lower, base["bound_steps"] = bound.for_retime(dynamics, search, parts, grid_points,
-                                                  lambda p: _start_speed(p, v0))
+    lower, base["bound_steps"] = (bound.for_retime(dynamics, search, parts, grid_points,
+                                                   lambda p: _start_speed(p, v0))
+                                  if certify else (math.nan, 0))
     notes: list[str] = []
     # the stretch lasts k·T_in × (1.001 … 1.005) (candidates.STRETCH_PADS): the search is cut
     # as soon as it cannot beat that, and the stretch is built only when the search lost to it
@@ -189,7 +192,7 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
     out = pick["trajectory"]
     frm = " from the moving start state" if moving_start else ""
     msg = (f"retimed ({pick['method']}{frm}): {duration_in:.4g} s → {out.duration:.4g} s, "
-           f"uniform {uniform_T:.4g} s, T* {lower:.4g} s (certified, {base['bound_steps']} steps); "
+           f"uniform {uniform_T:.4g} s, {_tstar(lower, base)}; "
            f"{_won(found, uniform, uniform_T)}{why}; "
            f"re-check: {pick['check'].message}")
     return RetimeResult(True, out, duration_out=out.duration, lower_bound=lower, message=msg,
@@ -235,6 +238,12 @@ def _none(first: FeasibilityResult, base: dict, lower: float = math.nan,
     return RetimeResult(False, None, duration_out=math.nan, lower_bound=lower,
                         message=f"no retiming: {first.message}{why}", blocked=_blocked(first),
                         **base)
+
+
+def _tstar(lower: float, base: dict) -> str:
+    if math.isfinite(lower):
+        return f"T* {lower:.4g} s (certified, {base['bound_steps']} steps)"
+    return f"T* not certified (grid optimum {base['grid_optimum']:.4g} s)"
 
 
 def _bound(dynamics: Dynamics, path: Path, parts: list[tuple], grid_points: int,
