@@ -31,10 +31,10 @@ from rclpy.service_introspection import ServiceIntrospectionState
 from rclpy.task import Future
 
 from dyn_node.core.check import feasibility
-from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.questions import CHECK, INVERSE_DYNAMICS, RETIME
+from dyn_node.core.live.question_process import QuestionProcess, WorkerFailed
 from dyn_node.ros import service_answers as answers
 
-CHECK, INVERSE_DYNAMICS, RETIME = "check", "inverse_dynamics", "retime"
 #: question → (service name, type)
 SERVICES: dict[str, tuple[str, Any]] = {
     CHECK: ("~/check_trajectory", CheckTrajectory),
@@ -64,7 +64,7 @@ def request_points(kind: str, request: Any) -> int:
 
 
 class _Lane:
-    """One service's queue and its worker thread (its own Dynamics, from ``dynamics``)."""
+    """One service's queue and its thread (converts, asks the worker process, fills the response)."""
 
     def __init__(self, kind: str, work: Callable[[_Job], None]):
         self.kind, self._work = kind, work
@@ -95,16 +95,17 @@ class _Lane:
 
 
 class QuestionServices:
-    """The three services of ``node`` and their lanes. ``core()`` returns the node's current
-    core (model, settings) or None; ``start_state(core)`` the robot's state a trajectory received
-    now starts from (or None); ``dynamics(core)`` a Dynamics for the calling thread;
+    """The three services of ``node``, their lanes and the question worker process.
+    ``core()`` returns the node's current core (model, settings) or None;
+    ``start_state(core)`` the robot's state a trajectory received now starts from (or None);
     ``failed(what)`` logs and counts an exception."""
 
     def __init__(self, node: Node, *, core: Callable[[], Any],
                  start_state: Callable[[Any], feasibility.StartState | None],
-                 dynamics: Callable[[Any], Dynamics], failed: Callable[[str], None]):
-        self._core, self._start_state = core, start_state
-        self._dynamics, self._failed = dynamics, failed
+                 failed: Callable[[str], None]):
+        self._core, self._start_state, self._failed = core, start_state, failed
+        logger = node.get_logger()
+        self.process = QuestionProcess(log=logger.warn)
         self._group = ReentrantCallbackGroup()
         self._wake = node.create_guard_condition(lambda: None, callback_group=self._group)
         self._lanes = {kind: _Lane(kind, self._work) for kind in SERVICES}
@@ -185,14 +186,15 @@ class QuestionServices:
         self._finish(job)
 
     def _answer(self, job: _Job) -> None:
-        dyn = self._dynamics(job.core)
-        settings = job.core.settings
-        if job.kind == CHECK:
-            answers.answer_check(dyn, settings, job.request, job.response, job.start)
-        elif job.kind == INVERSE_DYNAMICS:
-            answers.answer_inverse_dynamics(dyn, job.request, job.response)
-        else:
-            answers.answer_retime(dyn, settings, job.request, job.response, job.start)
+        """Arrays from the request here, the answer from the worker process, the response here."""
+        model = job.core.model
+        question = answers.question_of(job.kind, job.request, job.start)
+        try:
+            result = self.process.ask(job.core.settings, model, question)
+        except WorkerFailed as exc:
+            answers.reject(job.response, answers.WORKER_FAILED, str(exc))
+            return
+        answers.fill(model, job.request, job.response, question, result)
 
     def _finish(self, job: _Job) -> None:
         job.future.set_result(job.response)
@@ -211,6 +213,8 @@ class QuestionServices:
         for lane in self._lanes.values():  # a request in progress is abandoned (daemon threads)
             if lane.thread.is_alive() and lane.thread is not threading.current_thread():
                 lane.thread.join(timeout=max(0.0, deadline - time.monotonic()))
+        # after the lanes: a question still computed there is answered worker_failed
+        self.process.close()
 
 
 __all__ = ["QuestionServices", "request_points", "SERVICES", "EVENT_SUFFIX", "CHECK", "INVERSE_DYNAMICS", "RETIME"]
