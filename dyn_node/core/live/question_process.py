@@ -58,11 +58,12 @@ class WorkerFailed(Exception):
 
 
 class _Pending:
-    __slots__ = ("done", "outcome")
+    __slots__ = ("done", "outcome", "sent")
 
     def __init__(self) -> None:
         self.done = threading.Event()
         self.outcome: tuple[str, Any] | None = None
+        self.sent = False
 
 
 class QuestionProcess:
@@ -92,6 +93,11 @@ class QuestionProcess:
         """The current worker's process id."""
         return self._proc.pid
 
+    def in_flight(self) -> int:
+        """Questions sent to the worker (whole) and not answered yet."""
+        with self._lock:
+            return sum(p.sent for p in self._pending.values())
+
     def _start(self) -> tuple[subprocess.Popen, Connection]:
         ours, theirs = socket.socketpair()
         self._started_at = time.monotonic()
@@ -120,6 +126,7 @@ class QuestionProcess:
                 if send_model:
                     conn.send(("model", token, model))
                 conn.send(("ask", job, token, settings, question))
+                pending.sent = True
             except (OSError, ValueError) as exc:  # the worker is gone: the reader restarts it
                 with self._lock:
                     self._pending.pop(job, None)
