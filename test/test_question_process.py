@@ -137,3 +137,15 @@ def test_a_closed_worker_refuses_with_the_reason():
     with pytest.raises(WorkerFailed, match="^the question worker is closed$"):
         proc.ask(SETTINGS, MODEL, _question(questions.CHECK, n=20))
     assert proc.in_flight() == 0
+
+
+def test_an_exception_in_the_worker_reaches_the_caller(worker):
+    """A computation that raises (here a kind the core does not know) is QuestionError with the
+    worker's type and message; the worker stays up and answers the next question."""
+    from dyn_node.core.live.question_process import QuestionError
+
+    pid = worker.pid
+    with pytest.raises(QuestionError, match="^ValueError: unknown question kind 'nope'$"):
+        worker.ask(SETTINGS, MODEL, _question("nope", n=5))
+    assert worker.ask(SETTINGS, MODEL, _question(questions.CHECK, n=20)).error is None
+    assert worker.pid == pid

@@ -110,8 +110,10 @@ class QuestionServices:
                  start_state: Callable[[Any], feasibility.StartState | None],
                  failed: Callable[[str], None]):
         self._core, self._start_state, self._failed = core, start_state, failed
-        logger = node.get_logger()
-        self.process = QuestionProcess(log=logger.warn)
+        self.process = QuestionProcess(log=node.get_logger().warn)
+        first = core()
+        if first is not None:  # the worker loads the kernels with it while the node starts
+            self.process.preload(first.model)
         self._group = ReentrantCallbackGroup()
         self._wake = node.create_guard_condition(lambda: None, callback_group=self._group)
         self._lanes = {kind: _Lane(kind, self._work) for kind in SERVICES}
@@ -198,7 +200,9 @@ class QuestionServices:
         try:
             result = self.process.ask(job.core.settings, model, question)
         except WorkerFailed as exc:
-            answers.reject(job.response, answers.WORKER_FAILED, str(exc))
+            closing = self._lanes[job.kind].closed  # the node ends, and the worker with it
+            answers.reject(job.response, answers.SHUTTING_DOWN if closing else answers.WORKER_FAILED,
+                           str(exc))
             return
         answers.fill(model, job.request, job.response, question, result)
 

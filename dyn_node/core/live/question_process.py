@@ -16,15 +16,15 @@ node's main module in the child) and talks to it with pickled tuples over a
 
 - ``("model", token, model)``: the node's :class:`RobotModel` itself (pickled, ~60 kB, sent once
   per model): the worker computes with the very model the node has, not a rebuilt one;
-- ``("ask", job, token, settings, question)`` → ``(job, "answer", answer)`` or
-  ``(job, "failed", message)``: :func:`dyn_node.core.check.questions.answer`, the function the
-  node would call in-process, so the numbers are the same bits.
+- ``("ask", job, token, settings, question)`` → ``(job, "answer", answer)``, the answer of
+  :func:`dyn_node.core.check.questions.answer`, the function the node would call in-process (so
+  the numbers are the same bits), or ``(job, "error", message)`` when it raised.
 
 The worker answers each kind on a thread of its own, with a Dynamics per thread kept while the
 model and friction setting stay (so an inverse-dynamics call never waits behind a retime). The
 node sends at most one question per kind at a time (its lanes, each a bounded queue), so nothing
 queues unbounded here. When the worker dies (killed, out of memory), every pending question is
-answered :data:`WORKER_FAILED` with the exit status, never left waiting, and a new worker is
+answered with the exit status (:class:`WorkerFailed`; the node's reason ``worker_failed``), never left waiting, and a new worker is
 started (at most one start per ``RESTART_MIN_INTERVAL_S``). The worker ignores SIGINT (the node
 decides when it ends) and exits when the node's end of the socket closes, the node's death
 included. Pure (no rclpy).
@@ -40,13 +40,13 @@ import sys
 import threading
 import time
 from multiprocessing.connection import Connection
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-from dyn_node.core.check import questions
-from dyn_node.core.robot.model import RobotModel
-from dyn_node.core.robot.settings import Settings
+if TYPE_CHECKING:  # imported where used: the worker lowers its priority before its heavy imports
+    from dyn_node.core.check import questions
+    from dyn_node.core.robot.model import RobotModel
+    from dyn_node.core.robot.settings import Settings
 
-WORKER_FAILED = "worker_failed"
 #: a worker that dies at once (a broken environment) is not restarted in a tight loop
 RESTART_MIN_INTERVAL_S = 1.0
 #: the worker's scheduling priority relative to the node (nice increment): on a machine short of
@@ -59,6 +59,10 @@ MODELS_KEPT = 4
 
 class WorkerFailed(Exception):
     """The worker could not answer (it died, or is closed): the message says why."""
+
+
+class QuestionError(RuntimeError):
+    """The computation raised in the worker (a bug, not the request's fault): its type and message."""
 
 
 class _Pending:
@@ -112,6 +116,21 @@ class QuestionProcess:
             theirs.close()
         return proc, Connection(ours.detach())
 
+    def preload(self, model: RobotModel) -> None:
+        """Send ``model`` now: the worker loads the compiled kernels with it before the first
+        question (otherwise that question waits for them)."""
+        with self._send_lock:
+            with self._lock:
+                if self._closed or model is self._model:
+                    return
+                conn = self._conn
+                self._token, self._model = next(self._model_tokens), model
+                token = self._token
+            try:
+                conn.send(("model", token, model))
+            except (OSError, ValueError):  # gone: the reader restarts it, the first ask resends
+                pass
+
     def ask(self, settings: Settings, model: RobotModel, question: questions.Question) -> Any:
         """The worker's answer to ``question`` (as :func:`questions.answer` returns it) with
         ``model`` and ``settings``; raises :class:`WorkerFailed` when the worker cannot answer."""
@@ -140,7 +159,7 @@ class QuestionProcess:
         status, value = pending.outcome
         if status == "answer":
             return value
-        raise WorkerFailed(value)
+        raise (QuestionError if status == "error" else WorkerFailed)(value)
 
     def _read_loop(self) -> None:
         while True:
@@ -157,6 +176,7 @@ class QuestionProcess:
                 pass
             if not self._restart():
                 return
+            conn.close()  # the ended worker's (the new one has its own)
 
     def _restart(self) -> bool:
         """After the worker's end: fail what it held, start another unless closed."""
@@ -190,16 +210,19 @@ class QuestionProcess:
         return True
 
     def close(self, timeout: float = 1.0) -> None:
-        """End the worker (questions in progress are answered :data:`WORKER_FAILED`)."""
+        """End the worker (questions in progress raise :class:`WorkerFailed`)."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
             conn, proc = self._conn, self._proc
-        try:
-            conn.send(("close",))
-        except (OSError, ValueError):
-            pass
+        if self._send_lock.acquire(timeout=timeout):  # not inside another thread's message
+            try:
+                conn.send(("close",))
+            except (OSError, ValueError):
+                pass
+            finally:
+                self._send_lock.release()
         try:
             proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:  # busy in a long computation: no need to wait for it
@@ -259,6 +282,7 @@ class _KindThread:
             self.cond.notify()
 
     def _loop(self) -> None:
+        from dyn_node.core.check import questions
         while True:
             with self.cond:
                 while not self.jobs:
@@ -270,7 +294,7 @@ class _KindThread:
                 dyn = self._dynamics(model, token, settings)
                 self.worker.reply(job, "answer", questions.answer(dyn, settings, question))
             except Exception as exc:  # the node answers internal_error with it
-                self.worker.reply(job, "failed", f"{type(exc).__name__}: {exc}")
+                self.worker.reply(job, "error", f"{type(exc).__name__}: {exc}")
 
     def _dynamics(self, model: RobotModel, token: int, settings: Settings) -> Any:
         from dyn_node.core.robot.dynamics import Dynamics, DynamicsOptions
@@ -282,7 +306,9 @@ class _KindThread:
 
 
 def _warm_up(model: RobotModel) -> None:
+    from dyn_node.core.check import questions
     from dyn_node.core.robot.dynamics import Dynamics
+    from dyn_node.core.robot.settings import Settings
     try:
         questions.warm_up(Dynamics(model), Settings())
     except Exception:  # a model the defaults do not suit: the first question loads them instead
@@ -310,4 +336,4 @@ if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))
 
 
-__all__ = ["QuestionProcess", "WorkerFailed", "WORKER_FAILED"]
+__all__ = ["QuestionProcess", "WorkerFailed", "QuestionError"]
