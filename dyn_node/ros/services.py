@@ -5,12 +5,11 @@ Each service has a queue and a thread of its own (a *lane*): the lane turns the 
 arrays (:func:`~dyn_node.ros.service_answers.question_of`), has the question worker process
 compute the answer (:class:`~dyn_node.core.live.question_process.QuestionProcess`, one thread per
 service there) and fills the response. The computation runs in another process because a thread
-of this one shares the interpreter lock with the joint_states thread: a 20,000-point check on a
-thread paused gravity torques for 34-146 ms (the module docstring of ``question_process`` has
-the reasons and figures). So a long check never holds the executor, the joint_states thread or
-a trajectory to execute, and a 1 ms inverse-dynamics call never waits behind a retime. A worker
-that dies answers the calls it held ``worker_failed`` and is restarted. The service callbacks are coroutines in a reentrant callback
-group: each queues its request and awaits its lane's answer (a guard condition wakes the
+of this one shares the interpreter lock with the joint_states thread (the module docstring of
+``question_process`` has the reasons and figures). So a long check never holds the executor,
+the joint_states thread or a trajectory to execute, and a 1 ms inverse-dynamics call never
+waits behind a retime. A worker that dies answers the calls it held ``worker_failed`` and is
+restarted. The service callbacks are coroutines in a reentrant callback group: each queues its request and awaits its lane's answer (a guard condition wakes the
 executor when it is ready), so several calls are in flight at once and none blocks another
 callback. A request that cannot be queued is answered at once: ``accepted: false`` with
 ``reason`` ``busy`` (``check_queue_depth`` of its kind waiting), ``too_large`` (more points than
@@ -223,7 +222,7 @@ class QuestionServices:
         for lane in self._lanes.values():  # a request in progress is abandoned (daemon threads)
             if lane.thread.is_alive() and lane.thread is not threading.current_thread():
                 lane.thread.join(timeout=max(0.0, deadline - time.monotonic()))
-        # after the lanes: a question still computed there is answered worker_failed
+        # after the lanes: a question still computed there is answered shutting_down
         self.process.close()
 
 

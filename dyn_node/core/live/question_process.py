@@ -2,12 +2,16 @@
 
 Why a process. The node answers joint_states (gravity torques every few milliseconds) on a
 thread of its own, and every thread of a Python process shares one interpreter lock (GIL). A
-20,000-point check or a retime computed on a thread of the node took turns with it: Pinocchio's
-bindings and NumPy hold the lock through each call, the collector scans the request's hundreds of
-thousands of objects, and the scheduler of a loaded machine hands the lock back late, so gravity
-torques paused 34-146 ms during such a request (test_services.py). A process has its own lock:
-the computation there cannot hold joint_states, whatever it costs. What stays in the node is the
-conversion between messages and arrays (rclpy's, in small steps the lock switches between).
+20,000-point check or a retime computed on a thread of the node takes turns with it: whatever
+holds the lock there (a Pinocchio or NumPy call, a garbage collection over the request's
+hundreds of thousands of objects, a kernel being loaded) holds joint_states too, so the bound
+on their pause depended on every library call the core makes. Measured with the computation on
+a thread (test_services.py, 20,000-point checks): gravity torques paused 34-65 ms in most
+attempts and 89-146 ms in about one in three (raw gaps; 261-528 ms before the collector was
+tamed). A process has its own lock: the computation there cannot hold joint_states, whatever it
+costs or calls. What stays in the node is the conversion between messages and arrays (rclpy's,
+in small steps the lock switches between). On a saturated machine the operating system's
+scheduling still pauses any process (docs/node.md has the figures of both designs).
 
 How. :class:`QuestionProcess` starts ``python -m dyn_node.core.live.question_process FD`` with one
 end of a socket pair (a plain subprocess: no ``multiprocessing`` start method re-imports the
