@@ -866,3 +866,17 @@ def test_a_killed_question_worker_answers_the_caller_and_comes_back(rig):
     r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=msg), timeout=60)
     assert r.accepted and r.message == local_check(msg).result.message
     assert _question_worker_pid(rig.proc.proc.pid) != pid
+
+
+def test_release_points_frees_a_request_that_is_answered():
+    """The lane frees an answered request's points (a thousand at a time) so the executor does
+    not free them in one piece with the response; each kind's own point list."""
+    from dyn_node.ros.services import release_points
+
+    t = np.linspace(0.0, 2.5, 2500)
+    msg = trajectory_message(NAMES, t, np.array(READY) + 0.01 * t[:, None])
+    check, ids = CheckTrajectory.Request(trajectory=msg), ComputeInverseDynamics.Request(states=msg)
+    release_points("check", check)
+    assert len(check.trajectory.points) == 0 and len(check.trajectory.joint_names) == 7
+    release_points("inverse_dynamics", ids)
+    assert len(ids.states.points) == 0
