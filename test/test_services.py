@@ -699,9 +699,10 @@ def test_a_request_over_max_points_is_refused_at_once(rig):
         r = rig.call(rig.srv_id, ComputeInverseDynamics.Request(states=big))
         assert (r.accepted, r.reason) == (False, "too_large") and not r.effort.points
         assert rig.call(rig.srv_id, ComputeInverseDynamics.Request(states=small)).accepted
-    # the documented default
+    # the documented default (50,000: larger requests' conversion in the node pauses joint_states
+    # beyond 50 ms, docs/node.md)
     got = rig.wait_future(rig.params.get_parameters(["services.max_points", "services.max_queue_age"]))
-    assert (got.values[0].integer_value, got.values[1].double_value) == (100000, 10.0)
+    assert (got.values[0].integer_value, got.values[1].double_value) == (50000, 10.0)
 
 
 def test_a_call_that_waited_past_max_queue_age_is_dropped_not_computed(rig):
@@ -741,32 +742,51 @@ class GravityProbe:
         assert done.wait(timeout), "the probe did not answer"
         return out[0].strip()
 
-    def receipts(self) -> np.ndarray:
-        """Stop the probe; the wall-clock receipt times of the answers it got."""
+    def receipts(self) -> tuple[np.ndarray, np.ndarray]:
+        """Stop the probe; the wall-clock receipt times of the answers it got, and the times it
+        sent joint_states."""
         import json
 
         self.cp.proc.stdin.write("stop\n")
         self.cp.proc.stdin.flush()
         data = json.loads(self._line(30.0))
         self.cp.stop()
-        return np.array([r for r, _ in data["got"]])
+        return np.array([r for r, _ in data["got"]]), np.array(data["sent"])
 
 
-def _largest_gap(receipts: np.ndarray, t0: float, t1: float) -> tuple[float, int]:
+def _largest_gap(receipts: np.ndarray, sent: np.ndarray, t0: float, t1: float) -> tuple[float, int]:
+    """The largest pause of the answers in [t0, t1] that the node is responsible for, and the
+    answers counted. A gap between two answers counts less the probe's own largest pause in it
+    (its longest time without sending: the probe's one thread sends and takes the answers, so
+    while it is descheduled answers go unrecorded whatever the node does)."""
     inside = receipts[(receipts > t0) & (receipts < t1)]
-    return float(np.max(np.diff(np.concatenate([[t0], inside, [t1]])))), len(inside)
+    edges = np.concatenate([[t0], inside, [t1]])
+    worst = 0.0
+    for a, b in zip(edges[:-1], edges[1:]):
+        sends = np.concatenate([[a], sent[(sent > a) & (sent < b)], [b]])
+        worst = max(worst, (b - a) - float(np.max(np.diff(sends))))
+    return worst, len(inside)
+
+
+ATTEMPTS = 5
 
 
 def test_a_large_request_does_not_pause_gravity_torques(rig):
-    """joint_states every 5 ms from another process while a 20,000-point check is computed: the
-    largest gap between ~/gravity_torque answers stays within 50 ms of the largest gap in an
-    idle window of the same length right after (the machine's own pauses: it is shared).
+    """joint_states every 5 ms from another process while a check of services.max_points points
+    (the default, 50,000: the largest the node answers) is answered (computed in the question
+    worker process): ~/gravity_torque answers do not pause more than 50 ms beyond what the
+    machine pauses the node by itself.
 
-    A pause of the node's own (the GIL held by a garbage collection or a kernel) comes back on
-    every attempt; a shared machine's does not: the best of three attempts is judged, all are
-    reported. A node of its own, not recording: the module's records every service event, and
-    recording a 20,000-point request and response (~10 MB) adds pauses of its own
-    (docs/node.md, Question services)."""
+    Each of 5 attempts measures the node's largest pause (_largest_gap: the probe's own pauses
+    taken out) during the request and in an idle window of the same length right after. The
+    median over the attempts of (busy pause − idle pause) must be ≤ 50 ms: a pause the node
+    causes itself (the GIL held by a computation, a collection, or the conversion of a request
+    larger than the node can take: 57-78 ms at 100,000 points) comes with every request and
+    moves the median; a shared machine's scheduling pause (on this 2-core machine at load 5-11,
+    100-280 ms in about one attempt in five, with the node's interpreter lock free meanwhile)
+    lands in a window by chance and moves it only if it hits three of five. Every attempt is reported. A node of its own, not recording:
+    recording a 50,000-point request and response (~25 MB) is the recorder's work, with pauses
+    of its own (docs/node.md, Question services)."""
     ns = "/gravity_pause"
     node = ChildProcess(python_cmd("dyn_node.ros.node", "--ros-args", "-r", f"__ns:={ns}",
                                    "-p", "robot_model:=panda"), env=child_env(), cwd=str(REPO))
@@ -775,17 +795,18 @@ def test_a_large_request_does_not_pause_gravity_torques(rig):
     windows: list[tuple[float, float, float]] = []
     try:
         assert cli.wait_for_service(timeout_sec=60), node.stop()
-        t = np.linspace(0.0, 20.0, 20000)
+        n = SETTINGS.services_max_points
+        t = np.linspace(0.0, n * 1e-3, n)
         msg = trajectory_message(NAMES, t, np.array(READY) + 0.2 * np.sin(t[:, None] * np.arange(1, 8) * 0.05))
         probe = GravityProbe(ns)
-        for _ in range(3):
+        for _ in range(ATTEMPTS):
             t_sent = time.time()
             r = rig.call(cli, CheckTrajectory.Request(trajectory=msg), timeout=300)
             t_done = time.time()
-            assert r.accepted and len(r.effort.points) == 20000
+            assert r.accepted and len(r.effort.points) == n
             threading.Event().wait(t_done - t_sent)  # the idle window: nothing asked
             windows.append((t_sent, t_done, time.time()))
-        receipts = probe.receipts()
+        receipts, sent = probe.receipts()
     finally:
         if probe is not None:
             probe.cp.stop()
@@ -793,12 +814,69 @@ def test_a_large_request_does_not_pause_gravity_torques(rig):
         node.stop()
     attempts = []
     for t_sent, t_done, t_idle in windows:
-        busy, n_busy = _largest_gap(receipts, t_sent, t_done)
-        idle, n_idle = _largest_gap(receipts, t_done, t_idle)
+        busy, n_busy = _largest_gap(receipts, sent, t_sent, t_done)
+        idle, n_idle = _largest_gap(receipts, sent, t_done, t_idle)
         # answered all along: at least a third of the 5 ms joint_states
         assert n_busy >= (t_done - t_sent) / 0.005 / 3, (n_busy, t_done - t_sent)
-        attempts.append((busy - idle, busy, idle, t_done - t_sent))
-    report = "; ".join(f"{b * 1e3:.0f} ms busy, {i * 1e3:.0f} ms idle over {d:.2f} s"
-                       for _, b, i, d in attempts)
+        raw = float(np.max(np.diff(np.concatenate(
+            [[t_sent], receipts[(receipts > t_sent) & (receipts < t_done)], [t_done]]))))
+        attempts.append((busy - idle, busy, idle, t_done - t_sent, raw))
+    report = "; ".join(f"{b * 1e3:.0f} ms busy (raw gap {r * 1e3:.0f} ms), {i * 1e3:.0f} ms idle "
+                       f"over {d:.2f} s" for _, b, i, d, r in attempts)
     print(f"gravity_torque largest gaps: {report}")
-    assert min(a[0] for a in attempts) <= 0.05, f"gravity paused during every request: {report}"
+    assert statistics.median(a[0] for a in attempts) <= 0.05, f"gravity paused by the requests: {report}"
+
+
+def _question_worker_pid(node_pid: int) -> int:
+    """The pid of the node's question worker: its child running dyn_node.core.live.question_process."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmd = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:  # ended meanwhile
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == node_pid and b"dyn_node.core.live.question_process" in cmd:
+            found.append(int(entry.name))
+    assert len(found) == 1, found
+    return found[0]
+
+
+def test_a_killed_question_worker_answers_the_caller_and_comes_back(rig):
+    """The worker process killed while it checks a long trajectory: the caller gets
+    'accepted: false, reason: worker_failed' naming the signal (not silence), and the next call
+    is answered by a new worker with the core's numbers."""
+    import os
+    import signal as _signal
+
+    pid = _question_worker_pid(rig.proc.proc.pid)
+    fut = rig.srv_check.call_async(CheckTrajectory.Request(trajectory=long_check_message()))
+    # the check takes seconds in the worker: an inverse-dynamics call answered meanwhile shows
+    # the worker has started (it answers each kind on a thread of its own)
+    r = rig.call(rig.srv_id, ComputeInverseDynamics.Request(states=states_message(NAMES, np.array([READY]))))
+    assert r.accepted and not fut.done()
+    os.kill(pid, _signal.SIGKILL)
+    r = rig.wait_future(fut, 60)
+    assert (r.accepted, r.reason, r.feasible) == (False, "worker_failed", False)
+    assert r.message.startswith("the question worker process ended (signal 9)"), r.message
+    msg = reach()
+    r = rig.call(rig.srv_check, CheckTrajectory.Request(trajectory=msg), timeout=60)
+    assert r.accepted and r.message == local_check(msg).result.message
+    assert _question_worker_pid(rig.proc.proc.pid) != pid
+
+
+def test_release_points_frees_a_request_that_is_answered():
+    """The lane frees an answered request's points (a thousand at a time) so the executor does
+    not free them in one piece with the response; each kind's own point list."""
+    from dyn_node.ros.services import release_points
+
+    t = np.linspace(0.0, 2.5, 2500)
+    msg = trajectory_message(NAMES, t, np.array(READY) + 0.01 * t[:, None])
+    check, ids = CheckTrajectory.Request(trajectory=msg), ComputeInverseDynamics.Request(states=msg)
+    release_points("check", check)
+    assert len(check.trajectory.points) == 0 and len(check.trajectory.joint_names) == 7
+    release_points("inverse_dynamics", ids)
+    assert len(ids.states.points) == 0

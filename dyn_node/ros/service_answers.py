@@ -1,9 +1,11 @@
 """The answers of dyn_node's question services, as messages: request in, response filled.
 
-The numbers come from the same core functions ``dyn-check`` and the audit use
+A request becomes a :class:`~dyn_node.core.check.questions.Question` (arrays), the core answers
+it (in the question worker process, or in-process for the audit and tests: the same function),
+and the answer fills the response. The numbers come from the same core functions ``dyn-check`` and the audit use
 (:func:`dyn_node.core.check.on_demand.check`, :func:`~dyn_node.core.check.on_demand.inverse_dynamics`, the
 retimer); this module only converts between ``dyn_node_interfaces`` messages and arrays. No
-threads, no node: :mod:`dyn_node.ros.services` calls these on its lanes' workers.
+threads, no node: :mod:`dyn_node.ros.services` calls these on its lanes' threads.
 """
 from __future__ import annotations
 
@@ -15,17 +17,19 @@ from dyn_node_interfaces.srv import CheckTrajectory, ComputeInverseDynamics, Ret
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from dyn_node.core.check import feasibility, on_demand
+from dyn_node.core.check import feasibility, on_demand, questions
 from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.robot.model import RobotModel
 from dyn_node.core.robot.settings import Settings
-from dyn_node.errors import TrajectoryError
-from dyn_node.ros.convert import status_to_msg, trajectory_arrays, trajectory_message
+from dyn_node.ros.convert import _rows, status_to_msg, trajectory_arrays, trajectory_message
 
 #: reasons of a response that is not accepted, beyond the TrajectoryError codes (non_finite,
 #: unknown_joints, empty_points, ...)
-BUSY, NO_MODEL, RETIMER_UNAVAILABLE, INTERNAL_ERROR, SHUTTING_DOWN, TOO_LARGE, EXPIRED = (
-    "busy", "no_model", "retimer_unavailable", "internal_error", "shutting_down", "too_large",
-    "expired")
+BUSY, NO_MODEL, INTERNAL_ERROR, SHUTTING_DOWN, TOO_LARGE, EXPIRED = (
+    "busy", "no_model", "internal_error", "shutting_down", "too_large", "expired")
+RETIMER_UNAVAILABLE = questions.RETIMER_UNAVAILABLE
+#: the question worker process ended while answering (it is restarted)
+WORKER_FAILED = "worker_failed"
 
 
 def reject(response: Any, reason: str, message: str) -> Any:
@@ -66,21 +70,60 @@ def point_efforts(traj: JointTrajectory) -> list[Sequence[float]]:
     return [p.effort for p in traj.points]
 
 
+def question_of(kind: str, request: Any,
+                start: feasibility.StartState | None = None) -> questions.Question:
+    """A request as the arrays the core answers (:mod:`dyn_node.core.check.questions`)."""
+    traj = request.states if kind == questions.INVERSE_DYNAMICS else request.trajectory
+    names, times, P, V, A = trajectory_arrays(traj)
+    return questions.Question(kind, names, times, P, V, A, _rows([p.effort for p in traj.points]),
+                              start, bool(getattr(request, "from_current_state", False)))
+
+
+def fill(model: RobotModel, request: Any, response: Any, question: questions.Question,
+         result: Any) -> Any:
+    """``response`` filled with the core's ``result`` for ``request`` (``question``'s kind)."""
+    if question.kind == questions.CHECK:
+        return _fill_check(model, request, response, question.start, result)
+    if question.kind == questions.INVERSE_DYNAMICS:
+        return _fill_inverse_dynamics(model, request, response, result)
+    return _fill_retime(model, request, response, question.start, result)
+
+
+def answer(kind: str, dynamics: Dynamics, settings: Settings, request: Any, response: Any,
+           start: feasibility.StartState | None = None) -> Any:
+    """``response`` to ``request``, computed in this process (the worker computes the same)."""
+    question = question_of(kind, request, start)
+    return fill(dynamics.model, request, response, question,
+                questions.answer(dynamics, settings, question))
+
+
 def answer_check(dynamics: Dynamics, settings: Settings, request: CheckTrajectory.Request,
                  response: CheckTrajectory.Response,
                  start: feasibility.StartState | None) -> CheckTrajectory.Response:
     """The verdict on ``request.trajectory`` (from ``start`` when given), as ``dyn-check``'s."""
-    model = dynamics.model
-    names, times, P, V, A = trajectory_arrays(request.trajectory)
-    outcome = on_demand.check(dynamics, settings, names, times, P, V, A, start=start,
-                              start_unknown=on_demand.question_start_unknown(request.from_current_state),
-                              efforts=point_efforts(request.trajectory))
+    return answer(questions.CHECK, dynamics, settings, request, response, start)
+
+
+def answer_inverse_dynamics(dynamics: Dynamics, request: ComputeInverseDynamics.Request,
+                            response: ComputeInverseDynamics.Response) -> ComputeInverseDynamics.Response:
+    """τ(q, q̇, q̈) of each state, exactly as the check computes its sample torques."""
+    return answer(questions.INVERSE_DYNAMICS, dynamics, Settings(), request, response)
+
+
+def answer_retime(dynamics: Dynamics, settings: Settings, request: RetimeTrajectory.Request,
+                  response: RetimeTrajectory.Response,
+                  start: feasibility.StartState | None) -> RetimeTrajectory.Response:
+    """The fastest trajectory along the request's path within every limit (the retimer's)."""
+    return answer(questions.RETIME, dynamics, settings, request, response, start)
+
+
+def _fill_check(model: RobotModel, request: Any, response: Any,
+                start: feasibility.StartState | None, r: questions.CheckAnswer) -> Any:
     response.statuses = [status_to_msg(s) for s in
-                         on_demand.with_request(outcome.statuses, on_demand.REQUEST_CHECK)]
+                         on_demand.with_request(r.statuses, on_demand.REQUEST_CHECK)]
     _start_fields(response, model.joint_names, start)
-    if outcome.error is not None:
-        return reject(response, outcome.error.code or "invalid", str(outcome.error))
-    r = outcome.result
+    if r.error is not None:
+        return reject(response, r.error.code or "invalid", str(r.error))
     response.accepted = True
     response.reason = ""
     response.feasible = bool(r.feasible)
@@ -95,58 +138,33 @@ def answer_check(dynamics: Dynamics, settings: Settings, request: CheckTrajector
     return response
 
 
-def answer_inverse_dynamics(dynamics: Dynamics, request: ComputeInverseDynamics.Request,
-                            response: ComputeInverseDynamics.Response) -> ComputeInverseDynamics.Response:
-    """τ(q, q̇, q̈) of each state, exactly as the check computes its sample torques."""
-    model = dynamics.model
-    pts = request.states.points
-    try:
-        Q, V, A = on_demand.states(model.joint_names, request.states.joint_names,
-                                   [p.positions for p in pts], [p.velocities for p in pts],
-                                   [p.accelerations for p in pts])
-        tau = on_demand.inverse_dynamics(dynamics, Q, V, A)
-    except TrajectoryError as exc:
-        return reject(response, exc.code or "invalid", str(exc))
+def _fill_inverse_dynamics(model: RobotModel, request: Any, response: Any, tau: Any) -> Any:
+    if isinstance(tau, questions.Refusal):
+        return reject(response, tau.reason, tau.message)
     response.accepted = True
     response.reason = ""
     response.effort = with_effort(request.states, tau, model.joint_names)
     return response
 
 
-def answer_retime(dynamics: Dynamics, settings: Settings, request: RetimeTrajectory.Request,
-                  response: RetimeTrajectory.Response,
-                  start: feasibility.StartState | None) -> RetimeTrajectory.Response:
-    """The fastest trajectory along the request's path within every limit (the retimer's)."""
-    model = dynamics.model
+def _fill_retime(model: RobotModel, request: Any, response: Any,
+                 start: feasibility.StartState | None, result: Any) -> Any:
     _start_fields(response, model.joint_names, start)
-    names, times, P, V, A = trajectory_arrays(request.trajectory)
-    try:
-        traj = on_demand.validated(model.joint_names, names, times, P, V, A,
-                                   efforts=point_efforts(request.trajectory))
-    except TrajectoryError as exc:  # a malformed request says what is wrong, retimer or not
-        return reject(response, exc.code or "invalid", str(exc))
-    try:  # imported here: the service answers (not accepted) when the retimer is not there
-        from dyn_node.retime import retime
-    except ImportError as exc:
-        return reject(response, RETIMER_UNAVAILABLE, f"the retimer is not available: {exc}")
-    try:
-        result = retime(dynamics, traj, start=start, feasibility=on_demand.options_for(settings),
-                        limit_margin=settings.retime_limit_margin)
-    except TrajectoryError as exc:
-        return reject(response, exc.code or "invalid", str(exc))
+    if isinstance(result, questions.Refusal):
+        return reject(response, result.reason, result.message)
     response.accepted = True
     response.reason = ""
     response.feasible = bool(result.feasible)
     if result.trajectory is not None:
         response.trajectory = trajectory_message(result.trajectory, model.joint_names,
-                                             request.trajectory.header)
+                                                 request.trajectory.header)
     response.duration_in = float(result.duration_in)
     response.duration_out = float(result.duration_out)
     response.duration_uniform = float(result.duration_uniform)
     response.lower_bound = float(result.lower_bound)
     response.message = result.message
     response.blocked = result.blocked
-    if result.check is not None:
+    if result.statuses is not None:
         response.statuses = [status_to_msg(s) for s in on_demand.with_request(
-            result.check.statuses(model.name), on_demand.REQUEST_RETIME)]
+            result.statuses, on_demand.REQUEST_RETIME)]
     return response

@@ -1,10 +1,15 @@
 """dyn_node's questions as ROS 2 services: ``~/check_trajectory``, ``~/compute_inverse_dynamics``
 and ``~/retime_trajectory`` (types from ``dyn_node_interfaces``).
 
-Each service has a queue and a worker thread of its own (a *lane*), so a long check never holds
-the executor, the joint_states thread or a trajectory to execute, and a 1 ms inverse-dynamics
-call never waits behind a retime. The service callbacks are coroutines in a reentrant callback
-group: each queues its request and awaits its lane's answer (a guard condition wakes the
+Each service has a queue and a thread of its own (a *lane*): the lane turns the request into
+arrays (:func:`~dyn_node.ros.service_answers.question_of`), has the question worker process
+compute the answer (:class:`~dyn_node.core.live.question_process.QuestionProcess`, one thread per
+service there) and fills the response. The computation runs in another process because a thread
+of this one shares the interpreter lock with the joint_states thread (the module docstring of
+``question_process`` has the reasons and figures). So a long check never holds the executor,
+the joint_states thread or a trajectory to execute, and a 1 ms inverse-dynamics call never
+waits behind a retime. A worker that dies answers the calls it held ``worker_failed`` and is
+restarted. The service callbacks are coroutines in a reentrant callback group: each queues its request and awaits its lane's answer (a guard condition wakes the
 executor when it is ready), so several calls are in flight at once and none blocks another
 callback. A request that cannot be queued is answered at once: ``accepted: false`` with
 ``reason`` ``busy`` (``check_queue_depth`` of its kind waiting), ``too_large`` (more points than
@@ -31,10 +36,10 @@ from rclpy.service_introspection import ServiceIntrospectionState
 from rclpy.task import Future
 
 from dyn_node.core.check import feasibility
-from dyn_node.core.robot.dynamics import Dynamics
+from dyn_node.core.check.questions import CHECK, INVERSE_DYNAMICS, RETIME
+from dyn_node.core.live.question_process import QuestionProcess, WorkerFailed
 from dyn_node.ros import service_answers as answers
 
-CHECK, INVERSE_DYNAMICS, RETIME = "check", "inverse_dynamics", "retime"
 #: question → (service name, type)
 SERVICES: dict[str, tuple[str, Any]] = {
     CHECK: ("~/check_trajectory", CheckTrajectory),
@@ -58,13 +63,31 @@ class _Job:
     queued_at: float = field(default_factory=time.monotonic)
 
 
+def _points(kind: str, request: Any) -> list:
+    return request.states.points if kind == INVERSE_DYNAMICS else request.trajectory.points
+
+
 def request_points(kind: str, request: Any) -> int:
     """How many points (states) a request holds: what ``services.max_points`` bounds."""
-    return len(request.states.points if kind == INVERSE_DYNAMICS else request.trajectory.points)
+    return len(_points(kind, request))
+
+
+#: points freed per step by release_points
+RELEASE_CHUNK = 1000
+
+
+def release_points(kind: str, request: Any) -> None:
+    """Free a request's points a slice at a time once it is no longer needed (its service event
+    was published when it was taken). Freed when the executor drops the request, they went in
+    one piece, holding the interpreter lock: ~25 ms for 50,000 points, back to back with the
+    response's, which paused joint_states as long."""
+    points = _points(kind, request)
+    while points:
+        del points[-RELEASE_CHUNK:]
 
 
 class _Lane:
-    """One service's queue and its worker thread (its own Dynamics, from ``dynamics``)."""
+    """One service's queue and its thread (converts, asks the worker process, fills the response)."""
 
     def __init__(self, kind: str, work: Callable[[_Job], None]):
         self.kind, self._work = kind, work
@@ -95,16 +118,19 @@ class _Lane:
 
 
 class QuestionServices:
-    """The three services of ``node`` and their lanes. ``core()`` returns the node's current
-    core (model, settings) or None; ``start_state(core)`` the robot's state a trajectory received
-    now starts from (or None); ``dynamics(core)`` a Dynamics for the calling thread;
+    """The three services of ``node``, their lanes and the question worker process.
+    ``core()`` returns the node's current core (model, settings) or None;
+    ``start_state(core)`` the robot's state a trajectory received now starts from (or None);
     ``failed(what)`` logs and counts an exception."""
 
     def __init__(self, node: Node, *, core: Callable[[], Any],
                  start_state: Callable[[Any], feasibility.StartState | None],
-                 dynamics: Callable[[Any], Dynamics], failed: Callable[[str], None]):
-        self._core, self._start_state = core, start_state
-        self._dynamics, self._failed = dynamics, failed
+                 failed: Callable[[str], None]):
+        self._core, self._start_state, self._failed = core, start_state, failed
+        self.process = QuestionProcess(log=node.get_logger().warn)
+        first = core()
+        if first is not None:  # the worker loads the kernels with it while the node starts
+            self.process.preload(first.model)
         self._group = ReentrantCallbackGroup()
         self._wake = node.create_guard_condition(lambda: None, callback_group=self._group)
         self._lanes = {kind: _Lane(kind, self._work) for kind in SERVICES}
@@ -147,6 +173,7 @@ class QuestionServices:
             if n > most:
                 answers.reject(response, answers.TOO_LARGE,
                                f"too large: {n} points, more than services.max_points ({most})")
+                release_points(kind, request)
                 return None
             start = None
             if getattr(request, "from_current_state", False):
@@ -185,14 +212,18 @@ class QuestionServices:
         self._finish(job)
 
     def _answer(self, job: _Job) -> None:
-        dyn = self._dynamics(job.core)
-        settings = job.core.settings
-        if job.kind == CHECK:
-            answers.answer_check(dyn, settings, job.request, job.response, job.start)
-        elif job.kind == INVERSE_DYNAMICS:
-            answers.answer_inverse_dynamics(dyn, job.request, job.response)
-        else:
-            answers.answer_retime(dyn, settings, job.request, job.response, job.start)
+        """Arrays from the request here, the answer from the worker process, the response here."""
+        model = job.core.model
+        question = answers.question_of(job.kind, job.request, job.start)
+        try:
+            result = self.process.ask(job.core.settings, model, question)
+        except WorkerFailed as exc:
+            closing = self._lanes[job.kind].closed  # the node ends, and the worker with it
+            answers.reject(job.response, answers.SHUTTING_DOWN if closing else answers.WORKER_FAILED,
+                           str(exc))
+            return
+        answers.fill(model, job.request, job.response, question, result)
+        release_points(job.kind, job.request)
 
     def _finish(self, job: _Job) -> None:
         job.future.set_result(job.response)
@@ -211,6 +242,8 @@ class QuestionServices:
         for lane in self._lanes.values():  # a request in progress is abandoned (daemon threads)
             if lane.thread.is_alive() and lane.thread is not threading.current_thread():
                 lane.thread.join(timeout=max(0.0, deadline - time.monotonic()))
+        # after the lanes: a question still computed there is answered shutting_down
+        self.process.close()
 
 
 __all__ = ["QuestionServices", "request_points", "SERVICES", "EVENT_SUFFIX", "CHECK", "INVERSE_DYNAMICS", "RETIME"]

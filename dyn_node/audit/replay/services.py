@@ -5,7 +5,7 @@ core, and the answer compared with the recorded response.
 
 A question is not an execution: an infeasible answer is listed, never a violation of the run.
 Responses the node gave without looking at the request (``busy``, ``no_model``, shutting down,
-``expired``, ``too_large``) depend on its load or its live settings, not on the request's content, and are counted, not replayed. Each answered pair also
+``expired``, ``too_large``, ``worker_failed``: the worker process died) depend on its load or its live settings, not on the request's content, and are counted, not replayed. Each answered pair also
 goes once into the audit's :class:`~dyn_node.audit.accounting.RequestTally` (its kind, and "no"
 when not accepted or, for a check or retime, not feasible), beside the request topics' questions.
 """
@@ -35,7 +35,8 @@ QUESTIONS = {"dyn_node_interfaces/srv/CheckTrajectory_Event": CHECK,
 # service_msgs/ServiceEventInfo event types the server side publishes
 REQUEST_RECEIVED, RESPONSE_SENT = 1, 2
 #: answers given without looking at the request: not reproducible from the bag
-NOT_REPLAYED = ("busy", "no_model", "shutting_down", "internal_error", "expired", "too_large")
+NOT_REPLAYED = ("busy", "no_model", "shutting_down", "internal_error", "expired", "too_large",
+                "worker_failed")
 
 
 def service_role(topic: str, schema: str) -> str | None:

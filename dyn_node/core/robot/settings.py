@@ -129,8 +129,10 @@ class Settings:
         "integer", 8, "question service calls (check, inverse dynamics, retime) waiting to be answered; "
         "one arriving when this many of its kind wait is answered 'accepted: false, reason: busy' "
         "(requests per service)", 1, 10000)
+    # 50,000: the node still converts each request and response (rclpy), which pauses
+    # joint_states in proportion: 20-34 ms at 50,000 points, 57-78 ms at 100,000 (docs/node.md)
     services_max_points: int = _param(
-        "integer", 100000, "largest point (or state) count a question service answers; a larger "
+        "integer", 50000, "largest point (or state) count a question service answers; a larger "
         "request is answered at once 'accepted: false, reason: too_large' (points)", 1, 10000000,
         name="services.max_points")
     services_max_queue_age: float = _param(

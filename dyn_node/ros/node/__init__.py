@@ -180,8 +180,9 @@ class DynNode(JointStatesIO, ModelState, PeriodicOutputs, TrajectoryWorker, Node
         self._worker.start()
         # questions (check, inverse dynamics, retime): services with a worker per kind, apart
         # from joint_trajectory's, so a planner's questions never delay a command's verdict
+        # (computed in a worker process of their own: dyn_node.core.live.question_process)
         self.questions = QuestionServices(self, core=lambda: self._core, start_state=self._start_state_now,
-                                          dynamics=self._worker_dynamics, failed=self._callback_failed)
+                                          failed=self._callback_failed)
 
     def _start_recording(self) -> None:
         # Imported here: the bridge declares the record.* parameters and owns the recorder thread.
