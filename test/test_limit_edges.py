@@ -21,6 +21,7 @@ import pytest
 
 from dyn_node.core.robot.dynamics import Dynamics
 from dyn_node.core.check.feasibility import FeasibilityOptions, check_trajectory
+from dyn_node.core.check.joint_constraints import POSITION_RTOL
 from dyn_node.core.robot.model import builtin_urdf, load_model
 from dyn_node.core.live.monitor import EFFORT, LIMITS, Monitor
 from dyn_node.core.robot.settings import Settings
@@ -133,7 +134,10 @@ def test_feasibility_position_exactly_at_and_beyond(j, side):
     out = -1.0 if side == "lower" else 1.0
     model = _unlimited_except(PLANAR, {"position_lower": lim.position_lower.copy(),
                                        "position_upper": lim.position_upper.copy()})
-    for delta, ok in ((0.0, True), (-out * EPS, True), (out * EPS, False)):
+    # the check's position bound is the limit widened by POSITION_RTOL of its size (issue 39: a
+    # waypoint on a limit within 1e-9 is on it): half of that past is on it, twice is beyond
+    tol = POSITION_RTOL * max(1.0, abs(bound))
+    for delta, ok in ((0.0, True), (-out * EPS, True), (0.5 * out * tol, True), (2.0 * out * tol, False)):
         q = [0.0, 0.0]
         q[j] = bound + delta
         r = _check(model, _hold(q))

@@ -379,7 +379,9 @@ class Position(Constraint):
         lo_t, hi_t = _position_bounds(lim, cols)
         over = np.maximum(rng.q_max - hi_t, lo_t - rng.q_min)
         bad = np.flatnonzero(over > 0)
-        first, outside = exact_peaks.position_excess(motion, cols[bad], lo_t[bad], hi_t[bad])
+        # beyond a limit by more than the tolerance is a violation; when and how long it is
+        # out are of the limit itself
+        first, outside = exact_peaks.position_excess(motion, cols[bad], lo[bad], hi[bad])
         peaks, violations = [], []
         for c, where in enumerate(self.where):
             up = rng.q_max[c] - hi[c] >= lo[c] - rng.q_min[c]
