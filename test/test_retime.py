@@ -86,6 +86,23 @@ def test_s_curve_time_one_joint() -> None:
     assert res.duration_out >= 2.6 * (1 - 1e-3)    # faster would break a limit
 
 
+def toppra_joint_constraints(model, coulomb: np.ndarray) -> list:
+    """toppra's own velocity, acceleration and torque constraints for ``model``'s limits (torque:
+    Pinocchio's rnea plus ``coulomb``·sign(q̇), toppra's friction), interpolation discretisation."""
+    import pinocchio as pin
+    import toppra.constraint as tc
+
+    pm, lim = model.pin_model, model.limits
+    data = pm.createData()
+    interp = tc.DiscretizationType.Interpolation
+    return [tc.JointVelocityConstraint(np.column_stack([-lim.velocity, lim.velocity])),
+            tc.JointAccelerationConstraint(np.column_stack([-lim.acceleration, lim.acceleration]),
+                                           discretization_scheme=interp),
+            tc.JointTorqueConstraint(lambda q, v, a: pin.rnea(pm, data, q, v, a),
+                                     np.column_stack([-lim.effort, lim.effort]),
+                                     coulomb, discretization_scheme=interp)]
+
+
 def test_lower_bound_is_toppra_directly() -> None:
     """TOPP-RA's grid optimum equals TOPP-RA with its own joint velocity, acceleration and
     torque constraints (torque from Pinocchio's RNEA) on the same curve and grid: a cubic from moving to moving
@@ -100,18 +117,8 @@ def test_lower_bound_is_toppra_directly() -> None:
     traj = Trajectory(times=np.array([0.0, 3.0]), positions=UR5_WAYPOINTS[:2].copy(),
                       velocities=np.stack([v0, v1]))
     res = retime(dyn, traj)
-    m = dyn.model
-    pm = m.pin_model
-    data = pm.createData()
     path = ta.SplineInterpolator(traj.times, traj.positions, bc_type=((1, v0), (1, v1)))
-    lim = m.limits
-    interp = tc.DiscretizationType.Interpolation
-    cons = [tc.JointVelocityConstraint(np.column_stack([-lim.velocity, lim.velocity])),
-            tc.JointAccelerationConstraint(np.column_stack([-lim.acceleration, lim.acceleration]),
-                                           discretization_scheme=interp),
-            tc.JointTorqueConstraint(lambda q, v, a: pin.rnea(pm, data, q, v, a),
-                                     np.column_stack([-lim.effort, lim.effort]),
-                                     np.zeros(m.nv), discretization_scheme=interp)]
+    cons = toppra_joint_constraints(dyn.model, np.zeros(dyn.model.nv))
     grid = np.linspace(0.0, traj.duration, 1001)
     inst = algo.TOPPRA(cons, path, gridpoints=grid, solver_wrapper="seidel",
                        parametrizer="ParametrizeConstAccel")

@@ -22,15 +22,13 @@ def _toppra_duration(dyn, spline, steps: int = FINE) -> float:
     piecewise polynomial, the path by its own time), from rest to rest, with the joint velocity,
     acceleration and torque limits (torque: Pinocchio's rnea plus the URDF's Coulomb friction,
     which is the model's whole friction here: no damping, no armature)."""
-    import pinocchio as pin
     import toppra.algorithm as algo
-    import toppra.constraint as tc
     from toppra.interpolator import AbstractGeometricPath
+
+    from test_retime import toppra_joint_constraints
 
     m = dyn.model
     assert not np.any(m.pin_model.armature) and not np.any(dyn.friction_coefficients[1])
-    pm = m.pin_model
-    data = pm.createData()
     derivs = [spline.derivative(k) if k else spline for k in range(4)]
 
     class _Path(AbstractGeometricPath):
@@ -45,14 +43,7 @@ def _toppra_duration(dyn, spline, steps: int = FINE) -> float:
         def path_interval(self):
             return np.array([spline.x[0], spline.x[-1]])
 
-    lim = m.limits
-    interp = tc.DiscretizationType.Interpolation
-    cons = [tc.JointVelocityConstraint(np.column_stack([-lim.velocity, lim.velocity])),
-            tc.JointAccelerationConstraint(np.column_stack([-lim.acceleration, lim.acceleration]),
-                                           discretization_scheme=interp),
-            tc.JointTorqueConstraint(lambda q, v, a: pin.rnea(pm, data, q, v, a),
-                                     np.column_stack([-lim.effort, lim.effort]),
-                                     dyn.friction_coefficients[0], discretization_scheme=interp)]
+    cons = toppra_joint_constraints(m, dyn.friction_coefficients[0])
     grid = np.linspace(spline.x[0], spline.x[-1], steps + 1)
     inst = algo.TOPPRA(cons, _Path(), gridpoints=grid, solver_wrapper="seidel",
                        parametrizer="ParametrizeConstAccel")

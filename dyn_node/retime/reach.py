@@ -32,30 +32,9 @@ _MAX_TRIES = 1000
 
 
 @njit(**_JIT)
-def _interval(a0, b0, c0, a1, b1, c1, d, xlo, xhi, klo, khi):   # pragma: no cover (compiled)
-    """[lo, hi] of x over one stage's polygon (lo > hi: empty): rows (a0, b0, c0) at the
-    stage, (a1 + 2d·b1, b1, c1) of the next (none when d < 0), x + 2d·u in [klo, khi] (d ≥ 0),
-    |u| ≤ VAR_MAX, x in [xlo, xhi]."""
-    m = a0.shape[0]
-    n = 2 * m + 4
-    al = np.empty(n)
-    be = np.empty(n)
-    ce = np.empty(n)
-    k = 0
-    for j in range(m):
-        al[k], be[k], ce[k] = a0[j], b0[j], c0[j]
-        k += 1
-    if d >= 0.0:
-        for j in range(m):
-            al[k], be[k], ce[k] = a1[j] + 2.0 * d * b1[j], b1[j], c1[j]
-            k += 1
-        al[k], be[k], ce[k] = 2.0 * d, 1.0, -khi
-        al[k + 1], be[k + 1], ce[k + 1] = -2.0 * d, -1.0, klo
-        k += 2
-    al[k], be[k], ce[k] = 1.0, 0.0, -VAR_MAX
-    al[k + 1], be[k + 1], ce[k + 1] = -1.0, 0.0, -VAR_MAX
-    k += 2
-    lo, hi = xlo, xhi
+def _span(al, be, ce, k, lo, hi):   # pragma: no cover (compiled)
+    """[lo, hi] ∩ the projection onto x of {(u, x): al·u + be·x + ce ≤ 0 (first k rows)}
+    (Fourier–Motzkin; u bounded only by the rows given); lo > hi: empty."""
     for p in range(k):
         if al[p] == 0.0:
             if be[p] > 0.0:
@@ -81,6 +60,33 @@ def _interval(a0, b0, c0, a1, b1, c1, d, xlo, xhi, klo, khi):   # pragma: no cov
             elif r < 0.0:
                 return 1.0, 0.0
     return lo, hi
+
+
+@njit(**_JIT)
+def _interval(a0, b0, c0, a1, b1, c1, d, xlo, xhi, klo, khi):   # pragma: no cover (compiled)
+    """[lo, hi] of x over one stage's polygon (lo > hi: empty): rows (a0, b0, c0) at the
+    stage, (a1 + 2d·b1, b1, c1) of the next (none when d < 0), x + 2d·u in [klo, khi] (d ≥ 0),
+    |u| ≤ VAR_MAX, x in [xlo, xhi]."""
+    m = a0.shape[0]
+    n = 2 * m + 4
+    al = np.empty(n)
+    be = np.empty(n)
+    ce = np.empty(n)
+    k = 0
+    for j in range(m):
+        al[k], be[k], ce[k] = a0[j], b0[j], c0[j]
+        k += 1
+    if d >= 0.0:
+        for j in range(m):
+            al[k], be[k], ce[k] = a1[j] + 2.0 * d * b1[j], b1[j], c1[j]
+            k += 1
+        al[k], be[k], ce[k] = 2.0 * d, 1.0, -khi
+        al[k + 1], be[k + 1], ce[k + 1] = -2.0 * d, -1.0, klo
+        k += 2
+    al[k], be[k], ce[k] = 1.0, 0.0, -VAR_MAX
+    al[k + 1], be[k + 1], ce[k + 1] = -1.0, 0.0, -VAR_MAX
+    k += 2
+    return _span(al, be, ce, k, xlo, xhi)
 
 
 @njit([_i8(_M, _M, _M, _V, _V, _V, types.Array(_f8, 2, "C"), _i8, _f8)], **_JIT)
@@ -148,35 +154,6 @@ def forward(A, B, C, deltas, K, x0):   # pragma: no cover (compiled)
 
 # --- the certified lower bound's passes (dyn_node/retime/bound.py): each stage's relaxed rows
 # α·ū + β·x_i + γ ≤ 0 hold for the true samples x_i = x(s_i) and the stage's mean ū, u free
-
-@njit(**_JIT)
-def _span(al, be, ce, k, lo, hi):   # pragma: no cover (compiled)
-    """[lo, hi] ∩ the projection onto x of {(u, x): al·u + be·x + ce ≤ 0 (first k rows)}, u
-    unbounded (no VAR_MAX: a bound must not cut what the true motion may do); lo > hi: empty."""
-    for p in range(k):
-        if al[p] == 0.0:
-            if be[p] > 0.0:
-                hi = min(hi, -ce[p] / be[p])
-            elif be[p] < 0.0:
-                lo = max(lo, -ce[p] / be[p])
-            elif ce[p] > 0.0:
-                return 1.0, 0.0
-    for p in range(k):
-        if al[p] <= 0.0:
-            continue
-        for q in range(k):
-            if al[q] >= 0.0:
-                continue
-            kx = al[p] * be[q] - al[q] * be[p]
-            r = al[q] * ce[p] - al[p] * ce[q]
-            if kx > 0.0:
-                hi = min(hi, r / kx)
-            elif kx < 0.0:
-                lo = max(lo, r / kx)
-            elif r < 0.0:
-                return 1.0, 0.0
-    return lo, hi
-
 
 @njit(**_JIT)
 def _outward(lo, hi):   # pragma: no cover (compiled)
