@@ -452,7 +452,8 @@ def test_shutdown_cancels_the_running_goal_and_refuses_new_ones(paths, module_ro
 def test_idle_gate_decides_in_the_goal_callback_and_a_long_goal_on_the_check_thread(paths, module_ros_context):
     """A gate in this process in front of the double: a goal reaching an idle gate is checked on
     the gate's executor thread, in its goal callback (no crossing to the check thread and back);
-    one of more than INLINE_MAX_POINTS points is checked on the check thread. Both forwarded."""
+    one of more than INLINE_MAX_POINTS points, or lasting more than INLINE_MAX_DURATION_S, is
+    checked on the check thread. All forwarded."""
     from types import SimpleNamespace
 
     import numpy as np
@@ -463,7 +464,7 @@ def test_idle_gate_decides_in_the_goal_callback_and_a_long_goal_on_the_check_thr
     from dyn_node.core.robot.model import load_model
     from dyn_node.core.robot.settings import Settings
     from dyn_node.ros.fjt_client import FjtClient, goal, quintic
-    from dyn_node.ros.gate import INLINE_MAX_POINTS, Gate
+    from dyn_node.ros.gate import INLINE_MAX_DURATION_S, INLINE_MAX_POINTS, Gate
 
     node = Node("gate_inline", namespace="/inline", context=module_ros_context)
     core = SimpleNamespace(model=load_model(builtin="panda"), settings=Settings())
@@ -483,10 +484,13 @@ def test_idle_gate_decides_in_the_goal_callback_and_a_long_goal_on_the_check_thr
         short, _ = tagged("ok")
         long_goal = goal(**quintic(READY, moved(0, 0.1), 3.0, INLINE_MAX_POINTS + 1), names=ARM,
                          goal_tolerance=[(f"double:ok:{uuid.uuid4().hex[:10]}", 0.0)])
-        for g in (short, long_goal):
+        # two points lasting longer than INLINE_MAX_DURATION_S: a long check too (samples)
+        slow_goal = goal(**quintic(READY, moved(0, 0.1), INLINE_MAX_DURATION_S + 1.0, 2), names=ARM,
+                         goal_tolerance=[(f"double:ok:{uuid.uuid4().hex[:10]}", 0.0)])
+        for g in (short, long_goal, slow_goal):
             assert client.result(client.send(g))[0] == GoalStatus.STATUS_SUCCEEDED
-        assert threads == ["dyn_node gate", "dyn_node gate check"]
-        assert [r["decision"] for r in records if r["event"] == "decision"] == ["forwarded", "forwarded"]
+        assert threads == ["dyn_node gate", "dyn_node gate check", "dyn_node gate check"]
+        assert [r["decision"] for r in records if r["event"] == "decision"] == ["forwarded"] * 3
     finally:
         client.close()
         gate.close()

@@ -107,6 +107,9 @@ class _Goal:
 #: the most points a goal decided in its goal callback may have (the check takes ~25 µs a point
 #: on the Panda: the executor is held for at most ~15 ms); longer goals go to the check thread
 INLINE_MAX_POINTS = 500
+#: and the longest (s): the check samples every sample_period (1 ms by default), so a two-point
+#: goal lasting minutes is a long check too
+INLINE_MAX_DURATION_S = 10.0
 
 #: executor turns close() runs after the spin thread stopped (pending result responses)
 _DRAIN_TURNS = 20
@@ -204,10 +207,14 @@ class Gate:
     def _inline(self, g: _Goal) -> bool:
         """Whether to decide in the goal callback: a crossing to the check thread and back costs
         the goal its scheduling (GIL, executor wake-up), up to ~5 ms each way on a busy machine.
-        Only a bounded check (reject or check mode, at most INLINE_MAX_POINTS points) with no
+        Only a bounded check (reject or check mode, at most INLINE_MAX_POINTS points lasting at
+        most INLINE_MAX_DURATION_S) with no
         check queued or running, and while inline checks took at most half of the executor's
         time: under a flood goals go through the bounded queue (gate_busy when it is full)."""
-        if self.options.mode == "retime" or len(g.goal.trajectory.points) > INLINE_MAX_POINTS:
+        points = g.goal.trajectory.points
+        if self.options.mode == "retime" or len(points) > INLINE_MAX_POINTS:
+            return False
+        if points and stamp_to_s(points[-1].time_from_start) > INLINE_MAX_DURATION_S:
             return False
         with self._lock:
             return self._pending == 0 and time.monotonic() >= self._inline_free_at

@@ -238,12 +238,13 @@ class QuestionServices:
             for job in lane.close():
                 answers.reject(job.response, answers.SHUTTING_DOWN, "dyn_node is shutting down")
                 self._finish(job)
+        # first: a lane waiting on the worker is released at once (its question answered
+        # shutting_down), so the joins below do not wait out their timeout
+        self.process.close()
         deadline = time.monotonic() + 0.5
         for lane in self._lanes.values():  # a request in progress is abandoned (daemon threads)
             if lane.thread.is_alive() and lane.thread is not threading.current_thread():
                 lane.thread.join(timeout=max(0.0, deadline - time.monotonic()))
-        # after the lanes: a question still computed there is answered shutting_down
-        self.process.close()
 
 
 __all__ = ["QuestionServices", "request_points", "SERVICES", "EVENT_SUFFIX", "CHECK", "INVERSE_DYNAMICS", "RETIME"]

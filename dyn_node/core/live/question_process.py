@@ -178,6 +178,9 @@ class QuestionProcess:
                         pending.done.set()
             except (EOFError, OSError):
                 pass
+            except Exception as exc:  # noqa: BLE001 - an unreadable answer: replace the worker
+                self._log(f"question worker's answer unreadable ({exc!r}); restarting it")
+                self._proc.kill()
             if not self._restart():
                 return
             conn.close()  # the ended worker's (the new one has its own)
