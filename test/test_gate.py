@@ -465,6 +465,11 @@ def _audit_agrees(probe, bags, run_audit, AuditOptions) -> None:
     assert [d["verdict"] for d in gate["decisions"]] == [r["verdict"] for r in live]
     recheck = audit.record["outputs"]["recheck"]["/gate_rec/gate_decisions"]
     assert (recheck["matched"], recheck["identical"]) == (len(live), True), recheck
+    # the replay's controller tracker follows the forwarded goals from the timing and state the
+    # node's did (``tracked`` records), as the node's ~/controller_status showed them
+    assert sum(r["event"] == "tracked" for r in recs) == sum(r["decision"] == "forwarded" for r in live)
+    assert any(kv(m)["state"] == "tracking" for m in probe.ctrl)
+    assert "tracking" in out["controller_states"]["states_seen"], out["controller_states"]
     report = (bags / "audit" / "report.html").read_text()
     assert "Gate decisions" in report and live[1]["verdict"].split(";")[0] in report
 

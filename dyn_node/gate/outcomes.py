@@ -25,6 +25,9 @@ DOWNSTREAM_UNAVAILABLE = "downstream_unavailable"
 #: accepts, that goal is cancelled on arrival (``late_goal_cancelled`` record)
 DOWNSTREAM_LATE = "downstream_late"
 LATE_GOAL_CANCELLED = "late_goal_cancelled"
+#: not an end: when and from which state the controller runs a forwarded goal, as the node's
+#: controller tracker follows it (``timing``, ``start``); the audit's replay follows the same
+TRACKED = "tracked"
 #: the controller refused the goal at its goal response (passed to the client as a rejection)
 DOWNSTREAM_REJECTED = "downstream_rejected"
 #: no feedback and no result for gate.timeout (controller hung or gone): cancelled downstream
@@ -51,6 +54,12 @@ def end_record(goal_id: str, event: str, status: int | None, result: Any = None,
             "error_code": None if result is None else int(result.error_code),
             "error_string": "" if result is None else result.error_string,
             "cancel": cancel, "cause": cause, "elapsed_s": elapsed_s}
+
+
+def tracked_record(goal_id: str, timing: dict, start: dict | None) -> dict:
+    """The ``tracked`` record: the execution model's timing (``stamp_s``, ``receipt_s``) and the
+    robot's state (None: none fresh) the tracker followed the forwarded goal from."""
+    return {"version": 1, "event": TRACKED, "goal_id": goal_id, "timing": timing, "start": start}
 
 
 def busy_text(pending: int) -> str:

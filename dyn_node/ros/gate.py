@@ -404,7 +404,9 @@ class Gate:
                 return res
             if self._executed is not None:  # off the goal response's path
                 try:
-                    self._executed(g.decision, g.down_goal, g.names)
+                    self._executed(g.decision, g.down_goal, g.names, lambda timing, start: self._publish(
+                        self.pub, String(data=json.dumps(out.tracked_record(
+                            g.goal_id, timing_dict(timing), start_dict(start)), allow_nan=False))))
                 except Exception:
                     self.logger.error(f"gate {g.goal_id[:8]}: verdict or tracking failed:\n{traceback.format_exc()}")
             return await self._follow(handle, g)
@@ -601,9 +603,11 @@ def attach_gate(node: Any, params: dict[str, Any]) -> Gate | None:
     return gate
 
 
-def _executed(node: Any, decision: Decision, goal: Any, names: list[str]) -> None:
+def _executed(node: Any, decision: Decision, goal: Any, names: list[str],
+              record: Callable[[Timing, Any], None]) -> None:
     """A goal the controller accepted: its verdict on ~/feasibility (request ``execute``) and the
-    controller tracker following it, as for a trajectory on the joint_trajectory topic."""
+    controller tracker following it, as for a trajectory on the joint_trajectory topic (from
+    now and the robot's state now: ``record`` writes both first, for the audit's replay)."""
     from dyn_node.core.check.on_demand import REQUEST_EXECUTE
     from dyn_node.ros.convert import verdict_array
 
@@ -614,10 +618,11 @@ def _executed(node: Any, decision: Decision, goal: Any, names: list[str]) -> Non
 
     header = goal.trajectory.header
     _core, state = node.execution_state()
-    now = node.get_clock().now().nanoseconds * 1e-9
+    timing = Timing(stamp_to_s(header.stamp), node.get_clock().now().nanoseconds * 1e-9)
+    record(timing, state)
     with node._io_lock:
-        core.tracker.follow(decision.trajectory, timing=Timing(stamp_to_s(header.stamp), now),
-                            start=state, options=options_for(core.settings).execution)
+        core.tracker.follow(decision.trajectory, timing=timing, start=state,
+                            options=options_for(core.settings).execution)
     if decision.result is not None:
         node._publish_verdict(node._pub_feasibility, verdict_array(decision.result.statuses(core.model.name),
                                                                    header.stamp, header.frame_id, REQUEST_EXECUTE))

@@ -17,13 +17,14 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from dyn_node.audit.accounting import GATE_GOAL, RequestTally
 from dyn_node.audit.replay.common import Recheck
 from dyn_node.bag.reader import BagMessage, MessageDecoder
+from dyn_node.gate.outcomes import TRACKED
 
 ROLE_GATE = "gate_decisions"
 MAX_LISTED = 200  # decisions listed one by one in the evidence
@@ -43,8 +44,13 @@ class GateReplay:
     """Re-decides each recorded decision; the comparison goes to the re-check of ``sink`` (a
     Rechecker, or None) under the decisions topic."""
 
-    def __init__(self, sink: Any = None, *, tally: RequestTally | None = None):
+    def __init__(self, sink: Any = None, *, tally: RequestTally | None = None,
+                 tracker: Callable[[], Any] | None = None):
         self.sink = sink
+        # the replay's controller tracker now (a new configuration makes a new one): it follows
+        # forwarded goals as the node's does
+        self._tracker = tracker
+        self._forwarded: dict[str, Any] = {}  # goal id → the trajectory forwarded, until tracked or ended
         self.tally = tally if tally is not None else RequestTally()
         self.bad = 0  # goals executed infeasible or rejected, or not executed
         self._own: dict[str, Recheck] = {}
@@ -69,9 +75,15 @@ class GateReplay:
         except Exception:  # noqa: BLE001 - an unreadable record is a discrepancy, not a crash
             check.unmatched += 1
             return
+        if rec.get("event") == TRACKED:
+            self._track(rec, settings)
+            return
         if rec.get("event") != "decision":
+            self._forwarded.pop(rec.get("goal_id"), None)
             self._end(rec)
             return
+        if rec.get("forwarded") and self._tracker is not None:
+            self._forwarded[rec["goal_id"]] = rec["forwarded"]
         s = self.summary
         s["requests"] += 1
         ok = executed_feasible(rec)
@@ -91,6 +103,23 @@ class GateReplay:
             return
         s["answered"] += 1
         self._compare(rec, dynamics, settings, check, {"t_ns": m.log_time_ns, "goal_id": rec["goal_id"]})
+
+    def _track(self, rec: dict, settings: Any) -> None:
+        """The controller tracker follows the forwarded goal from the timing and state the node's
+        did (the ``tracked`` record, written just before it did)."""
+        from dyn_node.core.check.on_demand import options_for
+        from dyn_node.core.check.trajectory import Trajectory
+        from dyn_node.gate.decision import start_from_dict, timing_from_dict
+
+        fwd = self._forwarded.pop(rec.get("goal_id"), None)
+        tracker = self._tracker() if self._tracker is not None else None
+        if fwd is None or tracker is None or list(fwd["joint_names"]) != list(tracker.model.joint_names):
+            return
+        arr = lambda k: None if fwd[k] is None else np.asarray(fwd[k], dtype=float)  # noqa: E731
+        traj = Trajectory(times=arr("times"), positions=arr("positions"), velocities=arr("velocities"),
+                          accelerations=arr("accelerations"))
+        tracker.follow(traj, timing=timing_from_dict(rec["timing"]), start=start_from_dict(rec["start"]),
+                            options=options_for(settings).execution)
 
     def _end(self, rec: dict) -> None:
         """An end record: counted by event; a goal counted executed feasible whose end says the

@@ -144,7 +144,7 @@ class Replay:
         self._contact_job: Future | None = None
         # the question services' request/response pairs, counted in the same tally
         self.services = ServiceReplay(sink, tally=self.tally)
-        self.gates = GateReplay(sink, tally=self.tally)  # the gate's goals: executed, decided again
+        self.gates = GateReplay(sink, tally=self.tally, tracker=lambda: self.tracker)  # executed, decided again
 
     def feed(self, role: str, m: BagMessage) -> bool:
         """Replay one message; False when its role is not an input (a recorded output)."""
