@@ -24,9 +24,11 @@ from dyn_node.core.compiled import peak_kernels as pk
 #: is nearly linear; a quadratic's or higher needs ≥ 4 steps for the fourth-order effort-rate
 #: differences, which resolve a torque peak at the piece's ends exactly.
 MIN_STEPS_BY_DEGREE = (1, 2, 4, 4, 4, 4)
-#: Steps at least in a piece whose |q̈| or |q⃛| peaks inside it (a rest-to-rest quintic's
-#: inertial torque peaks at s = 0.21 T): uniform steps miss such a peak by ~1/n² of it, 0.1 %
-#: at 32 steps and 0.04 % at 48 for a rest-to-rest quintic (docs/limits.md).
+#: Steps at least in a piece whose |q̈| or |q⃛| peaks inside it from zero at its ends (a
+#: rest-to-rest quintic's inertial torque peaks at s = 0.21 T): uniform steps miss such a peak
+#: by ~1/n² of it, 0.1 % at 32 steps and 0.04 % at 48 (docs/limits.md). A peak rising a fraction
+#: r over the larger end is missed by ~r/n²: it gets ⌈48·√r⌉ steps, the same resolution (a
+#: retimed answer's 4 ms pieces rise little: 48 each made its check 10× the sampling's cost).
 INNER_PEAK_STEPS = 48
 
 
@@ -39,13 +41,14 @@ def piece_degrees(pp: PiecewisePolynomial) -> np.ndarray:
 
 def min_steps(pp: PiecewisePolynomial) -> np.ndarray:
     """Per piece, the fewest sample steps the torque kinds take on it: by its degree, and
-    :data:`INNER_PEAK_STEPS` where some joint's acceleration or jerk peaks inside it (by more
-    than 0.1 % over the piece's ends, which are samples anyway)."""
+    ⌈:data:`INNER_PEAK_STEPS` · √r⌉ where some joint's acceleration or jerk peaks inside it a
+    fraction r above the piece's ends (by more than 0.1 %: the ends are samples anyway)."""
     table = np.asarray(MIN_STEPS_BY_DEGREE)
     least = table[np.minimum(piece_degrees(pp), len(table) - 1)]
-    inner = (pk.inner_peaks(pp.coeffs, pp.breaks, 2, 1e-3)
-             | pk.inner_peaks(pp.coeffs, pp.breaks, 3, 1e-3))
-    return np.where(inner, np.maximum(least, INNER_PEAK_STEPS), least)
+    rise = np.maximum(pk.inner_rise(pp.coeffs, pp.breaks, 2, 1e-3),
+                      pk.inner_rise(pp.coeffs, pp.breaks, 3, 1e-3))
+    inner = np.ceil(INNER_PEAK_STEPS * np.sqrt(rise)).astype(least.dtype)
+    return np.where(rise > 0.0, np.maximum(least, inner), least)
 
 
 def sampling_warnings(smp: Samples, least: np.ndarray, period: float) -> list[str]:

@@ -361,23 +361,25 @@ def segment_rate(F: np.ndarray, first: np.ndarray, last: np.ndarray,
     return D
 
 
-@njit([types.Array(types.boolean, 1, "C")(_T3, _V, _i8, _f8)], **_JIT)
-def inner_peaks(coeffs: np.ndarray, breaks: np.ndarray, order: int, margin: float) -> np.ndarray:
-    """Per piece: whether some column's |derivative ``order``| peaks inside it, above
-    (1 + margin) × its larger end (the samples at the ends would not resolve that peak)."""
+@njit([_V(_T3, _V, _i8, _f8)], **_JIT)
+def inner_rise(coeffs: np.ndarray, breaks: np.ndarray, order: int, margin: float) -> np.ndarray:
+    """Per piece: how far some column's |derivative ``order``| peaks inside it above its larger
+    end, as a fraction of that peak (0 where no peak exceeds (1 + margin) × the larger end: the
+    samples at the ends resolve it)."""
     K, nv = coeffs.shape[0], coeffs.shape[2]
-    out = np.zeros(K, dtype=np.bool_)
+    out = np.zeros(K)
     D = np.empty((MAXP, MAXP))
     roots = np.empty(MAXP)
     for k in range(K):
         T = breaks[k + 1] - breaks[k]
         for j in range(nv):
             f0, fT, R = _ends(coeffs, k, j, order, T)
-            end = (1.0 + margin) * max(abs(f0), abs(fT))
+            top = max(abs(f0), abs(fT))
+            end = (1.0 + margin) * top
             if abs(f0) + R <= end:
                 continue
             hi, _, lo, _ = _piece_range(D, _chain(coeffs, k, j, order, D), T, roots)
-            if max(hi, -lo) > end:
-                out[k] = True
-                break
+            peak = max(hi, -lo)
+            if peak > end:
+                out[k] = max(out[k], (peak - top) / peak)
     return out
