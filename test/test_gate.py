@@ -9,7 +9,7 @@ import signal
 import numpy as np
 import pytest
 
-from conftest import Stepper, kv, python_cmd
+from conftest import Stepper, close_stack, kv, python_cmd
 from service_event_counts import gate_goal_counts, gate_records
 from test_sim_action import ARM, READY, moved
 from test_sim_action import sim_cmd as sim_action_cmd
@@ -149,11 +149,7 @@ def stack(module_ros_context, tmp_path_factory):
         probe.wait_ready()
         yield clients, probe, procs, bags
     finally:
-        probe.close()
-        for c in clients.values():
-            c.close()
-        for p in procs:
-            p.stop(timeout=10.0)
+        close_stack([probe, *clients.values()], procs)
 
 
 def _goal(spec: dict, **kw):

@@ -14,7 +14,7 @@ import uuid
 
 import pytest
 
-from conftest import REPO, ChildProcess, Stepper, child_env, js
+from conftest import REPO, ChildProcess, Stepper, child_env, close_stack, js
 from test_gate import ARM, INFEASIBLE, READY, gate_cmd, move, moved
 
 pytest.importorskip("control_msgs", reason="control_msgs not built into the venv (make)")
@@ -108,11 +108,7 @@ def paths(module_ros_context):
         obs.until(lambda: obs.model_status(0), 90.0, "the deaf gate's model")
         yield clients, obs, procs
     finally:
-        obs.close()
-        for c in clients.values():
-            c.close()
-        for p in procs:
-            p.stop(timeout=10.0)
+        close_stack([obs, *clients.values()], procs)
 
 
 def tagged(how: str, spec: dict = GENTLE) -> tuple:
@@ -129,18 +125,27 @@ def _texts():
     return outcomes
 
 
+def _aborted(client, g, what: str = ""):
+    """Send ``g`` (accepted at its goal response) and return its result, which must be ABORTED
+    with INVALID_GOAL."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    sent = client.send(g)
+    assert sent.handle.accepted, what
+    status, result = client.result(sent)
+    assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL), what
+    return result
+
+
 @pytest.mark.timeout(60)
 def test_late_acceptance_is_cancelled_on_arrival(paths):
     from action_msgs.msg import GoalStatus
-    from control_msgs.action import FollowJointTrajectory
 
     out = _texts()
     clients, obs, _ = paths
     g, tag = tagged("late")
-    sent = clients["dbl"].send(g)
-    assert sent.handle.accepted
-    status, result = clients["dbl"].result(sent)
-    assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
+    result = _aborted(clients["dbl"], g)
     assert result.error_string == out.late_text(DOUBLE, TIMEOUT)
     rec = obs.decision(tag)
     assert (rec["decision"], rec["reason"], rec["checked_decision"], rec["forwarded"]) == (
@@ -155,15 +160,11 @@ def test_late_acceptance_is_cancelled_on_arrival(paths):
 @pytest.mark.timeout(60)
 def test_silent_controller_is_cancelled_then_the_goal_aborted(paths):
     from action_msgs.msg import GoalStatus
-    from control_msgs.action import FollowJointTrajectory
 
     out = _texts()
     clients, obs, _ = paths
     g, tag = tagged("silent")
-    sent = clients["dbl"].send(g)
-    assert sent.handle.accepted
-    status, result = clients["dbl"].result(sent)
-    assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL)
+    result = _aborted(clients["dbl"], g)
     assert result.error_string == out.silent_text(DOUBLE, TIMEOUT, True)
     # the client's goal ended only after the controller's: cancelled, confirmed
     assert obs.of(tag, 4) == ["received", "accepted", "cancel_requested", "canceled"]
@@ -251,7 +252,6 @@ def test_reject_forwards_no_start_jump_past_stamp_or_positions_only(paths):
     controller starts inside it, away from the robot) and positions-only points (linear segments,
     velocity steps) are refused in reject mode; the controller never hears of them."""
     from action_msgs.msg import GoalStatus
-    from control_msgs.action import FollowJointTrajectory
     from rclpy.clock import Clock
     from rclpy.duration import Duration
 
@@ -268,10 +268,7 @@ def test_reject_forwards_no_start_jump_past_stamp_or_positions_only(paths):
         tags.append(tag)
         if ago is not None:
             g.trajectory.header.stamp = (Clock().now() - Duration(seconds=ago)).to_msg()
-        sent = clients["dbl"].send(g)
-        assert sent.handle.accepted, name
-        status, result = clients["dbl"].result(sent)
-        assert (status, result.error_code) == (GoalStatus.STATUS_ABORTED, FollowJointTrajectory.Result.INVALID_GOAL), name
+        result = _aborted(clients["dbl"], g, name)
         rec = obs.decision(tag)
         assert (rec["decision"], rec["reason"], rec["feasible"], rec["forwarded"]) == ("rejected", "infeasible", False,
                                                                                        None), name

@@ -101,3 +101,22 @@ def test_without_a_state_the_first_point_is_the_start(stamp, receipt, at):
     tr = ControllerTracker(PANDA, Settings())
     tr.follow(_quintic_rest([0.0, 1.0], [Q0, Q0 + 0.2]), timing=Timing(stamp, receipt))
     np.testing.assert_allclose(tr.reference(at), Q0 + 0.1, rtol=0, atol=1e-14)
+
+
+def test_the_lock_is_held_only_to_replace_the_plan():
+    """The node's joint_states lock is taken to swap the plan in (the old plan still in place on
+    entry), never for a trajectory the controller refuses."""
+    tr = ControllerTracker(PANDA, Settings())
+    seen: list = []
+
+    class Lock:
+        def __enter__(self):
+            seen.append(tr.reference(10.5))
+
+        def __exit__(self, *exc):
+            return False
+
+    tr.follow(_quintic_rest([0.0, 1.0], [Q0, Q0 + 0.2]), timing=Timing(0.0, 10.0), lock=Lock())
+    tr.follow(_quintic_rest([0.0, 0.5], [Q0, Q0 - 0.2]), timing=Timing(8.0, 10.5), lock=Lock())
+    assert len(seen) == 1 and seen[0] is None   # entered once, before the first plan was in
+    np.testing.assert_allclose(tr.reference(10.5), Q0 + 0.1, rtol=0, atol=1e-14)

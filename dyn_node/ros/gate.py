@@ -620,9 +620,8 @@ def _executed(node: Any, decision: Decision, goal: Any, names: list[str],
     _core, state = node.execution_state()
     timing = Timing(stamp_to_s(header.stamp), node.get_clock().now().nanoseconds * 1e-9)
     record(timing, state)
-    with node._io_lock:
-        core.tracker.follow(decision.trajectory, timing=timing, start=state,
-                            options=options_for(core.settings).execution)
+    core.tracker.follow(decision.trajectory, timing=timing, start=state, lock=node._io_lock,
+                        options=options_for(core.settings).execution)
     if decision.result is not None:
         node._publish_verdict(node._pub_feasibility, verdict_array(decision.result.statuses(core.model.name),
                                                                    header.stamp, header.frame_id, REQUEST_EXECUTE))

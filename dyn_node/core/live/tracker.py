@@ -3,6 +3,8 @@ stale or fault, from the monitor's results and the active trajectory."""
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
+from typing import Any
 from bisect import bisect_right
 
 import numpy as np
@@ -57,14 +59,16 @@ class ControllerTracker:
         self._episode = None  # the open ContactEpisode behind contact / collision
 
     def follow(self, traj: Trajectory, *, timing: Timing, start: StartState | None = None,
-               options: ExecutionOptions = ExecutionOptions()) -> Execution:
+               options: ExecutionOptions = ExecutionOptions(), lock: Any = None) -> Execution:
         """Track ``traj`` (model order) as the controller executes it (the execution model:
         received at ``timing`` by a robot in ``start``, so a start segment, a past stamp's cut and
         a held single point are followed too). A trajectory the controller refuses leaves the
-        plan it runs in place. Returns the execution."""
+        plan it runs in place. ``lock``: held only while the plan is replaced (the execution is
+        built outside it: the node's joint_states wait on that lock). Returns the execution."""
         ex = execute(traj, start, timing, options)
         if not ex.refusals:
-            self.track(ex, timing.receipt_s)
+            with lock if lock is not None else nullcontext():
+                self.track(ex, timing.receipt_s)
         return ex
 
     def track(self, ex: Execution, receipt_s: float) -> None:

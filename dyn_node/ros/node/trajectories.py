@@ -116,10 +116,9 @@ class TrajectoryWorker:
             current = self._core
             if (request == on_demand.REQUEST_EXECUTE and current is not None
                     and current.model.joint_names == model.joint_names):
-                with self._io_lock:
-                    current.tracker.follow(traj, timing=feasibility.Timing(stamp_s, receipt_s),
-                                           start=start_state,
-                                           options=on_demand.options_for(settings).execution)
+                current.tracker.follow(traj, timing=feasibility.Timing(stamp_s, receipt_s),
+                                       start=start_state, lock=self._io_lock,
+                                       options=on_demand.options_for(settings).execution)
             if traj.n_points < 2:
                 validate_trajectory(model.joint_names, names, times, P, V, A, min_points=2)
         except TrajectoryError as exc:
