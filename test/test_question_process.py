@@ -99,9 +99,14 @@ def test_a_malformed_question_is_refused_as_in_process(worker):
     assert got == questions.Refusal("non_finite", f"point 3: positions of {NAMES[2]} is nan")
 
 
-def test_a_killed_worker_answers_its_caller_and_is_replaced():
+def test_a_killed_worker_answers_its_caller_and_is_replaced(monkeypatch):
     """SIGKILL while a 20,000-point check is in the worker: the caller gets WorkerFailed naming
-    the signal (not silence), and the next question is answered by a new worker."""
+    the signal (not silence), and the next question is answered by a new worker. The restart is
+    held back here (3 s between starts), so that question is asked while no worker is up: it
+    waits for the new one (sent to the ended one it was refused: CI, 2026-12-06)."""
+    from dyn_node.core.live import question_process
+
+    monkeypatch.setattr(question_process, "RESTART_MIN_INTERVAL_S", 3.0)
     proc = QuestionProcess()
     try:
         first_pid = proc.pid

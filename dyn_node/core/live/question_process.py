@@ -53,6 +53,8 @@ if TYPE_CHECKING:  # imported where used: the worker lowers its priority before 
 
 #: a worker that dies at once (a broken environment) is not restarted in a tight loop
 RESTART_MIN_INTERVAL_S = 1.0
+#: how long a question asked while the worker restarts waits for the new one
+RESTART_WAIT_S = RESTART_MIN_INTERVAL_S + 10.0
 #: the worker's scheduling priority relative to the node (nice increment): on a machine short of
 #: cores the node's joint_states thread wins the CPU over a long computation (seen: the node's
 #: threads descheduled for 116 ms while the worker computed at the same priority, load 4-6 on 2 cores)
@@ -95,6 +97,10 @@ class QuestionProcess:
         self._closed = False
         self.restarts = 0
         self._started_at = 0.0
+        # set while a worker is up: a question asked during a restart waits for the new one
+        # (sent to the ended one it would be lost or refused)
+        self._up = threading.Event()
+        self._up.set()
         self._proc, self._conn = self._start()
         self._reader = threading.Thread(target=self._read_loop, name="dyn_node_question_reader",
                                         daemon=True)
@@ -139,7 +145,17 @@ class QuestionProcess:
         """The worker's answer to ``question`` (as :func:`questions.answer` returns it) with
         ``model`` and ``settings``; raises :class:`WorkerFailed` when the worker cannot answer."""
         pending = _Pending()
-        with self._send_lock:
+        deadline = time.monotonic() + RESTART_WAIT_S
+        while True:
+            if not self._up.wait(max(0.0, deadline - time.monotonic())):
+                raise WorkerFailed(f"the question worker did not come back within {RESTART_WAIT_S:g} s")
+            self._send_lock.acquire()
+            with self._lock:
+                up = self._up.is_set()
+            if up:
+                break
+            self._send_lock.release()   # a restart began meanwhile: wait for it
+        try:
             with self._lock:
                 if self._closed:
                     raise WorkerFailed("the question worker is closed")
@@ -159,6 +175,8 @@ class QuestionProcess:
                     self._pending.pop(job, None)
                 raise WorkerFailed(f"the question worker is not reachable ({exc}); it is being "
                                    "restarted") from exc
+        finally:
+            self._send_lock.release()
         pending.done.wait()
         status, value = pending.outcome
         if status == "answer":
@@ -195,6 +213,7 @@ class QuestionProcess:
             code = proc.wait()
         why = f"signal {-code}" if code < 0 else f"exit code {code}"
         with self._lock:
+            self._up.clear()   # questions from now on wait for the new worker
             failed, self._pending = self._pending, {}
             closing = self._closed
             self._model = None
@@ -203,12 +222,14 @@ class QuestionProcess:
                                    "answering" + ("" if closing else "; it is being restarted"))
                 pending.done.set()
             if closing:
+                self._up.set()   # waiters see it closed
                 return False
             self._log(f"question worker process ended ({why}); restarting it")
             wait = RESTART_MIN_INTERVAL_S - (time.monotonic() - self._started_at)
         if wait > 0:
             threading.Event().wait(wait)
         with self._send_lock, self._lock:
+            self._up.set()
             if self._closed:
                 return False
             self._proc, self._conn = self._start()
@@ -222,6 +243,7 @@ class QuestionProcess:
             if self._closed:
                 return
             self._closed = True
+            self._up.set()   # a question waiting for a restart sees it closed
             conn, proc = self._conn, self._proc
         if self._send_lock.acquire(timeout=timeout):  # not inside another thread's message
             try:
