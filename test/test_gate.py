@@ -4,6 +4,7 @@ code, feedback relayed, cancel and pre-emption, downstream absent and crashing."
 from __future__ import annotations
 
 import json
+import time
 import signal
 
 import numpy as np
@@ -218,10 +219,12 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
     # from READY, where the goal starts (the last test left the robot 0.2 rad away: a jump)
     assert client.result(client.send(_goal(HOME)))[0] == GoalStatus.STATUS_SUCCEEDED
     g = _goal(INFEASIBLE)
-    # on the states' own clock (wall-clock start + simulation time, which lags under load): the
-    # newest state once the probe has taken what arrived while the HOME goal ran
-    probe.steps.until(lambda: False, 0.5)
-    t_sent = max(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in probe.js[-50:])
+    # on the states' own clock (wall-clock start + simulation time: never ahead of the wall
+    # clock), so HOME's success was stamped before this instant; the probe's own delivery may lag
+    # under load (CI: states from before HOME's end were taken as "after"), so it waits for them
+    t_sent = time.time()
+    newest = lambda: max((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in probe.js), default=0.0)  # noqa: E731
+    probe.until(lambda: newest() >= t_sent, 20.0, "joint_states stamped after HOME's result")
     sent = client.send(g)
     assert sent.handle.accepted  # accepted, then ended at once: the string reaches MoveIt
     status, result = client.result(sent)
