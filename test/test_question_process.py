@@ -136,6 +136,63 @@ def test_a_killed_worker_answers_its_caller_and_is_replaced(monkeypatch):
         proc.close()
 
 
+#: a worker double: answers every question with bytes that are no pickle
+_UNREADABLE = """
+import sys
+from multiprocessing.connection import Connection
+conn = Connection(int(sys.argv[1]))
+while True:
+    msg = conn.recv()
+    if msg[0] == "ask":
+        conn.send_bytes(b"no pickle")
+"""
+
+
+@pytest.mark.timeout(120)
+def test_an_unreadable_answer_replaces_the_worker(monkeypatch):
+    """The first worker is a double whose answer cannot be unpickled: the reader says so, kills
+    and replaces it, the caller gets WorkerFailed with the reason (not silence: without the
+    reader's catch its thread ends and the caller waits forever), the next question is answered
+    by a real worker."""
+    import socket
+    import subprocess
+    import sys
+    from multiprocessing.connection import Connection
+
+    real_start, doubles = QuestionProcess._start, []
+
+    def start(self):
+        if doubles:
+            return real_start(self)
+        ours, theirs = socket.socketpair()
+        self._started_at = 0.0   # no hold-back before the restart
+        try:
+            proc = subprocess.Popen([sys.executable, "-c", _UNREADABLE, str(theirs.fileno())],
+                                    pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+        finally:
+            theirs.close()
+        doubles.append(proc)
+        return proc, Connection(ours.detach())
+
+    monkeypatch.setattr(QuestionProcess, "_start", start)
+    lines: list[str] = []
+    proc = QuestionProcess(log=lines.append)
+    try:
+        assert proc.pid == doubles[0].pid
+        with pytest.raises(WorkerFailed) as failed:
+            proc.ask(SETTINGS, MODEL, _question(questions.CHECK, n=20))
+        assert str(failed.value) == ("the question worker process ended (signal 9) while "
+                                     "answering; it is being restarted")
+        assert lines[0].startswith("question worker's answer unreadable (UnpicklingError(")
+        assert lines[0].endswith("); restarting it")
+        q = _question(questions.CHECK, n=20)
+        got = proc.ask(SETTINGS, MODEL, q)
+        assert proc.pid != doubles[0].pid and proc.restarts == 1 and len(doubles) == 1
+        assert got.message == questions.answer(Dynamics(MODEL), SETTINGS, q).message
+    finally:
+        proc.close()
+
+
 def test_a_closed_worker_refuses_with_the_reason():
     proc = QuestionProcess()
     proc.close()
