@@ -345,12 +345,12 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
         except TrajectoryError as err:   # slowed beyond what the check takes: give up
             sr.notes.append(str(err))
             return None
-        if res.feasible and not over:
+        if res.feasible:
             full = res if opts == sr.options else check_trajectory(sr.dynamics, out, sr.options,
                                                                    start=sr.start)
             return dict(trajectory=out, check=full, method="optimal", rounds=rnd,
                         w=sr.w + sr.w2, deviation=dev)
-        if (res.feasible or candidates.between(sr.dynamics, out, over)) and _finer(sr, over):
+        if candidates.between(sr.dynamics, out, over) and _finer(sr, over):
             continue
         if not _adjust(sr, over, lw, x):
             return None
@@ -358,9 +358,9 @@ def _optimal(sr: _Search, max_rounds: int) -> dict | None:
 
 
 def _finer(sr: _Search, over: Sequence[Violation]) -> bool:
-    """Points twice as dense (at most :data:`_FINER` times) when the check passed and only the
-    screen between points found a little over (the quintic between points rounds the law's
-    corners: its error shrinks with the period, a cap would cost time)."""
+    """Points twice as dense (at most :data:`_FINER` times) when all the check found is a little
+    over between points (:func:`candidates.between`: the quintic between points rounds the
+    law's corners; its error shrinks with the period, a cap would cost time)."""
     worst = max(abs(v.peak_value) / v.limit for v in over)
     if worst > 1.05 or sr.finer >= _FINER:
         return False
@@ -562,10 +562,9 @@ def _by_pieces(dynamics: Dynamics, parts: list[tuple], options: FeasibilityOptio
     if len(found) == 1:
         return found[0]
     out = _join([f["trajectory"] for f in found])
-    res, over = candidates.judge(dynamics, out, options, start)
-    if not res.feasible or over:
-        notes.append("the pieces joined fail: " + (candidates.describe(over) if over
-                                                   else res.message))
+    res, _ = candidates.judge(dynamics, out, options, start)
+    if not res.feasible:
+        notes.append("the pieces joined fail: " + res.message)
         return None
     return dict(trajectory=out, check=res, method="optimal",
                 rounds=sum(f["rounds"] for f in found), w=max(f["w"] for f in found),
@@ -614,10 +613,7 @@ def _adjust(sr: _Search, violations: Sequence[Violation], lw: timing.Law,
             widen = max(widen, ratio * 1.02)
             continue
         order = max(1, KIND_CLASS[v.kind].order if v.kind in KIND_CLASS else 2)
-        # a small overshoot between points (candidates.inside) needs a small cap: the law's
-        # own excess over the rows between grid points, not a limit the law broke
-        pad = 0.995 if v.unit == candidates.BETWEEN else 0.98
-        factor = min(pad, ratio ** (-2.0 / order) * pad)
+        factor = min(0.98, ratio ** (-2.0 / order) * 0.98)
         t0 = v.first_time_s - sr.w
         t1 = max(v.peak_time_s, v.first_time_s + v.duration_s) + sr.w
         s0, s1 = (float(timing.smoothed(lw, sr.w, np.array([tt]))[0][0]) for tt in (t0, t1))
