@@ -49,6 +49,8 @@ def run_demo(args: argparse.Namespace) -> int:
         scene_task_limits(run)
         scene_push(run, args.short)
         scene_press(run, say, banner, DemoTrajectory)
+        if run.stack is not None and run.verdict_stamps:
+            run.extra_verdicts += run.stack.count_verdicts(run.verdict_stamps)
         if len(run.children) > 1 and run.children[1].alive():
             run.bag_path = run.stack.call_stop_recording()
         _save_samples(run.stack, run.out)

@@ -55,7 +55,7 @@ class PressOutcome:
     estimates: list = field(default_factory=list)  # (stamp s, F̂ at frame)
     physics: dict = field(default_factory=dict)    # the last 'dyn_sim: physics' key/values
     max_penetration_m: float = 0.0
-    verdicts_seen: int = 0
+    verdict_stamps: list = field(default_factory=list)  # its trajectories' (their verdicts')
 
     def settled(self) -> tuple[np.ndarray | None, np.ndarray | None, int]:
         """(mean truth, mean estimate, samples) over the last SETTLED_WINDOW_S of the truth."""
@@ -141,12 +141,12 @@ def run_press(stack: Any, press: Any, release: Any, say: Callable[[str], None]) 
         say(f"  sent '{press.name}' ({press.description}); holding {HOLD_S:g} s")
         end_ns = start_ns + int((press.duration + HOLD_S) * 1e9)
         stack.spin_until(lambda: stack.now_ns() >= end_ns, press.duration + HOLD_S + 10)
-        o.verdicts_seen += stack.verdict_for(start_ns) is not None
+        o.verdict_stamps.append(start_ns)
         _fill(o, stack, raw_truth, est, phys, states_from)
         back_ns = stack.now_ns() + int(0.3e9)
         stack.send(release, back_ns)
         stack.spin_until(lambda: stack.now_ns() >= back_ns + int((release.duration + 0.5) * 1e9), release.duration + 10)
-        o.verdicts_seen += stack.verdict_for(back_ns) is not None
+        o.verdict_stamps.append(back_ns)
         return o
     finally:
         for s in subs:
@@ -186,7 +186,7 @@ def scene_press(run: Any, say: Callable[[str], None], banner: Callable[[str], No
     if o is None:
         run.missing("press scene (no ~/external_wrench from dyn_node or no dyn_node_interfaces)")
         return
-    run.extra_verdicts += o.verdicts_seen
+    run.verdict_stamps += o.verdict_stamps
     checks = press_checks(o)
     run.push_checks = run.push_checks + checks  # the summary lists the scenes' checks together
     for _, text in checks:

@@ -41,7 +41,7 @@ class PushOutcome:
     estimate_samples: int = 0
     wrenches: list = field(default_factory=list)  # (stamp s, frame_id, F̂)
     truth: list = field(default_factory=list)     # dyn_sim's ~/applied_wrench: (stamp s, link, F)
-    verdict_seen: bool = False           # dyn_node answered the trajectory on ~/feasibility
+    start_ns: int = 0                    # the trajectory's stamp (its ~/feasibility verdict's)
 
 
 def push_checks(o: PushOutcome) -> list[tuple[bool, str]]:
@@ -127,7 +127,7 @@ def run_push(stack: Any, traj: Any, say: Callable[[str], None]) -> PushOutcome |
                 o.reported_s, o.reported_state = recv, state
                 break
         o.wrenches, o.truth = wrenches, list(truth)
-        o.verdict_seen = stack.verdict_for(start_ns) is not None
+        o.start_ns = start_ns
         settle_estimate(o)
         return o
     finally:
@@ -147,7 +147,7 @@ def scene_push(run: DemoRun, short: bool) -> None:
     if o is None:
         run.missing("push scene (dyn_node publishes no ~/external_wrench)")
         return
-    run.extra_verdicts += o.verdict_seen
+    run.verdict_stamps.append(o.start_ns)
     run.push_checks = push_checks(o)
     for _, text in run.push_checks:
         say("  " + text.removeprefix("push: "))

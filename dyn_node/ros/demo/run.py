@@ -36,6 +36,9 @@ class DemoRun:
     bag_path: str | None = None
     task_checks: list[tuple[bool, str]] = field(default_factory=list)  # the task-limits scene's
     extra_verdicts: int = 0  # ~/feasibility answers of the scenes beyond the three trajectories
+    # the stamps of the scenes' trajectories on joint_trajectory: their ~/feasibility verdicts
+    # are counted once, before the recording stops (a loaded machine delivers some late)
+    verdict_stamps: list[int] = field(default_factory=list)
     push_checks: list[tuple[bool, str]] = field(default_factory=list)  # the push scene's
     retime_checks: list[tuple[bool, str]] = field(default_factory=list)  # ros/demo/retime.py
 

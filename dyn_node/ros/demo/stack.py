@@ -175,6 +175,12 @@ class Stack:
                         if isinstance(st.level, bytes) else int(st.level), st.message
         return None
 
+    def count_verdicts(self, stamps: list[int], timeout: float = 5.0) -> int:
+        """How many of the trajectories stamped ``stamps`` have their ~/feasibility verdict, the
+        late ones awaited up to ``timeout`` s (under load one came after its scene had looked)."""
+        self.spin_until(lambda: all(self.verdict_for(ns) is not None for ns in stamps), timeout)
+        return sum(self.verdict_for(ns) is not None for ns in stamps)
+
     def close(self) -> None:
         try:
             self.node.destroy_node()
