@@ -115,7 +115,7 @@ def stretch(dynamics: Dynamics, path: Path, traj: Trajectory, k: float,
                 res, over = judge(dynamics, out, options, start)
             except TrajectoryError:
                 continue
-        if res.feasible and not over and res.worst_ratio <= share:
+        if res.feasible and res.worst_ratio <= share:
             return dict(trajectory=out, check=res, method="uniform", deviation=dev)
         # over the share: velocity's ratio falls as 1/k, every other kind's at least as fast
         # once its static part is below the share (a few tries cover the rest)
