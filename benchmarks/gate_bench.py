@@ -117,15 +117,19 @@ def _records(client, topic: str) -> list[float]:
     return out
 
 
-def _wait_len(xs: list, n: int, timeout: float = 30.0) -> None:
+def _wait_until(cond, timeout: float, what: str) -> None:
     import threading
 
     deadline = time.monotonic() + timeout
     tick = threading.Event()
-    while len(xs) < n and time.monotonic() < deadline:
-        tick.wait(0.05)  # records arrive on the client's thread
-    if len(xs) < n:
-        raise RuntimeError(f"{len(xs)} of {n} messages arrived within {timeout:g} s")
+    while not cond() and time.monotonic() < deadline:
+        tick.wait(0.05)  # messages arrive on the client's thread
+    if not cond():
+        raise RuntimeError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+def _wait_len(xs: list, n: int, timeout: float = 30.0) -> None:
+    _wait_until(lambda: len(xs) >= n, timeout, f"{n} messages (got {len(xs)})")
 
 
 def _measure(n: int, n_retime: int) -> dict:
@@ -145,11 +149,14 @@ def _measure(n: int, n_retime: int) -> dict:
         checks = {k: _records(clients[k], f"/bench_{k}/gate_decisions") for k in ("gate", "retime")}
         from sensor_msgs.msg import JointState
 
-        heard: dict[str, list] = {k: [] for k in ("gate", "retime")}
-        for k, xs in heard.items():  # the gates answer joint_states: they have a state to check from
-            clients[k].thread.node.create_subscription(JointState, f"/bench_{k}/inverse_dynamics", xs.append, 10)
-        for xs in heard.values():
-            _wait_len(xs, 3, 60.0)
+        from dyn_node.ros.fjt_client import steady
+
+        heard: dict[str, list] = {k: [] for k in ("gate", "retime")}  # receipt times
+        for k, xs in heard.items():  # the gates keep up with joint_states: a fresh state to check from
+            clients[k].thread.node.create_subscription(
+                JointState, f"/bench_{k}/inverse_dynamics", lambda _m, xs=xs: xs.append(time.monotonic()), 10)
+        _wait_until(lambda: all(steady(xs, time.monotonic()) for xs in heard.values()), 60.0,
+                    "the gates to keep up with joint_states")
         g = _goal()
         block = max(n // 10, 1)
         progress("gate", f"{n} goals each, alternating blocks of {block}")

@@ -64,7 +64,7 @@ class Probe:
         self.records: list[dict] = []
         self.gate_status: list = []
         self.js: list = []
-        self.inverse: dict[str, list] = {g: [] for g in ready}
+        self.inverse: dict[str, list[float]] = {g: [] for g in ready}  # receipt times
         self.node.create_subscription(String, f"{ns}/{gate}/gate_decisions", self._on_record,
                                       QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 50)
@@ -80,7 +80,8 @@ class Probe:
                                       f"{ns}/joint_trajectory_controller/controller_state", self.state.append, 100)
         # a gate checks from the robot's state: ready once it computes torques from joint_states
         for g in ready:
-            self.node.create_subscription(JointState, f"{ns}/{g}/inverse_dynamics", self.inverse[g].append, 10)
+            self.node.create_subscription(JointState, f"{ns}/{g}/inverse_dynamics",
+                                          lambda _m, xs=self.inverse[g]: xs.append(time.monotonic()), 10)
         self.steps = Stepper(ctx, (self.node,), step_s=0.02)
 
     def _on_record(self, msg) -> None:
@@ -90,8 +91,10 @@ class Probe:
         self.gate_status += [s for s in msg.status if s.name == "dyn_node: gate"]
 
     def wait_ready(self, timeout: float = 90.0) -> None:
-        self.until(lambda: all(len(v) > 5 for v in self.inverse.values()), timeout,
-                   f"{', '.join(self.inverse)} to load the model and take joint_states")
+        from dyn_node.ros.fjt_client import steady
+
+        self.until(lambda: all(steady(v, time.monotonic()) for v in self.inverse.values()), timeout,
+                   f"{', '.join(self.inverse)} to load the model and keep up with joint_states")
 
     def until(self, cond, timeout: float, what: str) -> None:
         if not self.steps.until(cond, timeout):

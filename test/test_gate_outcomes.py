@@ -10,11 +10,13 @@ from __future__ import annotations
 import json
 import sys
 import threading
+import time
 import uuid
 
 import pytest
 
 from conftest import REPO, ChildProcess, Stepper, child_env, close_stack, js
+from dyn_node.ros.fjt_client import steady
 from test_gate import ARM, INFEASIBLE, READY, gate_cmd, move, moved
 
 pytest.importorskip("control_msgs", reason="control_msgs not built into the venv (make)")
@@ -50,7 +52,8 @@ class Observer:
                                       QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                                                  durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.node.create_subscription(DiagnosticArray, "/deaf/diagnostics", self.deaf_diag.append, 50)
-        self.node.create_subscription(JointState, "/dbl/gate/inverse_dynamics", self.inverse["dbl"].append, 10)
+        self.node.create_subscription(JointState, "/dbl/gate/inverse_dynamics",  # receipt times
+                                      lambda _m: self.inverse["dbl"].append(time.monotonic()), 10)
         self.node.create_subscription(JointState, "/deaf/gate_deaf/inverse_dynamics", self.inverse["deaf"].append, 10)
         self.deaf_js = self.node.create_publisher(JointState, "/deaf/joint_states", 10)
         self.steps = Stepper(ctx, (self.node,), step_s=0.02)
@@ -104,7 +107,8 @@ def paths(module_ros_context):
     try:
         for c in clients.values():
             c.wait_for_server(90.0)
-        obs.until(lambda: len(obs.inverse["dbl"]) > 5, 90.0, "the gate to take the double's joint_states")
+        obs.until(lambda: steady(obs.inverse["dbl"], time.monotonic()), 90.0,
+                  "the gate to keep up with the double's joint_states")
         obs.until(lambda: obs.model_status(0), 90.0, "the deaf gate's model")
         yield clients, obs, procs
     finally:

@@ -3,9 +3,30 @@ its feedback, wait for the goal response and the result (waits on futures, never
 by the gate demo, the gate bench and the tests."""
 from __future__ import annotations
 
+import bisect
 import threading
 from dataclasses import dataclass, field
 from typing import Any, Sequence
+
+
+#: How long a gate's per-sample output (``~/inverse_dynamics``, one per joint_states it takes) must
+#: have flowed with no gap over :data:`STEADY_GAP_S` before a client that just started the gate
+#: sends goals: the gate refuses goals whose joint_states are older than ``gate.max_state_age``
+#: (0.1 s), and its own start (model, question worker) can starve it for a few hundred ms on a
+#: small machine (measured: 246–281 ms, 2 cores, a fresh clone's first run).
+STEADY_S = 1.0
+STEADY_GAP_S = 0.08
+
+
+def steady(receipts: Sequence[float], now: float, *, window: float = STEADY_S,
+           max_gap: float = STEADY_GAP_S) -> bool:
+    """True when the receipt times ``receipts`` (monotonic, ascending) cover the ``window`` s up
+    to ``now`` with no gap over ``max_gap`` s, the one since the last receipt included."""
+    first = bisect.bisect_right(receipts, now - window) - 1
+    if first < 0 or now - receipts[-1] > max_gap:
+        return False
+    recent = receipts[first:]
+    return all(b - a <= max_gap for a, b in zip(recent, recent[1:]))
 
 
 def duration(t: float) -> Any:

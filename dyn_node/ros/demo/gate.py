@@ -71,7 +71,7 @@ class _Watch:
         self.lock = threading.Lock()
         self.js: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.records: list[dict] = []
-        self.ready = {m: 0 for m in modes}
+        self.receipts: dict[str, list[float]] = {m: [] for m in modes}  # of ~/inverse_dynamics
         self.node.create_subscription(JointState, f"{NS}/joint_states", self._on_js, 1000)
         for m in modes:
             self.node.create_subscription(String, f"{NS}/gate_{m}/gate_decisions", self._on_record,
@@ -89,8 +89,13 @@ class _Watch:
             self.records.append(json.loads(m.data))
 
     def _tick(self, mode: str) -> None:
-        with self.lock:
-            self.ready[mode] += 1
+        self.receipts[mode].append(time.monotonic())
+
+    def ready(self) -> bool:
+        """Every gate keeps up with joint_states (:func:`~dyn_node.ros.fjt_client.steady`)."""
+        from dyn_node.ros.fjt_client import steady
+
+        return all(steady(r, time.monotonic()) for r in self.receipts.values())
 
     def since(self, t: float) -> list[tuple[float, np.ndarray, np.ndarray]]:
         with self.lock:
@@ -200,8 +205,9 @@ def gate_scene(env: dict[str, str], logs: Path, say: Callable[[str], None]) -> t
     try:
         for c in clients.values():
             c.wait_for_server(90.0)
-        if not _wait(lambda: min(watch.ready.values()) > 5, 90.0):
-            return [(False, "gate: the gates did not load the model within 90 s")], unavailable
+        if not _wait(watch.ready, 90.0):
+            return [(False, "gate: the gates did not load the model and keep up with joint_states "
+                            "within 90 s")], unavailable
         limits = np.asarray(load_model(builtin="panda").limits.effort, dtype=float)  # model order = ARM
         return _scene_goals(clients, watch, limits, say), unavailable
     finally:
