@@ -189,9 +189,15 @@ def retime(dynamics: Dynamics, traj: Trajectory, *, start: StartState | None = N
         return RetimeResult(False, None, duration_out=math.nan, lower_bound=lower,
                             message="no retiming passed the exact check (optimal search and "
                                     f"uniform stretch both failed){why}", **base)
-    out = pick["trajectory"]
+    return _retimed(pick, found, uniform, base, lower, why, moving_start)
+
+
+def _retimed(pick: dict, found: dict | None, uniform: dict | None, base: dict, lower: float,
+             why: str, moving_start: bool) -> RetimeResult:
+    """The answer ``pick`` (the faster candidate) with its message."""
+    out, uniform_T = pick["trajectory"], base["duration_uniform"]
     frm = " from the moving start state" if moving_start else ""
-    msg = (f"retimed ({pick['method']}{frm}): {duration_in:.4g} s → {out.duration:.4g} s, "
+    msg = (f"retimed ({pick['method']}{frm}): {base['duration_in']:.4g} s → {out.duration:.4g} s, "
            f"uniform {uniform_T:.4g} s, {_tstar(lower, base)}; "
            f"{_won(found, uniform, uniform_T)}{why}; "
            f"re-check: {pick['check'].message}")
