@@ -64,6 +64,10 @@ class Probe:
         self.records: list[dict] = []
         self.gate_status: list = []
         self.js: list = []
+        # stamps (s) of js and state, taken at receipt: a wait's condition counts the newest
+        # without scanning every message of the module (a Stepper spins one callback per check)
+        self.js_t: list[float] = []
+        self.state_t: list[float] = []
         self.inverse: dict[str, list[float]] = {g: [] for g in ready}  # receipt times
         self.node.create_subscription(String, f"{ns}/{gate}/gate_decisions", self._on_record,
                                       QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
@@ -72,17 +76,34 @@ class Probe:
 
         self.ctrl: list = []  # the gate node's ~/controller_status: it tracks what it forwarded
         self.node.create_subscription(DiagnosticStatus, f"{ns}/{gate}/controller_status", self.ctrl.append, 100)
-        self.node.create_subscription(JointState, f"{ns}/joint_states", self.js.append, 1000)
+        self.node.create_subscription(JointState, f"{ns}/joint_states",
+                                      lambda m: self._keep(m, self.js, self.js_t), 1000)
         from control_msgs.msg import JointTrajectoryControllerState
 
         self.state: list = []  # the controller's reference: it changes only with a new trajectory
         self.node.create_subscription(JointTrajectoryControllerState,
-                                      f"{ns}/joint_trajectory_controller/controller_state", self.state.append, 100)
+                                      f"{ns}/joint_trajectory_controller/controller_state",
+                                      lambda m: self._keep(m, self.state, self.state_t), 100)
         # a gate checks from the robot's state: ready once it computes torques from joint_states
         for g in ready:
             self.node.create_subscription(JointState, f"{ns}/{g}/inverse_dynamics",
                                           lambda _m, xs=self.inverse[g]: xs.append(time.monotonic()), 10)
         self.steps = Stepper(ctx, (self.node,), step_s=0.02)
+
+    @staticmethod
+    def _keep(msg, msgs: list, stamps: list[float]) -> None:
+        msgs.append(msg)
+        stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+
+    @staticmethod
+    def count_since(stamps: list[float], t: float) -> int:
+        """How many of the newest ``stamps`` (in arrival order, ascending) are at or after ``t``."""
+        n = 0
+        for x in reversed(stamps):
+            if x < t:
+                break
+            n += 1
+        return n
 
     def _on_record(self, msg) -> None:
         self.records.append(json.loads(msg.data))
@@ -226,8 +247,8 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
     # clock), so HOME's success was stamped before this instant; the probe's own delivery may lag
     # under load (CI: states from before HOME's end were taken as "after"), so it waits for them
     t_sent = time.time()
-    newest = lambda: max((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in probe.js), default=0.0)  # noqa: E731
-    probe.until(lambda: newest() >= t_sent, 20.0, "joint_states stamped after HOME's result")
+    probe.until(lambda: probe.count_since(probe.js_t, t_sent) > 0, 20.0,
+                "joint_states stamped after HOME's result")
     sent = client.send(g)
     assert sent.handle.accepted  # accepted, then ended at once: the string reaches MoveIt
     status, result = client.result(sent)
@@ -253,7 +274,8 @@ def test_infeasible_goal_rejected_with_the_verdict_and_sim_never_moves(stack):
     # controller's reference stays exactly where it held, for 1 s, and the joints within 1 mrad
     # (the last goal's settling) of where they were, not 0.5 rad away
     after = lambda xs: [m for m in xs if m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 >= t_sent]  # noqa: E731
-    probe.until(lambda: len(after(probe.js)) > 500 and len(after(probe.state)) > 50, 20.0, "1 s of states")
+    probe.until(lambda: probe.count_since(probe.js_t, t_sent) > 500 and probe.count_since(probe.state_t, t_sent) > 50,
+                20.0, "1 s of states")
     ref = np.array([m.reference.positions for m in after(probe.state)])
     assert np.array_equal(ref, np.repeat(ref[:1], len(ref), axis=0))
     q = np.array([m.position[:7] for m in after(probe.js)])
