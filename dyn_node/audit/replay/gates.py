@@ -119,7 +119,7 @@ class GateReplay:
         traj = Trajectory(times=arr("times"), positions=arr("positions"), velocities=arr("velocities"),
                           accelerations=arr("accelerations"))
         tracker.follow(traj, timing=timing_from_dict(rec["timing"]), start=start_from_dict(rec["start"]),
-                            options=options_for(settings).execution)
+                       options=options_for(settings).execution)
 
     def _end(self, rec: dict) -> None:
         """An end record: counted by event; a goal counted executed feasible whose end says the

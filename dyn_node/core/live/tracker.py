@@ -3,9 +3,9 @@ stale or fault, from the monitor's results and the active trajectory."""
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from contextlib import nullcontext
 from typing import Any
-from bisect import bisect_right
 
 import numpy as np
 
